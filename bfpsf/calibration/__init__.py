@@ -1,0 +1,1 @@
+"""calibration layer of bfpsf (see DESIGN.md data flow)."""

@@ -1,0 +1,1 @@
+"""interop layer of bfpsf (see DESIGN.md data flow)."""

@@ -1,0 +1,1 @@
+"""measure layer of bfpsf (see DESIGN.md data flow)."""

@@ -1,0 +1,1 @@
+"""model layer of bfpsf (see DESIGN.md data flow)."""

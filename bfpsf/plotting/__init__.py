@@ -1,0 +1,1 @@
+"""Figures. Each function imports matplotlib inside, takes ax=None and returns the figure."""

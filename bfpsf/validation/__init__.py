@@ -1,0 +1,1 @@
+"""validation layer of bfpsf (see DESIGN.md data flow)."""
