@@ -1,0 +1,140 @@
+"""``bfpsf measure IMAGE... -o STARS.ecsv``: detect and measure stars (issue 4).
+
+Parse, read the images (ADU, converted to electrons with the gain), call
+`bfpsf.measure.sources.measure_sources`, write the star table (ECSV) and the JSON summary.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import BFPSFFileExistsError, BFPSFInputError
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser(
+        "measure", help="detect stars and measure adaptive moments (sizes) in electrons",
+        description="Detect sources (photutils segmentation), subtract a local background, and "
+                    "measure peak, flux and adaptive second moments (G15 section 3.2). "
+                    "Saturated, blended and edge sources are flagged, not dropped.")
+    parser.add_argument("images", nargs="+", metavar="IMAGE.fits",
+                        help="bias-subtracted images in ADU (primary HDU, header EXPTIME)")
+    parser.add_argument("-o", "--output", required=True, metavar="STARS.ecsv",
+                        help="star table to write (ECSV)")
+    gain = parser.add_mutually_exclusive_group()
+    gain.add_argument("--calib", metavar="CALIB.fits",
+                      help="take the gain (e-/ADU) from this calibration file")
+    gain.add_argument("--gain", type=float, metavar="G",
+                      help="gain, e-/ADU (default: header GAIN of each image)")
+    parser.add_argument("--color", "--colour", dest="colour", action="append", metavar="COLUMN",
+                        help="colour column to pass through, read from --catalog or from the "
+                             "image's CATALOG extension (x, y in 0-based pixels); repeatable")
+    parser.add_argument("--catalog", metavar="FILE",
+                        help="table with x, y and colour columns (default: CATALOG HDU)")
+    parser.add_argument("--threshold", type=float, default=5.0,
+                        help="detection threshold, RMS of the smoothed image (default 5)")
+    parser.add_argument("--stamp-size", type=int, default=32,
+                        help="measurement stamp side, pixels (default 32)")
+    parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
+                        help="saturation level of the raw image, ADU (flags, does not drop)")
+    parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    return parser
+
+
+def _check_free(path, overwrite):
+    if path is not None and Path(path).exists() and not overwrite:
+        msg = f"{path} exists; pass --overwrite to replace it"
+        raise BFPSFFileExistsError(msg)
+
+
+def _read_image(path):
+    from astropy.io import fits
+
+    if not Path(path).exists():
+        msg = f"image {path} does not exist"
+        raise BFPSFInputError(msg, path)
+    with fits.open(path) as hdus:
+        for hdu in hdus:
+            if hdu.is_image and hdu.data is not None and hdu.data.ndim == 2:
+                data = np.asarray(hdu.data, dtype=float)
+                header = hdu.header.copy()
+                break
+        else:
+            msg = f"{path} holds no 2-D image"
+            raise BFPSFInputError(msg, path)
+        catalog = None
+        if "CATALOG" in hdus:
+            from astropy.table import Table
+
+            catalog = Table.read(hdus["CATALOG"])
+    return data, header, catalog
+
+
+def _calibration_gain(path):
+    # imported here: the calibration product is another module's concern (issue 2)
+    from ..calibration.product import Calibration
+
+    if not Path(path).exists():
+        msg = f"calibration file {path} does not exist"
+        raise BFPSFInputError(msg, path)
+    return Calibration.read(path).gain
+
+
+def _gain(args, header, path, calibration_gain):
+    if args.gain is not None:
+        gain = args.gain
+    elif calibration_gain is not None:
+        gain = calibration_gain
+    elif "GAIN" in header:
+        gain = float(header["GAIN"])
+    else:
+        msg = f"{path}: no gain: give --gain G or --calib CALIB.fits (no GAIN header)"
+        raise BFPSFInputError(msg, path)
+    if not (np.isfinite(gain) and gain > 0):
+        msg = f"the gain must be positive e-/ADU, got {gain!r}"
+        raise BFPSFInputError(msg, gain)
+    return float(gain)
+
+
+def run(args):
+    from astropy.table import Table, vstack
+
+    from ..measure.sources import measure_sources
+
+    _check_free(args.output, args.overwrite)
+    _check_free(args.json, args.overwrite)
+    external = Table.read(args.catalog) if args.catalog else None
+    tables, summary_images = [], []
+    calibration_gain = _calibration_gain(args.calib) if args.calib else None
+    for path in args.images:
+        image_adu, header, catalog = _read_image(path)
+        gain = _gain(args, header, path, calibration_gain)
+        colour_table = external if external is not None else catalog
+        if args.colour and colour_table is None:
+            msg = f"{path}: --color needs --catalog FILE or a CATALOG extension in the image"
+            raise BFPSFInputError(msg, path)
+        table = measure_sources(
+            image_adu * gain, threshold=args.threshold, stamp_size=args.stamp_size,
+            saturation=None if args.saturation is None else args.saturation * gain,
+            colour=colour_table if args.colour else None, colour_columns=args.colour)
+        table.add_column(str(path), name="image", index=0)
+        tables.append(table)
+        summary_images.append({"image": str(path), "gain": gain, "n_sources": len(table),
+                               "n_clean": int(np.sum(table["flags"] == 0)),
+                               "exptime": header.get("EXPTIME")})
+    stars = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
+    stars.meta["gains"] = [entry["gain"] for entry in summary_images]
+    stars.meta["images"] = [entry["image"] for entry in summary_images]
+    stars.write(args.output, format="ascii.ecsv", overwrite=args.overwrite)
+    summary = {"output": str(args.output), "n_stars": len(stars),
+               "n_clean": int(np.sum(stars["flags"] == 0)),
+               "n_flagged": int(np.sum(stars["flags"] != 0)), "images": summary_images}
+    if args.json:
+        with open(args.json, "w") as stream:
+            json.dump(summary, stream, indent=1)
+            stream.write("\n")
+    print(f"{len(stars)} sources ({summary['n_clean']} clean) in {len(args.images)} image(s); "
+          f"wrote {args.output}")
+    return 0

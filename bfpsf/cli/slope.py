@@ -1,0 +1,99 @@
+"""``bfpsf slope STARS.ecsv``: brighter-fatter slopes of the star sizes (issue 4).
+
+Parse, read the star table of ``bfpsf measure``, optionally correct the size-colour relation
+(G15 section 3.3), fit sigma_x, sigma_y and IQ against peak flux
+(`bfpsf.measure.slopes.bf_slopes`), print, write the JSON summary and the plot.
+
+JSON keys: ``x``, ``y``, ``iq`` (each ``{slope, slope_err, intercept, relative_percent}``,
+slope in pixels per 100 ke- of peak, relative_percent in percent of the intercept per
+100 ke-), ``n_stars``, and ``details`` (full fits, colour fit, peak range).
+"""
+
+import json
+from pathlib import Path
+
+from ..errors import BFPSFFileExistsError, BFPSFInputError
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser(
+        "slope", help="fit star sizes against peak flux (brighter-fatter slopes)",
+        description="Weighted linear fits of sigma_x = sqrt(Mxx), sigma_y = sqrt(Myy) and "
+                    "IQ against peak flux below a maximum peak (G15 section 3.3, fig. mbf).")
+    parser.add_argument("stars", metavar="STARS.ecsv", help="star table from bfpsf measure")
+    parser.add_argument("--psf", metavar="PSF.fits",
+                        help="flux-dependent PSF product (issue 5): adds model_residual")
+    parser.add_argument("--color", "--colour", dest="colour", metavar="COLUMN",
+                        help="correct the size-colour relation with this column first")
+    parser.add_argument("--color-max-peak", dest="colour_max_peak", type=float, metavar="E",
+                        help="peak limit of the colour-fit stars, e- (default: faintest half)")
+    parser.add_argument("--min-peak", type=float, default=None, metavar="E",
+                        help="smallest peak fitted, e- (default: all)")
+    parser.add_argument("--max-peak", type=float, default=None, metavar="E",
+                        help="largest peak fitted, e- (G15: below blooming; default: all "
+                             "unflagged stars)")
+    parser.add_argument("--unweighted", action="store_true",
+                        help="ignore the *_err columns (errors from the scatter)")
+    parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
+    parser.add_argument("--plot", metavar="FILE", help="write size against peak (PNG, PDF)")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    return parser
+
+
+def _check_free(path, overwrite):
+    if path is not None and Path(path).exists() and not overwrite:
+        msg = f"{path} exists; pass --overwrite to replace it"
+        raise BFPSFFileExistsError(msg)
+
+
+def run(args):
+    from astropy.table import Table
+
+    from ..measure.colour import correct_size_colour
+    from ..measure.slopes import bf_slopes
+
+    _check_free(args.json, args.overwrite)
+    _check_free(args.plot, args.overwrite)
+    if args.psf is not None:
+        # hook for issue 5 (flux-dependent PSF product): model_residual = sizes measured minus
+        # sizes predicted by the PSF at each star's flux, fitted the same way.
+        msg = (f"--psf {args.psf}: flux-dependent PSF products (issue 5) are not available in "
+               "this version of bfpsf yet")
+        raise BFPSFInputError(msg, args.psf)
+    if not Path(args.stars).exists():
+        msg = f"star table {args.stars} does not exist"
+        raise BFPSFInputError(msg, args.stars)
+    stars = Table.read(args.stars, format="ascii.ecsv")
+    colour_fit = None
+    if args.colour:
+        stars, colour_fit = correct_size_colour(stars, args.colour,
+                                                max_peak_e=args.colour_max_peak)
+    slopes = bf_slopes(stars, min_peak_e=args.min_peak, max_peak_e=args.max_peak,
+                       use_errors=not args.unweighted, colour_fit=colour_fit)
+    summary = {key: slopes[key].as_dict(short=True) for key in ("x", "y", "iq")}
+    summary["n_stars"] = int(slopes["n_stars"])
+    summary["details"] = {
+        "units": {"slope": "pixel per 100 ke- of peak", "intercept": "pixel",
+                  "relative_percent": "percent of the intercept per 100 ke- of peak",
+                  "range_percent": "percent of the intercept over the fitted peak range"},
+        **{key: slopes[key].as_dict() for key in ("x", "y", "iq")},
+        "colour_fit": None if colour_fit is None else colour_fit.as_dict(),
+        "stars": str(args.stars),
+    }
+    if args.json:
+        with open(args.json, "w") as stream:
+            json.dump(summary, stream, indent=1)
+            stream.write("\n")
+    if args.plot:
+        from ..plotting.moments import plot_size_vs_peak
+
+        figure = plot_size_vs_peak(stars, slopes, max_peak_e=args.max_peak)
+        figure.savefig(args.plot, dpi=120)
+    for key, label in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "IQ")):
+        fit = slopes[key]
+        print(f"{label:8s} slope {fit.slope:+.5f} +- {fit.slope_err:.5f} pix/100ke-  "
+              f"intercept {fit.intercept:.4f} pix  {fit.relative_percent:+.3f} %/100ke-")
+    print(f"{slopes['n_stars']} stars fitted"
+          + (f", colour-corrected with {args.colour} ({colour_fit.n_stars} faint stars)"
+             if colour_fit else ""))
+    return 0

@@ -1,0 +1,271 @@
+"""Brighter-fatter slopes: size against peak flux (G15 section 3.3, figure mbf, table xy_ccd_comp).
+
+G15 fits the width of spots and stars, ``sigma_x = sqrt(Mxx)`` and ``sigma_y = sqrt(Myy)``
+(and the image quality ``IQ = (Mxx Myy - Mxy^2)^(1/4)``), linearly against the peak flux below
+the level where blooming sets in, and quotes the slope in pixels per 100 ke- of peak and the
+relative broadening.
+
+Units of a `SlopeFit`:
+
+- ``slope``: pixels per 100 ke- of peak flux (G15 table xy_ccd_comp, "Delta sigma @ 100 ke-").
+- ``intercept``: pixels, the size extrapolated to zero flux (G15's "reference size").
+- ``relative_percent``: ``100 * slope / intercept``, the size increase in percent of the
+  zero-flux size per 100 ke- of peak.
+- ``range_percent``: ``100 * slope * (peak_max - peak_min) / 100 ke- / intercept``, the
+  increase over the fitted peak range in percent (G15's "3.5 % from a vanishing spot to
+  saturation" when the range starts near zero).
+"""
+
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+
+from ..errors import BFPSFInputError, BFPSFValueError
+
+__all__ = ["SlopeFit", "fit_bf_slope", "bf_slopes", "PEAK_UNIT_E"]
+
+#: the flux unit of slopes: 100 ke- of peak
+PEAK_UNIT_E = 1e5
+#: bfpsf.measure.sources.SourceFlag.STAMP_EDGE (kept here so slopes does not import photutils)
+_STAMP_EDGE = 256
+
+
+@dataclass(frozen=True)
+class SlopeFit:
+    """Weighted straight-line fit of a size against peak flux (module docstring for units).
+
+    Attributes
+    ----------
+    slope, slope_err : float
+        Pixels per 100 ke- of peak.
+    intercept, intercept_err : float
+        Pixels.
+    relative_percent, relative_percent_err : float
+        Percent of the intercept per 100 ke-.
+    range_percent : float
+        Percent over the fitted peak range.
+    chi2, dof : float, int
+        Of the fit with the given errors (None errors: residual-scaled, chi2 = dof).
+    error_scale : float
+        Factor applied to the errors, ``max(1, sqrt(chi2 / dof))`` (1 if not scaled).
+    n_points : int
+        Points fitted.
+    peak_min_e, peak_max_e : float
+        Peak range fitted, electrons.
+    slope_err_colour : float
+        Part of ``slope_err`` from the size-colour fit's coefficient errors (pixels per
+        100 ke-; 0 without colour correction), added in quadrature by `bf_slopes`.
+    """
+
+    slope: float
+    slope_err: float
+    intercept: float
+    intercept_err: float
+    relative_percent: float
+    relative_percent_err: float
+    range_percent: float
+    chi2: float
+    dof: int
+    error_scale: float
+    n_points: int
+    peak_min_e: float
+    peak_max_e: float
+    slope_err_colour: float = 0.0
+
+    def as_dict(self, short=False):
+        """The fit as a dict (``short=True``: slope, slope_err, intercept, relative_percent)."""
+        values = {key: (float(value) if isinstance(value, (float, np.floating)) else value)
+                  for key, value in asdict(self).items()}
+        if short:
+            return {key: values[key] for key in
+                    ("slope", "slope_err", "intercept", "relative_percent")}
+        return values
+
+    def predict(self, peak_e):
+        """Size at ``peak_e`` electrons of peak, pixels."""
+        return self.intercept + self.slope * np.asarray(peak_e) / PEAK_UNIT_E
+
+
+def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=None,
+                 scale_errors=True):
+    """Weighted linear fit ``size = intercept + slope * peak / 100 ke-``.
+
+    Parameters
+    ----------
+    peak_e : array_like
+        Peak flux of each object, electrons.
+    size : array_like
+        Size of each object, pixels (sigma_x, sigma_y or IQ).
+    size_err : array_like, optional
+        Errors of ``size``, pixels; weights are ``1 / size_err^2``. Without them the fit is
+        unweighted and the errors come from the residual scatter.
+    min_peak_e, max_peak_e : float, optional
+        Fit only ``min_peak_e <= peak <= max_peak_e`` (G15 stays below blooming: ~130 ke- for
+        the E2V-250). Non-finite values are always left out.
+    scale_errors : bool, optional
+        Multiply the errors by ``sqrt(chi2 / dof)`` when it exceeds 1 (default True), so
+        scatter beyond the given errors (e.g. PSF variations) shows up in the slope error.
+
+    Returns
+    -------
+    SlopeFit
+    """
+    peak = np.asarray(peak_e, dtype=float).ravel()
+    values = np.asarray(size, dtype=float).ravel()
+    if peak.shape != values.shape:
+        msg = f"peak_e and size differ in length: {peak.size} and {values.size}"
+        raise BFPSFInputError(msg, (peak.size, values.size))
+    errors = None
+    if size_err is not None:
+        errors = np.broadcast_to(np.asarray(size_err, dtype=float), values.shape).ravel()
+    keep = np.isfinite(peak) & np.isfinite(values)
+    if errors is not None:
+        keep &= np.isfinite(errors) & (errors > 0)
+    if min_peak_e is not None:
+        keep &= peak >= min_peak_e
+    if max_peak_e is not None:
+        keep &= peak <= max_peak_e
+    n_points = int(keep.sum())
+    if n_points < 3:
+        msg = (f"a brighter-fatter slope needs at least 3 usable objects in the peak range "
+               f"[{min_peak_e}, {max_peak_e}] e-, got {n_points}")
+        raise BFPSFValueError(msg, n_points)
+    x = peak[keep] / PEAK_UNIT_E
+    y = values[keep]
+    weights = np.ones(n_points) if errors is None else 1.0 / errors[keep]**2
+    design = np.stack([np.ones(n_points), x], axis=1)
+    normal = design.T @ (weights[:, None] * design)
+    if np.linalg.cond(normal) > 1e12:
+        msg = "the peak fluxes span no range: the slope is undetermined"
+        raise BFPSFValueError(msg, (x.min(), x.max()))
+    covariance = np.linalg.inv(normal)
+    intercept, slope = covariance @ (design.T @ (weights * y))
+    residual = y - (intercept + slope * x)
+    dof = n_points - 2
+    chi2 = float(np.sum(weights * residual**2))
+    if errors is None:
+        error_scale = np.sqrt(chi2 / dof)
+        chi2 = float(dof)
+    else:
+        error_scale = max(1.0, np.sqrt(chi2 / dof)) if scale_errors else 1.0
+    covariance = covariance * error_scale**2
+    slope_err = np.sqrt(covariance[1, 1])
+    intercept_err = np.sqrt(covariance[0, 0])
+    relative = 100.0 * slope / intercept
+    # error of slope / intercept with their covariance
+    relative_err = abs(relative) * np.sqrt(
+        (slope_err / slope)**2 + (intercept_err / intercept)**2
+        - 2.0 * covariance[0, 1] / (slope * intercept)) if slope != 0 else \
+        100.0 * slope_err / abs(intercept)
+    span = (peak[keep].max() - peak[keep].min()) / PEAK_UNIT_E
+    return SlopeFit(slope=float(slope), slope_err=float(slope_err), intercept=float(intercept),
+                    intercept_err=float(intercept_err), relative_percent=float(relative),
+                    relative_percent_err=float(relative_err),
+                    range_percent=float(relative * span), chi2=chi2, dof=int(dof),
+                    error_scale=float(error_scale), n_points=n_points,
+                    peak_min_e=float(peak[keep].min()), peak_max_e=float(peak[keep].max()))
+
+
+#: (result key, size column, error column) fitted by `bf_slopes`
+_AXES = (("x", "sigma_x", "sigma_x_err"), ("y", "sigma_y", "sigma_y_err"), ("iq", "iq", "iq_err"))
+
+
+def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_mask=None,
+              colour_fit=None):
+    """Brighter-fatter slopes of sigma_x, sigma_y and IQ from a star table (G15 fig. mbf).
+
+    Parameters
+    ----------
+    table : astropy.table.Table
+        Output of `bfpsf.measure.sources.measure_sources` (columns ``peak_e``, ``sigma_x``,
+        ``sigma_y``, ``iq``, ``flags``, optionally ``*_err``).
+    min_peak_e, max_peak_e : float, optional
+        Peak range fitted, electrons (G15: below blooming).
+    use_errors : bool, optional
+        Weight by the ``*_err`` columns when present (default True).
+    flag_mask : int, optional
+        Objects with any of these flag bits are left out. Default: every bit except
+        ``BAD_PIXELS`` and ``STAMP_EDGE`` (masked or missing pixels do not by themselves spoil
+        a measurement; the moments' ``EDGE`` flag marks a truncated object).
+    colour_fit : bfpsf.measure.colour.SizeColourFit, optional
+        The size-colour fit already subtracted from ``table``: the errors of its coefficients
+        move every corrected size coherently, and are propagated into ``slope_err``
+        (``slope_err_colour``). The Mxx and Myy fits are taken as independent for IQ.
+
+    Returns
+    -------
+    dict
+        ``{'x': SlopeFit, 'y': SlopeFit, 'iq': SlopeFit, 'n_stars': int}``.
+    """
+    from .moments import MomentsFlag
+
+    missing = [name for name in ("peak_e", "sigma_x", "sigma_y", "iq") if name not in
+               table.colnames]
+    if missing:
+        msg = f"the star table lacks columns {missing}"
+        raise BFPSFInputError(msg, missing)
+    if flag_mask is None:
+        flag_mask = ~(MomentsFlag.BAD_PIXELS | _STAMP_EDGE)
+    if "flags" in table.colnames:
+        clean = (np.asarray(table["flags"], dtype=np.int64) & flag_mask) == 0
+    else:
+        clean = np.ones(len(table), dtype=bool)
+    peak = np.asarray(table["peak_e"], dtype=float)
+    result = {}
+    for key, column, error_column in _AXES:
+        errors = None
+        if use_errors and error_column in table.colnames:
+            errors = np.asarray(table[error_column], dtype=float)[clean]
+        result[key] = fit_bf_slope(peak[clean], np.asarray(table[column], dtype=float)[clean],
+                                   size_err=errors, min_peak_e=min_peak_e,
+                                   max_peak_e=max_peak_e)
+    if colour_fit is not None:
+        _add_colour_errors(result, table, clean, colour_fit, min_peak_e, max_peak_e,
+                           use_errors)
+    result["n_stars"] = result["x"].n_points
+    return result
+
+
+def _add_colour_errors(result, table, clean, colour_fit, min_peak_e, max_peak_e, use_errors):
+    """Propagate the size-colour coefficient covariance into the slope errors."""
+    colour = np.asarray(table[colour_fit.colour_column], dtype=float)[clean]
+    has_colour = np.isfinite(colour)
+    powers = np.arange(colour_fit.degree, -1, -1)
+    # d(p(c) - p(c_ref)) / d coefficient_k, zero for stars left uncorrected
+    design = np.where(has_colour[:, None],
+                      np.where(has_colour, colour, 0.0)[:, None]**powers
+                      - colour_fit.colour_reference**powers, 0.0)
+    peak = np.asarray(table["peak_e"], dtype=float)[clean]
+    moments = {name: np.asarray(table[name], dtype=float)[clean] for name in ("mxx", "myy")}
+    derivatives = {}
+    for key, column, error_column in _AXES:
+        size = np.asarray(table[column], dtype=float)[clean]
+        errors = (np.asarray(table[error_column], dtype=float)[clean]
+                  if use_errors and error_column in table.colnames else None)
+        base = result[key].slope
+
+        def slope_change(perturbation):
+            # the fit is linear in the sizes: the slope change of a unit perturbation
+            return fit_bf_slope(peak, size + perturbation, size_err=errors,
+                                min_peak_e=min_peak_e, max_peak_e=max_peak_e).slope - base
+
+        variance = 0.0
+        for moment in (("mxx",) if key == "x" else ("myy",) if key == "y" else ("mxx", "myy")):
+            if moment not in colour_fit.coefficients:
+                continue
+            if key == "iq":
+                # d iq / d M = iq * M_other / (4 det), det ~ Mxx Myy
+                other = moments["myy" if moment == "mxx" else "mxx"]
+                dsize_dm = size * other / (4.0 * moments["mxx"] * moments["myy"])
+            else:
+                dsize_dm = 1.0 / (2.0 * size)
+            gradient = np.array([slope_change(-dsize_dm * design[:, k])
+                                 for k in range(design.shape[1])])
+            variance += gradient @ colour_fit.covariance[moment] @ gradient
+        derivatives[key] = np.sqrt(variance)
+    for key, colour_err in derivatives.items():
+        fit = result[key]
+        total = np.hypot(fit.slope_err, colour_err)
+        result[key] = replace(fit, slope_err=float(total), slope_err_colour=float(colour_err),
+                              relative_percent_err=float(fit.relative_percent_err * total
+                                                         / fit.slope_err))
