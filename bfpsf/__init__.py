@@ -22,6 +22,11 @@ _EXPORTS = {
     "adaptive_moments": "bfpsf.measure.moments",
     "Moments": "bfpsf.measure.moments",
     "FluxDependentPSF": "bfpsf.model.psf",
+    "solve_boundary_shifts": "bfpsf.calibration.coefficients",
+    "adaptive_moments_batch": "bfpsf.measure.moments",
+    "measure_sources": "bfpsf.measure.sources",
+    "BFSensor": "bfpsf.interop.galsim",
+    "silicon_boundary_shifts": "bfpsf.interop.galsim",
 }
 
 __all__ = ["__version__", *_EXPORTS]
