@@ -1,0 +1,85 @@
+"""``bfpsf simulate``: write simulated data with known truth.
+
+    bfpsf simulate flats --sensor lsst_itl_50_8 --levels 10000 30000 ... --pairs N --size N
+                         --gain G --read-noise R --nsteps K --seed S --out DIR [--overwrite]
+
+Each target is a sub-command of ``simulate`` (``flats`` here; others, e.g. ``spots``, can be
+added to ``TARGETS``).
+"""
+
+import argparse
+
+__all__ = ["add_parser", "run", "TARGETS"]
+
+
+def _add_flats(targets):
+    from ..validation.simulate_flats import DEFAULT_LEVELS_E
+
+    parser = targets.add_parser(
+        "flats",
+        help="flat-field pairs from GalSim's SiliconSensor (truth for `bfpsf calibrate`)",
+        description="Write flat-field pairs made with GalSim's SiliconSensor, in ADU, with "
+                    "EXPTIME and the true simulation parameters in each FITS header.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--sensor", default="lsst_itl_50_8",
+                        help="GalSim SiliconSensor name (lsst_itl_50_8, lsst_e2v_50_8, ...)")
+    parser.add_argument("--levels", type=float, nargs="+", default=list(DEFAULT_LEVELS_E),
+                        metavar="E", help="flat levels, electrons per pixel")
+    parser.add_argument("--pairs", type=int, default=1, help="pairs per level")
+    parser.add_argument("--size", type=int, default=256, help="image side, pixels")
+    parser.add_argument("--gain", type=float, default=1.5, help="gain, e-/ADU")
+    parser.add_argument("--read-noise", type=float, default=5.0, help="read noise, e- rms")
+    parser.add_argument("--nsteps", type=int, default=20,
+                        help="charge increments per flat (covariance bias ~ 1/nsteps^2)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed")
+    parser.add_argument("--exptime-per-e", type=float, default=1e-3,
+                        help="EXPTIME per electron of level, s")
+    parser.add_argument("--nonlinearity", type=float, default=0.0,
+                        help="quadratic non-linearity, 1/e-: signal = q (1 + NL q)")
+    parser.add_argument("--readout-correlation", type=float, default=0.0,
+                        help="serial readout correlation c (G15 pedestal, R(1,0) ~ c)")
+    parser.add_argument("--hot-columns", type=int, nargs="*", default=[], metavar="X",
+                        help="columns with 2%% extra charge")
+    parser.add_argument("--defect-clusters", type=int, default=0,
+                        help="number of 3x3 defect clusters")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing files")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+def _run_flats(args):
+    from ..validation.simulate_flats import write_flats
+
+    paths = write_flats(args.out, args.sensor, args.levels, overwrite=args.overwrite,
+                        pairs=args.pairs, size=args.size, gain=args.gain,
+                        read_noise_e=args.read_noise, nsteps=args.nsteps, seed=args.seed,
+                        exptime_per_e=args.exptime_per_e, nonlinearity=args.nonlinearity,
+                        readout_correlation=args.readout_correlation,
+                        hot_columns=args.hot_columns, defect_clusters=args.defect_clusters,
+                        progress=not args.quiet)
+    print(f"wrote {len(paths)} flats ({len(args.levels)} levels x {args.pairs} pair(s)) "
+          f"to {args.out}")
+    return 0
+
+
+#: simulate targets: name -> (function adding its parser, function running it)
+TARGETS = {"flats": (_add_flats, _run_flats)}
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser(
+        "simulate", help="write simulated data with known truth (flats, ...)",
+        description="Write simulated data with known truth.")
+    targets = parser.add_subparsers(dest="simulate_target", metavar="TARGET")
+    for name, (add, run_target) in TARGETS.items():
+        add(targets).set_defaults(_simulate_run=run_target)
+    parser.set_defaults(_simulate_parser=parser)
+    return parser
+
+
+def run(args):
+    if not hasattr(args, "_simulate_run"):
+        args._simulate_parser.print_help()
+        return 2
+    return args._simulate_run(args)

@@ -1,0 +1,315 @@
+"""Flat-field pairs simulated with GalSim's SiliconSensor: the truth for the calibration.
+
+Photon-shooting a big flat through `galsim.SiliconSensor` takes days, so flats are built the
+way GalSim's own tests build them (DESIGN.md, "Flats"): the image is accumulated in ``nsteps``
+increments; before each, the pixel areas of the charge collected so far are computed with
+``sensor.calculate_pixel_areas`` and Poisson(step * area) electrons are added. A margin of a
+few pixels is simulated around the image and cropped, because charge leaks out at the edges
+(GalSim shifts boundaries up to 4 pixels from a charge).
+
+The areas of step k are evaluated at the middle of the step (the charge so far scaled by
+(k + 1/2) / k), a midpoint rule: evaluating them at the start of each step under-estimates the
+covariances that build up during the exposure by the fraction 1 / nsteps (5 % for 20 steps),
+the midpoint rule by 1 / nsteps**2 (0.25 %).
+
+The charge image (electrons) is then read out: an optional serial readout correlation, an
+optional quadratic non-linearity, Gaussian read noise, and conversion to ADU with the gain.
+"""
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import BFPSFFileExistsError, BFPSFValueError
+
+__all__ = ["simulate_flat", "simulate_flats", "write_flats", "DEFAULT_LEVELS_E"]
+
+log = logging.getLogger(__name__)
+
+#: Default flat levels, electrons: a PTC from low flux to about 100 ke-.
+DEFAULT_LEVELS_E = (5_000.0, 10_000.0, 20_000.0, 35_000.0, 50_000.0, 65_000.0, 80_000.0,
+                    100_000.0)
+
+_zero_charge_areas = {}
+
+
+def _sensor(sensor):
+    import galsim
+
+    if isinstance(sensor, str):
+        return galsim.SiliconSensor(name=sensor)
+    if not isinstance(sensor, galsim.Sensor):
+        msg = f"sensor must be a GalSim sensor name or a galsim.Sensor, got {sensor!r}"
+        raise BFPSFValueError(msg, sensor)
+    return sensor
+
+
+def _areas(sensor, image):
+    areas = sensor.calculate_pixel_areas(image)
+    return areas.array if hasattr(areas, "array") else np.full(image.array.shape, float(areas))
+
+
+def simulate_flat(sensor, level_e, *, size, nsteps=20, rng, margin=5, midpoint=True):
+    """One flat-field charge image collected through a GalSim sensor, electrons.
+
+    Parameters
+    ----------
+    sensor : galsim.Sensor or str
+        The sensor (e.g. ``galsim.SiliconSensor(name='lsst_itl_50_8')``) or its name.
+    level_e : float
+        Expected charge per pixel of a sensor without brighter-fatter, electrons.
+    size : int or (int, int)
+        Image shape (ny, nx) after cropping, pixels.
+    nsteps : int, optional
+        Number of increments; the covariances are under-estimated by about 1 / nsteps**2
+        (module docstring). Default 20.
+    rng : numpy.random.Generator
+        Source of the Poisson draws.
+    margin : int, optional
+        Pixels simulated around the image and cropped. Default 5 (GalSim moves boundaries up
+        to 4 pixels from a charge).
+    midpoint : bool, optional
+        Evaluate the areas of each step at its middle (default) rather than at its start
+        (GalSim's tests), which under-estimates the covariances by 1 / nsteps.
+
+    Returns
+    -------
+    ndarray, shape (ny, nx)
+        Collected electrons per pixel (float64 holding integers).
+    """
+    import galsim
+
+    sensor = _sensor(sensor)
+    ny, nx = (size, size) if np.ndim(size) == 0 else tuple(size)
+    if level_e < 0 or not np.isfinite(level_e):
+        msg = f"level_e must be a finite charge >= 0 electrons, got {level_e}"
+        raise BFPSFValueError(msg, level_e)
+    if int(nsteps) != nsteps or nsteps < 1:
+        msg = f"nsteps must be a positive integer, got {nsteps}"
+        raise BFPSFValueError(msg, nsteps)
+    if min(ny, nx) < 1 or margin < 0:
+        msg = f"size must be positive and margin >= 0, got size {size}, margin {margin}"
+        raise BFPSFValueError(msg, (size, margin))
+    shape = (ny + 2 * margin, nx + 2 * margin)
+    charge = np.zeros(shape)
+    image = galsim.ImageD(charge.copy())  # GalSim works on its own copy of the pixels
+    key = (repr(sensor), shape)
+    if key not in _zero_charge_areas:
+        _zero_charge_areas[key] = _areas(sensor, image).copy()
+    step = float(level_e) / nsteps
+    for k in range(int(nsteps)):
+        if k == 0:
+            areas = _zero_charge_areas[key]
+        else:
+            scale = (k + 0.5) / k if midpoint else 1.0
+            image.array[:] = charge * scale  # charge at the middle (or start) of the step
+            areas = _areas(sensor, image)
+        charge += rng.poisson(step * areas)
+    return charge[margin:margin + ny, margin:margin + nx]
+
+
+def simulate_flats(sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, pairs=1, size=256,
+                   gain=1.5, read_noise_e=5.0, nsteps=20, seed=0, exptime_per_e=1e-3,
+                   nonlinearity=0.0, readout_correlation=0.0, hot_columns=(),
+                   hot_column_fraction=0.02, defect_clusters=0, defect_excess_sigma=6.0,
+                   margin=5, progress=False):
+    """Flat-field pairs in ADU from a GalSim SiliconSensor, with known truth.
+
+    Each flat: the charge collected by `simulate_flat`; optional hot columns and defect
+    clusters (the same pixels in every flat: they belong to the sensor); an optional serial
+    readout correlation ``q[:, i] + c q[:, i - 1]`` (the G15 "pedestal": a correlation
+    R(1, 0) ~ c at every flux); an optional quadratic non-linearity
+    ``q (1 + nonlinearity * q)``; Gaussian read noise; division by the gain.
+
+    Parameters
+    ----------
+    sensor : str or galsim.Sensor, optional
+        Default ``'lsst_itl_50_8'``.
+    levels_e : sequence of float, optional
+        Charge levels, electrons per pixel. Default `DEFAULT_LEVELS_E`.
+    pairs : int, optional
+        Pairs per level. Default 1.
+    size : int, optional
+        Image side, pixels. Default 256.
+    gain : float, optional
+        Gain, e-/ADU. Default 1.5.
+    read_noise_e : float, optional
+        Read noise, electrons rms. Default 5.
+    nsteps : int, optional
+        Increments per flat (`simulate_flat`). Default 20.
+    seed : int, optional
+        Seed of every random draw. Default 0.
+    exptime_per_e : float, optional
+        EXPTIME per electron of level, seconds (EXPTIME = level * exptime_per_e). Default 1e-3.
+    nonlinearity : float, optional
+        Quadratic non-linearity, 1/e-: signal = q (1 + nonlinearity q). Default 0.
+    readout_correlation : float, optional
+        Serial readout correlation c (G15 section 4.2.3 pedestal). Default 0.
+    hot_columns : sequence of int, optional
+        Columns (x, after cropping) with extra charge. Default none.
+    hot_column_fraction : float, optional
+        Extra mean charge of a hot column, as a fraction of the level. Default 0.02.
+    defect_clusters : int, optional
+        Number of 3 x 3 defect clusters at random places. Default 0.
+    defect_excess_sigma : float, optional
+        Extra mean charge of a defect pixel, in units of sqrt(level). Default 6.
+    margin : int, optional
+        Pixels simulated around each image and cropped. Default 5.
+    progress : bool, optional
+        Show a tqdm progress bar. Default False.
+
+    Returns
+    -------
+    list of (ndarray, float, dict)
+        For each level and pair, two entries ``(image_adu, exptime_s, header)``; the image is
+        float64 [y, x] in ADU; the header holds EXPTIME, BUNIT and the true parameters
+        (SIMGAIN, SIMNOISE, SENSOR, SIMLEVEL, SEED, ...).
+    """
+    sensor_object = _sensor(sensor)
+    sensor_name = sensor if isinstance(sensor, str) else getattr(sensor, "name", repr(sensor))
+    levels_e = np.atleast_1d(np.asarray(levels_e, dtype=float))
+    _validate(levels_e, pairs, size, gain, read_noise_e, hot_columns)
+    hot_columns = tuple(int(column) for column in hot_columns)
+    master = np.random.default_rng(seed)
+    # Sensor features are fixed: draw them from their own stream.
+    defect_rng = np.random.default_rng([seed, 1])
+    defect_corners = defect_rng.integers(0, size - 2, size=(int(defect_clusters), 2))
+
+    total = len(levels_e) * int(pairs) * 2
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total * int(nsteps), desc="simulating flats", unit="step")
+    outputs = []
+    for level in levels_e:
+        for pair in range(int(pairs)):
+            for member in (1, 2):
+                rng = np.random.default_rng(master.integers(2**63))
+                # one extra column on the left feeds the readout correlation of column 0
+                charge = simulate_flat(sensor_object, level, size=(size, size + 1),
+                                       nsteps=nsteps, rng=rng, margin=margin)
+                if bar is not None:
+                    bar.update(int(nsteps))
+                _add_features(charge[:, 1:], level, hot_columns, hot_column_fraction,
+                              defect_corners, defect_excess_sigma, rng)
+                if readout_correlation:
+                    charge[:, 1:] += readout_correlation * charge[:, :-1]
+                charge = charge[:, 1:]
+                signal = charge * (1.0 + nonlinearity * charge) if nonlinearity else charge
+                signal = signal + rng.normal(0.0, read_noise_e, signal.shape)
+                header = {
+                    "EXPTIME": float(level * exptime_per_e),
+                    "BUNIT": "ADU",
+                    "SENSOR": str(sensor_name),
+                    "SIMLEVEL": float(level),
+                    "SIMGAIN": float(gain),
+                    "SIMNOISE": float(read_noise_e),
+                    "SIMNSTEP": int(nsteps),
+                    "SIMNONLI": float(nonlinearity),
+                    "SIMRCORR": float(readout_correlation),
+                    "SIMHOTC": ",".join(str(column) for column in hot_columns),
+                    "SIMNDEF": int(defect_clusters),
+                    "SIMPAIR": int(pair),
+                    "SIMMEMB": int(member),
+                    "SEED": int(seed),
+                }
+                outputs.append((signal / gain, header["EXPTIME"], header))
+    if bar is not None:
+        bar.close()
+    return outputs
+
+
+def _validate(levels_e, pairs, size, gain, read_noise_e, hot_columns):
+    if levels_e.size == 0 or np.any(levels_e < 0) or not np.all(np.isfinite(levels_e)):
+        msg = f"levels_e must be finite charges >= 0 electrons, got {levels_e.tolist()}"
+        raise BFPSFValueError(msg, levels_e)
+    if int(pairs) != pairs or pairs < 1:
+        msg = f"pairs must be a positive integer, got {pairs}"
+        raise BFPSFValueError(msg, pairs)
+    if int(size) != size or size < 8:
+        msg = f"size must be an integer of at least 8 pixels, got {size}"
+        raise BFPSFValueError(msg, size)
+    if not gain > 0:
+        msg = f"gain must be positive (e-/ADU), got {gain}"
+        raise BFPSFValueError(msg, gain)
+    if not read_noise_e >= 0:
+        msg = f"read_noise_e must be >= 0 electrons, got {read_noise_e}"
+        raise BFPSFValueError(msg, read_noise_e)
+    for column in hot_columns:
+        if not 0 <= int(column) < size:
+            msg = f"hot column {column} is outside the image (0..{size - 1})"
+            raise BFPSFValueError(msg, column)
+
+
+def _add_features(charge, level, hot_columns, hot_column_fraction, defect_corners,
+                  defect_excess_sigma, rng):
+    """Add hot columns and defect clusters to ``charge`` in place."""
+    if hot_columns:
+        columns = list(hot_columns)
+        charge[:, columns] += rng.poisson(hot_column_fraction * level,
+                                          (charge.shape[0], len(columns)))
+    for y0, x0 in defect_corners:
+        excess = defect_excess_sigma * np.sqrt(max(level, 1.0))
+        charge[y0:y0 + 3, x0:x0 + 3] += rng.poisson(excess, (3, 3))
+
+
+def write_flats(outdir, sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, overwrite=False,
+                **options):
+    """Simulate flat pairs (`simulate_flats`) and write them as FITS files.
+
+    Each file holds one float32 image in ADU with EXPTIME, BUNIT = 'ADU' and the true
+    simulation parameters in its header. Names are ``flat_<level>e_p<pair>_<1|2>.fits``.
+
+    Parameters
+    ----------
+    outdir : str or path
+        Output directory (created if needed).
+    sensor, levels_e : optional
+        As in `simulate_flats`.
+    overwrite : bool, optional
+        Replace existing files. Default False: an existing file is an error, raised before
+        any simulation.
+    **options
+        Passed to `simulate_flats`.
+
+    Returns
+    -------
+    list of pathlib.Path
+        The files written, in the order of `simulate_flats`.
+
+    Raises
+    ------
+    BFPSFFileExistsError
+        A file exists and ``overwrite`` is False.
+    """
+    from astropy.io import fits
+
+    outdir = Path(outdir)
+    levels = np.atleast_1d(np.asarray(levels_e, dtype=float))
+    pairs = int(options.get("pairs", 1))
+    paths = [outdir / f"flat_{level:08.0f}e_p{pair:02d}_{member}.fits"
+             for level in levels for pair in range(pairs) for member in (1, 2)]
+    if len(set(paths)) != len(paths):
+        msg = f"levels_e has repeated values: {levels.tolist()}"
+        raise BFPSFValueError(msg, levels.tolist())
+    if not overwrite:
+        existing = [str(path) for path in paths if path.exists()]
+        if existing:
+            msg = (f"{len(existing)} output file(s) exist, e.g. {existing[0]}; "
+                   "use overwrite=True (--overwrite) to replace them")
+            raise BFPSFFileExistsError(msg)
+    flats = simulate_flats(sensor, levels, **options)
+    outdir.mkdir(parents=True, exist_ok=True)
+    for path, (image, _, header) in zip(paths, flats):
+        hdu = fits.PrimaryHDU(image.astype(np.float32))
+        for key, value in header.items():
+            hdu.header[key] = value
+        hdu.header.comments["EXPTIME"] = "exposure time (s)"
+        hdu.header.comments["SIMGAIN"] = "true gain (e-/ADU)"
+        hdu.header.comments["SIMNOISE"] = "true read noise (e-)"
+        hdu.header.comments["SIMLEVEL"] = "nominal charge level (e-)"
+        hdu.writeto(path, overwrite=overwrite)
+        log.info("wrote %s", path)
+    return paths
