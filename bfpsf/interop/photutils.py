@@ -1,0 +1,108 @@
+"""photutils glue: PSF photometry with the flux-dependent PSF.
+
+`FluxDependentPSF` is a photutils-compatible PSF model (``flux``, ``x_0``, ``y_0``; stateless
+``evaluate``; ``copy`` sharing arrays; ``bounding_box``), so it goes straight into
+`photutils.psf.PSFPhotometry` and `~photutils.psf.IterativePSFPhotometry`. The helpers here
+choose sensible defaults from the PSF (fit box, grouping distance) and build the static
+`~photutils.psf.ImagePSF` counterpart used for comparison.
+"""
+
+import numpy as np
+
+from ..errors import BFPSFValueError
+
+__all__ = ["default_fit_shape", "make_psf_photometry", "static_image_psf", "psf_fwhm"]
+
+
+def psf_fwhm(psf):
+    """FWHM of the pixelised P0 along x through its peak, pixels (half-maximum crossing)."""
+    oy, ox = psf.oversampling
+    row = psf.data[int(round(psf.origin[1]))]
+    half = row.max() / 2
+    above = np.nonzero(row >= half)[0]
+    left, right = above[0], above[-1]
+
+    def crossing(inside, outside):
+        return inside + (row[inside] - half) / (row[inside] - row[outside]) * (outside - inside)
+
+    x_left = crossing(left, left - 1) if left > 0 else left
+    x_right = crossing(right, right + 1) if right < row.size - 1 else right
+    return float((x_right - x_left) / ox)
+
+
+def default_fit_shape(psf):
+    """Odd fit box of about 3 FWHM (at least 5 pixels), pixels."""
+    size = max(5, int(np.ceil(3 * psf_fwhm(psf))))
+    return size + 1 - size % 2
+
+
+def make_psf_photometry(psf, *, fit_shape=None, group_separation=None, iterative=False,
+                        **kwargs):
+    """A photutils PSF photometry object using the flux-dependent PSF.
+
+    Parameters
+    ----------
+    psf : FluxDependentPSF or photutils PSF model
+        The model fitted to each source (``evaluate`` at the fitted flux, BF included).
+    fit_shape : int or (int, int), optional
+        Fit box, pixels (odd); default `default_fit_shape`.
+    group_separation : float, optional
+        Sources closer than this (pixels) are fitted simultaneously
+        (`photutils.psf.SourceGrouper`); default the fit box (stars whose boxes overlap are
+        fitted together), 0 disables grouping. Light of an ungrouped neighbour inside a fit box
+        biases that star; large values chain dense fields into very large groups.
+    iterative : bool, optional
+        Return an `~photutils.psf.IterativePSFPhotometry` (needs ``finder`` in kwargs).
+    **kwargs
+        Passed to the photutils class (``finder``, ``aperture_radius``, ``fitter``, ...).
+
+    Returns
+    -------
+    photutils.psf.PSFPhotometry or photutils.psf.IterativePSFPhotometry
+    """
+    from photutils.psf import IterativePSFPhotometry, PSFPhotometry, SourceGrouper
+
+    if fit_shape is None:
+        fit_shape = default_fit_shape(psf)
+    if group_separation is None:
+        group_separation = float(np.max(np.atleast_1d(fit_shape)))
+    if group_separation < 0:
+        msg = f"group_separation must be >= 0 pixels, got {group_separation}"
+        raise BFPSFValueError(msg, group_separation)
+    if group_separation > 0:
+        kwargs.setdefault("grouper", SourceGrouper(min_separation=group_separation))
+    kwargs.setdefault("aperture_radius", 1.5 * psf_fwhm(psf))
+    if iterative:
+        if kwargs.get("finder") is None:
+            msg = "iterative photometry needs a finder (e.g. photutils.detection.DAOStarFinder)"
+            raise BFPSFValueError(msg, None)
+        return IterativePSFPhotometry(psf, fit_shape, **kwargs)
+    return PSFPhotometry(psf, fit_shape, **kwargs)
+
+
+def static_image_psf(psf, flux=None):
+    """A photutils `~photutils.psf.ImagePSF` of the PSF at one flux (static, no BF in fits).
+
+    Parameters
+    ----------
+    psf : FluxDependentPSF
+    flux : float, optional
+        Flux at which the shape is frozen (the naive practice freezes it at the flux of the
+        bright stars the PSF was built from); default None gives P0 itself.
+
+    Returns
+    -------
+    photutils.psf.ImagePSF
+        Data ``P0 + F R[P0]`` on the oversampled grid (R of each phase, table of
+        `~bfpsf.model.psf.bf_response_table`), normalised like P0.
+    """
+    from photutils.psf import ImagePSF
+
+    from ..model.psf import bf_response_table
+
+    data = np.array(psf.data)
+    if flux is not None:
+        table = psf.bf_table if psf.bf_table is not None else bf_response_table(
+            psf.data, psf.shifts, psf.oversampling)
+        data = data + psf.gain * flux * table
+    return ImagePSF(data, origin=tuple(psf.origin), oversampling=tuple(psf.oversampling))

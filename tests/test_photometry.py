@@ -1,0 +1,273 @@
+"""PSF photometry with P(F): flux scale, grouped fits, predicted sizes, and the CLI."""
+
+import json
+
+import galsim
+import numpy as np
+import pytest
+from astropy.table import Table
+
+from bfpsf.errors import BFPSFFileExistsError, BFPSFInputError
+from bfpsf.interop.galsim_psf import render_stars
+from bfpsf.interop.photutils import make_psf_photometry, static_image_psf
+from bfpsf.measure.photometry import psf_photometry
+from bfpsf.model.psf import FluxDependentPSF
+from bfpsf.shifts import BoundaryShifts
+
+#: E2V-like shifts: a(0,0) = -2.3e-6 /e- as GalSim's lsst_e2v_50_8 (-2.2e-6).
+SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
+MOFFAT = galsim.Moffat(beta=3.0, fwhm=3.5)
+PEAK_PER_FLUX = 0.0518
+SKY = 1000.0  # e- per pixel: faint stars are sky-limited, as in real images
+
+
+@pytest.fixture(scope="module")
+def psf():
+    return FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=4, size=25)
+
+
+def grid_positions(n_x, n_y, spacing, rng):
+    grid = [(spacing * (i + 0.5), spacing * (j + 0.5)) for j in range(n_y) for i in range(n_x)]
+    return np.array(grid) + rng.uniform(-0.5, 0.5, (n_x * n_y, 2))
+
+
+def bias_mmag(ratio, faint):
+    return -2500 * np.log10(np.median(ratio[faint]) / np.median(ratio[~faint]))
+
+
+@pytest.fixture(scope="module")
+def two_flux_field():
+    """50 stars at 3 ke- peak and 50 at 120 ke- peak, isolated, BF on the whole image."""
+    rng = np.random.default_rng(2)
+    xy = grid_positions(10, 10, 30, rng)
+    faint = np.arange(100) % 2 == 0
+    fluxes = np.where(faint, 3e3, 1.2e5) / PEAK_PER_FLUX
+    image = render_stars(MOFFAT, xy, fluxes, (300, 300), shifts=SHIFTS) + SKY
+    return image, xy, fluxes, faint
+
+
+def test_flux_scale_faint_to_bright(psf, two_flux_field):
+    image, xy, fluxes, faint = two_flux_field
+    result = psf_photometry(image, psf, positions=xy, background_e=SKY, read_noise_e=5.0)
+    assert np.all(result["flags"] == 0)
+    ratio = np.asarray(result["flux_fit"]) / fluxes
+    # Acceptance 1 mmag; measured 0.02 mmag (the spline of P0 is the only approximation).
+    assert abs(bias_mmag(ratio, faint)) < 0.1
+    # The naive static PSF, frozen at the bright stars' shape, overestimates the faint stars
+    # (measured -12.6 mmag at this sky; -2.6 mmag for P0 itself): the bias bfpsf removes.
+    static = psf_photometry(image, static_image_psf(psf, flux=1.2e5 / PEAK_PER_FLUX),
+                            positions=xy, background_e=SKY, read_noise_e=5.0)
+    static_bias = bias_mmag(np.asarray(static["flux_fit"]) / fluxes, faint)
+    assert static_bias < -5.0
+
+
+def test_grouped_overlapping_stars(psf):
+    """100 stars in 50 blended pairs 4-7 pixels apart, fitted in groups by PSFPhotometry."""
+    rng = np.random.default_rng(3)
+    centres = grid_positions(10, 5, 30, rng)
+    angle = rng.uniform(0, 2 * np.pi, 50)
+    half_separation = rng.uniform(2.0, 3.5, 50)
+    offset = np.column_stack([np.cos(angle), np.sin(angle)]) * half_separation[:, None]
+    xy = np.vstack([centres + offset, centres - offset])
+    fluxes = np.exp(rng.uniform(np.log(3e3), np.log(1.2e5), 100)) / PEAK_PER_FLUX
+    image = render_stars(MOFFAT, xy, fluxes, (150, 300), shifts=SHIFTS) + SKY
+    result = psf_photometry(image, psf, positions=xy, background_e=SKY, read_noise_e=5.0)
+    assert len(result) == 100 and np.all(result["flags"] == 0)
+    assert np.all(result["group_size"] == 2)
+    ratio = np.asarray(result["flux_fit"]) / fluxes
+    # Unbiased: median 2e-5 measured. Each star's model lacks the cross term of the BF of
+    # its neighbour's charge on its own (G15 eq. scrambling_model is quadratic in the sum):
+    # worst star 0.27 % measured for peaks up to 120 ke- at 4 pixels.
+    assert abs(np.median(ratio) - 1) < 2e-4
+    assert np.abs(ratio - 1).max() < 5e-3
+    # Positions: the same missing cross term shifts a faint star next to a bright one by up
+    # to 0.02 pixel (measured).
+    np.testing.assert_allclose(result["x_fit"], xy[:, 0], atol=0.05)
+
+
+def weighted_sizes(stamps, sigma=2.0):
+    """Gaussian-weighted <dx^2>, <dy^2> about the stamp centre, pixels^2 (one per stamp)."""
+    half = stamps.shape[-1] // 2
+    y, x = np.mgrid[-half:half + 1, -half:half + 1]
+    weights = stamps * np.exp(-(x**2 + y**2) / (2 * sigma**2))
+    total = weights.sum(axis=(1, 2))
+    return (weights * x**2).sum(axis=(1, 2)) / total, (weights * y**2).sum(axis=(1, 2)) / total
+
+
+def test_residual_size_slope(psf):
+    """Sizes predicted by P(F) follow the measured BF broadening (acceptance: 2 % of the raw
+    slope in X and Y); stars made with the same operator, so the residual is ~0."""
+    rng = np.random.default_rng(4)
+    xy = grid_positions(10, 6, 30, rng)
+    peaks = np.exp(rng.uniform(np.log(3e3), np.log(1.2e5), len(xy)))
+    fluxes = peaks / PEAK_PER_FLUX
+    image = render_stars(MOFFAT, xy, fluxes, (180, 300), shifts=SHIFTS)
+    result = psf_photometry(image, psf, positions=xy, background_e=0.0, read_noise_e=5.0)
+    half = 8
+    data_stamps, model_stamps = [], []
+    for row, (x_0, y_0) in zip(result, xy):
+        col, line = int(np.rint(x_0)), int(np.rint(y_0))
+        y, x = np.mgrid[line - half:line + half + 1, col - half:col + half + 1]
+        data_stamps.append(image[y, x])
+        model_stamps.append(psf.evaluate(x, y, row["flux_fit"], row["x_fit"], row["y_fit"]))
+        # Same weight centre for data and model: re-centre both on the fitted position.
+    data_x, data_y = weighted_sizes(np.array(data_stamps))
+    model_x, model_y = weighted_sizes(np.array(model_stamps))
+    for measured, predicted in ((data_x, model_x), (data_y, model_y)):
+        raw_slope = np.polyfit(peaks, measured, 1)[0]
+        residual_slope = np.polyfit(peaks, measured - predicted, 1)[0]
+        assert raw_slope > 0
+        # Measured 4e-5 (X) and 9e-5 (Y) of the raw slope (the spline of P0 and R).
+        assert abs(residual_slope) < 0.02 * raw_slope
+
+
+def test_make_psf_photometry_defaults(psf):
+    photometry = make_psf_photometry(psf)
+    assert tuple(photometry.fit_shape) == (11, 11)
+    assert photometry.grouper.min_separation == 11.0
+
+
+def test_bad_input(psf):
+    with pytest.raises(BFPSFInputError, match="2-D"):
+        psf_photometry(np.zeros(10), psf)
+    with pytest.raises(BFPSFInputError, match="no finite pixel"):
+        psf_photometry(np.full((10, 10), np.nan), psf)
+    with pytest.raises(BFPSFInputError, match=r"\(N, 2\)"):
+        psf_photometry(np.zeros((10, 10)), psf, positions=[1.0, 2.0, 3.0])
+
+
+# -- command line --------------------------------------------------------------------------
+def make_calibration(shifts, gain, noise_e):
+    """A Calibration carrying the shifts, from a model PTC (as tests/test_product.py)."""
+    from bfpsf.calibration import ptc
+    from bfpsf.calibration.linearity import measure_linearity
+    from bfpsf.calibration.pedestal import measure_pedestal
+    from bfpsf.calibration.product import Calibration
+
+    area = shifts.area_quadrant(3)
+    mean_adu = np.linspace(3e3, 8e4, 10)
+    noise = np.zeros_like(area)
+    noise[0, 0] = (noise_e / gain) ** 2
+    cov = ptc.full_covariance_model(mean_adu, area, np.zeros_like(area), noise, gain)
+    npix = np.full(cov.shape, 1e6)
+    data = ptc.PTCData(mean_adu / 1e4, mean_adu, cov, npix)
+    fit = ptc.fit_ptc(data)
+    return Calibration(
+        gain=gain, gain_err=0.0, noise_e=noise_e, noise_e_err=0.0, a=fit.a, a_err=fit.a_err,
+        b=fit.b, b_err=fit.b_err, noise_matrix_e2=fit.noise_matrix_e2,
+        ptc=ptc.ptc_table(data, fit.gain, fit.used),
+        linearity=measure_linearity(mean_adu / 1e4, mean_adu, used=fit.used),
+        pedestal=measure_pedestal(mean_adu, cov, npix), model=fit.model, shifts=shifts,
+        # Every scalar finite: Calibration.read warns on NaN (masked) summary values.
+        turnoff_e=fit.turnoff_e, turnoff_detected=fit.turnoff_detected, chi2=fit.chi2,
+        ndof=fit.ndof)
+
+
+@pytest.fixture(scope="module")
+def cli_files(tmp_path_factory):
+    from bfpsf.validation.simulate_spots import write_image_adu
+
+    directory = tmp_path_factory.mktemp("cli")
+    gain = 1.5
+    make_calibration(SHIFTS, gain, 5.0).write(directory / "calib.fits")
+    rng = np.random.default_rng(5)
+    xy = grid_positions(8, 8, 36, rng)
+    peaks = np.exp(rng.uniform(np.log(3e3), np.log(1.0e5), len(xy)))
+    image = render_stars(MOFFAT, xy, peaks / PEAK_PER_FLUX, (288, 288), shifts=SHIFTS) + SKY
+    image = image + rng.normal(0.0, np.sqrt(image + 25.0))
+    write_image_adu(directory / "stars.fits", image, gain=gain)
+    return directory, xy, peaks / PEAK_PER_FLUX
+
+
+def test_cli_psf_and_photometry(cli_files):
+    from bfpsf.cli import main
+
+    directory, xy, fluxes = cli_files
+    calib, image = str(directory / "calib.fits"), str(directory / "stars.fits")
+    psf_path, phot_path = str(directory / "psf.fits"), str(directory / "phot.ecsv")
+    assert main(["psf", image, "--calib", calib, "-o", psf_path, "--oversampling", "2",
+                 "--size", "21", "--json", str(directory / "psf.json")]) == 0
+    summary = json.loads((directory / "psf.json").read_text())
+    assert summary["n_used"] >= 60 and summary["converged"]
+    assert summary["fwhm_pixels"] == pytest.approx(3.6, abs=0.1)
+    psf = FluxDependentPSF.read(psf_path)
+    assert psf.image_gain == 1.5 and psf.calibration == "calib.fits"
+    assert psf.shifts == SHIFTS
+    assert main(["photometry", image, "--psf", psf_path, "-o", phot_path, "--read-noise", "5",
+                 "--json", str(directory / "phot.json")]) == 0
+    table = Table.read(phot_path)
+    for column in ("x_fit", "y_fit", "flux_fit", "flux_err", "flags", "group_id", "qfit"):
+        assert column in table.colnames
+    assert str(table["flux_fit"].unit) == "electron"
+    # Match to the truth: fluxes in e- within 1 % once the flux of the Moffat outside the
+    # 21-pixel P0 support (about 1 %) is accounted; measured -0.6 %: the P0 of 64 noisy stars
+    # and the sigma-clipped sky of a crowded image set the absolute scale.
+    enclosed = MOFFAT.drawImage(nx=21, ny=21, scale=1.0).array.sum()
+    distance = np.hypot(table["x_fit"][:, None] - xy[None, :, 0],
+                        table["y_fit"][:, None] - xy[None, :, 1])
+    nearest = distance.argmin(axis=1)
+    matched = distance.min(axis=1) < 0.5
+    assert matched.sum() >= 60
+    ratio = np.asarray(table["flux_fit"])[matched] / fluxes[nearest[matched]] / enclosed
+    assert abs(np.median(ratio) - 1) < 1e-2
+    phot_summary = json.loads((directory / "phot.json").read_text())
+    assert phot_summary["n_stars"] == len(table)
+    # Outputs are never overwritten without --overwrite.
+    assert main(["photometry", image, "--psf", psf_path, "-o", phot_path]) == 1
+    with pytest.raises(BFPSFFileExistsError):
+        psf.write(psf_path)
+
+
+def test_cli_refuses_a_missing_psf(tmp_path):
+    from bfpsf.cli import main
+
+    assert main(["photometry", str(tmp_path / "x.fits"), "--psf", str(tmp_path / "none.fits"),
+                 "-o", str(tmp_path / "p.ecsv")]) == 1
+
+
+@pytest.mark.slow
+def test_residual_size_slope_silicon_sensor():
+    """E2V SiliconSensor spots (FWHM 3.5, peaks 3-120 ke-), shifts from the same sensor.
+
+    Acceptance of issue 5 is a residual slope <= 2 % of the raw BF slope; measured with 360
+    spots: one-step G15 model -9.2 +- 2.2 % (X), -5.3 +- 1.7 % (Y); with the build-up
+    integrated (16 steps) -6.0 +- 2.2 % (X), -1.7 +- 1.7 % (Y). P(F) over-predicts GalSim's
+    BF slope by a few % in X: not met in X (see the closing note).
+    """
+    import os
+
+    os.environ["OMP_NUM_THREADS"] = "1"
+    from bfpsf.interop.galsim import silicon_boundary_shifts
+    from bfpsf.validation.simulate_spots import simulate_spots
+
+    shifts = silicon_boundary_shifts("lsst_e2v_50_8")
+    spots = simulate_spots(sensor="lsst_e2v_50_8", fwhm=3.5, beta=3.0,
+                           peaks_e=(3e3, 1e4, 3e4, 6e4, 9e4, 1.2e5), n_per_level=60,
+                           stamp_size=32, seed=1)
+    y, x = np.mgrid[:32, :32]
+
+    def sizes(stamps):
+        dx = x[None] - spots.x[:, None, None]
+        dy = y[None] - spots.y[:, None, None]
+        weights = stamps * np.exp(-(dx**2 + dy**2) / (2 * 2.0**2))
+        total = weights.sum(axis=(1, 2))
+        return ((weights * dx**2).sum(axis=(1, 2)) / total,
+                (weights * dy**2).sum(axis=(1, 2)) / total)
+
+    def predicted(model):
+        return sizes(np.array([model.evaluate(x, y, flux, x_0, y_0) for x_0, y_0, flux
+                               in zip(spots.x, spots.y, spots.fluxes)]))
+
+    no_bf = predicted(FluxDependentPSF.from_galsim(MOFFAT, shifts.scaled(0.0)))
+    measured = sizes(spots.stamps)
+    one_step = predicted(FluxDependentPSF.from_galsim(MOFFAT, shifts))
+    buildup = predicted(FluxDependentPSF.from_galsim(MOFFAT, shifts, mode="exact",
+                                                     buildup_steps=16))
+    for axis in (0, 1):
+        raw = np.polyfit(spots.peaks, measured[axis] - no_bf[axis], 1)[0]
+        assert raw > 0
+        for model, bound in ((one_step, 0.15), (buildup, 0.10)):
+            residual = np.polyfit(spots.peaks, measured[axis] - model[axis], 1)[0]
+            print(f"axis {'xy'[axis]}: residual / raw slope {residual / raw:+.3f}")
+            # Bounds: measured value plus 2.5 sigma of 360 photon-shot spots (~2 %).
+            assert abs(residual / raw) < bound
