@@ -87,7 +87,38 @@ def test_slope_json_plot_and_psf_hook(star_image, tmp_path, capsys):
     assert result["details"]["colour_fit"]["colour_column"] == "g_i"
     assert plot.stat().st_size > 10_000
     assert main(["slope", str(stars), "--psf", str(tmp_path / "psf.fits")]) == 1
-    assert "not available" in capsys.readouterr().err
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_slope_psf_model_residual_removes_the_bf_slope(tmp_path):
+    """Stars drawn with bfpsf's own redistribution (BFSensor): the raw slope is significant, the
+    slope left after subtracting the sizes P(F) predicts is zero within errors."""
+    import galsim
+
+    from bfpsf.interop.galsim import BFSensor
+    from bfpsf.model.psf import FluxDependentPSF
+    from bfpsf.shifts import BoundaryShifts
+
+    # E2V-like strength: a(0,0) ~ -2e-6 per e-, a few percent growth at 100 ke- peak.
+    shifts = BoundaryShifts.from_radial_profile(lambda r: 1.2e-6 * np.exp(-r / 0.8), 5)
+    field = simulate_star_field(shape=(320, 320), n_stars=64, spacing=40, fwhm=3.5, beta=3.5,
+                                peak_range_e=(3e3, 1.2e5), sensor=BFSensor(shifts),
+                                sky_e=0.0, read_noise_e=5.0, seed=5)
+    image = tmp_path / "field.fits"
+    write_image_adu(image, field.image, gain=1.0, exptime=30.0)
+    psf_path = tmp_path / "psf.fits"
+    FluxDependentPSF.from_galsim(galsim.Moffat(beta=3.5, fwhm=3.5), shifts).write(psf_path)
+    stars, summary = tmp_path / "stars.ecsv", tmp_path / "slope.json"
+    assert main(["measure", str(image), "-o", str(stars), "--gain", "1"]) == 0
+    assert main(["slope", str(stars), "--psf", str(psf_path), "--json", str(summary)]) == 0
+    result = json.loads(summary.read_text())
+    for key in ("x", "y"):
+        raw, residual = result[key], result["model_residual"][key]
+        assert set(residual) == {"slope", "slope_err", "intercept", "relative_percent"}
+        assert raw["slope"] > 5 * raw["slope_err"]
+        # the residual is consistent with zero (4 sigma) and far below the raw slope
+        assert abs(residual["slope"]) < 4 * residual["slope_err"]
+        assert abs(residual["slope"]) < 0.25 * raw["slope"]
 
 
 def _slopes_against_hsm(tmp_path, peaks, n_per_level, seed):

@@ -46,6 +46,23 @@ def _check_free(path, overwrite):
         raise BFPSFFileExistsError(msg)
 
 
+def _model_residual(stars, args, colour_fit):
+    """Slopes of the sizes measured minus the sizes the flux-dependent PSF predicts."""
+    from ..measure.slopes import bf_slopes, model_size_increments
+    from ..model.psf import FluxDependentPSF
+
+    psf = FluxDependentPSF.read(args.psf)
+    if "flux_e" not in stars.colnames:
+        msg = f"{args.stars} has no flux_e column: --psf needs each star's flux"
+        raise BFPSFInputError(msg, args.stars)
+    increments = model_size_increments(psf, stars["flux_e"])
+    residual = stars.copy()
+    for key, column in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "iq")):
+        residual[column] = residual[column] - increments[key]
+    return bf_slopes(residual, min_peak_e=args.min_peak, max_peak_e=args.max_peak,
+                     use_errors=not args.unweighted, colour_fit=colour_fit)
+
+
 def run(args):
     from astropy.table import Table
 
@@ -54,12 +71,6 @@ def run(args):
 
     _check_free(args.json, args.overwrite)
     _check_free(args.plot, args.overwrite)
-    if args.psf is not None:
-        # hook for issue 5 (flux-dependent PSF product): model_residual = sizes measured minus
-        # sizes predicted by the PSF at each star's flux, fitted the same way.
-        msg = (f"--psf {args.psf}: flux-dependent PSF products (issue 5) are not available in "
-               "this version of bfpsf yet")
-        raise BFPSFInputError(msg, args.psf)
     if not Path(args.stars).exists():
         msg = f"star table {args.stars} does not exist"
         raise BFPSFInputError(msg, args.stars)
@@ -72,6 +83,11 @@ def run(args):
                        use_errors=not args.unweighted, colour_fit=colour_fit)
     summary = {key: slopes[key].as_dict(short=True) for key in ("x", "y", "iq")}
     summary["n_stars"] = int(slopes["n_stars"])
+    residual = None
+    if args.psf is not None:
+        residual = _model_residual(stars, args, colour_fit)
+        summary["model_residual"] = {key: residual[key].as_dict(short=True)
+                                     for key in ("x", "y", "iq")}
     summary["details"] = {
         "units": {"slope": "pixel per 100 ke- of peak", "intercept": "pixel",
                   "relative_percent": "percent of the intercept per 100 ke- of peak",
@@ -91,6 +107,9 @@ def run(args):
         figure.savefig(args.plot, dpi=120)
     for key, label in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "IQ")):
         fit = slopes[key]
+        if residual is not None:
+            print(f"{label:8s} residual slope after P(F) {residual[key].slope:+.5f} +- "
+                  f"{residual[key].slope_err:.5f} pix/100ke-")
         print(f"{label:8s} slope {fit.slope:+.5f} +- {fit.slope_err:.5f} pix/100ke-  "
               f"intercept {fit.intercept:.4f} pix  {fit.relative_percent:+.3f} %/100ke-")
     print(f"{slopes['n_stars']} stars fitted"
