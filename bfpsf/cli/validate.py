@@ -1,0 +1,110 @@
+"""``bfpsf validate``: end-to-end validation on GalSim SiliconSensor simulations.
+
+A thin layer over `bfpsf.validation.validate.validate`: simulate flats and Moffat spots, run the
+chain, print the side-by-side table, write the JSON summary and the Markdown report.
+"""
+
+import sys
+from pathlib import Path
+
+from ..errors import BFPSFFileExistsError
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser(
+        "validate", help="end-to-end validation on GalSim SiliconSensor simulations",
+        description="Simulate SiliconSensor flats and Moffat spots, calibrate, predict the BF "
+                    "slopes, fit P(F), compare with the pixel-level inverse and the photometry "
+                    "of a static PSF, and run the closed loop.")
+    parser.add_argument("--quick", action="store_true",
+                        help="small run (under 3 minutes on 2 cores); the README's command")
+    parser.add_argument("--sensor", default=None,
+                        help="SiliconSensor name (default lsst_itl_50_8)")
+    parser.add_argument("--fwhm", type=float, default=None, help="Moffat FWHM, pixels")
+    parser.add_argument("--beta", type=float, default=None, help="Moffat index")
+    parser.add_argument("--peaks", type=float, nargs="+", default=None, metavar="E",
+                        help="spot peak levels, e-")
+    parser.add_argument("--spots-per-level", type=int, default=None, dest="n_per_level")
+    parser.add_argument("--flat-size", type=int, default=None, help="flat side, pixels")
+    parser.add_argument("--flat-pairs", type=int, default=None, help="pairs per flat level")
+    parser.add_argument("--flat-levels", type=float, nargs="+", default=None, metavar="E")
+    parser.add_argument("--model-shifts", choices=("truth", "flats"), default="truth",
+                        help="shifts for P(F), the inverse and the loop (default: truth)")
+    parser.add_argument("--seed", type=int, default=None)
+    parser.add_argument("--report", metavar="DIR", help="write report.md and PNG figures")
+    parser.add_argument("--json", metavar="FILE", help="write the JSON summary")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return parser
+
+
+def _check_free(path, overwrite):
+    if path is not None and Path(path).exists() and not overwrite:
+        msg = f"{path} exists; pass --overwrite to replace it"
+        raise BFPSFFileExistsError(msg)
+
+
+def _config(args):
+    import dataclasses
+
+    from ..validation.validate import FULL, QUICK
+
+    base = QUICK if args.quick else FULL
+    changes = {"sensor": args.sensor, "fwhm": args.fwhm, "beta": args.beta,
+               "peaks_e": tuple(args.peaks) if args.peaks else None,
+               "n_per_level": args.n_per_level, "flat_size": args.flat_size,
+               "flat_pairs": args.flat_pairs, "seed": args.seed,
+               "flat_levels_e": tuple(args.flat_levels) if args.flat_levels else None}
+    return dataclasses.replace(base, **{k: v for k, v in changes.items() if v is not None})
+
+
+def _print_table(result):
+    slopes = result["slopes"]
+    print(f"measured BF slope (pix / 100 ke-): X {slopes['slope_x']:.4f} +- "
+          f"{slopes['slope_x_err']:.4f}, Y {slopes['slope_y']:.4f} +- {slopes['slope_y_err']:.4f}")
+    for row in result["prediction"].get("rows", []):
+        text = []
+        for axis in "xy":
+            error = row.get(f"predicted_slope_{axis}_err")
+            text.append(f"{axis.upper()} {row[f'predicted_slope_{axis}']:.4f}"
+                        + (f" +- {error:.4f}" if error is not None else "")
+                        + f" ({100 * row[f'predicted_over_measured_{axis}']:.1f} %)")
+        print(f"predicted from {row['shifts']}: {', '.join(text)}")
+    for key, label in (("psf", "residual slope after P(F)"),
+                       ("inverse", "residual slope after pixel inverse")):
+        stage = result[key]
+        if stage.get("available"):
+            print(f"{label}: X {stage['residual_slope_x_percent']:+.1f} +- "
+                  f"{stage['residual_slope_x_percent_err']:.1f} %, Y "
+                  f"{stage['residual_slope_y_percent']:+.1f} +- "
+                  f"{stage['residual_slope_y_percent_err']:.1f} % of raw")
+        else:
+            print(f"{label}: not available ({stage.get('reason')})")
+    psf = result["psf"]
+    if psf.get("available"):
+        print(f"photometry bias bright - faint: static PSF "
+              f"{psf['photometry_bias_static_mmag']:+.2f} mmag, P(F) "
+              f"{psf['photometry_bias_flux_dependent_mmag']:+.2f} mmag")
+    print(f"closed loop selected: {', '.join(result['diagnose']['selected']) or 'nothing'}")
+
+
+def run(args):
+    from ..validation.report import write_json, write_validation_report
+    from ..validation.validate import validate
+
+    _check_free(args.json, args.overwrite)
+    if args.report:
+        _check_free(Path(args.report) / "report.md", args.overwrite)
+    result = validate(_config(args), progress=not args.no_progress,
+                      shifts_for_model=args.model_shifts)
+    _print_table(result)
+    if args.json:
+        summary = {key: value for key, value in result.items()
+                   if key not in ("diagnosis", "truth_area", "residual_images")}
+        write_json(summary, args.json, overwrite=args.overwrite)
+    if args.report:
+        path = write_validation_report(result, args.report, overwrite=args.overwrite)
+        print(f"report: {path}", file=sys.stderr)
+    return 0

@@ -1,0 +1,162 @@
+"""Figures of the closed loop and of the end-to-end validation.
+
+Each function imports matplotlib inside, takes ``ax=None`` (or ``axes=None``) and returns the
+figure.
+"""
+
+import numpy as np
+
+__all__ = ["plot_sizes_before_after", "plot_candidates", "plot_residual_image",
+           "plot_radial_profile"]
+
+
+def _new_axes(ax, ncols=1, figsize=(6, 4)):
+    import matplotlib.pyplot as plt
+
+    if ax is not None:
+        return ax.figure, ax
+    figure, axes = plt.subplots(1, ncols, figsize=figsize, squeeze=False)
+    return figure, axes[0] if ncols > 1 else axes[0, 0]
+
+
+def plot_sizes_before_after(curves, *, axes=None, title=None):
+    """Size against peak in X and Y: data, base model, final model (left), residuals (right).
+
+    Parameters
+    ----------
+    curves : dict
+        ``DiagnosisResult.curves`` (``peak_e``, ``sigma_x``, ``sigma_y``, errors, ``base_*``,
+        ``final_*``, ``group``).
+    axes : sequence of two matplotlib Axes, optional
+    title : str, optional
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    import matplotlib.pyplot as plt
+
+    if axes is None:
+        figure, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    else:
+        figure = axes[0].figure
+    peak = np.asarray(curves["peak_e"]) / 1e3
+    for axis, colour, offset in (("x", "C0", 0.0), ("y", "C3", 0.0)):
+        data = np.asarray(curves[f"sigma_{axis}"])
+        error = np.asarray(curves[f"sigma_{axis}_err"])
+        base = np.asarray(curves[f"base_{axis}"])
+        final = np.asarray(curves[f"final_{axis}"])
+        axes[0].errorbar(peak, data, error, fmt="o", ms=3, color=colour,
+                         label=f"measured $\\sigma_{axis}$")
+        group = np.asarray(curves.get("group", np.zeros(peak.size, int)))
+        for g in np.unique(group):
+            members = np.flatnonzero(group == g)
+            order = members[np.argsort(peak[members])]
+            first = g == group.min()
+            axes[0].plot(peak[order], base[order], "--", color=colour, lw=1,
+                         label=f"base model {axis}" if first else None)
+            axes[0].plot(peak[order], final[order], "-", color=colour, lw=1.5,
+                         label=f"final model {axis}" if first else None)
+        axes[1].errorbar(peak, 1e3 * (data - base), 1e3 * error, fmt="o", ms=3, mfc="none",
+                         color=colour, label=f"{axis}: before")
+        axes[1].errorbar(peak + offset, 1e3 * (data - final), 1e3 * error, fmt="s", ms=3,
+                         color=colour, alpha=0.8, label=f"{axis}: after")
+    axes[0].set_xlabel("peak (ke-)")
+    axes[0].set_ylabel("sigma (pixels)")
+    axes[0].legend(fontsize=7, ncol=2)
+    axes[1].axhline(0, color="k", lw=0.8)
+    axes[1].set_xlabel("peak (ke-)")
+    axes[1].set_ylabel("measured - model (millipixels)")
+    axes[1].legend(fontsize=7, ncol=2)
+    if title:
+        figure.suptitle(title)
+    figure.tight_layout()
+    return figure
+
+
+def plot_candidates(candidates, *, ax=None, threshold=-10.0):
+    """Delta BIC of every candidate, one group of bars per round (negative is better).
+
+    Parameters
+    ----------
+    candidates : list of dict
+        ``DiagnosisResult.candidates``.
+    ax : matplotlib.axes.Axes, optional
+    threshold : float
+        Drawn as a dashed line.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    figure, ax = _new_axes(ax, figsize=(8, 4))
+    names = []
+    for entry in candidates:
+        if entry["name"] not in names:
+            names.append(entry["name"])
+    rounds = sorted({entry["round"] for entry in candidates})
+    width = 0.8 / max(len(rounds), 1)
+    for index, round_number in enumerate(rounds):
+        values = []
+        for name in names:
+            match = [c for c in candidates if c["round"] == round_number and c["name"] == name]
+            value = match[0]["delta_bic"] if match and match[0]["delta_bic"] is not None else 0
+            values.append(np.sign(value) * np.log10(1 + abs(value)))
+        positions = np.arange(len(names)) + (index - (len(rounds) - 1) / 2) * width
+        ax.bar(positions, values, width, label=f"round {round_number}")
+        for position, name in zip(positions, names):
+            match = [c for c in candidates if c["round"] == round_number and c["name"] == name]
+            if match and match[0]["delta_bic"] is None:
+                ax.text(position, 0.02, "n/t", ha="center", va="bottom", fontsize=6,
+                        rotation=90)
+    ax.axhline(-np.log10(1 + abs(threshold)), ls="--", color="k", lw=0.8,
+               label=f"threshold {threshold:g}")
+    ax.set_xticks(np.arange(len(names)))
+    ax.set_xticklabels(names, rotation=35, ha="right", fontsize=8)
+    ax.set_ylabel("sign(dBIC) log10(1 + |dBIC|)")
+    ax.legend(fontsize=8)
+    figure.tight_layout()
+    return figure
+
+
+def plot_residual_image(image, *, ax=None, title="stacked residual (e-)"):
+    """A residual image with a symmetric colour scale."""
+    figure, ax = _new_axes(ax, figsize=(4.5, 4))
+    image = np.asarray(image, float)
+    limit = np.nanmax(np.abs(image)) or 1.0
+    shown = ax.imshow(image, origin="lower", cmap="RdBu_r", vmin=-limit, vmax=limit)
+    figure.colorbar(shown, ax=ax)
+    ax.set_title(title)
+    ax.set_xlabel("x (pixels)")
+    ax.set_ylabel("y (pixels)")
+    figure.tight_layout()
+    return figure
+
+
+def radial_profile(image, centre=None, *, bin_width=0.5):
+    """Azimuthal mean of an image in rings of ``bin_width`` pixels: (radius, mean)."""
+    image = np.asarray(image, float)
+    ny, nx = image.shape
+    if centre is None:
+        centre = ((nx - 1) / 2.0, (ny - 1) / 2.0)
+    yy, xx = np.mgrid[:ny, :nx]
+    radius = np.hypot(xx - centre[0], yy - centre[1])
+    index = (radius / bin_width).astype(int)
+    sums = np.bincount(index.ravel(), image.ravel())
+    counts = np.bincount(index.ravel())
+    good = counts > 0
+    return (np.flatnonzero(good) + 0.5) * bin_width, sums[good] / counts[good]
+
+
+def plot_radial_profile(images, labels, *, ax=None):
+    """Radial profiles of residual images (e.g. before and after)."""
+    figure, ax = _new_axes(ax)
+    for image, label in zip(images, labels):
+        radius, profile = radial_profile(image)
+        ax.plot(radius, profile, "o-", ms=3, label=label)
+    ax.axhline(0, color="k", lw=0.8)
+    ax.set_xlabel("radius (pixels)")
+    ax.set_ylabel("mean residual (e- per pixel)")
+    ax.legend(fontsize=8)
+    figure.tight_layout()
+    return figure

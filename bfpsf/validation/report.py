@@ -1,0 +1,293 @@
+"""Markdown + PNG reports of `bfpsf diagnose` and `bfpsf validate`.
+
+`write_diagnosis_report` and `write_validation_report` write ``report.md`` and the figures
+into a directory; they refuse to replace existing files unless ``overwrite=True``.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import BFPSFFileExistsError
+
+__all__ = ["write_diagnosis_report", "write_validation_report", "format_number", "to_json"]
+
+
+def format_number(value, digits=3):
+    """Compact text of a number (None and NaN as 'n/a')."""
+    if value is None:
+        return "n/a"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(format_number(item, digits) for item in value)
+    if isinstance(value, (bool, np.bool_)):
+        return str(bool(value))
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if not np.isfinite(value):
+        return "n/a"
+    return f"{value:.{digits}g}"
+
+
+def to_json(value):
+    """JSON-safe copy: arrays to lists, NaN to None, objects dropped."""
+    if isinstance(value, dict):
+        return {str(key): to_json(item) for key, item in value.items()
+                if not hasattr(item, "__dataclass_fields__")}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [to_json(item) for item in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if value is None or isinstance(value, str):
+        return value
+    return str(value)
+
+
+def _prepare(directory, names, overwrite):
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        if (directory / name).exists() and not overwrite:
+            msg = f"{directory / name} exists; pass overwrite=True (--overwrite) to replace it"
+            raise BFPSFFileExistsError(msg)
+    return directory
+
+
+def _save(figure, path):
+    import matplotlib.pyplot as plt
+
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def _residual_rows(before, after, physical=None):
+    keys = [("slope_x_percent", "BF slope residual X (% of raw)"),
+            ("slope_y_percent", "BF slope residual Y (% of raw)"),
+            ("photometry_bias_mmag", "photometry bias implied (mmag, faint - bright)"),
+            ("chi2", "chi2"), ("n", "points"),
+            ("sizes_chi2_per_point", "sizes chi2 / point"),
+            ("linearity_chi2_per_point", "linearity chi2 / point"),
+            ("correlations_chi2_per_point", "correlations chi2 / point")]
+    header = "| quantity | before | after |" + (" physical only |" if physical else "")
+    lines = [header, "|---|---|---|" + ("---|" if physical else "")]
+    for key, label in keys:
+        if key not in before:
+            continue
+        row = f"| {label} | {format_number(before[key])} | {format_number(after[key])} |"
+        if physical:
+            row += f" {format_number(physical.get(key))} |"
+        lines.append(row)
+    return lines
+
+
+def diagnosis_markdown(result, *, title="bfpsf diagnose", figures=(), context=()):
+    """Markdown text of a `DiagnosisResult`."""
+    data = result.to_json_dict()
+    lines = [f"# {title}", ""]
+    lines += list(context)
+    if context:
+        lines.append("")
+    lines += ["## Residuals before and after", ""]
+    lines += _residual_rows(data["residual_before"], data["residual_after"],
+                            data.get("residual_physical"))
+    if data.get("residual_physical"):
+        lines += ["", "'physical only': every effect with a physical value fixed at it, no free "
+                  f"parameter ({', '.join(data['residual_physical']['effects'])})."]
+    lines += ["", f"Selected (Delta BIC < {result.threshold:g}, in order): "
+              + (", ".join(f"`{name}`" for name in result.selected) or "nothing"), ""]
+    for name, values in data["parameters"].items():
+        lines.append(f"- `{name}`: {', '.join(values['names'])} = "
+                     f"{format_number(values['value'])} +- {format_number(values['error'])}"
+                     + (f" (physical value {format_number(values['physical'])})"
+                        if values["physical"] else ""))
+        if data["ambiguous"].get(name):
+            lines.append(f"  - not distinguishable from: "
+                         f"{', '.join('`' + n + '`' for n in data['ambiguous'][name])}")
+    lines += ["", "## Candidates", "",
+              "| round | candidate | k | Delta chi2 | Delta BIC | parameters | allowed |",
+              "|---|---|---|---|---|---|---|"]
+    for entry in data["candidates"]:
+        if not entry["testable"]:
+            lines.append(f"| {entry['round']} | {entry['name']} | {entry['k']} | not testable "
+                         "(no observable it changes) | | | |")
+            continue
+        lines.append(f"| {entry['round']} | {entry['name']} | {entry['k']} | "
+                     f"{format_number(entry['statistic'], 4)} | "
+                     f"{format_number(entry['delta_bic'], 4)} | "
+                     f"{format_number(entry['parameters'])} +- "
+                     f"{format_number(entry['errors'], 2)} | {format_number(entry['allowed'])} |")
+    if figures:
+        lines += ["", "## Figures", ""]
+        lines += [f"![{name}]({name})" for name in figures]
+    return "\n".join(lines) + "\n"
+
+
+def write_diagnosis_report(result, directory, *, title="bfpsf diagnose", context=(),
+                           residual_images=None, overwrite=False):
+    """Write ``report.md``, ``sizes.png``, ``candidates.png`` (and residual images) to a directory.
+
+    Parameters
+    ----------
+    result : DiagnosisResult
+    directory : str or Path
+    title : str
+    context : sequence of str
+        Lines of Markdown put before the tables (data set, caveats).
+    residual_images : dict, optional
+        Label -> stacked residual image (e-); drawn with their radial profiles.
+    overwrite : bool
+
+    Returns
+    -------
+    Path
+        The Markdown file.
+    """
+    from ..plotting.diagnose import plot_candidates, plot_sizes_before_after
+
+    names = ["report.md", "candidates.png"]
+    if result.curves:
+        names.append("sizes.png")
+    if residual_images:
+        names += ["residual_images.png", "radial_profile.png"]
+    directory = _prepare(directory, names, overwrite)
+    figures = []
+    if result.curves:
+        _save(plot_sizes_before_after(result.curves, title=title), directory / "sizes.png")
+        figures.append("sizes.png")
+    _save(plot_candidates(result.to_json_dict()["candidates"], threshold=result.threshold),
+          directory / "candidates.png")
+    figures.append("candidates.png")
+    if residual_images:
+        _save_residual_images(residual_images, directory)
+        figures += ["residual_images.png", "radial_profile.png"]
+    path = directory / "report.md"
+    path.write_text(diagnosis_markdown(result, title=title, figures=figures, context=context))
+    return path
+
+
+def _save_residual_images(images, directory):
+    import matplotlib.pyplot as plt
+
+    from ..plotting.diagnose import plot_radial_profile, plot_residual_image
+
+    figure, axes = plt.subplots(1, len(images), figsize=(4.5 * len(images), 4), squeeze=False)
+    limit = max(np.nanmax(np.abs(image)) for image in images.values())
+    for ax, (label, image) in zip(axes[0], images.items()):
+        plot_residual_image(np.clip(image, -limit, limit), ax=ax, title=label)
+    _save(figure, directory / "residual_images.png")
+    _save(plot_radial_profile(list(images.values()), list(images.keys())),
+          directory / "radial_profile.png")
+
+
+def validation_markdown(result, *, figures=()):
+    """Markdown text of a `bfpsf.validation.validate.validate` result."""
+    config = result["config"]
+    lines = ["# bfpsf validate: end-to-end on GalSim SiliconSensor", "",
+             f"Sensor `{config['sensor']}`, Moffat FWHM {config['fwhm']} px, beta "
+             f"{config['beta']}, peaks {', '.join(f'{p / 1e3:g}' for p in config['peaks_e'])} "
+             f"ke-, {config['n_per_level']} spots per level; flats "
+             f"{config['flat_size']}^2 px, {len(config['flat_levels_e'])} levels x "
+             f"{config['flat_pairs']} pairs. Model shifts for P(F), inverse and loop: "
+             f"{result.get('model_shifts')}.", ""]
+    area = result["area"]
+    lines += ["## Truth a vs recovered (1/e-)", "",
+              "| lag (dx,dy) | truth | recovered | error | pull |", "|---|---|---|---|---|"]
+    for index, lag in enumerate(area["lags"]):
+        recovered = area["recovered"][index] if area["recovered"] else None
+        error = area["recovered_err"][index] if area["recovered_err"] else None
+        pull = area["pull"][index] if area["pull"] else None
+        lines.append(f"| ({lag[0]},{lag[1]}) | {format_number(area['truth'][index])} | "
+                     f"{format_number(recovered)} | {format_number(error, 2)} | "
+                     f"{format_number(pull, 2)} |")
+    if not result["calibration"].get("available"):
+        lines.append(f"\nCalibration not available: {result['calibration'].get('reason')}")
+    slopes = result["slopes"]
+    lines += ["", "## Brighter-fatter slopes (pixels per 100 ke- of peak)", "",
+              "| | X | Y |", "|---|---|---|",
+              f"| measured (SiliconSensor spots) | {format_number(slopes['slope_x'], 4)} +- "
+              f"{format_number(slopes['slope_x_err'], 2)} | {format_number(slopes['slope_y'], 4)}"
+              f" +- {format_number(slopes['slope_y_err'], 2)} |"]
+    for row in result["prediction"].get("rows", []):
+        cells = []
+        for axis in "xy":
+            error = row.get(f"predicted_slope_{axis}_err")
+            cells.append(f"{format_number(row[f'predicted_slope_{axis}'], 4)}"
+                         + (f" +- {format_number(error, 2)}" if error is not None else "")
+                         + f" ({format_number(100 * row[f'predicted_over_measured_{axis}'], 3)} %)")
+        lines.append(f"| predicted from {row['shifts']} | {cells[0]} | {cells[1]} |")
+    lines += ["", "## Residual slope (percent of the raw slope)", "", "| method | X | Y |",
+              "|---|---|---|"]
+    for key, label in (("psf", "flux-dependent PSF P(F)"),
+                       ("inverse", "pixel-level inverse (G15)")):
+        stage = result[key]
+        if not stage.get("available"):
+            lines.append(f"| {label} | not available: {stage.get('reason')} | |")
+            continue
+        lines.append(f"| {label} | {format_number(stage['residual_slope_x_percent'], 3)} +- "
+                     f"{format_number(stage['residual_slope_x_percent_err'], 2)} | "
+                     f"{format_number(stage['residual_slope_y_percent'], 3)} +- "
+                     f"{format_number(stage['residual_slope_y_percent_err'], 2)} |")
+    psf = result["psf"]
+    if psf.get("available"):
+        lines += ["", "## Photometry bias, brightest minus faintest level (mmag)", "",
+                  "| flux fit | static PSF from the bright spots | P(F) |", "|---|---|---|",
+                  f"| least squares, whole stamp, true position | "
+                  f"{format_number(psf['photometry_bias_static_mmag'], 3)} | "
+                  f"{format_number(psf['photometry_bias_flux_dependent_mmag'], 3)} |"]
+        if "photometry_bias_photutils_static_mmag" in psf:
+            lines.append(f"| photutils PSFPhotometry (bfpsf.measure.photometry) | "
+                         f"{format_number(psf['photometry_bias_photutils_static_mmag'], 3)} | "
+                         f"{format_number(psf['photometry_bias_photutils_flux_dependent_mmag'], 3)} |")
+    diagnosis = result["diagnose"]
+    lines += ["", "## Closed loop on the same data", "",
+              f"Selected: {', '.join(diagnosis['selected']) or 'nothing'}; BF slope residual "
+              f"before X {format_number(diagnosis['residual_before'].get('slope_x_percent'))} %,"
+              f" Y {format_number(diagnosis['residual_before'].get('slope_y_percent'))} %; after "
+              f"X {format_number(diagnosis['residual_after'].get('slope_x_percent'))} %, Y "
+              f"{format_number(diagnosis['residual_after'].get('slope_y_percent'))} %."]
+    lines += ["", "## Timing (s)", "", "| stage | s |", "|---|---|"]
+    lines += [f"| {name} | {value:.1f} |" for name, value in result["timing_s"].items()]
+    if figures:
+        lines += ["", "## Figures", ""] + [f"![{name}]({name})" for name in figures]
+    return "\n".join(lines) + "\n"
+
+
+def write_validation_report(result, directory, *, overwrite=False):
+    """Write ``report.md`` and figures of a validation run; returns the Markdown path."""
+    names = ["report.md", "sizes.png", "candidates.png"]
+    images = result.get("residual_images")
+    if images:
+        names += ["residual_images.png", "radial_profile.png"]
+    directory = _prepare(directory, names, overwrite)
+    from ..plotting.diagnose import plot_candidates, plot_sizes_before_after
+
+    diagnosis = result["diagnosis"]
+    figures = []
+    if diagnosis.curves:
+        _save(plot_sizes_before_after(diagnosis.curves, title="SiliconSensor spots"),
+              directory / "sizes.png")
+        figures.append("sizes.png")
+    _save(plot_candidates(diagnosis.to_json_dict()["candidates"],
+                          threshold=diagnosis.threshold), directory / "candidates.png")
+    figures.append("candidates.png")
+    if images:
+        _save_residual_images(images, directory)
+        figures += ["residual_images.png", "radial_profile.png"]
+    path = directory / "report.md"
+    path.write_text(validation_markdown(result, figures=figures))
+    return path
+
+
+def write_json(summary, path, *, overwrite=False):
+    """Write a JSON summary (refuses to replace a file unless ``overwrite``)."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        msg = f"{path} exists; pass --overwrite to replace it"
+        raise BFPSFFileExistsError(msg)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(to_json(summary), indent=2) + "\n")
+    return path

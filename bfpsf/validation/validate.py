@@ -1,0 +1,538 @@
+"""End-to-end validation against GalSim's SiliconSensor (the truth, DESIGN.md).
+
+`validate` simulates SiliconSensor flats and Moffat spots, runs the whole chain and reports, side
+by side:
+
+1. truth a(dx, dy) (`bfpsf.interop.galsim.silicon_area_coefficients`) against the a recovered
+   by `bfpsf.calibrate` from the simulated flats;
+2. the measured BF slope of the spots in X and Y (adaptive moments, G15 section 3.2) against
+   the slope predicted from the boundary shifts (G15 section 6.3: the faint-spot model scaled
+   and redistributed), for the shifts of the flats calibration (with the error propagated from
+   the a errors by re-solving 20 draws) and for SiliconSensor's own shifts
+   (`silicon_boundary_shifts`);
+3. the residual slope after the flux-dependent PSF P(F) (`bfpsf.model.psf_fit.fit_psf`):
+   measured sizes minus the sizes of P(F) at each spot's flux and phase, percent of the raw
+   slope;
+4. the residual slope after G15's pixel-level inverse (`bfpsf.correct`), for comparison;
+5. the photometry bias between the faintest and the brightest spots, with a static PSF built
+   from the bright spots and with P(F): a least-squares flux over the whole stamp at the true
+   position (``photometry_bias_*``), and photutils PSFPhotometry through
+   `bfpsf.measure.photometry.psf_photometry` when installed (``photometry_bias_photutils_*``);
+   each flux is compared with the spot's collected charge;
+6. the closed loop (`bfpsf.validation.diagnose`) on the same data: what the residual asks for.
+
+A stage whose module is not installed reports ``{"available": False, "reason": ...}``.
+SiliconSensor uses OpenMP; run with ``OMP_NUM_THREADS`` at most the free cores.
+"""
+
+import dataclasses
+import importlib
+import time
+
+import numpy as np
+
+from ..errors import BFPSFError, BFPSFValueError
+
+__all__ = ["ValidationConfig", "QUICK", "FULL", "validate"]
+
+_MAG = 2.5 / np.log(10.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class ValidationConfig:
+    """Parameters of the end-to-end run.
+
+    Attributes
+    ----------
+    sensor : str
+        GalSim SiliconSensor name.
+    fwhm, beta : float
+        Moffat FWHM (pixels) and index of the spots.
+    peaks_e : tuple of float
+        Spot peak levels, e-.
+    n_per_level : int
+        Spots per level.
+    flat_levels_e : tuple of float
+        Flat levels, e- per pixel.
+    flat_pairs, flat_size, flat_nsteps : int
+        Pairs per level, image side (pixels), increments per flat.
+    gain, read_noise_e : float
+        e-/ADU and e- of the simulated flats.
+    maxlag : int
+        Largest lag of the calibration.
+    fit_b : bool
+        Fit the Astier+19 b term in the calibration (default False for these flat sets).
+    stamp_size : int
+        Spot stamp side, pixels.
+    psf_oversampling : int
+        Oversampling of the fitted P0.
+    seed : int
+    """
+
+    sensor: str = "lsst_itl_50_8"
+    fwhm: float = 4.0
+    beta: float = 3.5
+    peaks_e: tuple = (5e3, 2e4, 4e4, 6e4, 8e4, 1e5, 1.2e5)
+    n_per_level: int = 24
+    flat_levels_e: tuple = (1e4, 3e4, 5e4, 7e4, 9e4, 1.1e5)
+    flat_pairs: int = 2
+    flat_size: int = 384
+    flat_nsteps: int = 10
+    gain: float = 1.5
+    read_noise_e: float = 5.0
+    maxlag: int = 4
+    fit_b: bool = False
+    stamp_size: int = 32
+    psf_oversampling: int = 4
+    seed: int = 0
+
+    def to_dict(self):
+        return dataclasses.asdict(self)
+
+
+#: `bfpsf validate --quick`: under 3 minutes on 2 cores (small flats, few spots).
+QUICK = ValidationConfig(fwhm=3.0, peaks_e=(5e3, 2.5e4, 5e4, 7.5e4, 1e5, 1.2e5),
+                         n_per_level=9, flat_levels_e=(2e4, 5e4, 8e4, 1.1e5), flat_pairs=1,
+                         flat_size=256, flat_nsteps=8, stamp_size=24, psf_oversampling=2)
+#: `bfpsf validate`: the full run (about 30 minutes on 2 cores).
+FULL = ValidationConfig()
+
+
+def _module(name):
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as error:
+        if error.name == name:
+            return None
+        raise
+
+
+def _unavailable(reason):
+    return {"available": False, "reason": reason}
+
+
+def _progress(enabled, total, description):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=description, unit="stage")
+
+
+def _slope(peak_e, values, group=None):
+    """Slope of values against peak, per 100 ke-, its error and the mean intercept.
+
+    ``group`` (e.g. the sub-pixel phase of each spot) gets its own intercept, so that the
+    phase dependence of a pixelised size cancels. Points are weighted by the inverse variance
+    of the residuals at their peak level (faint spots are noisier), estimated from an
+    unweighted first pass; the error comes from those variances.
+    """
+    x = np.asarray(peak_e, float) / 1e5
+    y = np.asarray(values, float)
+    group = np.zeros(x.size, int) if group is None else np.asarray(group)
+    labels = np.unique(group)
+    design = np.column_stack([x] + [(group == g).astype(float) for g in labels])
+    params, *_ = np.linalg.lstsq(design, y, rcond=None)
+    residual = y - design @ params
+    dof_fraction = max(y.size - design.shape[1], 1) / y.size
+    variance = np.empty_like(y)
+    for level in np.unique(x):
+        members = x == level
+        variance[members] = max(np.mean(residual[members] ** 2) / dof_fraction, 1e-30)
+    weights = 1.0 / variance
+    normal = design.T @ (design * weights[:, None])
+    params = np.linalg.pinv(normal) @ (design.T @ (weights * y))
+    chi2 = np.sum(weights * (y - design @ params) ** 2) / max(y.size - design.shape[1], 1)
+    covariance = np.linalg.pinv(normal) * max(chi2, 1.0)
+    return float(params[0]), float(np.sqrt(covariance[0, 0])), float(np.mean(params[1:]))
+
+
+def _moments(stamps):
+    from ..measure.moments import adaptive_moments_batch
+
+    result = adaptive_moments_batch(np.asarray(stamps))
+    return np.sqrt(result.mxx), np.sqrt(result.myy), np.asarray(result.flags)
+
+
+def _level_means(spots, values):
+    """Mean size per level and its error.
+
+    Every level holds the same sub-pixel phases, so the phase dependence cancels in the means;
+    the error is the rms about a line with per-phase intercepts over sqrt(spots per level).
+    """
+    levels = np.unique(spots.level)
+    means = np.array([values[spots.level == k].mean() for k in levels])
+    x = spots.peaks / 1e5
+    design = np.column_stack([x] + [(spots.phase == g).astype(float)
+                                    for g in np.unique(spots.phase)])
+    params, *_ = np.linalg.lstsq(design, values, rcond=None)
+    dof = max(values.size - design.shape[1], 1)
+    rms = np.sqrt(np.sum((values - design @ params) ** 2) / dof)
+    per_level = values.size / levels.size
+    return means, np.full(levels.size, rms / np.sqrt(per_level))
+
+
+def _residual_percent(spots, residual, raw_slope):
+    slope, slope_err, _ = _slope(spots.peaks, residual, spots.phase)
+    return 100.0 * slope / raw_slope, 100.0 * slope_err / abs(raw_slope)
+
+
+# -- stages ---------------------------------------------------------------------------------------
+def _stage_flats(config):
+    simulate = _module("bfpsf.validation.simulate_flats")
+    calibration = _module("bfpsf.calibration")
+    if simulate is None or not hasattr(calibration, "calibrate"):
+        return _unavailable("flat simulator or calibration not installed"), None
+    flats = simulate.simulate_flats(config.sensor, config.flat_levels_e, pairs=config.flat_pairs,
+                                    size=config.flat_size, gain=config.gain,
+                                    read_noise_e=config.read_noise_e, nsteps=config.flat_nsteps,
+                                    seed=config.seed)
+    # fit_b=False: the A+19 b term is not constrained by a few small flats and its freedom
+    # inflates the a errors about 5x (measured on 256^2 ITL flats: sigma a(1,0) 1.5e-7 with b,
+    # 3.5e-8 without)
+    try:
+        cal = calibration.calibrate([flat[0] for flat in flats],
+                                    exptimes=[flat[1] for flat in flats], maxlag=config.maxlag,
+                                    fit_b=config.fit_b, n_monte_carlo=50, seed=config.seed)
+    except BFPSFError as error:
+        # reported in the table; the spot stages still run with the truth shifts
+        return _unavailable(f"calibration failed: {error}"), None
+    return {"available": True, "gain": cal.gain, "gain_err": cal.gain_err,
+            "gain_true": config.gain, "n_flats": len(flats)}, cal
+
+
+def _stage_truth(config, cal):
+    from ..interop import galsim as interop
+
+    truth = interop.silicon_area_coefficients(config.sensor, maxlag=config.maxlag)
+    out = {"available": True, "lags": [], "truth": [], "recovered": [], "recovered_err": [],
+           "pull": []}
+    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2)):
+        out["lags"].append([dx, dy])
+        out["truth"].append(float(truth[dy, dx]))
+        if cal is not None:
+            value, error = float(cal.a[dy, dx]), float(cal.a_err[dy, dx])
+            out["recovered"].append(value)
+            out["recovered_err"].append(error)
+            out["pull"].append((value - truth[dy, dx]) / error if error > 0 else None)
+    shifts = None
+    if hasattr(interop, "silicon_boundary_shifts"):
+        shifts = interop.silicon_boundary_shifts(config.sensor, radius=config.maxlag)
+    return out, truth, shifts
+
+
+@dataclasses.dataclass(frozen=True)
+class _Spots:
+    """Spot stamps (e-), true centres (0-based stamp pixels), requested peaks, level index."""
+
+    stamps: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    fluxes: np.ndarray
+    peaks: np.ndarray
+    level: np.ndarray
+    phase: np.ndarray
+
+
+def _phase_grid(n, seed):
+    """n sub-pixel offsets in [-0.5, 0.5)^2: a shifted 2-D Halton-like lattice (fixed per run)."""
+    golden = (np.sqrt(5.0) - 1.0) / 2.0
+    shift = np.random.default_rng(seed).uniform(size=2)
+    k = np.arange(n)
+    return np.column_stack([((k + 0.5) / n + shift[0]) % 1.0 - 0.5,
+                            (k * golden + shift[1]) % 1.0 - 0.5])
+
+
+def _stage_spots(config, progress=False):
+    """Moffat spots photon-shot through SiliconSensor, the SAME sub-pixel phases at every level.
+
+    The measured size of a pixelised spot depends on its phase by a few millipixels, as much
+    as the BF change between levels; repeating one phase set per level cancels it in the
+    slopes (`bfpsf.validation.simulate_spots` draws random phases).
+    """
+    import galsim
+
+    rng = galsim.BaseDeviate(config.seed + 1)
+    sensor = galsim.SiliconSensor(name=config.sensor, rng=rng)
+    profile = galsim.Moffat(fwhm=config.fwhm, beta=config.beta)
+    size = config.stamp_size
+    phases = _phase_grid(config.n_per_level, config.seed)
+    peaks = np.asarray(config.peaks_e, float)
+    stamps, xs, ys, fluxes, levels = [], [], [], [], []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=peaks.size * len(phases), desc="SiliconSensor spots", unit="spot")
+    centre = (size - 1) / 2.0
+    for level, peak in enumerate(peaks):
+        for phase in phases:
+            offset = galsim.PositionD(*phase)
+            fraction = profile.drawImage(nx=size, ny=size, scale=1.0, offset=offset).array.max()
+            flux = peak / fraction
+            image = galsim.ImageD(size, size, scale=1.0)
+            profile.withFlux(flux).drawImage(image=image, method="phot", sensor=sensor,
+                                             rng=rng, offset=offset)
+            stamps.append(image.array.copy())
+            xs.append(centre + phase[0])
+            ys.append(centre + phase[1])
+            fluxes.append(flux)
+            levels.append(level)
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    levels = np.array(levels)
+    phase_index = np.tile(np.arange(len(phases)), peaks.size)
+    return _Spots(np.array(stamps), np.array(xs), np.array(ys), np.array(fluxes),
+                  peaks[levels], levels, phase_index)
+
+
+def _stage_prediction(config, spots, measured, shift_sets, cal=None, n_draws=20):
+    import galsim
+
+    from .effects import SpotForwardModel
+
+    profile = galsim.Moffat(fwhm=config.fwhm, beta=config.beta)
+    out = {"available": True, "rows": []}
+    peaks = np.asarray(config.peaks_e, float)
+
+    def predict(shifts):
+        model = SpotForwardModel(profile, shifts, stamp_size=spots.stamps.shape[1] - 1 | 1,
+                                 phases=3)
+        sigma_x, sigma_y = model.sizes(peaks)
+        return _slope(peaks, sigma_x)[0], _slope(peaks, sigma_y)[0]
+
+    for label, shifts in shift_sets.items():
+        row = {"shifts": label}
+        slopes = predict(shifts)
+        errors = (None, None)
+        if label == "flats calibration" and cal is not None and n_draws:
+            # propagate the errors of the measured a through the shift solution to the slope
+            from ..calibration.coefficients import solve_boundary_shifts
+
+            rng = np.random.default_rng(config.seed)
+            draws = []
+            for _ in range(n_draws):
+                area = np.array(cal.a) + rng.standard_normal(cal.a.shape) * np.array(cal.a_err)
+                try:
+                    draws.append(predict(solve_boundary_shifts(area, n_monte_carlo=0).shifts))
+                except BFPSFError:
+                    continue
+            if len(draws) >= 2:
+                errors = tuple(np.std(np.array(draws), axis=0, ddof=1))
+        for index, axis in enumerate("xy"):
+            row[f"predicted_slope_{axis}"] = slopes[index]
+            row[f"predicted_slope_{axis}_err"] = errors[index]
+            row[f"predicted_over_measured_{axis}"] = slopes[index] / measured[f"slope_{axis}"]
+        out["rows"].append(row)
+    return out
+
+
+def _psf_sizes(psf, spots, fluxes):
+    """Sizes of P(F) at each spot's flux and sub-pixel phase (moments of the model image)."""
+    half = spots.stamps.shape[1] // 2 - 1
+    images = []
+    for x, y, flux in zip(spots.x, spots.y, fluxes):
+        phase_x, phase_y = x - np.round(x), y - np.round(y)
+        images.append(psf.star_image(flux, x_phase=phase_x, y_phase=phase_y, half_size=half))
+    sigma_x, sigma_y, _ = _moments(np.array(images))
+    return sigma_x, sigma_y
+
+
+def _flux_fit(psf, stamp, x, y, flux_guess, *, flux_dependent, iterations=3):
+    """Least-squares flux of one stamp with the model at its true position (uniform weights)."""
+    half = psf.half_size
+    ny, nx = stamp.shape
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    inside = (np.abs(xx - x) <= half) & (np.abs(yy - y) <= half)
+    flux = flux_guess
+    for _ in range(iterations if flux_dependent else 1):
+        template = psf.evaluate(xx[inside], yy[inside], flux if flux_dependent else 1.0, x, y)
+        template = template / (flux if flux_dependent else 1.0)
+        flux = float(np.sum(template * stamp[inside]) / np.sum(template ** 2))
+    return flux
+
+
+def _stage_psf(config, spots, measured_sizes, raw, shifts, progress):
+    psf_fit = _module("bfpsf.model.psf_fit")
+    if psf_fit is None:
+        return _unavailable("bfpsf.model.psf_fit not installed"), None
+    fluxes = spots.stamps.sum(axis=(1, 2))
+    positions = [[(x, y)] for x, y in zip(spots.x, spots.y)]
+    images = list(spots.stamps)
+    size = 2 * (spots.stamps.shape[1] // 2) - 5
+    fit = psf_fit.fit_psf(images, positions, shifts, oversampling=config.psf_oversampling,
+                          size=size, max_iterations=20)
+    psf = fit.psf
+    sigma_x, sigma_y = _psf_sizes(psf, spots, fluxes)
+    out = {"available": True, "converged": bool(fit.converged), "iterations": fit.iterations}
+    for axis, measured, predicted in (("x", measured_sizes[0], sigma_x),
+                                      ("y", measured_sizes[1], sigma_y)):
+        percent, error = _residual_percent(spots, measured - predicted, raw[axis])
+        out[f"residual_slope_{axis}_percent"] = percent
+        out[f"residual_slope_{axis}_percent_err"] = error
+    # stacked residual images of the brightest level: data minus the static (zero-flux) model
+    # scaled to each spot's flux (the BF signature, G15 fig. spots-diff), and minus P(F)
+    brightest = np.flatnonzero(spots.level == spots.level.max())
+    half = spots.stamps.shape[1] // 2 - 1
+    stack_static, stack_model = 0.0, 0.0
+    for index in brightest:
+        phase_x = spots.x[index] - np.round(spots.x[index])
+        phase_y = spots.y[index] - np.round(spots.y[index])
+        cx, cy = int(np.round(spots.x[index])), int(np.round(spots.y[index]))
+        data = spots.stamps[index][cy - half:cy + half + 1, cx - half:cx + half + 1]
+        model = psf.star_image(fluxes[index], x_phase=phase_x, y_phase=phase_y,
+                               half_size=half)
+        static_model = psf.star_image(1.0, x_phase=phase_x, y_phase=phase_y,
+                                      half_size=half) * fluxes[index]
+        stack_static = stack_static + (data - static_model) / brightest.size
+        stack_model = stack_model + (data - model) / brightest.size
+    residual_images = {"bright - static model (e-)": stack_static,
+                       "bright - P(F) (e-)": stack_model}
+    # photometry: static PSF from the bright spots vs P(F)
+    bright = spots.level >= spots.level.max() - 1
+    static = psf_fit.fit_psf([images[i] for i in np.flatnonzero(bright)],
+                             [positions[i] for i in np.flatnonzero(bright)], shifts,
+                             oversampling=config.psf_oversampling, size=size,
+                             include_bf=False, max_iterations=20).psf
+    photometry = _module("bfpsf.measure.photometry")
+    magnitudes = {"static": [], "flux_dependent": []}
+    if photometry is not None:
+        magnitudes.update({"photutils_static": [], "photutils_flux_dependent": []})
+    for index in range(len(images)):
+        for key, model, dependent in (("static", static, False),
+                                      ("flux_dependent", psf, True)):
+            flux = _flux_fit(model, images[index], spots.x[index], spots.y[index],
+                             fluxes[index], flux_dependent=dependent)
+            magnitudes[key].append(-_MAG * np.log(flux / fluxes[index]))
+            if photometry is not None:
+                table = photometry.psf_photometry(
+                    images[index], model, background_e=0.0,
+                    positions=np.array([[spots.x[index], spots.y[index]]]))
+                flux = float(table["flux_fit"][0])
+                magnitudes[f"photutils_{key}"].append(-_MAG * np.log(flux / fluxes[index]))
+    for key, values in magnitudes.items():
+        values = np.asarray(values)
+        faint = values[spots.level == spots.level.min()].mean()
+        brightest = values[spots.level == spots.level.max()].mean()
+        name = (f"photometry_bias_photutils_{key[len('photutils_'):]}_mmag"
+                if key.startswith("photutils_") else f"photometry_bias_{key}_mmag")
+        out[name] = float(1e3 * (brightest - faint))
+    return out, residual_images
+
+
+def _stage_inverse(spots, raw, shifts):
+    redistribution = _module("bfpsf.model.redistribution")
+    if not hasattr(redistribution, "correct"):
+        return _unavailable("bfpsf.correct not installed")
+    corrected = np.array([redistribution.correct(np.clip(stamp, 0, None), shifts)
+                          for stamp in spots.stamps])
+    sigma_x, sigma_y, _ = _moments(corrected)
+    out = {"available": True}
+    for axis, values in (("x", sigma_x), ("y", sigma_y)):
+        percent, error = _residual_percent(spots, values, raw[axis])
+        out[f"residual_slope_{axis}_percent"] = percent
+        out[f"residual_slope_{axis}_percent_err"] = error
+    return out
+
+
+def _stage_diagnose(config, spots, sizes_x, sizes_y, shifts, cal):
+    from .diagnose import diagnose, flat_observables, observables_from_sizes
+    from .effects import SizeTable
+
+    sigma_x, err_x = _level_means(spots, sizes_x)
+    sigma_y, err_y = _level_means(spots, sizes_y)
+    table = SizeTable(np.asarray(config.peaks_e, float), sigma_x, sigma_y, err_x, err_y,
+                      label=f"SiliconSensor {config.sensor} Moffat spots")
+    linearity = correlations = None
+    if cal is not None:
+        linearity, correlations = flat_observables(cal)
+    observables = observables_from_sizes(table, shifts, beta=config.beta, linearity=linearity,
+                                         correlations=correlations)
+    return diagnose(observables)
+
+
+def validate(config=None, *, quick=False, progress=False, shifts_for_model="truth"):
+    """Run the end-to-end validation on GalSim SiliconSensor simulations.
+
+    Parameters
+    ----------
+    config : ValidationConfig, optional
+        Default `QUICK` when ``quick`` else `FULL`.
+    quick : bool, optional
+    progress : bool, optional
+        tqdm progress bar over the stages.
+    shifts_for_model : {'truth', 'flats'}, optional
+        Boundary shifts given to P(F), the pixel inverse and the closed loop: SiliconSensor's own
+        (``'truth'``, default: isolates the PSF model from calibration noise) or the flats
+        calibration (``'flats'``: the whole chain; needs flats large enough to measure a to a
+        few percent). The slope prediction is reported for both.
+
+    Returns
+    -------
+    dict
+        ``config``, ``timing_s`` and one entry per stage: ``calibration``, ``area``,
+        ``slopes``, ``prediction``, ``psf``, ``inverse``, ``diagnose`` (each with
+        ``available``), plus ``diagnosis`` (the `DiagnosisResult`), ``residual_images`` and
+        ``truth_area`` (arrays, for the report).
+    """
+    if shifts_for_model not in ("truth", "flats"):
+        msg = f"shifts_for_model must be 'truth' or 'flats', got {shifts_for_model!r}"
+        raise BFPSFValueError(msg, shifts_for_model)
+    config = config or (QUICK if quick else FULL)
+    timing = {}
+    result = {"config": config.to_dict(), "shifts_for_model": shifts_for_model}
+    bar = _progress(progress, 7, "bfpsf validate")
+
+    def step(name, function, *args):
+        start = time.perf_counter()
+        if bar is not None:
+            bar.set_postfix_str(name)
+        value = function(*args)
+        timing[name] = time.perf_counter() - start
+        if bar is not None:
+            bar.update(1)
+        return value
+
+    result["calibration"], cal = step("flats+calibration", _stage_flats, config)
+    result["area"], truth_area, truth_shifts = step("truth", _stage_truth, config, cal)
+    spots = step("spots", _stage_spots, config, progress)
+
+    sizes_x, sizes_y, flags = _moments(spots.stamps)
+    slopes = {"available": True, "n_spots": int(len(spots.peaks)),
+              "n_flagged": int(np.count_nonzero(flags))}
+    raw = {}
+    for axis, values in (("x", sizes_x), ("y", sizes_y)):
+        slope, error, intercept = _slope(spots.peaks, values, spots.phase)
+        slopes[f"slope_{axis}"], slopes[f"slope_{axis}_err"] = slope, error
+        slopes[f"intercept_{axis}"] = intercept
+        slopes[f"relative_{axis}_percent"] = 100 * slope * max(config.peaks_e) / 1e5 / intercept
+        raw[axis] = slope
+    result["slopes"] = slopes
+
+    shift_sets = {}
+    if truth_shifts is not None:
+        shift_sets["SiliconSensor truth"] = truth_shifts
+    if cal is not None and cal.shifts is not None:
+        shift_sets["flats calibration"] = cal.shifts
+    result["prediction"] = step("prediction", _stage_prediction, config, spots, slopes,
+                                shift_sets, cal)
+    model_shifts = (truth_shifts if shifts_for_model == "truth" or cal is None
+                    else cal.shifts)
+    if model_shifts is None:
+        model_shifts = cal.shifts if cal is not None else None
+    result["model_shifts"] = ("SiliconSensor truth" if model_shifts is truth_shifts
+                              else "flats calibration")
+    result["psf"], result["residual_images"] = step(
+        "P(F)", _stage_psf, config, spots, (sizes_x, sizes_y), raw, model_shifts, progress)
+    result["inverse"] = step("inverse", _stage_inverse, spots, raw, model_shifts)
+    diagnosis = step("diagnose", _stage_diagnose, config, spots, sizes_x, sizes_y,
+                     model_shifts, cal)
+    result["diagnose"] = {"available": True, **diagnosis.to_json_dict()}
+    result["diagnosis"] = diagnosis
+    if bar is not None:
+        bar.close()
+    result["timing_s"] = timing
+    result["truth_area"] = truth_area
+    return result

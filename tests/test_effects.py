@@ -1,0 +1,146 @@
+"""The candidate effects: each extension obeys the physics it claims (conservation, symmetry,
+invisibility in flats, agreement with an independent implementation)."""
+
+import galsim
+import numpy as np
+import pytest
+from scipy.special import exp1
+
+from bfpsf.errors import BFPSFInputError, BFPSFValueError
+from bfpsf.model.redistribution import exact_boundary_density, redistribute, redistribution_delta
+from bfpsf.shifts import BoundaryShifts
+from bfpsf.validation.effects import (CATALOGUE, CorrelationTable, LinearityTable, Observables,
+                                      SizeTable, SpotForwardModel, effect_names,
+                                      exact_density_delta, get_effect, quadrupole_shifts)
+
+
+@pytest.fixture(scope="module")
+def shifts():
+    return BoundaryShifts.from_radial_profile(lambda r: 2e-7 * exp1(0.8 * r), 4)
+
+
+def test_quadrupole_is_invisible_to_flats(shifts):
+    """The X/Y anisotropy extension changes no pixel area (so the flats cannot see it) and
+    obeys parity and the sum rule exactly."""
+    mode = quadrupole_shifts(shifts, 1.0)
+    assert np.abs(mode.area).max() == 0.0
+    residuals = mode.symmetry_residuals()
+    assert max(residuals.values()) < 1e-20
+    m = mode.radius
+    scale = 0.5 * (abs(shifts.north[m, m]) + abs(shifts.east[m, m]))
+    # source pixel: E/W boundaries out by q s, N/S boundaries in by q s
+    assert mode.east[m, m] == pytest.approx(scale)
+    assert mode.north[m, m] == pytest.approx(-scale)
+
+
+def test_quadrupole_moves_bf_from_x_to_y(shifts):
+    """q > 0 moves the E/W boundaries of a charged pixel out (it shrinks less in x, more in
+    y): sigma_x grows slower with flux, sigma_y faster, by the same amount for a round spot."""
+    model = SpotForwardModel(galsim.Gaussian(sigma=1.2), shifts, phases=2)
+    from bfpsf.validation.effects import _add_shifts
+
+    peaks = np.array([1e5])
+    base_x, base_y = model.sizes(peaks)
+    new_x, new_y = model.sizes(peaks, shifts=_add_shifts(shifts, quadrupole_shifts(shifts, 0.5)))
+    assert new_x[0] < base_x[0] and new_y[0] > base_y[0]
+    # round spot, x/y symmetric base shifts: opposite changes of equal size (to 2 %: the
+    # moments respond to second order too)
+    assert base_x[0] - new_x[0] == pytest.approx(new_y[0] - base_y[0], rel=0.02)
+
+
+def test_exact_density_matches_approximation_on_smooth_image(shifts):
+    """With densities equal to (Q_00 + Q_X)/2 the exact-density operator is G15's."""
+    rng = np.random.default_rng(0)
+    image = 1e4 + rng.uniform(0, 1e3, (20, 22))
+    north = 0.5 * (image[:-1] + image[1:])
+    east = 0.5 * (image[:, :-1] + image[:, 1:])
+    delta = exact_density_delta(image, north, east, shifts)
+    assert np.allclose(delta, redistribution_delta(image, shifts), rtol=0, atol=1e-9)
+    assert abs(delta.sum()) < 1e-9 * np.abs(delta).max()     # charge conserved
+
+
+def test_forward_model_density_agrees_with_engine(shifts):
+    """The forward model's boundary densities (2-point interface average, 10 sub-pixels) agree
+    with the redistribution engine's (4th-order interface formula) to 0.5 % for a 0.8 px
+    Gaussian, and so do the redistributed images."""
+    profile = galsim.Gaussian(sigma=0.8)
+    model = SpotForwardModel(profile, shifts, phases=1, stamp_size=15, oversampling=8)
+    pixels, north, east = model._fine[0]
+    fine = profile.drawImage(nx=120, ny=120, scale=1 / 8, method="no_pixel").array
+    pixels2, (north2, east2) = exact_boundary_density(fine, 8)
+    assert np.allclose(pixels, pixels2, atol=1e-7)
+    assert np.abs(north - north2).max() < 5e-3 * north.max()
+    flux = 1e5 / pixels.max()
+    mine = exact_density_delta(flux * pixels, flux * north, flux * east, shifts)
+    engine = redistribute(flux * pixels2, shifts, density=(flux * north2, flux * east2))
+    assert np.abs(mine - (engine - flux * pixels2)).max() < 5e-3 * np.abs(mine).max()
+
+
+def test_exact_density_increases_bf_of_undersampled_spots(shifts):
+    """G15 fig. bva: (Q00 + QX)/2 underestimates the BF of small spots, less so of large ones."""
+    gains = []
+    for sigma in (0.8, 2.0):
+        model = SpotForwardModel(galsim.Gaussian(sigma=sigma), shifts, phases=3)
+        peaks = np.array([1e4, 1e5])
+        approx = np.diff(model.sizes(peaks)[0])[0]
+        exact = np.diff(model.sizes(peaks, density="exact")[0])[0]
+        gains.append(exact / approx - 1)
+    assert gains[0] > 0.05
+    assert 0 <= gains[1] < gains[0] / 3
+
+
+def test_forward_model_quadratic_in_flux(shifts):
+    """Without options the size change is the moments of Q + F^2 R: linear in peak to first
+    order, so equal steps in peak give nearly equal steps in size."""
+    model = SpotForwardModel(galsim.Gaussian(sigma=1.5), shifts, phases=2)
+    sx, sy = model.sizes(np.array([0.5e5, 1e5, 1.5e5]))
+    steps = np.diff(sx)
+    assert steps[0] > 0
+    assert steps[1] == pytest.approx(steps[0], rel=0.05)
+
+
+def test_templates_and_testability(shifts):
+    peaks = np.linspace(1e4, 1e5, 5)
+    model = SpotForwardModel(galsim.Gaussian(sigma=1.2), shifts, phases=2)
+    sx, sy = model.sizes(peaks)
+    sizes = SizeTable(peaks, sx, sy, np.full(5, 1e-4), np.full(5, 1e-4))
+    observables = Observables(sizes=sizes, spot_model=model)
+    names = {effect.name: effect.templates(observables) for effect in CATALOGUE}
+    # no colour, no correlation table, no area table: these cannot be tested
+    assert names["chromatic_size"] == {} and names["readout_pedestal"] == {}
+    assert names["sum_rule_tail"] == {}
+    for name in ("gain_nonlinearity", "xy_anisotropy", "second_order", "boundary_density",
+                 "flux_diffusion"):
+        template = names[name]["sizes"]
+        assert template.shape == (10, 1) and np.all(np.isfinite(template))
+    # diffusion: d sigma = d peak / (2 sigma) per 1e5 e- of peak
+    diffusion = names["flux_diffusion"]["sizes"][:, 0]
+    assert diffusion[:5] == pytest.approx(peaks / 1e5 / (2 * sx))
+    # second order grows faster than linearly with the peak
+    second = names["second_order"]["sizes"][:5, 0]
+    assert second[-1] / second[0] > 1.5 * peaks[-1] / peaks[0]
+
+
+def test_pedestal_template():
+    table = CorrelationTable(np.array([1e4, 5e4, 1e5]), ((1, 0), (0, 1)), np.zeros((3, 2)),
+                             np.full((3, 2), 1e-3))
+    observables = Observables(correlations=table)
+    design = get_effect("readout_pedestal").templates(observables)["correlations"]
+    assert design.shape == (6, 2)
+    assert np.array_equal(design[:3, 0], np.ones(3)) and np.array_equal(design[3:, 1], np.ones(3))
+
+
+def test_catalogue_and_errors():
+    assert set(effect_names()) >= {"gain_nonlinearity", "readout_pedestal", "xy_anisotropy",
+                                   "second_order", "boundary_density", "chromatic_size",
+                                   "flux_diffusion"}
+    with pytest.raises(BFPSFValueError, match="unknown effect 'tree_rings'"):
+        get_effect("tree_rings")
+    with pytest.raises(BFPSFInputError, match="no observable given"):
+        Observables()
+    with pytest.raises(BFPSFInputError, match="a size table needs a spot_model"):
+        Observables(sizes=SizeTable([1, 2, 3], [1, 1, 1], [1, 1, 1], [1, 1, 1], [1, 1, 1]))
+    with pytest.raises(BFPSFInputError, match="mean_err_e must be positive"):
+        LinearityTable([1, 2], [1, 2], [0, 1])
+    with pytest.raises(BFPSFValueError, match="profile must be a galsim.GSObject"):
+        SpotForwardModel("gaussian", BoundaryShifts.from_radial_profile(lambda r: 1e-7 / r, 2))

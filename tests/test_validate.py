@@ -1,0 +1,122 @@
+"""End-to-end validation on GalSim SiliconSensor (bfpsf validate) and the two CLI commands."""
+
+import dataclasses
+import json
+import os
+
+import numpy as np
+import pytest
+
+from bfpsf.cli import main
+from bfpsf.validation.validate import FULL, QUICK, validate
+
+MEASURED = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "measured")
+BOT = os.path.join(MEASURED, "lage_LSSTCam_BOT_spots_2019")
+
+#: A very small run for the quick test: 4 levels x 9 phases of FWHM 3 px spots, tiny flats.
+TINY = dataclasses.replace(QUICK, peaks_e=(1e4, 5e4, 9e4, 1.2e5), n_per_level=9,
+                           flat_levels_e=(2e4, 5e4, 8e4, 1.1e5), flat_size=64, flat_nsteps=5)
+
+
+@pytest.fixture(scope="module")
+def tiny_run():
+    return validate(TINY)
+
+
+def test_validate_runs_every_stage(tiny_run):
+    for stage in ("calibration", "area", "slopes", "prediction", "psf", "inverse", "diagnose"):
+        assert tiny_run[stage]["available"], (stage, tiny_run[stage])
+    assert tiny_run["slopes"]["n_flagged"] == 0
+    for key in ("residual_before", "candidates", "selected", "residual_after"):
+        assert key in tiny_run["diagnose"]
+
+
+def test_validate_physics(tiny_run):
+    slopes = tiny_run["slopes"]
+    # SiliconSensor spots broaden with flux, faster in Y (parallel) on ITL (G15 table 1)
+    assert slopes["slope_x"] > 0 and slopes["slope_y"] > 0
+    truth_row = [row for row in tiny_run["prediction"]["rows"]
+                 if row["shifts"] == "SiliconSensor truth"][0]
+    # the G15 prediction from SiliconSensor's own shifts matches the measured slope; 36 spots
+    # measure it to ~10 %, so allow 30 %
+    assert 0.7 < truth_row["predicted_over_measured_x"] < 1.3
+    assert 0.7 < truth_row["predicted_over_measured_y"] < 1.3
+    psf = tiny_run["psf"]
+    # a static PSF made from the bright spots biases the faint ones by several mmag; P(F)
+    # removes most of it (noise of 9 spots per level: ~0.5 mmag)
+    assert psf["photometry_bias_static_mmag"] > 2.0
+    assert abs(psf["photometry_bias_flux_dependent_mmag"]) < 0.4 * psf[
+        "photometry_bias_static_mmag"]
+
+
+@pytest.mark.slow
+def test_validate_full():
+    """The full run (about 30 minutes on 2 cores): the acceptance numbers of issue 5/6."""
+    result = validate(FULL)
+    psf = result["psf"]
+    # P(F) leaves at most a few % of the raw slope (issue 5 asks 2 %; errors ~2 % here)
+    assert abs(psf["residual_slope_x_percent"]) < 3 * max(psf["residual_slope_x_percent_err"], 1)
+    assert abs(psf["residual_slope_y_percent"]) < 3 * max(psf["residual_slope_y_percent_err"], 1)
+    assert abs(psf["photometry_bias_flux_dependent_mmag"]) < 1.0
+    assert psf["photometry_bias_static_mmag"] > 3.0
+    area = result["area"]
+    pulls = [abs(p) for p in area["pull"] if p is not None]
+    assert max(pulls) < 4
+
+
+def test_cli_validate_json_and_report(tmp_path):
+    args = ["validate", "--quick", "--peaks", "1e4", "6e4", "1.2e5", "--spots-per-level", "4",
+            "--flat-size", "64",
+            "--flat-levels", "2e4", "5e4", "8e4", "1.1e5", "--no-progress",
+            "--json", str(tmp_path / "v.json"), "--report", str(tmp_path / "report")]
+    assert main(args) == 0
+    summary = json.loads((tmp_path / "v.json").read_text())
+    assert {"slopes", "prediction", "psf", "inverse", "diagnose", "area"} <= set(summary)
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "Truth a vs recovered" in text and "Residual slope" in text
+    assert (tmp_path / "report" / "sizes.png").stat().st_size > 1000
+    # outputs are never overwritten without --overwrite
+    assert main(args) == 1
+
+
+@pytest.mark.skipif(not os.path.isdir(BOT), reason="measured data not found")
+def test_cli_diagnose_measured(tmp_path):
+    out = tmp_path / "d.json"
+    assert main(["diagnose", "--measured", BOT, "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    assert list(summary)[:4] == ["residual_before", "candidates", "selected", "residual_after"]
+    assert np.isfinite(summary["residual_before"]["slope_x_percent"])
+    assert main(["diagnose", "--measured", BOT, "--json", str(out)]) == 1   # no overwrite
+
+
+def test_cli_diagnose_needs_inputs(capsys):
+    assert main(["diagnose"]) == 1
+    assert "give --flats and --images" in capsys.readouterr().err
+
+
+def test_cli_diagnose_images_mode(tmp_path):
+    """Flats and star images as FITS: calibrate, measure the stars, run the loop. The stars
+    carry BF from bfpsf's BFSensor with SiliconSensor's shifts; 128^2 flats give a noisy
+    calibration (without the b term), so only the chain and its outputs are checked here (the physics of the loop
+    is in test_diagnose.py)."""
+    from bfpsf.interop.galsim import BFSensor, silicon_boundary_shifts
+    from bfpsf.validation.simulate_flats import write_flats
+    from bfpsf.validation.simulate_spots import simulate_star_field, write_image_adu
+
+    flats = write_flats(tmp_path / "flats", "lsst_itl_50_8", (2e4, 5e4, 8e4, 1.1e5),
+                        size=128, nsteps=5, gain=1.5)
+    sensor = BFSensor(silicon_boundary_shifts("lsst_itl_50_8"))
+    field = simulate_star_field(shape=(240, 240), n_stars=36, spacing=40, fwhm=3.0,
+                                sensor=sensor, seed=3)
+    image = tmp_path / "stars.fits"
+    write_image_adu(image, field.image, gain=1.5)
+    out = tmp_path / "d.json"
+    code = main(["diagnose", "--flats", *map(str, flats), "--images", str(image), "--beta",
+                 "3.5", "--bins", "5", "--no-fit-b", "--json", str(out), "--report", str(tmp_path / "r")])
+    assert code == 0
+    summary = json.loads(out.read_text())
+    assert {"residual_before", "candidates", "selected", "residual_after"} <= set(summary)
+    # the flats give the linearity and correlation observables too
+    assert "linearity_chi2_per_point" in summary["residual_before"]
+    assert "correlations_chi2_per_point" in summary["residual_before"]
+    assert (tmp_path / "r" / "report.md").exists()
