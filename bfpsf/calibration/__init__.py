@@ -1,1 +1,200 @@
-"""calibration layer of bfpsf (see DESIGN.md data flow)."""
+"""Flat-field calibration (the first stage of the data flow in DESIGN.md; G15 sections 4 and 6.1).
+
+`calibrate` runs the whole stage: ingest and pair the flats (`flats`), mask them and measure
+the covariances of each pair difference (`covariance`), measure and subtract the readout
+pedestal (`pedestal`), fit the photon transfer curve and the area coefficients a(dx, dy)
+(`ptc`), check linearity (`linearity`), solve the boundary shifts a^X(dx, dy)
+(`coefficients`), and return a `~bfpsf.calibration.product.Calibration`.
+"""
+
+import importlib
+
+import numpy as np
+
+from ..errors import BFPSFValueError
+
+__all__ = ["calibrate"]
+
+
+def _shift_solver():
+    """`solve_boundary_shifts` if the coefficients module is installed, else None."""
+    try:
+        module = importlib.import_module(f"{__name__}.coefficients")
+    except ModuleNotFoundError as error:
+        if error.name != f"{__name__}.coefficients":
+            raise
+        return None
+    return getattr(module, "solve_boundary_shifts", None)
+
+
+def _progress(iterable, enabled, total, description):
+    if not enabled:
+        return iterable
+    from tqdm import tqdm
+
+    return tqdm(iterable, total=total, desc=description, unit="pair")
+
+
+def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-origin",
+              saturation=None, mean_tolerance=0.05, clip_nsigma=4.0, pedestal_nsigma=4.0,
+              pedestal_degree=2, linearity_threshold=None, solve_shifts=True,
+              n_monte_carlo=200, seed=0, progress=False):
+    """Calibrate brighter-fatter from flat-field pairs.
+
+    Parameters
+    ----------
+    sources : sequence of str, path, ndarray or Flat
+        Bias-subtracted flats in ADU (FITS files with header EXPTIME, or arrays with
+        ``exptimes``). Flats of equal EXPTIME are paired in the order given.
+    exptimes : sequence of float, optional
+        Exposure times, s, one per source (required for arrays; overrides EXPTIME).
+    maxlag : int, optional
+        Largest lag |dx|, |dy| of the covariances and of a(dx, dy). Default 8.
+    ptc_model : {'full', 'exponential', 'quadratic'}, optional
+        PTC model (`bfpsf.calibration.ptc`). Default ``'full'``: Astier et al. 2019 eq. 20,
+        free of the first-order bias of G15's slopes.
+    fit_b : {'off-origin', 'all', 'none'} or bool, optional
+        Lags whose A+19 b term (flux dependence of a) is fitted in the full model. Default
+        ``'off-origin'`` (b(0, 0) is nearly degenerate with the gain; see
+        `bfpsf.calibration.ptc.fit_full_covariance_model`).
+    saturation : float, optional
+        Saturation level, ADU; pixels at or above it are masked. Default None.
+    mean_tolerance : float, optional
+        Largest relative difference of the two means of a pair. Default 0.05.
+    clip_nsigma : float, optional
+        Sigma clipping of the pair differences. Default 4.
+    pedestal_nsigma : float, optional
+        Significance above which a readout pedestal is subtracted. Default 4.
+    pedestal_degree : int, optional
+        Degree in flux of the correlation fit whose intercept is the pedestal. Default 2.
+    linearity_threshold : float, optional
+        Peak-to-peak fractional non-linearity that raises the linearity flag. Default
+        `bfpsf.calibration.linearity.DEFAULT_LINEARITY_THRESHOLD` (3e-3).
+    solve_shifts : bool, optional
+        Solve the boundary shifts a^X (G15 section 6.1). Default True.
+    n_monte_carlo : int, optional
+        Monte Carlo draws of the shift errors. Default 200.
+    seed : int, optional
+        Seed of the Monte Carlo. Default 0.
+    progress : bool, optional
+        Show a progress bar over the pairs. Default False.
+
+    Returns
+    -------
+    Calibration
+        Gain (e-/ADU), read noise (e-), a and a_err (1/e-), shifts, PTC table, linearity,
+        pedestal; see `~bfpsf.calibration.product.Calibration`.
+    """
+    from .covariance import pair_covariance
+    from .flats import pair_flats, pair_mask, read_flats
+    from .linearity import DEFAULT_LINEARITY_THRESHOLD, measure_linearity
+    from .pedestal import measure_pedestal, subtract_pedestal
+    from .product import Calibration
+    from .ptc import (PTC_MODELS, _b_mask, covariance_errors, detect_turnoff, fit_ptc,
+                      ptc_table, stack_pairs)
+
+    if int(maxlag) != maxlag or maxlag < 1:
+        msg = f"maxlag must be a positive integer, got {maxlag!r}"
+        raise BFPSFValueError(msg, maxlag)
+    maxlag = int(maxlag)
+    if ptc_model not in PTC_MODELS:
+        msg = f"ptc_model must be one of {PTC_MODELS}, got {ptc_model!r}"
+        raise BFPSFValueError(msg, ptc_model)
+    _b_mask(fit_b, 1)  # validates fit_b before the work
+    if linearity_threshold is None:
+        linearity_threshold = DEFAULT_LINEARITY_THRESHOLD
+    parameters = {
+        "maxlag": maxlag, "ptc_model": ptc_model,
+        "fit_b": fit_b if isinstance(fit_b, str) else bool(fit_b),
+        "saturation": None if saturation is None else float(saturation),
+        "mean_tolerance": float(mean_tolerance), "clip_nsigma": float(clip_nsigma),
+        "pedestal_nsigma": float(pedestal_nsigma), "pedestal_degree": int(pedestal_degree),
+        "linearity_threshold": float(linearity_threshold), "solve_shifts": bool(solve_shifts),
+        "n_monte_carlo": int(n_monte_carlo), "seed": int(seed),
+    }
+
+    flats = read_flats(sources, exptimes)
+    pairs = pair_flats(flats, mean_tolerance=mean_tolerance)
+    covariances, reports = [], []
+    for pair in _progress(pairs, progress, len(pairs), "flat pairs"):
+        mask, report = pair_mask(pair.flat1, pair.flat2, saturation=saturation)
+        covariances.append(pair_covariance(pair.flat1, pair.flat2, mask=mask, maxlag=maxlag,
+                                           clip_nsigma=clip_nsigma))
+        reports.append(report)
+    data = stack_pairs(covariances)
+
+    # The pedestal is the zero-flux intercept of R = C / V, measured below the PTC extremum.
+    below, _ = detect_turnoff(data.mean_adu, data.var_adu,
+                              covariance_errors(data.cov_adu, data.npix)[:, 0, 0])
+    pedestal = measure_pedestal(data.mean_adu[below], data.cov_adu[below], data.npix[below],
+                                nsigma=pedestal_nsigma, degree=pedestal_degree)
+    corrected = data.with_covariances(subtract_pedestal(data.cov_adu, pedestal))
+    fit = fit_ptc(corrected, model=ptc_model, fit_b=fit_b, pedestal=pedestal)
+    linearity = measure_linearity(data.exptime, data.mean_adu, used=fit.used,
+                                  threshold=linearity_threshold)
+
+    table = ptc_table(data, fit.gain, fit.used)
+    table["name1"] = [pair.names[0] for pair in pairs]
+    table["name2"] = [pair.names[1] for pair in pairs]
+    table["n_masked"] = np.array([report.total for report in reports], dtype=np.int64)
+    table["n_clipped"] = np.array([int(getattr(cov, "n_clipped", 0)) for cov in covariances],
+                                  dtype=np.int64)
+
+    shifts = north_err = east_err = None
+    shift_fit = {}
+    solver = _shift_solver() if solve_shifts else None
+    if solver is not None:
+        try:
+            solution = _solve_shifts(solver, fit, n_monte_carlo, seed, parameters)
+        except BFPSFValueError as error:
+            # A measurement failure, not a usage error (e.g. no brighter-fatter signal, a(0, 0)
+            # >= 0): the calibration is still returned, without shifts, and says why.
+            solution = None
+            parameters["shifts_failure"] = str(error)
+        if solution is not None:
+            shifts = solution.shifts
+            north_err = solution.north_err
+            east_err = solution.east_err
+            shift_fit = _scalar_fields(solution, ("p0", "p1", "p0_err", "p1_err", "chi2", "dof",
+                                                  "far_scale", "truncation_residual",
+                                                  "sensitivity"))
+    parameters["shifts_solved"] = shifts is not None
+
+    return Calibration(
+        gain=fit.gain, gain_err=fit.gain_err, noise_e=fit.noise_e, noise_e_err=fit.noise_e_err,
+        a=fit.a, a_err=fit.a_err, b=fit.b, b_err=fit.b_err, noise_matrix_e2=fit.noise_matrix_e2,
+        ptc=table, linearity=linearity, pedestal=pedestal, model=fit.model,
+        turnoff_e=fit.turnoff_e, turnoff_detected=fit.turnoff_detected, chi2=fit.chi2,
+        ndof=fit.ndof, shifts=shifts, shifts_north_err=north_err, shifts_east_err=east_err,
+        shift_fit=shift_fit, covariances_adu=data.cov_adu, npix=data.npix,
+        inputs=[name for pair in pairs for name in pair.names], parameters=parameters)
+
+
+def _solve_shifts(solver, fit, n_monte_carlo, seed, parameters):
+    """Solve a^X with Monte Carlo errors over the correlated errors of a (full model) when the
+    fit provides a usable covariance, else over independent errors."""
+    if fit.a_cov is not None:
+        try:
+            solution = solver(np.array(fit.a), np.array(fit.a_err), area_cov=fit.a_cov,
+                              n_monte_carlo=n_monte_carlo, seed=seed)
+            parameters["shift_error_covariance"] = "full"
+            return solution
+        except BFPSFValueError as error:
+            if "covariance" not in str(error).lower():
+                raise
+    parameters["shift_error_covariance"] = "diagonal"
+    return solver(np.array(fit.a), np.array(fit.a_err), n_monte_carlo=n_monte_carlo, seed=seed)
+
+
+def _scalar_fields(solution, names):
+    """The finite scalar attributes of a shift solution (a dict value is flattened)."""
+    values = {}
+    for name in names:
+        value = getattr(solution, name, None)
+        if isinstance(value, dict):
+            for key, item in value.items():
+                if np.ndim(item) == 0:
+                    values[f"{name}_{key}"] = float(item)
+        elif value is not None and np.ndim(value) == 0:
+            values[name] = float(value)
+    return values

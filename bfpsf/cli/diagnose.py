@@ -16,7 +16,8 @@ JSON keys: ``residual_before``, ``candidates``, ``selected``, ``residual_after``
 import sys
 from pathlib import Path
 
-from ..errors import BFPSFFileExistsError, BFPSFInputError
+from ..errors import BFPSFInputError
+from ._outputs import check_free
 
 __all__ = ["add_parser", "run"]
 
@@ -57,12 +58,6 @@ def add_parser(subparsers):
     return parser
 
 
-def _check_free(path, overwrite):
-    if path is not None and Path(path).exists() and not overwrite:
-        msg = f"{path} exists; pass --overwrite to replace it"
-        raise BFPSFFileExistsError(msg)
-
-
 def _observables(args):
     from ..validation import diagnose as loop
 
@@ -86,9 +81,9 @@ def run(args):
     from ..validation.diagnose import diagnose
     from ..validation.report import write_diagnosis_report, write_json
 
-    _check_free(args.json, args.overwrite)
+    check_free(args.json, args.overwrite)
     if args.report:
-        _check_free(Path(args.report) / "report.md", args.overwrite)
+        check_free(Path(args.report) / "report.md", args.overwrite)
     observables = _observables(args)
     result = diagnose(observables, threshold=args.threshold,
                       prefer_physical=args.physical_first)

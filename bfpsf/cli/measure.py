@@ -4,12 +4,12 @@ Parse, read the images (ADU, converted to electrons with the gain), call
 `bfpsf.measure.sources.measure_sources`, write the star table (ECSV) and the JSON summary.
 """
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import BFPSFFileExistsError, BFPSFInputError
+from ..errors import BFPSFInputError
+from ._outputs import check_free, write_json
 
 
 def add_parser(subparsers):
@@ -41,12 +41,6 @@ def add_parser(subparsers):
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     return parser
-
-
-def _check_free(path, overwrite):
-    if path is not None and Path(path).exists() and not overwrite:
-        msg = f"{path} exists; pass --overwrite to replace it"
-        raise BFPSFFileExistsError(msg)
 
 
 def _read_image(path):
@@ -103,8 +97,8 @@ def run(args):
 
     from ..measure.sources import measure_sources
 
-    _check_free(args.output, args.overwrite)
-    _check_free(args.json, args.overwrite)
+    check_free(args.output, args.overwrite)
+    check_free(args.json, args.overwrite)
     external = Table.read(args.catalog) if args.catalog else None
     tables, summary_images = [], []
     calibration_gain = _calibration_gain(args.calib) if args.calib else None
@@ -132,9 +126,7 @@ def run(args):
                "n_clean": int(np.sum(stars["flags"] == 0)),
                "n_flagged": int(np.sum(stars["flags"] != 0)), "images": summary_images}
     if args.json:
-        with open(args.json, "w") as stream:
-            json.dump(summary, stream, indent=1)
-            stream.write("\n")
+        write_json(args.json, summary)
     print(f"{len(stars)} sources ({summary['n_clean']} clean) in {len(args.images)} image(s); "
           f"wrote {args.output}")
     return 0

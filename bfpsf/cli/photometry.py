@@ -5,11 +5,11 @@ Parse, read the PSF product and the images (ADU -> e- with the product's gain), 
 PSF), write the table (fluxes in e-) and the JSON summary.
 """
 
-import json
 
 import numpy as np
 
-from .psf import check_free, read_image_adu
+from ._outputs import check_free, write_json
+from .psf import read_image_adu
 
 
 def add_parser(subparsers):
@@ -75,9 +75,7 @@ def run(args):
                "static_psf": bool(args.static), "n_stars": len(result),
                "n_flagged": int(np.sum(result["flags"] != 0)), "images": per_image}
     if args.json:
-        with open(args.json, "w") as stream:
-            json.dump(summary, stream, indent=1)
-            stream.write("\n")
+        write_json(args.json, summary)
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "
           f"({summary['n_flagged']} flagged); wrote {args.output}")
     return 0

@@ -6,12 +6,12 @@ brighter-fatter term of each removed (`bfpsf.model.psf_fit.fit_psf`), write the 
 and the JSON summary.
 """
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import BFPSFFileExistsError, BFPSFInputError
+from ..errors import BFPSFInputError
+from ._outputs import check_free, write_json
 
 
 def add_parser(subparsers):
@@ -41,13 +41,6 @@ def add_parser(subparsers):
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     return parser
-
-
-def check_free(path, overwrite):
-    """Refuse to replace an existing output without --overwrite."""
-    if path is not None and Path(path).exists() and not overwrite:
-        msg = f"{path} exists; pass --overwrite to replace it"
-        raise BFPSFFileExistsError(msg)
 
 
 def read_image_adu(path):
@@ -126,9 +119,7 @@ def run(args):
                if np.any(used) else None,
                "images": per_image}
     if args.json:
-        with open(args.json, "w") as stream:
-            json.dump(summary, stream, indent=1)
-            stream.write("\n")
+        write_json(args.json, summary)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "
           f"{len(args.images)} image(s), {result.iterations} iterations "
           f"({'converged' if result.converged else 'NOT converged'}); wrote {args.output}")

@@ -9,10 +9,10 @@ slope in pixels per 100 ke- of peak, relative_percent in percent of the intercep
 100 ke-), ``n_stars``, and ``details`` (full fits, colour fit, peak range).
 """
 
-import json
 from pathlib import Path
 
-from ..errors import BFPSFFileExistsError, BFPSFInputError
+from ..errors import BFPSFInputError
+from ._outputs import check_free, write_json
 
 
 def add_parser(subparsers):
@@ -40,12 +40,6 @@ def add_parser(subparsers):
     return parser
 
 
-def _check_free(path, overwrite):
-    if path is not None and Path(path).exists() and not overwrite:
-        msg = f"{path} exists; pass --overwrite to replace it"
-        raise BFPSFFileExistsError(msg)
-
-
 def _model_residual(stars, args, colour_fit):
     """Slopes of the sizes measured minus the sizes the flux-dependent PSF predicts."""
     from ..measure.slopes import bf_slopes, model_size_increments
@@ -69,8 +63,8 @@ def run(args):
     from ..measure.colour import correct_size_colour
     from ..measure.slopes import bf_slopes
 
-    _check_free(args.json, args.overwrite)
-    _check_free(args.plot, args.overwrite)
+    check_free(args.json, args.overwrite)
+    check_free(args.plot, args.overwrite)
     if not Path(args.stars).exists():
         msg = f"star table {args.stars} does not exist"
         raise BFPSFInputError(msg, args.stars)
@@ -97,9 +91,7 @@ def run(args):
         "stars": str(args.stars),
     }
     if args.json:
-        with open(args.json, "w") as stream:
-            json.dump(summary, stream, indent=1)
-            stream.write("\n")
+        write_json(args.json, summary)
     if args.plot:
         from ..plotting.moments import plot_size_vs_peak
 

@@ -7,7 +7,7 @@ chain, print the side-by-side table, write the JSON summary and the Markdown rep
 import sys
 from pathlib import Path
 
-from ..errors import BFPSFFileExistsError
+from ._outputs import check_free
 
 __all__ = ["add_parser", "run"]
 
@@ -38,12 +38,6 @@ def add_parser(subparsers):
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
-
-
-def _check_free(path, overwrite):
-    if path is not None and Path(path).exists() and not overwrite:
-        msg = f"{path} exists; pass --overwrite to replace it"
-        raise BFPSFFileExistsError(msg)
 
 
 def _config(args):
@@ -94,9 +88,9 @@ def run(args):
     from ..validation.report import write_json, write_validation_report
     from ..validation.validate import validate
 
-    _check_free(args.json, args.overwrite)
+    check_free(args.json, args.overwrite)
     if args.report:
-        _check_free(Path(args.report) / "report.md", args.overwrite)
+        check_free(Path(args.report) / "report.md", args.overwrite)
     result = validate(_config(args), progress=not args.no_progress,
                       shifts_for_model=args.model_shifts)
     _print_table(result)

@@ -1,0 +1,42 @@
+"""Output files of the commands: never overwritten without ``--overwrite``; JSON summaries."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import BFPSFFileExistsError
+
+
+def check_free(path, overwrite):
+    """Raise `BFPSFFileExistsError` if ``path`` exists and ``overwrite`` is false.
+
+    Called for every output before any work is done, so a refused run writes nothing.
+    ``path=None`` (an output not requested) is accepted.
+    """
+    if path is not None and Path(path).exists() and not overwrite:
+        msg = f"{path} exists; pass --overwrite to replace it"
+        raise BFPSFFileExistsError(msg, str(path))
+
+
+def _strict(value):
+    """Plain JSON types; NaN and infinities (not JSON) become null."""
+    if isinstance(value, dict):
+        return {str(key): _strict(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_strict(item) for item in value]
+    if isinstance(value, np.ndarray):
+        return _strict(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_json(path, summary):
+    """Write a command's machine-readable summary as strict JSON (NaN written as null)."""
+    with open(path, "w") as stream:
+        json.dump(_strict(summary), stream, indent=1, allow_nan=False)
+        stream.write("\n")

@@ -1,0 +1,76 @@
+"""``bfpsf calibrate FLAT.fits... -o CALIB.fits``: flat-field calibration (issue 2).
+
+Parse, call `bfpsf.calibrate`, write the calibration file, the plots and the JSON summary.
+"""
+
+from pathlib import Path
+
+from ._outputs import check_free, write_json
+
+PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser(
+        "calibrate", help="measure gain, a(dx, dy) and boundary shifts from flat pairs",
+        description="Flat-field calibration of brighter-fatter (G15 sections 4 and 6.1): flats "
+                    "of equal EXPTIME are paired, their covariances fitted with the Astier+19 "
+                    "PTC model, and the boundary shifts a^X solved.")
+    parser.add_argument("flats", nargs="+", metavar="FLAT.fits",
+                        help="bias-subtracted flats in ADU with header EXPTIME (s)")
+    parser.add_argument("-o", "--output", required=True, metavar="CALIB.fits",
+                        help="calibration file to write (versioned multi-extension FITS)")
+    parser.add_argument("--maxlag", type=int, default=8,
+                        help="largest lag of the covariances and of a(dx, dy) (default 8)")
+    parser.add_argument("--model", choices=("full", "exponential", "quadratic"), default="full",
+                        help="PTC model: Astier+19 eq. 20 'full' (default), eq. 16 "
+                             "'exponential', or G15's 'quadratic'")
+    parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
+                        help="mask pixels at or above this level (ADU)")
+    parser.add_argument("--n-monte-carlo", type=int, default=200,
+                        help="Monte Carlo draws for the boundary-shift errors (default 200)")
+    parser.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
+    parser.add_argument("--plots", metavar="DIR",
+                        help="write PTC, correlation-map and a(r) plots (PNG) into DIR")
+    parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace existing output files")
+    parser.add_argument("--progress", action="store_true", help="show a progress bar")
+    return parser
+
+
+def run(args):
+    from ..calibration import calibrate
+
+    # Refuse before the (long) computation rather than after it.
+    check_free(args.output, args.overwrite)
+    check_free(args.json, args.overwrite)
+    if args.plots:
+        for name in PLOT_NAMES:
+            check_free(Path(args.plots) / name, args.overwrite)
+
+    calibration = calibrate(args.flats, maxlag=args.maxlag, ptc_model=args.model,
+                            saturation=args.saturation, n_monte_carlo=args.n_monte_carlo,
+                            seed=args.seed, progress=args.progress)
+    calibration.write(args.output, overwrite=args.overwrite)
+    if args.plots:
+        from ..plotting.calibration import save_calibration_plots
+
+        save_calibration_plots(calibration, args.plots, overwrite=args.overwrite)
+    if args.json:
+        write_json(args.json, calibration.to_json_dict())
+
+    a = calibration.a
+    print(f"gain {calibration.gain:.5f} +- {calibration.gain_err:.5f} e-/ADU, "
+          f"read noise {calibration.noise_e:.3f} e-, {calibration.n_pairs} pairs, "
+          f"turnoff {calibration.turnoff_e:.4g} e-"
+          + (" (detected)" if calibration.turnoff_detected else " (not reached)"))
+    print(f"a(0,0) {a[0, 0]:.4e} +- {calibration.a_err[0, 0]:.2e}, a(1,0) {a[0, 1]:.4e}, "
+          f"a(0,1) {a[1, 0]:.4e} 1/e-  [{calibration.model} model]")
+    if calibration.linearity.flagged:
+        print(f"WARNING: non-linear response, {1e3 * calibration.linearity.peak_to_peak:.3g} "
+              f"per mil peak to peak > {1e3 * calibration.linearity.threshold:.3g}")
+    if calibration.pedestal.any_detected:
+        print(f"readout pedestal subtracted at {int(calibration.pedestal.detected.sum())} lag(s)")
+    print(f"wrote {args.output}")
+    return 0

@@ -1,0 +1,123 @@
+"""The versioned Calibration product: exact FITS round trip, schema guard, JSON keys."""
+
+import json
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from bfpsf.calibration import ptc
+from bfpsf.calibration.linearity import measure_linearity
+from bfpsf.calibration.pedestal import measure_pedestal
+from bfpsf.calibration.product import SCHEMA_VERSION, Calibration
+from bfpsf.errors import BFPSFFileExistsError, BFPSFInputError
+from bfpsf.shifts import BoundaryShifts
+
+JSON_KEYS = {"gain", "gain_err", "noise_e", "a", "a_err", "maxlag", "n_pairs", "turnoff_e",
+             "linearity_max_frac_residual", "pedestal"}
+
+
+@pytest.fixture(scope="module")
+def calibration():
+    """A Calibration built from a model PTC (no GalSim needed)."""
+    rng = np.random.default_rng(0)
+    maxlag = 3
+    area = np.zeros((maxlag + 1, maxlag + 1))
+    area[0, 0], area[0, 1], area[1, 0], area[1, 1] = -2e-6, 1e-7, 3.5e-7, 1e-7
+    area[0, 0] -= 2 * area[0, 1:].sum() + 2 * area[1:, 0].sum() + 4 * area[1:, 1:].sum()
+    mean_adu = np.linspace(3e3, 8e4, 10)
+    noise = np.zeros_like(area)
+    noise[0, 0] = 25.0
+    cov = ptc.full_covariance_model(mean_adu, area, np.zeros_like(area), noise, 1.5)
+    npix = np.full(cov.shape, 1e6)
+    cov += rng.standard_normal(cov.shape) * ptc.covariance_errors(cov, npix)
+    exptime = mean_adu / 1e4
+    data = ptc.PTCData(exptime, mean_adu, cov, npix)
+    fit = ptc.fit_ptc(data)
+    pedestal = measure_pedestal(mean_adu, cov, npix)
+    linearity = measure_linearity(exptime, mean_adu, used=fit.used)
+    shifts = BoundaryShifts.from_radial_profile(lambda r: 1e-7 / r**2, 4)
+    table = ptc.ptc_table(data, fit.gain, fit.used)
+    table["name1"] = [f"flat{2 * i}.fits" for i in range(len(table))]
+    return Calibration(
+        gain=fit.gain, gain_err=fit.gain_err, noise_e=fit.noise_e, noise_e_err=fit.noise_e_err,
+        a=fit.a, a_err=fit.a_err, b=fit.b, b_err=fit.b_err, noise_matrix_e2=fit.noise_matrix_e2,
+        ptc=table, linearity=linearity, pedestal=pedestal, model=fit.model,
+        turnoff_e=fit.turnoff_e, turnoff_detected=fit.turnoff_detected, chi2=fit.chi2,
+        ndof=fit.ndof, shifts=shifts, shifts_north_err=np.abs(shifts.north) * 0.1,
+        shifts_east_err=np.abs(shifts.east) * 0.1,
+        shift_fit={"p0": -1.3e-7, "p1": -0.71, "p1_err": 0.05, "sensitivity_max_relative": 0.01},
+        covariances_adu=cov, npix=npix, inputs=["flat0.fits", "flat1.fits"],
+        parameters={"maxlag": maxlag, "ptc_model": "full", "saturation": None})
+
+
+def test_round_trip_is_exact(calibration, tmp_path):
+    path = tmp_path / "calib.fits"
+    calibration.write(path)
+    back = Calibration.read(path)
+    for name in ("gain", "gain_err", "noise_e", "noise_e_err", "turnoff_e", "chi2", "ndof",
+                 "model", "turnoff_detected", "inputs", "parameters", "shift_fit",
+                 "bfpsf_version", "schema_version", "maxlag", "n_pairs"):
+        assert getattr(back, name) == getattr(calibration, name), name
+    for name in ("a", "a_err", "b", "b_err", "noise_matrix_e2", "shifts_north_err",
+                 "shifts_east_err", "covariances_adu", "npix"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(calibration, name), name)
+    assert back.shifts == calibration.shifts
+    assert back.ptc.colnames == calibration.ptc.colnames
+    for column in calibration.ptc.colnames:
+        np.testing.assert_array_equal(back.ptc[column], calibration.ptc[column], column)
+        assert back.ptc[column].unit == calibration.ptc[column].unit
+    for name in ("value", "error"):
+        np.testing.assert_array_equal(getattr(back.pedestal, name),
+                                      getattr(calibration.pedestal, name))
+    assert (back.pedestal.nsigma, back.pedestal.degree) == (calibration.pedestal.nsigma,
+                                                            calibration.pedestal.degree)
+    for name in ("exptime", "mean_adu", "frac_residual", "used"):
+        np.testing.assert_array_equal(getattr(back.linearity, name),
+                                      getattr(calibration.linearity, name))
+    for name in ("slope", "intercept", "threshold", "measured", "flagged"):
+        assert getattr(back.linearity, name) == getattr(calibration.linearity, name)
+    assert back.to_json_dict() == calibration.to_json_dict()
+
+
+def test_arrays_are_read_only(calibration):
+    with pytest.raises(ValueError):
+        calibration.a[0, 0] = 0.0
+
+
+def test_never_overwrites_without_permission(calibration, tmp_path):
+    path = tmp_path / "calib.fits"
+    calibration.write(path)
+    with pytest.raises(BFPSFFileExistsError, match="overwrite=True"):
+        calibration.write(path)
+    calibration.write(path, overwrite=True)
+
+
+def test_newer_schema_is_refused(calibration, tmp_path):
+    path = tmp_path / "calib.fits"
+    calibration.write(path)
+    with fits.open(path, mode="update") as hdul:
+        hdul[0].header["BFSCHEMA"] = SCHEMA_VERSION + 1
+    with pytest.raises(BFPSFInputError, match=f"schema version {SCHEMA_VERSION + 1}, newer"):
+        Calibration.read(path)
+
+
+def test_foreign_file_is_refused(tmp_path):
+    path = tmp_path / "image.fits"
+    fits.PrimaryHDU(np.zeros((4, 4))).writeto(path)
+    with pytest.raises(BFPSFInputError, match="not a bfpsf calibration file"):
+        Calibration.read(path)
+    with pytest.raises(BFPSFInputError, match="does not exist"):
+        Calibration.read(tmp_path / "missing.fits")
+
+
+def test_json_keys_and_layout(calibration):
+    summary = calibration.to_json_dict()
+    assert JSON_KEYS <= set(summary)
+    text = json.dumps(summary, allow_nan=False)  # strictly valid JSON
+    summary = json.loads(text)
+    maxlag = summary["maxlag"]
+    assert len(summary["a"]) == maxlag + 1 and len(summary["a"][0]) == maxlag + 1
+    assert summary["a"][1][0] == calibration.a[1, 0]  # [dy][dx]
+    assert len(summary["pedestal"]) == maxlag + 1
+    assert summary["n_pairs"] == 10
