@@ -261,3 +261,111 @@ def test_moment_errors_match_scatter():
                              ("sigma_x", "sigma_x_err")):
         scatter = np.std(getattr(result, name))
         assert np.median(errors[error_name]) == pytest.approx(scatter, rel=0.06), name
+
+
+# ------------------------------------------------------------------------------------------
+# undersampled objects (sigma ~ 1 pixel, like the ITL lab spots): agreement with HSM
+
+def _undersampled_cases():
+    """Noiseless Gaussians and Moffats, sigma 0.6 to 1.2 pixels, pixel-centred and random.
+
+    Odd 21 x 21 stamps, so offset (0, 0) is a pixel centre (the case that collapsed before
+    the starting size was floored) and (0.5, 0.5) a pixel corner; three random sub-pixel
+    offsets (seed 7) each. Moffats have beta 3.5 and the FWHM of the Gaussian.
+    """
+    rng = np.random.default_rng(7)
+    cases = []
+    for sigma in (0.6, 0.7, 0.75, 0.8, 0.9, 1.0, 1.03, 1.1, 1.2):
+        for kind, profile in (("gaussian", galsim.Gaussian(sigma=sigma)),
+                              ("moffat", galsim.Moffat(beta=3.5, fwhm=2.3548 * sigma))):
+            offsets = [(0.0, 0.0), (0.5, 0.5)] + [tuple(rng.uniform(-0.5, 0.5, 2))
+                                                    for _ in range(3)]
+            for offset in offsets:
+                stamp = draw(profile, offset, size=21, flux=1e4)
+                cases.append((f"{kind} sigma={sigma} offset=({offset[0]:.2f},{offset[1]:.2f})",
+                              stamp))
+    return cases
+
+
+UNDERSAMPLED = _undersampled_cases()
+
+
+def _hsm_or_none(stamp):
+    try:
+        return hsm_moments(stamp)[0]
+    except galsim.GalSimHSMError:
+        return None
+
+
+def _assert_matches_hsm(name, measured, reference):
+    # 1e-4 relative on the moments (acceptance), Mxy relative to the trace since it can be ~0;
+    # both codes converge to 1e-6 of the weight size or better, so 1e-4 has a wide margin
+    scale = np.array([reference[0], reference[1], reference[0] + reference[1]])
+    assert np.all(np.abs(measured[:3] - reference[:3]) / scale < 1e-4), (name, measured,
+                                                                       reference)
+    np.testing.assert_allclose(measured[3:], reference[3:], atol=1e-5, err_msg=name)
+
+
+def test_undersampled_agrees_with_hsm_single():
+    n_compared = 0
+    for name, stamp in UNDERSAMPLED:
+        reference = _hsm_or_none(stamp)
+        result = adaptive_moments(stamp)
+        if reference is None:
+            # HSM finds no solution ("collapsed to singular moment matrix"): neither do we,
+            # and we say so with a fatal flag instead of returning numbers
+            assert result.flags & MomentsFlag.NOT_POSITIVE_DEFINITE, (name, result.flag_string)
+            assert np.isnan(result.sigma)
+            assert result.n_iter < 50, name            # detected, not iterated to max_iter
+            continue
+        assert result.flags == 0, (name, result.flag_string)
+        _assert_matches_hsm(name, np.array([result.mxx, result.myy, result.mxy, result.x,
+                                            result.y]), reference)
+        n_compared += 1
+    # HSM converges on all but the smallest centred objects (sigma <= 0.7 Gaussians etc.)
+    assert n_compared >= 0.8 * len(UNDERSAMPLED)
+
+
+def test_undersampled_agrees_with_hsm_batch():
+    stamps = np.array([stamp for _, stamp in UNDERSAMPLED])
+    batch = adaptive_moments_batch(stamps)
+    for index, (name, stamp) in enumerate(UNDERSAMPLED):
+        reference = _hsm_or_none(stamp)
+        if reference is None:
+            assert batch.flags[index] & MomentsFlag.NOT_POSITIVE_DEFINITE, name
+            continue
+        assert batch.flags[index] == 0, (name, flag_string(batch.flags[index]))
+        _assert_matches_hsm(name, np.array([batch.mxx[index], batch.myy[index],
+                                            batch.mxy[index], batch.x[index],
+                                            batch.y[index]]), reference)
+
+
+def test_centred_undersampled_gaussian_regression():
+    # the reported failure: sigma 0.75 pixel centred on a pixel gave flags 17 (no_convergence
+    # | too_few_pixels) after collapsing onto the central pixel; HSM converges
+    stamp = draw(galsim.Gaussian(sigma=0.75), size=21)
+    reference, hsm = hsm_moments(stamp)
+    result = adaptive_moments(stamp)
+    assert result.flags == 0, result.flag_string
+    assert result.sigma == pytest.approx(hsm.moments_sigma, rel=1e-5)
+    # the pixelised spot is broader than the continuous Gaussian (pixel response)
+    assert result.sigma > 0.75
+    # the solution is the stationary point: weighted covariance = M / 2 (module docstring)
+    y, x = np.mgrid[:21, :21].astype(float)
+    dx, dy = x - result.x, y - result.y
+    weight = np.exp(-0.5 * (dx**2 / result.mxx + dy**2 / result.myy)) * stamp
+    assert abs(result.mxy) < 1e-9
+    assert np.sum(weight * dx**2) / np.sum(weight) == pytest.approx(0.5 * result.mxx, rel=1e-6)
+
+
+def test_small_guess_collapses_and_is_flagged():
+    # the spurious M = 0 solution: started at sigma 0.5 pixel (M = 0.25 pixel^2, below the
+    # unstable solution M_u = 0.30 pixel^2 of this spot) the iteration collapses onto the
+    # central pixel; that is flagged fatal quickly, and the default guess avoids it
+    stamp = draw(galsim.Gaussian(sigma=0.75), size=21)
+    collapsed = adaptive_moments(stamp, guess_sigma=0.5)
+    assert collapsed.flags & MomentsFlag.NOT_POSITIVE_DEFINITE
+    assert np.isnan(collapsed.sigma) and collapsed.n_iter < 50
+    started_above = adaptive_moments(stamp, guess_sigma=0.6)     # M = 0.36 > M_u
+    assert started_above.flags == 0
+    assert started_above.sigma == pytest.approx(adaptive_moments(stamp).sigma, rel=1e-6)

@@ -29,6 +29,26 @@ below ``tolerance`` (default 1e-6, HSM's ``convergence_threshold``), and gives u
 ``max_iter`` iterations (default 400, HSM's ``max_mom2_iter``) with the ``NO_CONVERGENCE`` flag.
 Pixels where the weight is below ``tolerance / 10`` are left out, as in HSM.
 
+Undersampled objects
+--------------------
+On a pixelised image the equations above have, besides the object's solution ``M_s``, a
+spurious one at ``M = 0`` when the centroid sits on a pixel centre: a weight much narrower
+than a pixel sees only the central pixel, whose moment about ``x0`` is zero, so ``C / A``
+vanishes and the clipped step shrinks ``M`` by 0.25 of itself at every iteration. Along the
+radius the two are separated by an unstable solution ``M_u``; started below ``M_u`` the
+iteration collapses. For round Gaussians (Moffats, beta 3.5, of the same FWHM) centred on a
+pixel, ``M_u`` is 0.30 (0.27) pixel^2 at sigma 0.75 pixel and 0.19 (0.19) pixel^2 at 1.2 pixel,
+and ``M_s`` is 0.58 (0.75) and 1.52 (1.88) pixel^2; for a centred Gaussian of sigma 0.70
+pixel no ``M_s`` exists at all and HSM fails too ("collapsed to singular moment matrix").
+Started between ``M_u`` and ``M_s`` a round iteration grows towards ``M_s``; started above, it
+never falls below ``max(2 M_s - M, 0.75 M) >= 0.86 M_s`` (the weighted second moment grows
+with ``M``, and the clip bounds the step), which is above ``M_u`` in all these cases. HSM
+starts from sigma = 5 pixels for this reason, at the cost of ~15 more iterations; the default
+guess here (from the pixels above half maximum: one to four for such objects, i.e. sigma 0.5
+to 1 pixel) is floored at 1 pixel, above ``M_u``. A weight whose minor semi-axis^2 falls below
+0.01 pixel^2 has collapsed: the stamp is flagged ``NOT_POSITIVE_DEFINITE`` (no solution)
+instead of iterating to ``max_iter``. An explicit ``guess_sigma`` is used as given.
+
 Conventions
 -----------
 Stamps are arrays ``stamp[y, x]`` with pixel centres at integer coordinates, 0-based
@@ -88,7 +108,8 @@ class MomentsFlag:
     or above ``saturation``. ``TOO_FEW_PIXELS`` : fewer than 6 usable pixels (6 parameters:
     amplitude, centroid, three moments). ``BAD_PIXELS`` : the stamp holds non-finite pixels
     (they are masked, the measurement uses the others). ``NOT_POSITIVE_DEFINITE`` : the moment
-    matrix became non-positive-definite or grew beyond the stamp (measurement failed).
+    matrix became non-positive-definite, grew beyond the stamp, or collapsed below the pixel
+    scale (an undersampled object without adaptive-moment solution; measurement failed).
     """
 
     NO_CONVERGENCE = 1
@@ -270,6 +291,13 @@ _CHECK_NSIGMA2 = 9.0
 _STEP_BOUND = 0.25
 #: minimum number of usable pixels (amplitude, centroid, three moments, plus one)
 _MIN_PIXELS = 6
+#: floor of the default starting sigma, pixels: above the spurious M = 0 basin of undersampled
+#: objects (see "Undersampled objects" in the module docstring)
+_GUESS_SIGMA_MIN = 1.0
+#: minor semi-axis^2 of the weight (pixel^2) below which the iteration has collapsed: pixel
+#: centres 1 px away along the minor axis get weight < exp(-50), so the moment along it is 0
+#: and can only shrink further (no legitimate solution is that narrow, module docstring)
+_COLLAPSE_B2 = 0.01
 #: stamps measured together by adaptive_moments_batch
 _CHUNK = 2048
 
@@ -306,7 +334,10 @@ def _initial_guess(stack, usable, guess_sigma, centroid):
         n_half = np.sum(clean > 0.5 * peak[:, None, None], axis=(1, 2))
         # a Gaussian covers 2 pi ln(2) sigma^2 pixels above half its maximum
         sigma0 = np.sqrt(np.maximum(n_half, 1) / (2.0 * np.pi * np.log(2.0)))
-        sigma0 = np.clip(sigma0, 0.5, max(min(nx, ny) / 4.0, 0.5))
+        # never start below 1 px: an undersampled object (1 to 4 pixels above half maximum)
+        # started smaller falls into the spurious M = 0 solution (module docstring)
+        sigma0 = np.clip(sigma0, _GUESS_SIGMA_MIN,
+                         max(min(nx, ny) / 4.0, _GUESS_SIGMA_MIN))
     else:
         sigma0 = _per_stamp(guess_sigma, n_stamps, "guess_sigma")[:, 0]
         if np.any(~(sigma0 > 0)):
@@ -364,7 +395,8 @@ def adaptive_moments_batch(stamps, *, guess_sigma=None, centroid=None, weight=No
         Background-subtracted stamps, any flux unit (electrons in bfpsf).
     guess_sigma : float or array_like of shape (n,), optional
         Starting Gaussian sigma, pixels. Default: from the number of pixels above half the
-        maximum.
+        maximum, at least 1 pixel (a guess far below the object's size can collapse onto
+        one pixel on undersampled objects; module docstring).
     centroid : array_like of shape (2,) or (n, 2), optional
         Starting ``(x, y)``, 0-based pixels. Default: the maximum of the 3x3 box-summed stamp.
     weight : array_like, shape (ny, nx) or (n, ny, nx), optional
@@ -484,8 +516,9 @@ def adaptive_moments_batch(stamps, *, guess_sigma=None, centroid=None, weight=No
         myy[active] += step_yy * semi_b2
         mxy[active] += step_xy * semi_b2
         new_det = mxx[active] * myy[active] - mxy[active]**2
-        not_pd = ~((semi_b2 > 0) & (mxx[active] > 0) & (myy[active] > 0) & (new_det > 0)
-                   & (mxx[active] < max_moment) & (myy[active] < max_moment)
+        # semi_b2 > _COLLAPSE_B2: a weight narrower than the pixel has collapsed (module doc)
+        not_pd = ~((semi_b2 > _COLLAPSE_B2) & (mxx[active] > 0) & (myy[active] > 0)
+                   & (new_det > 0) & (mxx[active] < max_moment) & (myy[active] < max_moment)
                    & np.isfinite(factor))
         outside = ((x0[active] < -0.5) | (x0[active] > nx - 0.5)
                    | (y0[active] < -0.5) | (y0[active] > ny - 0.5))
