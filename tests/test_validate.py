@@ -42,11 +42,19 @@ def test_validate_physics(tiny_run):
     assert 0.7 < truth_row["predicted_over_measured_x"] < 1.3
     assert 0.7 < truth_row["predicted_over_measured_y"] < 1.3
     psf = tiny_run["psf"]
-    # a static PSF made from the bright spots biases the faint ones by several mmag; P(F)
-    # removes most of it (noise of 9 spots per level: ~0.5 mmag)
+    # a static PSF made from the bright spots biases the faint ones by several mmag (bright
+    # minus faint > 0: the faint come out too bright); P(F) removes most of it (noise of 9
+    # spots per level: ~0.5 mmag). Uniform weights (sky-limited limit): measured static +6.7,
+    # P(F) +0.26 mmag.
     assert psf["photometry_bias_static_mmag"] > 2.0
     assert abs(psf["photometry_bias_flux_dependent_mmag"]) < 0.4 * psf[
         "photometry_bias_static_mmag"]
+    # photutils with the weights of a 1000 e- sky: a smaller static bias, the bright spots'
+    # own Poisson variance weighing their core less (measured static +1.6, P(F) -0.07 mmag;
+    # with the sky-free Poisson weights the static bias would vanish)
+    assert psf["photometry_bias_photutils_static_mmag"] > 1.0
+    assert abs(psf["photometry_bias_photutils_flux_dependent_mmag"]) < 0.4 * psf[
+        "photometry_bias_photutils_static_mmag"]
 
 
 @pytest.mark.slow
@@ -59,6 +67,9 @@ def test_validate_full():
     assert abs(psf["residual_slope_y_percent"]) < 3 * max(psf["residual_slope_y_percent_err"], 1)
     assert abs(psf["photometry_bias_flux_dependent_mmag"]) < 1.0
     assert psf["photometry_bias_static_mmag"] > 3.0
+    # photutils, weights of a 1000 e- sky: measured static +2.2, P(F) +0.3 +- 0.6 mmag
+    assert abs(psf["photometry_bias_photutils_flux_dependent_mmag"]) < 1.0
+    assert psf["photometry_bias_photutils_static_mmag"] > 1.0
     area = result["area"]
     pulls = [abs(p) for p in area["pull"] if p is not None]
     assert max(pulls) < 4
