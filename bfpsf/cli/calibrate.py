@@ -5,7 +5,7 @@ Parse, call `bfpsf.calibrate`, write the calibration file, the plots and the JSO
 
 from pathlib import Path
 
-from ._outputs import check_free, write_json
+from ._files import check_free, write_json
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 

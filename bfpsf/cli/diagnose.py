@@ -10,14 +10,16 @@ Two modes (a thin layer over `bfpsf.validation.diagnose`):
   ``bfpsf diagnose --measured DIR`` for the published data sets in ``shared/data/measured``.
 
 JSON keys: ``residual_before``, ``candidates``, ``selected``, ``residual_after`` (plus
-``parameters``, ``ambiguous``, ``residual_physical``, ``threshold``, ``inputs``).
+``parameters``, ``ambiguous``, ``residual_physical``, ``threshold``, ``inputs``, and in images
+mode ``star_residual``: the stacked residual of the stars against P(F), ``rms_over_peak``,
+``chi2_per_pixel``, ``n_stars`` and its radial profile).
 """
 
 import sys
 from pathlib import Path
 
 from ..errors import BFPSFInputError
-from ._outputs import check_free
+from ._files import check_free
 
 __all__ = ["add_parser", "run"]
 
@@ -90,6 +92,10 @@ def run(args):
     summary = result.to_json_dict()
     summary["inputs"] = {key: value for key, value in observables.meta.items()
                          if isinstance(value, (str, float, int, bool)) or value is None}
+    star = observables.meta.get("star_residual")
+    if star is not None:
+        summary["star_residual"] = {key: star[key] for key in (
+            "rms_over_peak", "chi2_per_pixel", "n_stars", "model_peak", "radius", "profile")}
     before, after = result.residual_before, result.residual_after
     print(f"selected: {', '.join(result.selected) or 'nothing'}")
     for label, values in (("before", before), ("after", after)):
@@ -109,6 +115,6 @@ def run(args):
         path = write_diagnosis_report(result, args.report, title="bfpsf diagnose",
                                       context=context,
                                       residual_images=observables.meta.get("residual_images"),
-                                      overwrite=args.overwrite)
+                                      star_residual=star, overwrite=args.overwrite)
         print(f"report: {path}", file=sys.stderr)
     return 0

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ._outputs import check_free, write_json
+from ._files import check_free, read_image, write_json
 
 
 def add_parser(subparsers):
@@ -41,29 +41,6 @@ def add_parser(subparsers):
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     return parser
-
-
-def _read_image(path):
-    from astropy.io import fits
-
-    if not Path(path).exists():
-        msg = f"image {path} does not exist"
-        raise BFPSFInputError(msg, path)
-    with fits.open(path) as hdus:
-        for hdu in hdus:
-            if hdu.is_image and hdu.data is not None and hdu.data.ndim == 2:
-                data = np.asarray(hdu.data, dtype=float)
-                header = hdu.header.copy()
-                break
-        else:
-            msg = f"{path} holds no 2-D image"
-            raise BFPSFInputError(msg, path)
-        catalog = None
-        if "CATALOG" in hdus:
-            from astropy.table import Table
-
-            catalog = Table.read(hdus["CATALOG"])
-    return data, header, catalog
 
 
 def _calibration_gain(path):
@@ -103,7 +80,7 @@ def run(args):
     tables, summary_images = [], []
     calibration_gain = _calibration_gain(args.calib) if args.calib else None
     for path in args.images:
-        image_adu, header, catalog = _read_image(path)
+        image_adu, header, catalog = read_image(path)
         gain = _gain(args, header, path, calibration_gain)
         colour_table = external if external is not None else catalog
         if args.colour and colour_table is None:

@@ -8,8 +8,7 @@ PSF), write the table (fluxes in e-) and the JSON summary.
 
 import numpy as np
 
-from ._outputs import check_free, write_json
-from .psf import read_image_adu
+from ._files import check_free, read_image, write_json
 
 
 def add_parser(subparsers):
@@ -57,7 +56,7 @@ def run(args):
     model = static_image_psf(psf) if args.static else psf
     tables, per_image = [], []
     for path in args.images:
-        image_e = read_image_adu(path) * gain
+        image_e = read_image(path)[0] * gain
         table = psf_photometry(image_e, model, read_noise_e=args.read_noise,
                                fit_shape=args.fit_shape, detection_threshold=args.threshold)
         table.add_column(str(path), name="image", index=0)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ._outputs import check_free, write_json
+from ._files import check_free, read_image, write_json
 
 
 def add_parser(subparsers):
@@ -43,21 +43,6 @@ def add_parser(subparsers):
     return parser
 
 
-def read_image_adu(path):
-    """First 2-D image HDU of a FITS file, as float ADU."""
-    from astropy.io import fits
-
-    if not Path(path).exists():
-        msg = f"image {path} does not exist"
-        raise BFPSFInputError(msg, str(path))
-    with fits.open(path) as hdus:
-        for hdu in hdus:
-            if hdu.is_image and hdu.data is not None and hdu.data.ndim == 2:
-                return np.asarray(hdu.data, dtype=float)
-    msg = f"{path} holds no 2-D image"
-    raise BFPSFInputError(msg, str(path))
-
-
 def _isolated_stars(image_e, threshold, saturation_e, size):
     """Clean, unsaturated, isolated detections: positions (N, 2) and background (e-)."""
     from ..measure.sources import measure_sources
@@ -85,7 +70,7 @@ def run(args):
     gain = float(calibration.gain)
     images, positions, skies, per_image = [], [], [], []
     for path in args.images:
-        image_e = read_image_adu(path) * gain
+        image_e = read_image(path)[0] * gain
         _, background, _ = sigma_clipped_stats(image_e[np.isfinite(image_e)], sigma=3.0)
         image_e = image_e - background
         saturation_e = None if args.saturation is None else args.saturation * gain - background

@@ -12,7 +12,7 @@ slope in pixels per 100 ke- of peak, relative_percent in percent of the intercep
 from pathlib import Path
 
 from ..errors import BFPSFInputError
-from ._outputs import check_free, write_json
+from ._files import check_free, write_json
 
 
 def add_parser(subparsers):

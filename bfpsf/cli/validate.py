@@ -7,7 +7,7 @@ chain, print the side-by-side table, write the JSON summary and the Markdown rep
 import sys
 from pathlib import Path
 
-from ._outputs import check_free
+from ._files import check_free
 
 __all__ = ["add_parser", "run"]
 
