@@ -273,3 +273,148 @@ def test_loop_on_silicon_sensor_null_and_injected_nonlinearity():
         selections[label] = diagnose(obs).selected
     assert selections["null"] == []
     assert selections["nonlinear"][:1] == ["gain_nonlinearity"]
+
+
+# -- PTC residuals and the stars' stacked residual (images mode observables) -------------------
+def _calibrated_flats(nonlinearity):
+    """SiliconSensor flats (192^2, 10 levels to 120 ke-, one pair each), calibrated."""
+    from bfpsf.calibration import calibrate
+    from bfpsf.validation.simulate_flats import simulate_flats
+
+    flats = simulate_flats("lsst_itl_50_8", np.linspace(1e4, 1.2e5, 10), pairs=1, size=192,
+                           nsteps=4, seed=3, nonlinearity=nonlinearity)
+    return calibrate([image for image, _, _ in flats], exptimes=[t for _, t, _ in flats],
+                     maxlag=3, n_monte_carlo=0, fit_b=False)
+
+
+def _flat_observables(cal):
+    from bfpsf.validation.diagnose import flat_observables, ptc_observable
+    from bfpsf.validation.effects import Observables
+
+    linearity, correlations = flat_observables(cal)
+    return Observables(linearity=linearity, correlations=correlations,
+                       ptc=ptc_observable(cal))
+
+
+def test_ptc_residual_null_flats_select_nothing():
+    """Linear SiliconSensor flats: the PTC with the sum-rule a(0, 0) fits within the shot
+    noise, and the loop on the flat observables (linearity, correlations, PTC) adds nothing."""
+    obs = _flat_observables(_calibrated_flats(0.0))
+    pulls = obs.ptc.residual_e / obs.ptc.var_err_e
+    # the area beyond lag 3 is missing from the sum rule: ~8 % of a(0, 0), < 2 sigma here
+    assert np.max(np.abs(pulls)) < 3.0, pulls
+    result = diagnose(obs)
+    assert result.selected == []
+    assert result.residual_before["ptc_chi2_per_point"] < 2.0
+
+
+def test_ptc_residual_shows_injected_nonlinearity(tmp_path):
+    """Flats with signal = q (1 - 4e-7 q) (-4 % at 100 ke-; c = -0.04 per 1e5 e-): the
+    calibration's free a(0, 0) absorbs it, the sum-rule PTC model does not, so the PTC
+    residuals run to many sigma at the bright end; the loop selects gain_nonlinearity and
+    the PTC residuals fall back to the null level."""
+    from bfpsf.validation.report import write_diagnosis_report
+
+    obs = _flat_observables(_calibrated_flats(-4e-7))
+    pulls = obs.ptc.residual_e / obs.ptc.var_err_e
+    assert pulls[-1] < -10, pulls
+    assert np.all(pulls[3:] < -3), pulls
+    result = diagnose(obs)
+    assert result.selected[:1] == ["gain_nonlinearity"]
+    value = result.parameters["gain_nonlinearity"]["value"][0]
+    # first-order templates, and the calibrated gain absorbs part of the curvature: 25 %
+    assert value == pytest.approx(-0.04, rel=0.25)
+    after = result.ptc_curves["residual_after"] / result.ptc_curves["error"]
+    assert np.max(np.abs(after)) < 3.0, after
+    assert result.residual_after["linearity_chi2_per_point"] < 3.0
+    path = write_diagnosis_report(result, tmp_path)
+    assert (tmp_path / "ptc_residuals.png").stat().st_size > 0
+    assert "PTC residuals chi2 / point" in path.read_text()
+
+
+@pytest.fixture(scope="module")
+def star_field(shifts):
+    """64 stars drawn with P(F) itself (`FluxDependentPSF.star_image`), 2e5-1.2e6 e-,
+    random phases, Poisson + 5 e- read noise; the source table holds the true positions."""
+    import galsim
+    from astropy.table import Table
+
+    from bfpsf.model.psf import FluxDependentPSF
+
+    psf = FluxDependentPSF.from_galsim(galsim.Gaussian(sigma=SIGMA), shifts, size=15)
+    rng = np.random.default_rng(4)
+    pitch, half = 24, 7
+    image = np.zeros((8 * pitch, 8 * pitch))
+    rows = []
+    for i in range(8):
+        for j in range(8):
+            cx, cy = pitch * i + pitch // 2, pitch * j + pitch // 2
+            px, py = rng.uniform(-0.5, 0.5, 2)
+            flux = rng.uniform(2e5, 1.2e6)
+            stamp = psf.star_image(flux, x_phase=px, y_phase=py, half_size=half)
+            image[cy - half:cy + half + 1, cx - half:cx + half + 1] += stamp
+            rows.append((cx + px, cy + py, flux, stamp.max(), 0))
+    image = rng.poisson(image).astype(float) + rng.normal(0.0, 5.0, image.shape)
+    table = Table(rows=rows, names=["x", "y", "flux_e", "peak_e", "flags"])
+    return psf, image, table
+
+
+def test_stacked_star_residual_consistent_with_noise(shifts, star_field):
+    import galsim
+
+    from bfpsf.model.psf import FluxDependentPSF
+    from bfpsf.validation.diagnose import stacked_star_residual
+
+    psf, image, table = star_field
+    same = stacked_star_residual([image], [table], psf, half_size=7, noise_e=5.0)
+    assert same["n_stars"] == 64
+    # chi2 per pixel of 225 pixels: 1 +- 0.09; the per-star flux refit removes a little
+    assert 0.75 < same["chi2_per_pixel"] < 1.3
+    assert same["rms_over_peak"] < 5e-4
+    assert same["radius"].size == same["profile"].size
+    # the same stars against the static PSF (no BF): the BF signature stands out
+    static = FluxDependentPSF.from_galsim(galsim.Gaussian(sigma=SIGMA), shifts.scaled(0.0),
+                                          size=15)
+    other = stacked_star_residual([image], [table], static, half_size=7, noise_e=5.0)
+    assert other["chi2_per_pixel"] > 10 * same["chi2_per_pixel"]
+    # brighter-fatter: the static model leaves a deficit at the core (charge pushed out)
+    assert other["profile"][0] < -5 * np.max(same["sigma"])
+    assert stacked_star_residual([image], [table], psf, min_peak_e=1e9) is None
+
+
+def test_cli_images_mode_ptc_and_star_residual(tmp_path, star_field):
+    """``bfpsf diagnose --flats --images``: linear SiliconSensor flats and stars drawn with
+    P(F): the JSON keeps its keys and adds the stars' stacked residual; the report holds the
+    PTC residual plot and the residual image with its radial profile."""
+    import json
+
+    from astropy.io import fits
+
+    from bfpsf.cli import main
+    from bfpsf.validation.simulate_flats import simulate_flats
+
+    flats = simulate_flats("lsst_itl_50_8", np.linspace(1e4, 1.2e5, 10), pairs=1, size=192,
+                           nsteps=4, seed=3, gain=1.5)
+    paths = []
+    for index, (image, exptime, _) in enumerate(flats):
+        paths.append(str(tmp_path / f"flat{index:02d}.fits"))
+        fits.PrimaryHDU(image, header=fits.Header({"EXPTIME": exptime})).writeto(paths[-1])
+    _, stars, _ = star_field
+    fits.PrimaryHDU(stars / 1.5).writeto(tmp_path / "stars.fits")
+    code = main(["diagnose", "--flats", *paths, "--images", str(tmp_path / "stars.fits"),
+                 "--no-fit-b", "--maxlag", "3", "--bins", "5", "--report",
+                 str(tmp_path / "report"), "--json", str(tmp_path / "d.json")])
+    assert code == 0
+    data = json.loads((tmp_path / "d.json").read_text())
+    for key in ("residual_before", "candidates", "selected", "residual_after"):
+        assert key in data
+    assert "ptc_chi2_per_point" in data["residual_before"]
+    star = data["star_residual"]
+    # unflagged sources only (measure_sources flags some of the 64 bright, close stars)
+    assert 20 <= star["n_stars"] <= 64
+    # the calibration from 192^2 flats misses the BF amplitude of the stars' shifts by tens
+    # of percent: the stack shows it at a fraction of a percent of the peak, not more
+    assert 0 < star["rms_over_peak"] < 0.01
+    for name in ("ptc_residuals.png", "residual_images.png", "radial_profile.png"):
+        assert (tmp_path / "report" / name).stat().st_size > 0
+    assert "Stacked residual of the stars" in (tmp_path / "report" / "report.md").read_text()

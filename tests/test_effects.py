@@ -144,3 +144,23 @@ def test_catalogue_and_errors():
         LinearityTable([1, 2], [1, 2], [0, 1])
     with pytest.raises(BFPSFValueError, match="profile must be a galsim.GSObject"):
         SpotForwardModel("gaussian", BoundaryShifts.from_radial_profile(lambda r: 1e-7 / r, 2))
+
+
+def test_ptc_table_and_nonlinearity_ptc_template():
+    """The gain non-linearity's PTC template is the first-order change of the variance at a
+    fixed measured mean: for V = m + a m^2, (3 m^2 + 2 a m^3) / 1e5 (analytic)."""
+    from bfpsf.validation.effects import PTCTable, get_effect
+
+    a = -1e-6
+    mean = np.linspace(1e4, 1.2e5, 6)
+    model = mean + a * mean ** 2
+    table = PTCTable(mean, model, np.full(6, 100.0), model, 1 + 2 * a * mean, sum_rule_err=1e-7)
+    templates = get_effect("gain_nonlinearity").templates(Observables(ptc=table))
+    assert set(templates) == {"ptc"}
+    np.testing.assert_allclose(templates["ptc"][:, 0],
+                               (3 * mean ** 2 + 2 * a * mean ** 3) / 1e5, rtol=1e-12)
+    assert get_effect("readout_pedestal").templates(Observables(ptc=table)) == {}
+    with pytest.raises(BFPSFInputError, match="var_err_e must be positive"):
+        PTCTable(mean, model, np.zeros(6), model, np.ones(6))
+    with pytest.raises(BFPSFValueError, match="sum_rule_err must be finite"):
+        PTCTable(mean, model, np.ones(6), model, np.ones(6), sum_rule_err=-1.0)

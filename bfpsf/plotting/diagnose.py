@@ -7,7 +7,7 @@ figure.
 import numpy as np
 
 __all__ = ["plot_sizes_before_after", "plot_candidates", "plot_residual_image",
-           "plot_radial_profile"]
+           "plot_radial_profile", "plot_ptc_residuals"]
 
 
 def _new_axes(ax, ncols=1, figsize=(6, 4)):
@@ -146,6 +146,41 @@ def radial_profile(image, centre=None, *, bin_width=0.5):
     counts = np.bincount(index.ravel())
     good = counts > 0
     return (np.flatnonzero(good) + 0.5) * bin_width, sums[good] / counts[good]
+
+
+def plot_ptc_residuals(curves, *, ax=None):
+    """PTC residuals (variance minus the calibrated model), before and after the loop.
+
+    Parameters
+    ----------
+    curves : dict
+        ``DiagnosisResult.ptc_curves`` (``mean_e``, ``var_e``, ``error``, ``residual_raw``
+        (optional), ``residual_before``, ``residual_after``, e-^2).
+    ax : matplotlib.axes.Axes, optional
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    figure, ax = _new_axes(ax)
+    mean = np.asarray(curves["mean_e"], float)
+    var = np.asarray(curves["var_e"], float)
+    error = np.asarray(curves["error"], float)
+    series = [("residual_before", "o", "before (base model, noise and gain refitted)"),
+              ("residual_after", "s", "after (selected effects)")]
+    if "residual_raw" in curves:
+        series.insert(0, ("residual_raw", "^", "data - calibrated model"))
+    for key, marker, label in series:
+        ax.errorbar(mean / 1e3, 100 * np.asarray(curves[key], float) / var, 100 * error / var,
+                    fmt=marker, ms=3, mfc="none" if key != "residual_after" else None,
+                    label=label)
+    ax.axhline(0, color="k", lw=0.8)
+    ax.set_xlabel("flat mean (ke-)")
+    ax.set_ylabel("variance - PTC model (% of variance)")
+    ax.set_title("PTC residuals (sum-rule a(0,0))")
+    ax.legend(fontsize=8)
+    figure.tight_layout()
+    return figure
 
 
 def plot_radial_profile(images, labels, *, ax=None):

@@ -29,6 +29,10 @@ Base model and its nuisance parameters:
   redistributed, eq. scrambling_model); a free intercept per data-set group and axis.
 * linearity: flat mean = k t + b (both free).
 * correlations: R(dx, dy) = a(dx, dy) mu (eq. covar), a free per lag (no intercept).
+* ptc (images mode): flat-pair variance minus the calibrated PTC model with the sum-rule
+  a(0, 0) (`bfpsf.validation.effects.PTCTable`); a free constant (read noise), a free
+  term linear in the mean (gain), and a term in mean^2 (the sum-rule a(0, 0)) free within
+  its error (a Gaussian prior, one pseudo data point).
 
 Residual summaries: the brighter-fatter slope residual in X and Y (slope of the size residual
 against peak, percent of the raw measured slope), the photometry bias the size residual implies
@@ -46,7 +50,8 @@ from .effects import CATALOGUE
 __all__ = ["DiagnosisResult", "diagnose", "DEFAULT_THRESHOLD", "slope_residuals", "matched_profile",
            "observables_from_sizes", "observables_from_tables", "observables_from_measured",
            "read_lage_spot_table", "read_bot_spot_table", "MEASURED_SETS",
-           "observables_from_images", "flat_observables"]
+           "observables_from_images", "flat_observables", "ptc_observable",
+           "stacked_star_residual"]
 
 #: Delta BIC below which a candidate is added (Kass & Raftery 1995: "very strong").
 DEFAULT_THRESHOLD = -10.0
@@ -92,8 +97,27 @@ def _correlation_block(observables):
     return table.r.T.ravel(), table.r_err.T.ravel(), nuisance
 
 
+def _ptc_block(observables):
+    """PTC residuals; nuisance: read noise, gain and the sum-rule a(0, 0) within its error.
+
+    The error of the sum-rule a(0, 0) is common to every pair (a term delta_a m^2): it is a
+    nuisance column with a Gaussian prior of that width, entered as one extra pseudo data
+    point (zero, with that error) so the weighted least squares stays diagonal.
+    """
+    table = observables.ptc
+    scaled = table.mean_e / 1e5
+    if not table.sum_rule_err > 0:
+        # a(0, 0) taken as exact: no freedom in the m^2 term
+        nuisance = np.column_stack([np.ones_like(scaled), scaled])
+        return table.residual_e, table.var_err_e.copy(), nuisance
+    nuisance = np.column_stack([np.ones_like(scaled), scaled, scaled ** 2])
+    prior_design = np.array([[0.0, 0.0, 1.0]])
+    prior_sigma = np.array([table.sum_rule_err * 1e10])
+    return table.residual_e, table.var_err_e.copy(), nuisance, (prior_design, prior_sigma)
+
+
 _BLOCKS = {"sizes": _size_block, "linearity": _linearity_block,
-           "correlations": _correlation_block}
+           "correlations": _correlation_block, "ptc": _ptc_block}
 
 
 def _build_problem(observables):
@@ -102,10 +126,18 @@ def _build_problem(observables):
     for key, block in _BLOCKS.items():
         if getattr(observables, key) is None:
             continue
-        residual, sigma, nuisance = block(observables)
+        residual, sigma, nuisance, *prior = block(observables)
         keys.append(key)
         slices[key] = slice(start, start + residual.size)
         start += residual.size
+        if prior:
+            # prior rows of the block's nuisance: pseudo data (zero) outside the key's slice,
+            # so no effect template reaches them
+            prior_design, prior_sigma = prior[0]
+            residual = np.concatenate([residual, np.zeros(prior_sigma.size)])
+            sigma = np.concatenate([sigma, prior_sigma])
+            nuisance = np.vstack([nuisance, prior_design])
+            start += prior_sigma.size
         residuals.append(residual)
         sigmas.append(sigma)
         nuisances.append(nuisance)
@@ -113,7 +145,8 @@ def _build_problem(observables):
     design = np.zeros((start, total))
     column = 0
     for key, nuisance in zip(keys, nuisances):
-        design[slices[key], column:column + nuisance.shape[1]] = nuisance
+        rows = slice(slices[key].start, slices[key].start + nuisance.shape[0])
+        design[rows, column:column + nuisance.shape[1]] = nuisance
         column += nuisance.shape[1]
     return _Problem(tuple(keys), slices, np.concatenate(residuals), np.concatenate(sigmas),
                     design)
@@ -211,6 +244,14 @@ def _summary(problem, observables, model):
         block = residual[problem.slices["linearity"]]
         out["linearity_max_frac_residual"] = float(
             np.max(np.abs(block / observables.linearity.mean_e)))
+    if observables.ptc is not None:
+        block = residual[problem.slices["ptc"]]
+        out["ptc_max_frac_residual"] = float(np.max(np.abs(block / observables.ptc.var_e)))
+    star = observables.meta.get("star_residual")
+    if star is not None:
+        # the stars' stacked residual is a fixed diagnostic (no candidate changes it)
+        out["star_residual_rms_over_peak"] = star["rms_over_peak"]
+        out["star_residual_chi2_per_pixel"] = star["chi2_per_pixel"]
     return out
 
 
@@ -235,6 +276,11 @@ class DiagnosisResult:
     curves : dict
         Arrays for the plots: ``peak_e``, ``sigma_x``, ``sigma_y``, errors, ``base_x``,
         ``base_y`` (base model with fitted intercepts), ``final_x``, ``final_y``, ``group``.
+    ptc_curves : dict
+        PTC residuals for the plot (empty without a PTC observable): ``mean_e``,
+        ``residual_raw`` (data minus the calibrated sum-rule model, nothing refitted),
+        ``residual_before``, ``residual_after`` (data minus base / final model with the
+        nuisance refitted, e-^2), ``error``, ``var_e``.
     """
 
     residual_before: dict
@@ -246,6 +292,7 @@ class DiagnosisResult:
     curves: dict = field(default_factory=dict)
     ambiguous: dict = field(default_factory=dict)
     residual_physical: dict = None
+    ptc_curves: dict = field(default_factory=dict)
 
     def to_json_dict(self):
         """The ``--json`` summary: residual_before, candidates, selected, residual_after (+)."""
@@ -423,11 +470,20 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
                   "sigma_x_err": sizes.sigma_x_err, "sigma_y_err": sizes.sigma_y_err,
                   "base_x": base[:n], "base_y": base[n:], "final_x": final[:n],
                   "final_y": final[n:]}
+    ptc_curves = {}
+    if observables.ptc is not None:
+        block = problem.slices["ptc"]
+        ptc_curves = {"mean_e": observables.ptc.mean_e, "var_e": observables.ptc.var_e,
+                      "error": observables.ptc.var_err_e,
+                      "residual_raw": observables.ptc.residual_e,
+                      "residual_before": problem.residual[block] - model_before[block],
+                      "residual_after": problem.residual[block] - model_after[block]}
     return DiagnosisResult(residual_before=_summary(problem, observables, model_before),
                            candidates=candidates, selected=selected,
                            residual_after=_summary(problem, observables, model_after),
                            parameters=parameters, threshold=float(threshold), curves=curves,
-                           ambiguous=ambiguous, residual_physical=residual_physical)
+                           ambiguous=ambiguous, residual_physical=residual_physical,
+                           ptc_curves=ptc_curves)
 
 
 # -- observables from data -----------------------------------------------------------------------
@@ -501,7 +557,7 @@ def _intercepts(table):
 
 
 def observables_from_sizes(sizes, shifts, *, area=None, beta=None, measure="moments", phases=3,
-                           linearity=None, correlations=None, meta=None):
+                           linearity=None, correlations=None, meta=None, ptc=None):
     """Observables for a size table and a set of boundary shifts (the G15 prediction).
 
     The model spot is matched to the zero-flux intercepts of the sizes (`matched_profile`).
@@ -515,7 +571,7 @@ def observables_from_sizes(sizes, shifts, *, area=None, beta=None, measure="mome
     if area is not None:
         meta["area"] = np.asarray(area, dtype=float)
     return Observables(sizes=sizes, spot_model=model, linearity=linearity,
-                       correlations=correlations, meta=meta)
+                       correlations=correlations, meta=meta, ptc=ptc)
 
 
 def read_lage_spot_table(path, *, corrected=False):
@@ -710,6 +766,121 @@ def flat_observables(calibration):
     return linearity, correlations
 
 
+def ptc_observable(calibration):
+    """PTC residuals of a `Calibration`: variance minus the PTC model with the sum-rule a(0, 0).
+
+    The model is A+19 eq. 20 (`bfpsf.calibration.ptc.full_covariance_model`) with the
+    calibrated gain, noise matrix, a and b, and a(0, 0) = -sum of the other a(dx, dy) over the
+    full plane of measured lags (each off-axis lag counted 4 times, each on-axis lag twice).
+    Errors: shot noise of the variance (`bfpsf.calibration.ptc.covariance_errors`); the error
+    of the sum (from a_err, lags independent) is kept apart (``sum_rule_err``): it is common
+    to all pairs. Pairs not used by the calibration (above the PTC turnoff) are left out.
+
+    Returns
+    -------
+    PTCTable
+    """
+    from ..calibration.ptc import covariance_errors, full_covariance_model
+    from .effects import PTCTable
+
+    if calibration.covariances_adu is None or calibration.npix is None:
+        msg = "the calibration holds no per-pair covariances: cannot form PTC residuals"
+        raise BFPSFInputError(msg)
+    used = np.asarray(calibration.ptc["used"], bool)
+    gain = float(calibration.gain)
+    mean_adu = np.asarray(calibration.ptc["mean_adu"], float)[used]
+    cov = np.asarray(calibration.covariances_adu, float)[used]
+    npix = np.asarray(calibration.npix, float)[used]
+    area = np.array(calibration.a, dtype=float)
+    area_err = np.asarray(calibration.a_err, dtype=float)
+    weights = np.full(area.shape, 4.0)
+    weights[0, :] = 2.0
+    weights[:, 0] = 2.0
+    weights[0, 0] = 0.0
+    area[0, 0] = -np.sum(weights * area)
+    sum_rule_err = float(np.sqrt(np.sum((weights * area_err) ** 2)))
+    c = area * np.asarray(calibration.b, dtype=float)
+    noise = np.asarray(calibration.noise_matrix_e2, dtype=float)
+
+    def variance(mean):
+        return full_covariance_model(mean, area, c, noise, gain)[:, 0, 0] * gain ** 2
+
+    mean_e = mean_adu * gain
+    model = variance(mean_adu)
+    step = 1e-4 * mean_adu
+    slope = (variance(mean_adu + step) - variance(mean_adu - step)) / (2 * step * gain)
+    var_e = cov[:, 0, 0] * gain ** 2
+    shot = covariance_errors(cov, npix)[:, 0, 0] * gain ** 2
+    return PTCTable(mean_e, var_e, shot, model, slope, sum_rule_err=sum_rule_err)
+
+
+def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, min_peak_e=0.0):
+    """Stacked, flux-normalised residual of stars against the flux-dependent PSF P(F).
+
+    For each star (row of a `bfpsf.measure.sources.measure_sources` table, unflagged, peak
+    above ``min_peak_e``): the model ``psf.star_image(F)`` (`FluxDependentPSF.star_image`, the
+    code `bfpsf.validation.validate` stacks) at the star's sub-pixel phase, F refitted once
+    by linear least squares on the stamp; the residual (data - model) / F is averaged over
+    stars. Its expected variance per pixel, sum (model + noise_e^2) / F^2 / N^2 (Poisson and
+    read noise), gives a chi2 per pixel: about 1 when P(F) describes the stars.
+
+    Parameters
+    ----------
+    images : sequence of ndarray [y, x]
+        Images, e- (background subtracted).
+    tables : sequence of astropy Table
+        Source tables of the images (``x``, ``y``, ``flux_e``, ``peak_e``, ``flags``).
+    psf : bfpsf.model.psf.FluxDependentPSF
+        In e- (``gain=1``).
+    half_size : int, optional
+        Stamps are 2 half_size + 1 pixels square; default the PSF's half size.
+    noise_e : float
+        Read noise (and sky), e- rms per pixel.
+    min_peak_e : float
+        Only stars brighter than this enter the stack.
+
+    Returns
+    -------
+    dict or None (no star)
+        ``image`` (stacked residual, fraction of the unit-flux star per pixel), ``sigma``
+        (its expected noise), ``model_peak`` (peak of the unit-flux model), ``rms_over_peak``
+        (rms of the stack / model peak), ``chi2_per_pixel``, ``n_stars``, ``radius`` and
+        ``profile`` (azimuthal mean in rings of 0.5 px, `bfpsf.plotting.diagnose`).
+    """
+    from ..plotting.diagnose import radial_profile
+
+    half = int(psf.half_size if half_size is None else half_size)
+    total, variance, model_sum, count = 0.0, 0.0, 0.0, 0
+    for image, table in zip(images, tables):
+        image = np.asarray(image, float)
+        ny, nx = image.shape
+        good = (np.asarray(table["flags"]) == 0) & (np.asarray(table["peak_e"]) > min_peak_e)
+        for row in np.flatnonzero(good):
+            x, y = float(table["x"][row]), float(table["y"][row])
+            cx, cy = int(np.round(x)), int(np.round(y))
+            if cx - half < 0 or cy - half < 0 or cx + half >= nx or cy + half >= ny:
+                continue        # too close to the edge for a full stamp
+            data = image[cy - half:cy + half + 1, cx - half:cx + half + 1]
+            flux = float(table["flux_e"][row])
+            model = psf.star_image(flux, x_phase=x - cx, y_phase=y - cy, half_size=half)
+            flux *= float(np.sum(data * model) / np.sum(model * model))
+            model = psf.star_image(flux, x_phase=x - cx, y_phase=y - cy, half_size=half)
+            total = total + (data - model) / flux
+            variance = variance + (np.clip(model, 0, None) + noise_e ** 2) / flux ** 2
+            model_sum = model_sum + model / flux
+            count += 1
+    if count == 0:
+        return None
+    stack = total / count
+    sigma = np.sqrt(variance) / count
+    peak = float(np.max(model_sum / count))
+    radius, profile = radial_profile(stack)
+    return {"image": stack, "sigma": sigma, "model_peak": peak,
+            "rms_over_peak": float(np.std(stack) / peak),
+            "chi2_per_pixel": float(np.mean((stack / sigma) ** 2)), "n_stars": count,
+            "radius": radius, "profile": profile}
+
+
 def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, gain=None,
                             calibration=None, fit_b=True):
     """Observables from flat-field FITS and spot / star images (ADU, bias subtracted).
@@ -719,6 +890,11 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
     in ``n_bins`` quantile bins of peak; the spot model is matched to the zero-flux intercept
     (a Moffat of index ``beta``, or a Gaussian). ``fit_b`` is passed to `bfpsf.calibrate`
     (False for a few small flats, whose b term is unconstrained).
+
+    Also formed: the PTC residuals (`ptc_observable`, a fitted observable) and the stacked
+    residual of the stars against P(F) built from the matched profile and the calibrated
+    shifts (`stacked_star_residual`, in ``meta['star_residual']``, with the stacked image in
+    ``meta['residual_images']`` for the report).
     """
     from astropy.io import fits
 
@@ -732,10 +908,13 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
         raise BFPSFInputError(msg)
     gain = cal.gain if gain is None else gain
     peaks, sigma_x, sigma_y = [], [], []
+    pixels, tables = [], []
     for path in images:
         with fits.open(path) as hdus:
             data = np.asarray(hdus[0].data, float)
         table = measure_sources(data * gain)
+        pixels.append(data * gain)
+        tables.append(table)
         good = np.asarray(table["flags"]) == 0
         peaks.append(np.asarray(table["peak_e"], float)[good])
         sigma_x.append(np.asarray(table["sigma_x"], float)[good])
@@ -745,5 +924,21 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
     linearity, correlations = flat_observables(cal)
     meta = {"flats": len(list(flats)), "images": len(list(images)), "gain": float(gain),
             "n_sources": int(peaks.size)}
-    return observables_from_sizes(sizes, cal.shifts, area=cal.a, beta=beta,
-                                  linearity=linearity, correlations=correlations, meta=meta)
+    try:
+        ptc = ptc_observable(cal)
+    except (BFPSFInputError, BFPSFValueError) as error:
+        # e.g. a calibration read from a file without per-pair covariances: said, not hidden
+        ptc = None
+        meta["ptc_unavailable"] = str(error)
+    observables = observables_from_sizes(sizes, cal.shifts, area=cal.a, beta=beta,
+                                         linearity=linearity, correlations=correlations,
+                                         meta=meta, ptc=ptc)
+    from ..model.psf import FluxDependentPSF
+
+    psf = FluxDependentPSF.from_galsim(observables.spot_model.profile, cal.shifts)
+    star = stacked_star_residual(pixels, tables, psf, half_size=min(psf.half_size, 7),
+                                 noise_e=float(cal.noise_e))
+    if star is not None:
+        observables.meta["star_residual"] = star
+        observables.meta["residual_images"] = {"stars - P(F), stacked / F": star["image"]}
+    return observables

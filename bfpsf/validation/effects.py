@@ -16,15 +16,22 @@ testable" on that data set and says so):
 * `LinearityTable`: flat mean against exposure time.
 * `CorrelationTable`: flat-field correlation coefficients R(dx, dy) = C(dx, dy) / V against the
   mean signal (their zero-flux intercepts are the readout pedestal).
+* `PTCTable`: flat-pair variance against mean minus the calibrated PTC model (A+19 eq. 20)
+  evaluated with a(0, 0) from the sum rule (see `PTCTable`).
 
 Candidates (`CATALOGUE`), parameters in brackets:
 
 ``gain_nonlinearity`` [c]
-    Pixel values v -> v (1 + c v / 1e5 e-): flat means gain a term c mu^2 / 1e5, bright spots
-    are compressed at the core (sizes change like BF). Templates: linearity, sizes.
+    Pixel values v -> v (1 + c v / 1e5 e-): flat means gain a term c (k t)^2 / 1e5, bright spots
+    are compressed at the core (sizes change like BF), the PTC variance at a measured mean m
+    gains (4 m V(m) - m^2 V'(m)) c / 1e5 (about 3 c m^2 / 1e5, which a free a(0, 0) absorbs
+    but the sum-rule a(0, 0) of `PTCTable` does not). Templates: linearity, sizes, ptc.
 ``readout_pedestal`` [R0(1,0), R0(0,1)]
     Readout correlation constant in flux (G15 section 4.2.3, R10 ~ -0.003): the correlation
-    table gains an intercept per lag. Template: correlations.
+    table gains an intercept per lag. Template: correlations. Its PTC template is zero: a
+    serial readout correlation q_i + c q_(i-1) scales the mean by 1 + c and the variance by
+    1 + c^2, a change of the PTC gain that the PTC block's free gain column absorbs; the
+    calibration subtracts the pedestal before a(dx, dy) enter the sum rule.
 ``xy_anisotropy`` [q]
     X/Y anisotropy of the nearest boundaries beyond the smoothing model: a quadrupole boundary
     displacement around the source pixel (its E/W boundaries move out by q * s, its N/S
@@ -62,7 +69,8 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from ..shifts import BoundaryShifts
 
 __all__ = [
-    "SizeTable", "LinearityTable", "CorrelationTable", "Observables", "SpotForwardModel",
+    "SizeTable", "LinearityTable", "CorrelationTable", "PTCTable", "Observables",
+    "SpotForwardModel",
     "Effect", "CATALOGUE", "quadrupole_shifts", "exact_density_delta", "effect_names",
     "get_effect",
 ]
@@ -191,6 +199,56 @@ class CorrelationTable:
 
 
 @dataclass(frozen=True)
+class PTCTable:
+    """Flat-pair variance against mean and the calibrated PTC model (G15 section 4.1).
+
+    The model is A+19 eq. 20 (`bfpsf.calibration.ptc.full_covariance_model`) with the
+    calibrated gain, read noise and a(dx, dy), except a(0, 0), which is replaced by its sum-rule
+    value -sum a(dx, dy) over the other measured lags (charge conservation, G15 eq. sum rule):
+    a free a(0, 0) absorbs a quadratic gain non-linearity (it adds ~3 c m^2 / 1e5 to the
+    variance, exactly like a(0, 0) m^2), the sum rule does not. The area beyond the measured
+    lags is missing from that sum (a bias of a(0, 0) of a few percent, G15 section 4.2.2).
+
+    Attributes
+    ----------
+    mean_e : ndarray (n,)
+        Mean signal of each pair, e-.
+    var_e, var_err_e : ndarray (n,)
+        Measured single-image variance and its shot-noise error, e-^2.
+    model_e : ndarray (n,)
+        The PTC model at ``mean_e``, e-^2.
+    model_slope : ndarray (n,)
+        dV/dm of the model, dimensionless (for the non-linearity template).
+    sum_rule_err : float
+        Error of the sum-rule a(0, 0), 1/e-: common to every pair (the loop fits a term
+        delta_a m^2 with this prior width). 0: no such freedom.
+    """
+
+    mean_e: np.ndarray
+    var_e: np.ndarray
+    var_err_e: np.ndarray
+    model_e: np.ndarray
+    model_slope: np.ndarray
+    sum_rule_err: float = 0.0
+
+    def __post_init__(self):
+        n = np.size(self.mean_e)
+        object.__setattr__(self, "mean_e", _column(self.mean_e, "mean_e", positive=True))
+        for name in ("var_e", "model_e", "model_slope"):
+            object.__setattr__(self, name, _column(getattr(self, name), name, n))
+        object.__setattr__(self, "var_err_e", _column(self.var_err_e, "var_err_e", n,
+                                                      positive=True))
+        if not (np.isfinite(self.sum_rule_err) and self.sum_rule_err >= 0):
+            msg = f"sum_rule_err must be finite and >= 0, got {self.sum_rule_err!r}"
+            raise BFPSFValueError(msg, self.sum_rule_err)
+
+    @property
+    def residual_e(self):
+        """Measured minus model variance, e-^2."""
+        return self.var_e - self.model_e
+
+
+@dataclass(frozen=True)
 class Observables:
     """Everything the closed loop compares with the model.
 
@@ -203,7 +261,10 @@ class Observables:
     correlations : CorrelationTable or None
     meta : dict
         Anything else: ``area`` (measured a, for the sum-rule tail), ``residual_images``
-        (label -> stacked residual image, e-, for the report), the inputs.
+        (label -> stacked residual image, e-, for the report), ``star_residual`` (the stacked
+        residual of the stars, `bfpsf.validation.diagnose.stacked_star_residual`), the inputs.
+    ptc : PTCTable or None
+        PTC residuals (images mode).
     """
 
     sizes: SizeTable = None
@@ -211,13 +272,15 @@ class Observables:
     linearity: LinearityTable = None
     correlations: CorrelationTable = None
     meta: dict = field(default_factory=dict)
+    ptc: PTCTable = None
 
     def __post_init__(self):
         if self.sizes is not None and self.spot_model is None:
             msg = "a size table needs a spot_model to predict the sizes"
             raise BFPSFInputError(msg)
-        if all(getattr(self, name) is None for name in ("sizes", "linearity", "correlations")):
-            msg = "no observable given (sizes, linearity or correlations)"
+        if all(getattr(self, name) is None
+               for name in ("sizes", "linearity", "correlations", "ptc")):
+            msg = "no observable given (sizes, linearity, correlations or ptc)"
             raise BFPSFInputError(msg)
 
 
@@ -530,7 +593,7 @@ class Effect:
         Returns
         -------
         dict
-            Observable key (``'sizes'``, ``'linearity'``, ``'correlations'``) -> array
+            Observable key (``'sizes'``, ``'linearity'``, ``'correlations'``, ``'ptc'``) -> array
             (n_key, k) in the order of `bfpsf.validation.diagnose` residual vectors. Missing
             keys mean no change. An empty dict means the effect is not testable on this data.
         """
@@ -556,8 +619,23 @@ class GainNonlinearity(Effect):
     def templates(self, observables):
         out = {}
         if observables.linearity is not None:
-            mean = observables.linearity.mean_e
-            out["linearity"] = (mean ** 2 / FLUX_SCALE)[:, None]
+            # mean = k t (1 + c k t / 1e5) + b: the template is the LINEAR signal k t squared
+            # (the measured mean squared is wrong at second order, c^2 (k t)^3, which is
+            # hundreds of sigma for -4 % at 1e5 e- on large flats); k from a weighted
+            # quadratic fit of the mean against exposure time
+            table = observables.linearity
+            if table.exptime.size > 3:
+                k = np.polyfit(table.exptime, table.mean_e, 2, w=1.0 / table.mean_err_e)[1]
+                linear = k * table.exptime
+            else:
+                linear = table.mean_e
+            out["linearity"] = (linear ** 2 / FLUX_SCALE)[:, None]
+        if observables.ptc is not None:
+            # at a fixed measured mean m: true mu = m - c m^2 / 1e5, variance times
+            # (1 + 2 c mu / 1e5)^2, so dV/dc = (4 m V(m) - m^2 V'(m)) / 1e5
+            ptc = observables.ptc
+            out["ptc"] = ((4.0 * ptc.mean_e * ptc.model_e - ptc.mean_e ** 2 * ptc.model_slope)
+                          / FLUX_SCALE)[:, None]
         if observables.sizes is not None:
             step = 0.01
             out["sizes"] = _size_template(observables, step, nonlinearity=step)

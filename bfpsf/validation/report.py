@@ -71,7 +71,11 @@ def _residual_rows(before, after, physical=None):
             ("chi2", "chi2"), ("n", "points"),
             ("sizes_chi2_per_point", "sizes chi2 / point"),
             ("linearity_chi2_per_point", "linearity chi2 / point"),
-            ("correlations_chi2_per_point", "correlations chi2 / point")]
+            ("correlations_chi2_per_point", "correlations chi2 / point"),
+            ("ptc_chi2_per_point", "PTC residuals chi2 / point"),
+            ("ptc_max_frac_residual", "PTC max |residual| / variance"),
+            ("star_residual_rms_over_peak", "stacked star residual rms / peak (fixed)"),
+            ("star_residual_chi2_per_pixel", "stacked star residual chi2 / pixel (fixed)")]
     header = "| quantity | before | after |" + (" physical only |" if physical else "")
     lines = [header, "|---|---|---|" + ("---|" if physical else "")]
     for key, label in keys:
@@ -84,13 +88,30 @@ def _residual_rows(before, after, physical=None):
     return lines
 
 
-def diagnosis_markdown(result, *, title="bfpsf diagnose", figures=(), context=()):
-    """Markdown text of a `DiagnosisResult`."""
+def _star_residual_lines(star):
+    lines = ["## Stacked residual of the stars", "",
+             f"{star['n_stars']} stars, data minus P(F) (`FluxDependentPSF.star_image`), divided "
+             "by each star's flux and averaged: rms "
+             f"{format_number(star['rms_over_peak'])} of the model peak, chi2 / pixel "
+             f"{format_number(star['chi2_per_pixel'])} against Poisson + read noise (about 1 "
+             "when P(F) describes the stars). No candidate changes it: it is reported, not "
+             "fitted.", "", "| radius (px) | mean residual / peak |", "|---|---|"]
+    peak = star["model_peak"]
+    lines += [f"| {radius:.2f} | {format_number(value / peak)} |"
+              for radius, value in zip(star["radius"], star["profile"])]
+    return lines + [""]
+
+
+def diagnosis_markdown(result, *, title="bfpsf diagnose", figures=(), context=(),
+                       star_residual=None):
+    """Markdown text of a `DiagnosisResult` (and of the stars' stacked residual, if given)."""
     data = result.to_json_dict()
     lines = [f"# {title}", ""]
     lines += list(context)
     if context:
         lines.append("")
+    if star_residual is not None:
+        lines += _star_residual_lines(star_residual)
     lines += ["## Residuals before and after", ""]
     lines += _residual_rows(data["residual_before"], data["residual_after"],
                             data.get("residual_physical"))
@@ -127,8 +148,10 @@ def diagnosis_markdown(result, *, title="bfpsf diagnose", figures=(), context=()
 
 
 def write_diagnosis_report(result, directory, *, title="bfpsf diagnose", context=(),
-                           residual_images=None, overwrite=False):
+                           residual_images=None, star_residual=None, overwrite=False):
     """Write ``report.md``, ``sizes.png``, ``candidates.png`` (and residual images) to a directory.
+
+    With PTC residuals (``result.ptc_curves``) also ``ptc_residuals.png``.
 
     Parameters
     ----------
@@ -139,6 +162,8 @@ def write_diagnosis_report(result, directory, *, title="bfpsf diagnose", context
         Lines of Markdown put before the tables (data set, caveats).
     residual_images : dict, optional
         Label -> stacked residual image (e-); drawn with their radial profiles.
+    star_residual : dict, optional
+        `bfpsf.validation.diagnose.stacked_star_residual` output: summarised in the text.
     overwrite : bool
 
     Returns
@@ -146,11 +171,13 @@ def write_diagnosis_report(result, directory, *, title="bfpsf diagnose", context
     Path
         The Markdown file.
     """
-    from ..plotting.diagnose import plot_candidates, plot_sizes_before_after
+    from ..plotting.diagnose import plot_candidates, plot_ptc_residuals, plot_sizes_before_after
 
     names = ["report.md", "candidates.png"]
     if result.curves:
         names.append("sizes.png")
+    if result.ptc_curves:
+        names.append("ptc_residuals.png")
     if residual_images:
         names += ["residual_images.png", "radial_profile.png"]
     directory = _prepare(directory, names, overwrite)
@@ -161,11 +188,15 @@ def write_diagnosis_report(result, directory, *, title="bfpsf diagnose", context
     _save(plot_candidates(result.to_json_dict()["candidates"], threshold=result.threshold),
           directory / "candidates.png")
     figures.append("candidates.png")
+    if result.ptc_curves:
+        _save(plot_ptc_residuals(result.ptc_curves), directory / "ptc_residuals.png")
+        figures.append("ptc_residuals.png")
     if residual_images:
         _save_residual_images(residual_images, directory)
         figures += ["residual_images.png", "radial_profile.png"]
     path = directory / "report.md"
-    path.write_text(diagnosis_markdown(result, title=title, figures=figures, context=context))
+    path.write_text(diagnosis_markdown(result, title=title, figures=figures, context=context,
+                                       star_residual=star_residual))
     return path
 
 
