@@ -121,3 +121,18 @@ def test_json_keys_and_layout(calibration):
     assert summary["a"][1][0] == calibration.a[1, 0]  # [dy][dx]
     assert len(summary["pedestal"]) == maxlag + 1
     assert summary["n_pairs"] == 10
+
+
+def test_round_trip_keeps_undetected_turnoff_as_nan(calibration, tmp_path):
+    """A PTC whose turnoff was not reached has turnoff_e = NaN; it must read back as NaN,
+    without a warning (warnings are errors here)."""
+    import dataclasses
+
+    undetected = dataclasses.replace(calibration, turnoff_e=float("nan"), turnoff_detected=False,
+                                     chi2=float("nan"))
+    path = tmp_path / "calib.fits"
+    undetected.write(path)
+    back = Calibration.read(path)
+    assert np.isnan(back.turnoff_e) and np.isnan(back.chi2)
+    assert back.turnoff_detected is False
+    assert back.to_json_dict()["turnoff_e"] is None or np.isnan(back.to_json_dict()["turnoff_e"])

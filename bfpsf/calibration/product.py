@@ -323,13 +323,15 @@ class Calibration:
             def image(name):
                 return np.array(hdul[name].data, dtype=np.float64) if name in names else None
 
-            summary = Table.read(hdul["SUMMARY"])[0]
-            ptc = Table.read(hdul["PTC"])
-            lin = Table.read(hdul["LINEARITY"])
-            inputs = tuple(str(name) for name in Table.read(hdul["INPUTS"])["name"])
-            params_table = Table.read(hdul["PARAMS"])
+            # mask_invalid=False: NaN (e.g. a turnoff not reached) reads back as NaN, not masked
+            summary = Table.read(hdul["SUMMARY"], mask_invalid=False)[0]
+            ptc = Table.read(hdul["PTC"], mask_invalid=False)
+            lin = Table.read(hdul["LINEARITY"], mask_invalid=False)
+            input_table = Table.read(hdul["INPUTS"], mask_invalid=False)
+            inputs = tuple(str(name) for name in input_table["name"])
+            params_table = Table.read(hdul["PARAMS"], mask_invalid=False)
             parameters = {str(row["key"]): json.loads(str(row["value"])) for row in params_table}
-            shift_table = Table.read(hdul["SHIFTFIT"])
+            shift_table = Table.read(hdul["SHIFTFIT"], mask_invalid=False)
             shift_fit = {str(row["key"]): float(row["value"]) for row in shift_table}
             shifts = None
             if "SHIFT_N" in names:
