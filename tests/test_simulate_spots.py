@@ -57,6 +57,25 @@ def test_silicon_sensor_spots_grow_with_flux():
     assert abs(flat_x) < 0.01 and abs(flat_y) < 0.01
 
 
+def test_bf_free_twin_replays_the_same_photons():
+    # the twin has the same photons (identical totals: photon count and edge losses), the same
+    # noise, and differs from the spot only by BF: its size does not grow with flux, and the
+    # spot-minus-twin size difference is the BF growth with far less scatter than the sizes
+    spots = simulate_spots(peaks_e=(5e3, 1e5), n_per_level=4, seed=4, read_noise_e=3.0,
+                           bf_free_twin=True)
+    np.testing.assert_allclose(spots.stamps.sum(axis=(1, 2)), spots.twin.sum(axis=(1, 2)),
+                               rtol=1e-12)
+    sigma = np.sqrt(adaptive_moments_batch(spots.stamps).mxx).reshape(2, 4)
+    twin = np.sqrt(adaptive_moments_batch(spots.twin).mxx).reshape(2, 4)
+    difference = sigma - twin
+    assert np.all(difference[1] > difference[0])           # BF grows with flux
+    assert np.all(np.abs(difference[0]) < 0.1 * difference[1].min())  # ~linear in flux
+    # faint spots: the photon noise of the sizes (~3e-3 px) cancels in the pair
+    assert difference[0].std() < 0.2 * sigma[0].std()
+    with pytest.raises(BFPSFValueError, match="bf_free_twin"):
+        simulate_spots(sensor=None, bf_free_twin=True)
+
+
 def test_mosaic_places_spots_at_their_true_positions():
     spots = simulate_spots(sensor=None, peaks_e=(1e4,), n_per_level=5, seed=3)
     image, truth = spots.mosaic(margin=4)

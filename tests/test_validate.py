@@ -41,7 +41,19 @@ def test_validate_physics(tiny_run):
     # measure it to ~10 %, so allow 30 %
     assert 0.7 < truth_row["predicted_over_measured_x"] < 1.3
     assert 0.7 < truth_row["predicted_over_measured_y"] < 1.3
+    # the BF-free twins measure the same slope as the spots alone, far more precisely
+    for axis in "xy":
+        paired, paired_err = slopes[f"paired_slope_{axis}"], slopes[f"paired_slope_{axis}_err"]
+        assert abs(paired - slopes[f"slope_{axis}"]) < 3 * slopes[f"slope_{axis}_err"]
+        assert paired_err < 0.3 * slopes[f"slope_{axis}_err"]
     psf = tiny_run["psf"]
+    # P(F) with SiliconSensor's own shifts: the paired residual is a few % of the raw slope at
+    # most (36 spots), the pixel inverse likewise
+    for stage in (psf, tiny_run["inverse"]):
+        for axis in "xy":
+            assert abs(stage[f"residual_slope_{axis}_percent"]) < 10
+            assert (stage[f"residual_slope_{axis}_percent_err"]
+                    < 0.5 * stage[f"residual_slope_{axis}_unpaired_percent_err"])
     # a static PSF made from the bright spots biases the faint ones by several mmag (bright
     # minus faint > 0: the faint come out too bright); P(F) removes most of it (noise of 9
     # spots per level: ~0.5 mmag). Uniform weights (sky-limited limit): measured static +6.7,

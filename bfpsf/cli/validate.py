@@ -73,7 +73,11 @@ def _print_table(result):
             print(f"{label}: X {stage['residual_slope_x_percent']:+.1f} +- "
                   f"{stage['residual_slope_x_percent_err']:.1f} %, Y "
                   f"{stage['residual_slope_y_percent']:+.1f} +- "
-                  f"{stage['residual_slope_y_percent_err']:.1f} % of raw")
+                  f"{stage['residual_slope_y_percent_err']:.1f} % of raw (paired with the "
+                  f"BF-free twins; unpaired X {stage['residual_slope_x_unpaired_percent']:+.1f}"
+                  f" +- {stage['residual_slope_x_unpaired_percent_err']:.1f}, Y "
+                  f"{stage['residual_slope_y_unpaired_percent']:+.1f} +- "
+                  f"{stage['residual_slope_y_unpaired_percent_err']:.1f})")
         else:
             print(f"{label}: not available ({stage.get('reason')})")
     psf = result["psf"]

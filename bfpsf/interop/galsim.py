@@ -31,6 +31,7 @@ from ..shifts import BoundaryShifts
 __all__ = [
     "silicon_area_coefficients",
     "silicon_boundary_shifts",
+    "silicon_diffusion_sigma",
     "shifts_to_cdmodel",
     "shifts_from_cdmodel",
     "BFSensor",
@@ -269,6 +270,45 @@ def silicon_boundary_shifts(sensor="lsst_itl_50_8", *, charge=1000.0, radius=4,
 
 
 # -- galsim.cdmodel ------------------------------------------------------------------------------
+def silicon_diffusion_sigma(sensor="lsst_itl_50_8", *, diffusion_factor=None):
+    """Lateral charge-diffusion RMS of a GalSim SiliconSensor, pixels.
+
+    SiliconSensor moves each photon's charge by a Gaussian random step as it drifts to the
+    collecting wells, before the (BF-distorted) pixel boundaries decide where it lands. The
+    base PSF P0 that brighter-fatter acts on is therefore the optical PSF convolved with this
+    Gaussian: a P0 without it is too sharp (for lsst_e2v_50_8 and a Moffat of FWHM 3.5 px it
+    lacks 4 % of the Gaussian-weighted second moment) and over-predicts the BF slope by about
+    as much again. A P0 fitted from the stars (`bfpsf.model.psf_fit.fit_psf`) includes it
+    without being told.
+
+    Parameters
+    ----------
+    sensor : str or galsim.SiliconSensor
+        Sensor name or instance.
+    diffusion_factor : float, optional
+        GalSim's multiplier of the diffusion (default: the instance's own, or 1 for a name).
+
+    Returns
+    -------
+    float
+        The diffusion sigma for photons without wavelengths, which convert at the surface and
+        drift the full thickness (GalSim's ``diff_step``, in the pixel unit; about 0.44 px for
+        the LSST sensors at 173 K). Photons with wavelengths convert deeper and diffuse less.
+    """
+    if isinstance(sensor, str):
+        sensor = galsim.SiliconSensor(name=sensor)
+    elif not isinstance(sensor, galsim.SiliconSensor):
+        msg = f"sensor must be a name or a galsim.SiliconSensor, got {type(sensor).__name__}"
+        raise BFPSFValueError(msg, sensor)
+    factor = sensor.diffusion_factor if diffusion_factor is None else float(diffusion_factor)
+    if not factor >= 0:
+        msg = f"diffusion_factor must be >= 0, got {diffusion_factor!r}"
+        raise BFPSFValueError(msg, diffusion_factor)
+    # pylint: disable-next=protected-access
+    step = sensor._calculate_diff_step()  # microns: GalSim's own formula (temperature, voltages)
+    return factor * step / float(sensor.config["PixelSizeX"])
+
+
 def shifts_to_cdmodel(shifts):
     """The `galsim.cdmodel.BaseCDModel` applying the same redistribution as ``shifts``.
 

@@ -242,6 +242,12 @@ def validation_markdown(result, *, figures=()):
               f"| measured (SiliconSensor spots) | {format_number(slopes['slope_x'], 4)} +- "
               f"{format_number(slopes['slope_x_err'], 2)} | {format_number(slopes['slope_y'], 4)}"
               f" +- {format_number(slopes['slope_y_err'], 2)} |"]
+    if "paired_slope_x" in slopes:
+        lines.append(f"| measured, spot minus its BF-free twin | "
+                     f"{format_number(slopes['paired_slope_x'], 4)} +- "
+                     f"{format_number(slopes['paired_slope_x_err'], 2)} | "
+                     f"{format_number(slopes['paired_slope_y'], 4)} +- "
+                     f"{format_number(slopes['paired_slope_y_err'], 2)} |")
     for row in result["prediction"].get("rows", []):
         cells = []
         for axis in "xy":
@@ -250,18 +256,21 @@ def validation_markdown(result, *, figures=()):
                          + (f" +- {format_number(error, 2)}" if error is not None else "")
                          + f" ({format_number(100 * row[f'predicted_over_measured_{axis}'], 3)} %)")
         lines.append(f"| predicted from {row['shifts']} | {cells[0]} | {cells[1]} |")
-    lines += ["", "## Residual slope (percent of the raw slope)", "", "| method | X | Y |",
-              "|---|---|---|"]
+    lines += ["", "## Residual slope (percent of the raw slope)", "",
+              "Paired: each spot's BF change against its BF-free twin (same photons, diffusion "
+              "and noise with BF off) minus the model's; unpaired: the sizes alone.", "",
+              "| method | X paired | Y paired | X unpaired | Y unpaired |",
+              "|---|---|---|---|---|"]
     for key, label in (("psf", "flux-dependent PSF P(F)"),
                        ("inverse", "pixel-level inverse (G15)")):
         stage = result[key]
         if not stage.get("available"):
             lines.append(f"| {label} | not available: {stage.get('reason')} | |")
             continue
-        lines.append(f"| {label} | {format_number(stage['residual_slope_x_percent'], 3)} +- "
-                     f"{format_number(stage['residual_slope_x_percent_err'], 2)} | "
-                     f"{format_number(stage['residual_slope_y_percent'], 3)} +- "
-                     f"{format_number(stage['residual_slope_y_percent_err'], 2)} |")
+        cells = [f"{format_number(stage[f'residual_slope_{axis}{kind}_percent'], 3)} +- "
+                 f"{format_number(stage[f'residual_slope_{axis}{kind}_percent_err'], 2)}"
+                 for kind in ("", "_unpaired") for axis in "xy"]
+        lines.append(f"| {label} | {' | '.join(cells)} |")
     psf = result["psf"]
     if psf.get("available"):
         lines += ["", "## Photometry bias, brightest minus faintest level (mmag)", "",

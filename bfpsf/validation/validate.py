@@ -12,8 +12,13 @@ by side:
    (`silicon_boundary_shifts`);
 3. the residual slope after the flux-dependent PSF P(F) (`bfpsf.model.psf_fit.fit_psf`):
    measured sizes minus the sizes of P(F) at each spot's flux and phase, percent of the raw
-   slope;
-4. the residual slope after G15's pixel-level inverse (`bfpsf.correct`), for comparison;
+   slope. Every spot is also drawn as a BF-free twin (same photons, diffusion and noise through
+   the sensor with BF off, `bfpsf.validation.simulate_spots`): the residual is computed on the
+   BF change of each pair (measured twin difference minus P(F) - P0), which removes the photon
+   noise of the sizes (``residual_slope_*``); the plain unpaired value is reported beside it
+   (``residual_slope_*_unpaired``);
+4. the residual slope after G15's pixel-level inverse (`bfpsf.correct`), for comparison (paired
+   the same way);
 5. the photometry bias, brightest minus faintest level (mmag of measured over collected
    charge; positive when the faint spots come out too bright), with a static PSF built from the
    bright spots and with P(F): a uniform-weight least-squares flux over the whole stamp at the
@@ -185,6 +190,25 @@ def _residual_percent(spots, residual, raw_slope):
     return 100.0 * slope / raw_slope, 100.0 * slope_err / abs(raw_slope)
 
 
+def _residual_entries(spots, raw, measured, twin, predicted=(0.0, 0.0), static=(0.0, 0.0)):
+    """Residual slopes in percent of ``raw``, paired with the BF-free twins and unpaired.
+
+    Paired: (measured - twin) - (predicted - static) against peak, i.e. the BF change of each
+    spot minus the model's; unpaired: measured - predicted. Both estimate the same slope (the
+    twins and the static model do not depend on flux); the paired one without photon noise.
+    """
+    out = {}
+    for index, axis in enumerate("xy"):
+        paired = (measured[index] - twin[index]) - (predicted[index] - static[index])
+        percent, error = _residual_percent(spots, paired, raw[axis])
+        out[f"residual_slope_{axis}_percent"] = percent
+        out[f"residual_slope_{axis}_percent_err"] = error
+        percent, error = _residual_percent(spots, measured[index] - predicted[index], raw[axis])
+        out[f"residual_slope_{axis}_unpaired_percent"] = percent
+        out[f"residual_slope_{axis}_unpaired_percent_err"] = error
+    return out
+
+
 # -- stages ---------------------------------------------------------------------------------------
 def _stage_flats(config):
     simulate = _module("bfpsf.validation.simulate_flats")
@@ -240,6 +264,7 @@ class _Spots:
     peaks: np.ndarray
     level: np.ndarray
     phase: np.ndarray
+    twin: np.ndarray
 
 
 def _phase_grid(n, seed):
@@ -262,11 +287,14 @@ def _stage_spots(config, progress=False):
 
     rng = galsim.BaseDeviate(config.seed + 1)
     sensor = galsim.SiliconSensor(name=config.sensor, rng=rng)
+    # the BF-free twin replays the same random numbers (photons, diffusion) with BF off
+    twin_rng = galsim.BaseDeviate(config.seed + 1)
+    twin_sensor = galsim.SiliconSensor(name=config.sensor, strength=1e-9, rng=twin_rng)
     profile = galsim.Moffat(fwhm=config.fwhm, beta=config.beta)
     size = config.stamp_size
     phases = _phase_grid(config.n_per_level, config.seed)
     peaks = np.asarray(config.peaks_e, float)
-    stamps, xs, ys, fluxes, levels = [], [], [], [], []
+    stamps, twins, xs, ys, fluxes, levels = [], [], [], [], [], []
     bar = None
     if progress:
         from tqdm import tqdm
@@ -282,6 +310,10 @@ def _stage_spots(config, progress=False):
             profile.withFlux(flux).drawImage(image=image, method="phot", sensor=sensor,
                                              rng=rng, offset=offset)
             stamps.append(image.array.copy())
+            image = galsim.ImageD(size, size, scale=1.0)
+            profile.withFlux(flux).drawImage(image=image, method="phot", sensor=twin_sensor,
+                                             rng=twin_rng, offset=offset)
+            twins.append(image.array.copy())
             xs.append(centre + phase[0])
             ys.append(centre + phase[1])
             fluxes.append(flux)
@@ -293,7 +325,7 @@ def _stage_spots(config, progress=False):
     levels = np.array(levels)
     phase_index = np.tile(np.arange(len(phases)), peaks.size)
     return _Spots(np.array(stamps), np.array(xs), np.array(ys), np.array(fluxes),
-                  peaks[levels], levels, phase_index)
+                  peaks[levels], levels, phase_index, np.array(twins))
 
 
 def _stage_prediction(config, spots, measured, shift_sets, cal=None, n_draws=20):
@@ -301,7 +333,11 @@ def _stage_prediction(config, spots, measured, shift_sets, cal=None, n_draws=20)
 
     from .effects import SpotForwardModel
 
-    profile = galsim.Moffat(fwhm=config.fwhm, beta=config.beta)
+    from ..interop.galsim import silicon_diffusion_sigma
+
+    # the spots BF acts on are the optical Moffat blurred by SiliconSensor's charge diffusion
+    profile = galsim.Convolve(galsim.Moffat(fwhm=config.fwhm, beta=config.beta),
+                              galsim.Gaussian(sigma=silicon_diffusion_sigma(config.sensor)))
     out = {"available": True, "rows": []}
     peaks = np.asarray(config.peaks_e, float)
 
@@ -362,7 +398,7 @@ def _flux_fit(psf, stamp, x, y, flux_guess, *, flux_dependent, iterations=3):
     return flux
 
 
-def _stage_psf(config, spots, measured_sizes, raw, shifts, progress):
+def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts, progress):
     psf_fit = _module("bfpsf.model.psf_fit")
     if psf_fit is None:
         return _unavailable("bfpsf.model.psf_fit not installed"), None
@@ -373,13 +409,11 @@ def _stage_psf(config, spots, measured_sizes, raw, shifts, progress):
     fit = psf_fit.fit_psf(images, positions, shifts, oversampling=config.psf_oversampling,
                           size=size, max_iterations=20)
     psf = fit.psf
-    sigma_x, sigma_y = _psf_sizes(psf, spots, fluxes)
-    out = {"available": True, "converged": bool(fit.converged), "iterations": fit.iterations}
-    for axis, measured, predicted in (("x", measured_sizes[0], sigma_x),
-                                      ("y", measured_sizes[1], sigma_y)):
-        percent, error = _residual_percent(spots, measured - predicted, raw[axis])
-        out[f"residual_slope_{axis}_percent"] = percent
-        out[f"residual_slope_{axis}_percent_err"] = error
+    predicted = _psf_sizes(psf, spots, fluxes)
+    static_sizes = _psf_sizes(psf, spots, np.ones_like(fluxes))  # P0: BF of 1 e- is nil
+    out = {"available": True, "converged": bool(fit.converged), "iterations": fit.iterations,
+           **_residual_entries(spots, raw, measured_sizes, twin_sizes, predicted,
+                               static_sizes)}
     # stacked residual images of the brightest level: data minus the static (zero-flux) model
     # scaled to each spot's flux (the BF signature, G15 fig. spots-diff), and minus P(F)
     brightest = np.flatnonzero(spots.level == spots.level.max())
@@ -432,19 +466,15 @@ def _stage_psf(config, spots, measured_sizes, raw, shifts, progress):
     return out, residual_images
 
 
-def _stage_inverse(spots, raw, shifts):
+def _stage_inverse(spots, raw, twin_sizes, shifts):
     redistribution = _module("bfpsf.model.redistribution")
     if not hasattr(redistribution, "correct"):
         return _unavailable("bfpsf.correct not installed")
     corrected = np.array([redistribution.correct(np.clip(stamp, 0, None), shifts)
                           for stamp in spots.stamps])
     sigma_x, sigma_y, _ = _moments(corrected)
-    out = {"available": True}
-    for axis, values in (("x", sigma_x), ("y", sigma_y)):
-        percent, error = _residual_percent(spots, values, raw[axis])
-        out[f"residual_slope_{axis}_percent"] = percent
-        out[f"residual_slope_{axis}_percent_err"] = error
-    return out
+    return {"available": True,
+            **_residual_entries(spots, raw, (sigma_x, sigma_y), twin_sizes)}
 
 
 def _stage_diagnose(config, spots, sizes_x, sizes_y, shifts, cal):
@@ -519,6 +549,11 @@ def validate(config=None, *, quick=False, progress=False, shifts_for_model="trut
         slopes[f"intercept_{axis}"] = intercept
         slopes[f"relative_{axis}_percent"] = 100 * slope * max(config.peaks_e) / 1e5 / intercept
         raw[axis] = slope
+    # the BF change of each spot against its BF-free twin: the same slope, without photon noise
+    twin_x, twin_y, _ = _moments(spots.twin)
+    for axis, values, twin in (("x", sizes_x, twin_x), ("y", sizes_y, twin_y)):
+        slope, error, _ = _slope(spots.peaks, values - twin, spots.phase)
+        slopes[f"paired_slope_{axis}"], slopes[f"paired_slope_{axis}_err"] = slope, error
     result["slopes"] = slopes
 
     shift_sets = {}
@@ -535,8 +570,10 @@ def validate(config=None, *, quick=False, progress=False, shifts_for_model="trut
     result["model_shifts"] = ("SiliconSensor truth" if model_shifts is truth_shifts
                               else "flats calibration")
     result["psf"], result["residual_images"] = step(
-        "P(F)", _stage_psf, config, spots, (sizes_x, sizes_y), raw, model_shifts, progress)
-    result["inverse"] = step("inverse", _stage_inverse, spots, raw, model_shifts)
+        "P(F)", _stage_psf, config, spots, (sizes_x, sizes_y), (twin_x, twin_y), raw, model_shifts,
+        progress)
+    result["inverse"] = step("inverse", _stage_inverse, spots, raw, (twin_x, twin_y),
+                             model_shifts)
     diagnosis = step("diagnose", _stage_diagnose, config, spots, sizes_x, sizes_y,
                      model_shifts, cal)
     result["diagnose"] = {"available": True, **diagnosis.to_json_dict()}
