@@ -27,6 +27,7 @@ _EXPORTS = {
     "measure_sources": "bfpsf.measure.sources",
     "BFSensor": "bfpsf.interop.galsim",
     "silicon_boundary_shifts": "bfpsf.interop.galsim",
+    "draw_with_bf": "bfpsf.interop.galsim",
 }
 
 __all__ = ["__version__", *_EXPORTS]

@@ -149,7 +149,8 @@ def test_matches_literal_formula(shape):
 
 
 def test_matches_literal_formula_across_fft_tiles():
-    # 300 x 530 spans two and three overlap-save tiles (blocks of 248 pixels for radius 4).
+    # 300 x 530 spans two and three overlap-save tiles (blocks of 184 pixels for radius 4 in
+    # double precision).
     shifts = e2v_like_shifts()
     image = np.random.default_rng(3).random((300, 530)) * 1e5
     expected = literal_delta(image, shifts)
@@ -169,6 +170,47 @@ def test_single_charged_pixel_matches_closed_form(charge):
     # dQ(0,0) = Q^2/4 a(0,0): the charged pixel loses charge (a(0,0) < 0).
     m = shifts.radius
     assert delta[5, 6] == pytest.approx(0.25 * charge**2 * shifts.area[m, m], rel=1e-12)
+
+
+def divergence(flux_north, flux_east):
+    """Charge each pixel gains from the fluxes through its four boundaries."""
+    delta = np.zeros((flux_east.shape[0], flux_north.shape[1]))
+    delta[:-1] += flux_north
+    delta[1:] -= flux_north
+    delta[:, :-1] += flux_east
+    delta[:, 1:] -= flux_east
+    return delta
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_threads_do_not_change_the_numbers(dtype):
+    # 700 x 450: four bands of tiles in double precision, three in single; every band and tile
+    # is computed the same way whichever thread runs it, so the results are identical.
+    shifts = e2v_like_shifts()
+    rng = np.random.default_rng(4)
+    image = rng.random((700, 450)) * 1e5
+    one = redistribute(image, shifts, dtype=dtype, workers=1)
+    assert abs(one.sum() - image.sum()) <= 1e-12 * image.sum()
+    for workers in (2, 3, None, -1):
+        np.testing.assert_array_equal(redistribute(image, shifts, dtype=dtype, workers=workers),
+                                      one)
+    fluxes = boundary_fluxes(image, shifts, dtype=dtype, workers=1)
+    for single, threaded in zip(fluxes, boundary_fluxes(image, shifts, dtype=dtype, workers=2)):
+        np.testing.assert_array_equal(threaded, single)
+    # The tile-wise accumulation equals the divergence of the boundary fluxes.
+    delta = divergence(*(np.asarray(flux, dtype=float) for flux in fluxes))
+    np.testing.assert_allclose(one - image, delta, rtol=0, atol=1e-12 * np.abs(delta).max())
+
+
+def test_given_density_across_tiles_is_the_divergence_of_the_fluxes():
+    shifts = e2v_like_shifts()
+    rng = np.random.default_rng(5)
+    image = rng.random((420, 400)) * 1e5
+    density = (rng.random((419, 400)) * 1e5, rng.random((420, 399)) * 1e5)
+    delta = divergence(*boundary_fluxes(image, shifts, density=density))
+    result = redistribution_delta(image, shifts, density=density, workers=2)
+    np.testing.assert_allclose(result, delta, rtol=0, atol=1e-12 * np.abs(delta).max())
+    assert abs(result.sum()) <= 1e-12 * np.abs(delta).sum()
 
 
 # -- edges and masked pixels ---------------------------------------------------------------------
@@ -241,6 +283,10 @@ def test_bad_arguments_are_named():
         redistribute(np.ones((5, 5)), shifts, density=(np.ones((5, 5)), np.ones((5, 4))))
     with pytest.raises(BFPSFValueError, match="method must be"):
         correct(np.ones((5, 5)), shifts, method="newton")
+    with pytest.raises(BFPSFValueError, match="workers must not be 0"):
+        redistribute(np.ones((5, 5)), shifts, workers=0)
+    with pytest.raises(BFPSFValueError, match="workers must be an integer or None"):
+        redistribute(np.ones((5, 5)), shifts, workers=1.5)
 
 
 # -- inverse -------------------------------------------------------------------------------------

@@ -28,6 +28,11 @@ finite neighbours, redistributes the filled image and returns NaN again at those
 masked pixels stay masked; charge is then conserved for the filled image.
 """
 
+import concurrent.futures
+import functools
+import operator
+import os
+import queue
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,6 +149,39 @@ def _validate_dtype(dtype):
 
 
 # -- correlation by blocked FFT (overlap-save) ---------------------------------------------------
+# FFT size of a tile by precision. A tile's transforms must stay in the core's cache: on the
+# development machine (AMD EPYC, 512 kB of L2 per core) a float64 inverse rfft2 costs 4x more
+# per pixel above ~200 px than below, a float32 one above ~330 px
+# (benchmarks/bench_redistribution.py --tiles).
+_TILE = {np.float64: 192, np.float32: 256}
+
+
+def _default_workers():
+    """Threads used when ``workers`` is None: the CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _validate_workers(workers):
+    """Number of threads: None -> all CPUs; negative values count back from all CPUs as in
+    `scipy.fft` (-1: all, -2: all but one)."""
+    if workers is None:
+        return _default_workers()
+    try:
+        count = operator.index(workers)
+    except TypeError:
+        msg = f"workers must be an integer or None, got {workers!r}"
+        raise BFPSFValueError(msg, workers) from None
+    if count == 0:
+        msg = "workers must not be 0 (None or -1: all CPUs)"
+        raise BFPSFValueError(msg, workers)
+    if count < 0:
+        count = max(_default_workers() + 1 + count, 1)
+    return count
+
+
 def _kernel_spectrum(kernel, shape):
     """conj(DFT) of a (2m+1)^2 kernel centred on offset 0, on an rfft grid of ``shape``.
 
@@ -158,6 +196,16 @@ def _kernel_spectrum(kernel, shape):
     return phase_y @ kernel @ phase_x.T
 
 
+@functools.lru_cache(maxsize=32)
+def _cached_spectrum(kernel_bytes, side, shape, complex_dtype):
+    """`_kernel_spectrum` of a (side x side) float64 kernel given by its bytes, read-only and
+    cached: repeated calls (BFSensor stamps, iterative correction) reuse it."""
+    kernel = np.frombuffer(kernel_bytes, dtype=np.float64).reshape(side, side)
+    spectrum = _kernel_spectrum(kernel, shape).astype(complex_dtype)
+    spectrum.flags.writeable = False
+    return spectrum
+
+
 def _tiling(n, m, tile):
     """(block, fft_size) along one axis: output blocks of ``block`` pixels, inputs of block+2m."""
     if n + 2 * m <= tile:
@@ -167,58 +215,104 @@ def _tiling(n, m, tile):
     return size - 2 * m, size
 
 
-def _correlated_bands(image, kernels, *, dtype=np.float64, workers=None, tile=256):
-    """Yield (y0, rows, [band of each correlation]) over horizontal bands of the image.
+def _run_bands(sources, kernels, task, *, dtype=np.float64, workers=None, tile=None):
+    """Correlate ``sources[0]`` with each kernel by overlap-save FFT and hand the result,
+    horizontal band by band, to ``task(y0, rows, tiles, scratch)``; return the tasks' results
+    in band order.
 
-    Each correlation is sum_{dx,dy} K(dx, dy) image[y + dy, x + dx], zero outside the image.
-    Overlap-save: the image is cut into blocks of about ``tile`` pixels, each block is read
-    with a margin of m pixels, transformed once with a real FFT shared by all kernels, and
-    every kernel's correlation is read back from its own inverse FFT. Small blocks keep the
-    transforms in cache, which is faster on large images than one FFT of the whole image; the
-    caller consumes each band while it is in cache, and no image-sized array is allocated here
-    (fresh large arrays cost page faults comparable to the FFTs). The yielded bands are
-    overwritten by the next iteration.
+    The image is cut into tiles of about ``tile`` pixels (default by dtype, `_TILE`); each tile
+    is read with a margin of m pixels, transformed once with a real FFT shared by all kernels,
+    and every kernel's correlation is read back from its own inverse FFT. ``tiles`` iterates
+    over the band's tiles as (x0, cols, correlations, windows), with
+
+        correlations[k][r, c] = sum_{dx,dy} K_k[dy+m, dx+m] sources[0][y0+r+dy, x0+c+dx]
+        windows[i][r, c] = sources[i][y0 + r, x0 + c]
+
+    for 0 <= r < rows, 0 <= c < cols (windows: also r = rows, c = cols), sources taken as
+    zero outside the image. All of a tile's arrays stay in cache while the task consumes them
+    and are overwritten by the next tile. Bands run in ``workers`` threads (default: all
+    CPUs; scipy.fft and numpy release the GIL); ``scratch`` is a dict private to the thread,
+    for the task's buffers, and a task may write only to rows y0..y0+rows-1 of shared arrays.
+    The numbers do not depend on ``workers``.
     """
-    ny, nx = image.shape
+    source = sources[0]
+    ny, nx = source.shape
+    kernels = [np.asarray(kernel, dtype=float) for kernel in kernels]
     m = kernels[0].shape[0] // 2
-    block_y, size_y = _tiling(ny, m, tile)
-    block_x, size_x = _tiling(nx, m, tile)
+    if m == 0:  # one-pixel kernels: a margin of one pixel for the windows' extra row/column
+        kernels = [np.pad(kernel, 1) for kernel in kernels]
+        m = 1
+    block_y, size_y = _tiling(ny, m, _TILE[dtype] if tile is None else tile)
+    block_x, size_x = _tiling(nx, m, _TILE[dtype] if tile is None else tile)
     nby = -(-ny // block_y)
     nbx = -(-nx // block_x)
+    shape = (size_y, size_x)
     complex_dtype = np.result_type(dtype, np.complex64)
-    spectra = [_kernel_spectrum(np.asarray(kernel, dtype=float), (size_y, size_x))
-               .astype(complex_dtype) for kernel in kernels]
-    window = (block_y + 2 * m, block_x + 2 * m)
-    band = np.zeros((window[0], nbx * block_x + 2 * m), dtype=dtype)
-    outputs = [np.empty((block_y, nbx * block_x), dtype=dtype) for _ in kernels]
-    for iy in range(nby):
+    spectra = [_cached_spectrum(np.ascontiguousarray(kernel).tobytes(), kernel.shape[0], shape,
+                                np.dtype(complex_dtype).str) for kernel in kernels]
+    window_shape = (block_y + 2 * m, nbx * block_x + 2 * m)
+
+    def new_buffers():
+        return ([np.zeros(window_shape, dtype=dtype) for _ in sources],
+                np.empty((size_y, size_x // 2 + 1), dtype=complex_dtype), {})
+
+    def tiles(y0, rows, windows, product):
+        for ix in range(nbx):
+            x0 = ix * block_x
+            cols = min(block_x, nx - x0)
+            span = slice(x0, x0 + block_x + 2 * m)
+            spectrum_in = scipy.fft.rfft2(windows[0][:, span], s=shape)
+            correlations = []
+            for spectrum in spectra:
+                np.multiply(spectrum_in, spectrum, out=product)
+                out = scipy.fft.irfft2(product, s=shape, overwrite_x=True)
+                correlations.append(out[m:m + rows, m:m + cols])
+            yield (x0, cols, correlations,
+                   [window[m:m + rows + 1, x0 + m:x0 + m + cols + 1] for window in windows])
+
+    def run(iy, buffers):
+        windows, product, scratch = buffers
         y0 = iy * block_y
-        # Rows y0 - m .. y0 + block_y + m of the image, zero outside it.
-        top, bottom = max(y0 - m, 0), min(y0 + block_y + m, ny)
-        band[:] = 0.0
-        band[top - (y0 - m):bottom - (y0 - m), m:m + nx] = image[top:bottom]
-        tiles = np.lib.stride_tricks.sliding_window_view(band, window, axis=(0, 1))
-        tiles = tiles[0, ::block_x]  # (nbx, window_y, window_x), a view
-        tiles_ft = scipy.fft.rfft2(tiles, s=(size_y, size_x), axes=(-2, -1), workers=workers)
         rows = min(block_y, ny - y0)
-        bands = []
-        for spectrum, output in zip(spectra, outputs):
-            out = scipy.fft.irfft2(tiles_ft * spectrum, s=(size_y, size_x), axes=(-2, -1),
-                                   workers=workers, overwrite_x=True)
-            # (nbx, rows, block_x) -> (rows, nbx * block_x)
-            output.reshape(block_y, nbx, block_x)[:rows] = (
-                out[:, m:m + rows, m:m + block_x].transpose(1, 0, 2))
-            bands.append(output[:rows, :nx])
-        yield y0, rows, bands
+        # Rows y0 - m .. y0 + block_y + m of the image, zero outside it (the column margins
+        # are never written).
+        top, bottom = max(y0 - m, 0), min(y0 + block_y + m, ny)
+        first, last = top - (y0 - m), bottom - (y0 - m)
+        for window, image in zip(windows, sources):
+            window[:first] = 0.0
+            window[last:] = 0.0
+            window[first:last, m:m + nx] = image[top:bottom]
+        return task(y0, rows, tiles(y0, rows, windows, product), scratch)
+
+    workers = min(_validate_workers(workers), nby)
+    if workers == 1:
+        buffers = new_buffers()
+        return [run(iy, buffers) for iy in range(nby)]
+    free = queue.SimpleQueue()
+    for _ in range(workers):
+        free.put(new_buffers())
+
+    def job(iy):
+        buffers = free.get()
+        try:
+            return run(iy, buffers)
+        finally:
+            free.put(buffers)
+
+    with concurrent.futures.ThreadPoolExecutor(workers) as executor:
+        return list(executor.map(job, range(nby)))
 
 
-def _correlate(image, kernels, *, dtype=np.float64, workers=None, tile=256):
-    """Full-image correlations of `_correlated_bands`."""
+def _correlate(image, kernels, *, dtype=np.float64, workers=None, tile=None):
+    """Full-image correlations sum_{dx,dy} K(dx, dy) image[y + dy, x + dx], zero outside."""
     results = [np.empty(image.shape, dtype=dtype) for _ in kernels]
-    for y0, rows, bands in _correlated_bands(image, kernels, dtype=dtype, workers=workers,
-                                             tile=tile):
-        for result, band in zip(results, bands):
-            result[y0:y0 + rows] = band
+
+    def task(y0, rows, tiles, scratch):
+        for x0, cols, correlations, _ in tiles:
+            for result, correlation in zip(results, correlations):
+                result[y0:y0 + rows, x0:x0 + cols] = correlation
+
+    _run_bands([image], kernels, task, dtype=dtype, workers=workers, tile=tile)
     return results
 
 
@@ -242,17 +336,29 @@ def _validate_density(density, shape):
     return north, east
 
 
-def _flux_bands(image, shifts, density, dtype, workers, *, source=None, factor=0.5):
-    """Yield (y0, flux_north band, flux_east band): the boundary fluxes row band by row band.
+def _scratch(scratch, key, rows, cols, dtype):
+    """A (rows, cols) array from a thread's scratch dict, reallocated when too small."""
+    array = scratch.get(key)
+    if array is None or array.size < rows * cols:
+        array = scratch[key] = np.empty(rows * cols, dtype=dtype)
+    return array[:rows * cols].reshape(rows, cols)
 
-    The fluxes are ``factor (a^X * source) rho`` on every north and east boundary, e-.
+
+def _run_fluxes(image, shifts, density, dtype, workers, task, *, source=None, factor=0.5):
+    """Boundary fluxes ``factor (a^X * source) rho``, e-, handed band by band to
+    ``task(y0, rows, fill, scratch)``. ``fill(scratch)`` iterates over the band's tiles as
+    (x0, cols, flux_north, flux_east): flux_north[r, c] is the flux through the boundary above
+    pixel (x0 + c, y0 + r) for r < min(rows, ny - 1 - y0) (the image's last row has none),
+    flux_east[r, c] through the boundary right of it for c < min(cols, nx - 1 - x0). The arrays
+    are overwritten by the next tile.
+
     ``source`` (default ``image``) is the charge that moves the boundaries; ``rho`` is
     ``density`` or, by default, G15's (Q_p + Q_q) / 2 of ``image`` (eq. density-approx).
-    With factor 1/2 (the time-averaged shift) this is G15 eq. delta-q-x. The north band
-    covers the boundaries above rows y0..y0 + len - 1 (the image's last row has none).
+    With factor 1/2 (the time-averaged shift) this is G15 eq. delta-q-x. The fluxes are
+    computed while the tile's correlations are in cache (`_run_bands`), in double precision
+    (float32 mode: the float32 products, exactly).
     """
     ny, nx = image.shape
-    source = image if source is None else source
     if density is not None:
         density_north, density_east = _validate_density(density, image.shape)
         # rho is given: fold the factor into the kernels.
@@ -261,55 +367,108 @@ def _flux_bands(image, shifts, density, dtype, workers, *, source=None, factor=0
         # (Q_p + Q_q) / 2: fold both the factor and the 1/2 into the kernels.
         kernel_factor = 0.5 * factor
     kernels = [shifts.north * kernel_factor, shifts.east * kernel_factor]
-    buffer_north = buffer_east = None
-    for y0, rows, (shift_north, shift_east) in _correlated_bands(source, kernels, dtype=dtype,
-                                                                 workers=workers):
-        if buffer_north is None:
-            buffer_north = np.empty((rows, nx), dtype=dtype)
-            buffer_east = np.empty((rows, nx - 1), dtype=dtype)
-        y1 = y0 + rows
-        north_rows = min(y1, ny - 1) - y0
-        flux_north = buffer_north[:north_rows]
-        flux_east = buffer_east[:rows]
-        if density is None:
-            np.add(image[y0:y0 + north_rows], image[y0 + 1:y0 + north_rows + 1], out=flux_north,
-                   casting="same_kind")
-            flux_north *= shift_north[:north_rows]
-            np.add(image[y0:y1, :-1], image[y0:y1, 1:], out=flux_east, casting="same_kind")
-            flux_east *= shift_east[:, :-1]
-        else:
-            np.multiply(shift_north[:north_rows], density_north[y0:y0 + north_rows],
-                        out=flux_north, casting="same_kind")
-            np.multiply(shift_east[:, :-1], density_east[y0:y1], out=flux_east,
-                        casting="same_kind")
-        yield y0, flux_north, flux_east
+    sources = [image] if source is None else [source, image]
+
+    def band_task(y0, rows, tiles, scratch):
+        north_rows = min(rows, ny - 1 - y0)
+
+        def fill(scratch):
+            for x0, cols, (shift_north, shift_east), windows in tiles:
+                east_cols = min(cols, nx - 1 - x0)
+                shift_north = shift_north[:north_rows]
+                shift_east = shift_east[:, :east_cols]
+                if dtype is np.float64:  # in place of the correlations
+                    flux_north, flux_east = shift_north, shift_east
+                else:  # float32 products kept in double: the sums that follow are not mixed
+                    flux_north = _scratch(scratch, "north", north_rows, cols, np.float64)
+                    flux_east = _scratch(scratch, "east", rows, east_cols, np.float64)
+                if density is None:
+                    charge = windows[-1]  # the image, one more row and column than the band
+                    pair_sum = _scratch(scratch, "sum", rows, cols, dtype)
+                    np.add(charge[:north_rows, :cols], charge[1:north_rows + 1, :cols],
+                           out=pair_sum[:north_rows])
+                    np.multiply(shift_north, pair_sum[:north_rows], out=flux_north)
+                    np.add(charge[:rows, :east_cols], charge[:rows, 1:east_cols + 1],
+                           out=pair_sum[:, :east_cols])
+                    np.multiply(shift_east, pair_sum[:, :east_cols], out=flux_east)
+                else:
+                    np.multiply(shift_north, density_north[y0:y0 + north_rows, x0:x0 + cols],
+                                out=flux_north)
+                    np.multiply(shift_east, density_east[y0:y0 + rows, x0:x0 + east_cols],
+                                out=flux_east)
+                yield x0, cols, flux_north, flux_east
+
+        return task(y0, rows, fill, scratch)
+
+    return _run_bands(sources, kernels, band_task, dtype=dtype, workers=workers)
 
 
 def _fluxes_of(image, shifts, density, dtype, workers, *, source=None, factor=0.5):
-    """Full flux arrays (ny - 1, nx) and (ny, nx - 1) of `_flux_bands`."""
+    """Full flux arrays (ny - 1, nx) and (ny, nx - 1) of `_run_fluxes`."""
     ny, nx = image.shape
     flux_north = np.empty((ny - 1, nx), dtype=dtype)
     flux_east = np.empty((ny, nx - 1), dtype=dtype)
-    for y0, north, east in _flux_bands(image, shifts, density, dtype, workers, source=source,
-                                       factor=factor):
-        flux_north[y0:y0 + len(north)] = north
-        flux_east[y0:y0 + len(east)] = east
+
+    def task(y0, rows, fill, scratch):
+        for x0, cols, north, east in fill(scratch):
+            flux_north[y0:y0 + len(north), x0:x0 + cols] = north
+            flux_east[y0:y0 + rows, x0:x0 + east.shape[1]] = east
+
+    _run_fluxes(image, shifts, density, dtype, workers, task, source=source, factor=factor)
     return flux_north, flux_east
 
 
-def _redistributed(result, image, shifts, density, dtype, workers, *, source=None, factor=0.5):
-    """Add to ``result`` (float64, in place) the charge each pixel gains from its boundaries.
+def _redistributed(result, image, shifts, density, dtype, workers, *, source=None, factor=0.5,
+                   base=None):
+    """Add to ``result`` (float64, in place) the charge each pixel gains from its boundaries;
+    with ``base`` (an array like ``image``), set ``result`` to ``base`` plus that gain.
 
-    The fluxes are added and subtracted in double precision band by band, so charge is
-    conserved to rounding whatever ``dtype`` the fluxes were computed in.
+    Each tile's fluxes are added and subtracted in double precision while they are in cache;
+    a flux whose boundary separates two tiles is kept and subtracted by the next tile on the
+    right (east) or, for the boundaries between two bands (north), from the same array once
+    all bands are done (a band's thread writes only its own rows). Charge is thus conserved
+    to rounding whatever ``dtype`` the fluxes were computed in.
     """
-    for y0, north, east in _flux_bands(image, shifts, density, dtype, workers, source=source,
-                                       factor=factor):
-        rows = len(east)
-        result[y0:y0 + len(north)] += north
-        result[y0 + 1:y0 + len(north) + 1] -= north
-        result[y0:y0 + rows, :-1] += east
-        result[y0:y0 + rows, 1:] -= east
+    ny, nx = image.shape
+
+    def task(y0, rows, fill, scratch):
+        north_rows = min(rows, ny - 1 - y0)
+        inside = min(north_rows, rows - 1)  # north boundaries with both pixels in the band
+        crossing = np.empty(nx) if north_rows == rows else None  # fluxes are float64
+        east_carry = None
+        for x0, cols, flux_north, flux_east in fill(scratch):
+            # The tile's gain, built in a cache-resident buffer and written to result once.
+            gain = _scratch(scratch, "gain", rows, cols, np.float64)
+            if base is None:
+                gain[:north_rows] = flux_north
+                gain[north_rows:] = 0.0
+            else:
+                np.add(base[y0:y0 + north_rows, x0:x0 + cols], flux_north,
+                       out=gain[:north_rows])
+                # The image's last row has no boundary above it.
+                gain[north_rows:] = base[y0 + north_rows:y0 + rows, x0:x0 + cols]
+            gain[1:inside + 1] -= flux_north[:inside]
+            east_cols = flux_east.shape[1]
+            gain[:, :east_cols] += flux_east
+            inside_east = min(east_cols, cols - 1)  # east boundaries inside the tile
+            gain[:, 1:inside_east + 1] -= flux_east[:, :inside_east]
+            if east_carry is not None:  # the boundary left of the tile, from the tile before
+                gain[:, 0] -= east_carry
+            east_carry = flux_east[:, cols - 1].copy() if east_cols == cols else None
+            if crossing is not None:
+                crossing[x0:x0 + cols] = flux_north[rows - 1]
+            target = result[y0:y0 + rows, x0:x0 + cols]
+            if base is None:
+                target += gain
+            else:
+                target[...] = gain
+        return None if crossing is None else (y0 + rows, crossing)
+
+    for crossing in _run_fluxes(image, shifts, density, dtype, workers, task, source=source,
+                                factor=factor):
+        if crossing is not None:
+            row, flux = crossing
+            result[row] -= flux
     return result
 
 
@@ -331,7 +490,10 @@ def boundary_fluxes(image_e, shifts, *, density=None, dtype=np.float64, workers=
         the fluxes are then accurate to ~1e-6 of the largest flux, and charge stays conserved
         (the fluxes are added and subtracted in double precision).
     workers : int, optional
-        Threads for `scipy.fft`. Default: one.
+        Threads, each computing whole bands of FFT tiles (scipy.fft and numpy release the
+        GIL). Default None: every CPU this process may use (``os.sched_getaffinity``, else
+        ``os.cpu_count()``); negative values count back from it as in `scipy.fft` (-1: all,
+        -2: all but one). The result does not depend on it, bit for bit.
 
     Returns
     -------
@@ -380,8 +542,8 @@ def redistribute(image_e, shifts, *, density=None, nan_policy="raise", dtype=np.
         Q' = Q + dQ (G15 eq. perturbPTC), total charge unchanged (to 1e-15 relative).
     """
     image, bad = _as_image(image_e, nan_policy)
-    result = _redistributed(image.copy(), image, _as_shifts(shifts), density,
-                            _validate_dtype(dtype), workers)
+    result = _redistributed(np.empty(image.shape), image, _as_shifts(shifts), density,
+                            _validate_dtype(dtype), workers, base=image)
     if bad is not None:
         result[bad] = np.nan
     return result
