@@ -136,3 +136,33 @@ def test_round_trip_keeps_undetected_turnoff_as_nan(calibration, tmp_path):
     assert np.isnan(back.turnoff_e) and np.isnan(back.chi2)
     assert back.turnoff_detected is False
     assert back.to_json_dict()["turnoff_e"] is None or np.isnan(back.to_json_dict()["turnoff_e"])
+
+
+def test_psf_product_round_trip_and_schema_checks(tmp_path):
+    import galsim
+
+    from bfpsf.model.psf import FluxDependentPSF
+    from bfpsf.psf_product import PSF_SCHEMA_VERSION
+    from bfpsf.shifts import BoundaryShifts
+
+    shifts = BoundaryShifts.from_radial_profile(lambda r: 5e-7 * np.exp(-r), 2)
+    psf = FluxDependentPSF.from_galsim(galsim.Moffat(beta=3.0, fwhm=3.0), shifts,
+                                       oversampling=2, size=11)
+    psf.image_gain = 1.7
+    path = tmp_path / "psf.fits"
+    psf.write(path, calibration="calib.fits")
+    back = FluxDependentPSF.read(path)
+    np.testing.assert_array_equal(back.data, psf.data)
+    assert back.shifts == shifts and back.image_gain == 1.7 and back.calibration == "calib.fits"
+    assert back.evaluate(3.2, 4.1, 2e5, 3.0, 4.0) == psf.evaluate(3.2, 4.1, 2e5, 3.0, 4.0)
+    with pytest.raises(BFPSFFileExistsError, match="overwrite=True"):
+        psf.write(path)
+    with fits.open(path, mode="update") as hdul:
+        hdul[0].header["BFPSFVER"] = PSF_SCHEMA_VERSION + 1
+    with pytest.raises(BFPSFInputError, match=f"schema version {PSF_SCHEMA_VERSION + 1}, newer"):
+        FluxDependentPSF.read(path)
+    fits.PrimaryHDU(np.zeros((4, 4))).writeto(tmp_path / "image.fits")
+    with pytest.raises(BFPSFInputError, match="not a bfpsf PSF product file"):
+        FluxDependentPSF.read(tmp_path / "image.fits")
+    with pytest.raises(BFPSFInputError, match="PSF product file .* does not exist"):
+        FluxDependentPSF.read(tmp_path / "missing.fits")

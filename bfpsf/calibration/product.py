@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..errors import BFPSFFileExistsError, BFPSFInputError
+from ..files import open_product, refuse_overwrite
 from ..shifts import BoundaryShifts
 from .linearity import Linearity
 from .pedestal import Pedestal
@@ -214,9 +214,7 @@ class Calibration:
         from astropy.table import Table
 
         path = Path(path)
-        if path.exists() and not overwrite:
-            msg = f"{path} exists; pass overwrite=True (--overwrite) to replace it"
-            raise BFPSFFileExistsError(msg)
+        refuse_overwrite(path, overwrite)
         primary = fits.PrimaryHDU()
         header = primary.header
         header["BFSCHEMA"] = (self.schema_version, "bfpsf calibration schema version")
@@ -301,23 +299,11 @@ class Calibration:
             The file is missing, is not a bfpsf calibration, or was written with a newer
             schema than this bfpsf understands.
         """
-        from astropy.io import fits
         from astropy.table import Table
 
-        path = Path(path)
-        if not path.exists():
-            msg = f"calibration file {path} does not exist"
-            raise BFPSFInputError(msg, str(path))
-        with fits.open(path, memmap=False) as hdul:
+        with open_product(path, keyword="BFSCHEMA", version=SCHEMA_VERSION,
+                          kind="calibration") as hdul:
             header = hdul[0].header
-            if "BFSCHEMA" not in header:
-                msg = f"{path} is not a bfpsf calibration file (no BFSCHEMA keyword)"
-                raise BFPSFInputError(msg, str(path))
-            schema = int(header["BFSCHEMA"])
-            if schema > SCHEMA_VERSION:
-                msg = (f"{path} has calibration schema version {schema}, newer than the "
-                       f"{SCHEMA_VERSION} this bfpsf {__version__} reads; upgrade bfpsf")
-                raise BFPSFInputError(msg, schema)
             names = {hdu.name for hdu in hdul}
 
             def image(name):
@@ -358,7 +344,8 @@ class Calibration:
                 shifts_north_err=image("SHIFT_N_ERR"), shifts_east_err=image("SHIFT_E_ERR"),
                 shift_fit=shift_fit, covariances_adu=image("COV"), npix=image("NPIX"),
                 inputs=inputs, parameters=parameters,
-                bfpsf_version=str(header["BFVERSIO"]), schema_version=schema)
+                bfpsf_version=str(header["BFVERSIO"]),
+                schema_version=int(header["BFSCHEMA"]))
 
 
 def _table_hdu(table, name):

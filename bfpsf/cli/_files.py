@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import BFPSFFileExistsError, BFPSFInputError
+from ..errors import BFPSFInputError
+from ..files import refuse_overwrite
 
 
 def check_free(path, overwrite):
@@ -16,9 +17,8 @@ def check_free(path, overwrite):
     Called for every output before any work is done, so a refused run writes nothing.
     ``path=None`` (an output not requested) is accepted.
     """
-    if path is not None and Path(path).exists() and not overwrite:
-        msg = f"{path} exists; pass --overwrite to replace it"
-        raise BFPSFFileExistsError(msg, str(path))
+    if path is not None:
+        refuse_overwrite(path, overwrite, how="--overwrite")
 
 
 def _strict(value):

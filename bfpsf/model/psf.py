@@ -29,12 +29,9 @@ from ..errors import BFPSFValueError
 from .redistribution import (_as_shifts, exact_boundary_density, redistribute_buildup,
                              redistribution_delta)
 
-__all__ = ["FluxDependentPSF", "bf_response_table", "pixelised_stamp", "PSF_SCHEMA_VERSION"]
+__all__ = ["FluxDependentPSF", "bf_response_table", "pixelised_stamp"]
 
 _MODES = ("table", "exact")
-
-#: Version of the PSF product layout written by `FluxDependentPSF.write`.
-PSF_SCHEMA_VERSION = 1
 
 
 def _validate_oversampling(oversampling):
@@ -92,8 +89,6 @@ def bf_response_table(data, shifts, oversampling):
 
 def _exact_density_table(profile, shifts, shape, oversampling, sub):
     """`bf_response_table` with the exact boundary density of a GalSim profile (no pixel)."""
-    import galsim
-
     origin = (shape[1] - 1) / 2.0
     table = np.zeros(shape)
     for a in range(oversampling):
@@ -456,99 +451,22 @@ class FluxDependentPSF(Fittable2DModel):
         bf_term = redistribution_delta(stamp, self.shifts)
         return flux * stamp + self.gain * flux * abs(flux) * bf_term
 
-    # -- the PSF product --------------------------------------------------------------------
+    # -- the PSF product (bfpsf.psf_product: the model layer knows nothing of files) ---------
     def write(self, path, *, calibration=None, meta=None, overwrite=False):
         """Write the PSF product (FITS): P0, its sampling, and the calibration it used.
 
-        Parameters
-        ----------
-        path : str or path-like
-        calibration : str, optional
-            Name of the calibration file the shifts come from (kept in ``CALIB``); default
-            ``self.calibration``.
-        meta : dict, optional
-            Extra scalar header cards (keys of at most 8 characters).
-        overwrite : bool, optional
-            Replace an existing file. Default False (`~bfpsf.errors.BFPSFFileExistsError`).
-
-        Notes
-        -----
-        HDUs: primary = P0 data (unit flux, oversampled, pixel response included) with
-        ``BFPSFVER`` (schema), ``OVERSAMX``/``OVERSAMY``, ``ORIGINX``/``ORIGINY``, ``GAIN``
-        (e-/ADU of the images the PSF is meant for; the model itself works in e-), ``MODE``,
-        ``CALIB``, ``PIXRESP``; ``SHIFT_N`` and ``SHIFT_E`` = a^N and a^E (1/e-,
-        [dy+m, dx+m]). The calibration file is not needed to read the product back.
+        See `bfpsf.psf_product.write_psf`.
         """
-        from pathlib import Path
+        from ..psf_product import write_psf
 
-        from astropy.io import fits
-
-        from ..errors import BFPSFFileExistsError
-
-        path = Path(path)
-        if path.exists() and not overwrite:
-            msg = f"{path} exists; pass overwrite=True (--overwrite) to replace it"
-            raise BFPSFFileExistsError(msg)
-        primary = fits.PrimaryHDU(np.asarray(self.data, dtype=np.float64))
-        header = primary.header
-        header["BFPSFVER"] = (PSF_SCHEMA_VERSION, "bfpsf PSF product schema")
-        header["BUNIT"] = ("1/pixel", "unit-flux P0 per image pixel, oversampled")
-        header["OVERSAMX"] = (int(self.oversampling[1]), "oversampling along x")
-        header["OVERSAMY"] = (int(self.oversampling[0]), "oversampling along y")
-        header["ORIGINX"] = (float(self.origin[0]), "x of the star centre in the data")
-        header["ORIGINY"] = (float(self.origin[1]), "y of the star centre in the data")
-        header["GAIN"] = (float(self.image_gain), "e-/ADU of the images")
-        header["MODE"] = (self.mode, "BF term: table of phases or exact")
-        header["CALIB"] = (str(calibration or self.calibration), "calibration of the shifts")
-        header["PIXRESP"] = (True, "pixel response included in P0")
-        for key, value in (meta or {}).items():
-            header[key] = value
-        north = fits.ImageHDU(np.asarray(self.shifts.north), name="SHIFT_N")
-        east = fits.ImageHDU(np.asarray(self.shifts.east), name="SHIFT_E")
-        north.header["BUNIT"] = "1/electron"
-        east.header["BUNIT"] = "1/electron"
-        fits.HDUList([primary, north, east]).writeto(path, overwrite=overwrite)
+        write_psf(self, path, calibration=calibration, meta=meta, overwrite=overwrite)
 
     @classmethod
     def read(cls, path, **kwargs):
-        """Read a PSF product written by `write` (model in e-; ``image_gain`` from GAIN).
+        """Read a PSF product written by `write`; see `bfpsf.psf_product.read_psf`."""
+        from ..psf_product import read_psf
 
-        ``kwargs`` override the stored options (e.g. ``mode='exact'``).
-        """
-        from pathlib import Path
-
-        from astropy.io import fits
-
-        from ..errors import BFPSFInputError
-        from ..shifts import BoundaryShifts
-
-        path = Path(path)
-        if not path.exists():
-            msg = f"PSF file {path} does not exist"
-            raise BFPSFInputError(msg, str(path))
-        with fits.open(path, memmap=False) as hdul:
-            header = hdul[0].header
-            if "BFPSFVER" not in header:
-                msg = f"{path} is not a bfpsf PSF product (no BFPSFVER keyword)"
-                raise BFPSFInputError(msg, str(path))
-            schema = int(header["BFPSFVER"])
-            if schema > PSF_SCHEMA_VERSION:
-                msg = (f"{path} has PSF schema {schema}, newer than the "
-                       f"{PSF_SCHEMA_VERSION} this bfpsf reads")
-                raise BFPSFInputError(msg, schema)
-            data = np.array(hdul[0].data, dtype=float)
-            shifts = BoundaryShifts(np.array(hdul["SHIFT_N"].data, dtype=float),
-                                    np.array(hdul["SHIFT_E"].data, dtype=float), check=False)
-            options = {"oversampling": (int(header["OVERSAMY"]), int(header["OVERSAMX"])),
-                       "origin": (float(header["ORIGINX"]), float(header["ORIGINY"])),
-                       "mode": str(header["MODE"])}
-            image_gain = float(header["GAIN"])
-            calibration = str(header["CALIB"])
-        options.update(kwargs)
-        psf = cls(data, shifts, **options)
-        psf.image_gain = image_gain
-        psf.calibration = calibration
-        return psf
+        return read_psf(path, cls=cls, **kwargs)
 
     def __repr__(self):
         return (f"<FluxDependentPSF(flux={float(self.flux.value):g}, "

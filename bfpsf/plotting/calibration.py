@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import BFPSFFileExistsError, BFPSFValueError
+from ..errors import BFPSFValueError
+from ..files import refuse_overwrite
 
 __all__ = ["plot_ptc", "plot_correlation_map", "plot_area_profile", "save_calibration_plots"]
 
@@ -184,9 +185,7 @@ def save_calibration_plots(calibration, directory, *, overwrite=False):
     paths = []
     for name, maker in makers.items():
         path = directory / name
-        if path.exists() and not overwrite:
-            msg = f"{path} exists; pass overwrite=True (--overwrite) to replace it"
-            raise BFPSFFileExistsError(msg)
+        refuse_overwrite(path, overwrite)
         figure = maker(calibration)
         figure.savefig(path, dpi=110, bbox_inches="tight")
         plt.close(figure)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import BFPSFFileExistsError
+from ..files import refuse_overwrite
 
 __all__ = ["write_diagnosis_report", "write_validation_report", "format_number", "to_json"]
 
@@ -51,9 +51,7 @@ def _prepare(directory, names, overwrite):
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     for name in names:
-        if (directory / name).exists() and not overwrite:
-            msg = f"{directory / name} exists; pass overwrite=True (--overwrite) to replace it"
-            raise BFPSFFileExistsError(msg)
+        refuse_overwrite(directory / name, overwrite)
     return directory
 
 
@@ -325,9 +323,7 @@ def write_validation_report(result, directory, *, overwrite=False):
 def write_json(summary, path, *, overwrite=False):
     """Write a JSON summary (refuses to replace a file unless ``overwrite``)."""
     path = Path(path)
-    if path.exists() and not overwrite:
-        msg = f"{path} exists; pass --overwrite to replace it"
-        raise BFPSFFileExistsError(msg)
+    refuse_overwrite(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(to_json(summary), indent=2) + "\n")
     return path

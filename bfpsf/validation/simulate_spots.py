@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import BFPSFFileExistsError, BFPSFInputError, BFPSFValueError
+from ..errors import BFPSFInputError, BFPSFValueError
+from ..files import refuse_overwrite
 
 __all__ = ["SpotSet", "StarField", "simulate_spots", "simulate_star_field", "write_image_adu"]
 
@@ -377,14 +378,10 @@ def write_image_adu(path, image_e, *, gain, exptime=1.0, catalog=None, overwrite
     overwrite : bool, optional
         Replace an existing file (default False: `BFPSFFileExistsError`).
     """
-    import os
-
     from astropy.io import fits
 
     _check_positive("gain", gain)
-    if os.path.exists(path) and not overwrite:
-        msg = f"{path} exists; pass overwrite=True to replace it"
-        raise BFPSFFileExistsError(msg)
+    refuse_overwrite(path, overwrite, how="overwrite=True")
     array = np.asarray(image_e, dtype=float)
     if array.ndim != 2:
         msg = f"image_e must be 2-D, got shape {array.shape}"

@@ -1,0 +1,94 @@
+"""The PSF product: a `FluxDependentPSF` as a FITS file (``bfpsf psf -o PSF.fits``).
+
+Layout (schema `PSF_SCHEMA_VERSION`): primary HDU = P0 data (unit flux, oversampled, pixel
+response included) with ``BFPSFVER`` (schema), ``OVERSAMX``/``OVERSAMY``, ``ORIGINX``/``ORIGINY``,
+``GAIN`` (e-/ADU of the images the PSF is meant for; the model itself works in e-), ``MODE``,
+``CALIB``, ``PIXRESP``; HDUs ``SHIFT_N`` and ``SHIFT_E`` = a^N and a^E (1/e-, [dy+m, dx+m]).
+The calibration file is not needed to read the product back.
+"""
+
+import numpy as np
+
+from .files import open_product, refuse_overwrite
+
+__all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
+
+#: Version of the PSF product layout written by `write_psf`.
+PSF_SCHEMA_VERSION = 1
+
+
+def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
+    """Write a `~bfpsf.model.psf.FluxDependentPSF` as a PSF product.
+
+    Parameters
+    ----------
+    psf : FluxDependentPSF
+    path : str or path-like
+    calibration : str, optional
+        Name of the calibration file the shifts come from (kept in ``CALIB``); default
+        ``psf.calibration``.
+    meta : dict, optional
+        Extra scalar header cards (keys of at most 8 characters).
+    overwrite : bool, optional
+        Replace an existing file. Default False (`~bfpsf.errors.BFPSFFileExistsError`).
+    """
+    from astropy.io import fits
+
+    refuse_overwrite(path, overwrite)
+    primary = fits.PrimaryHDU(np.asarray(psf.data, dtype=np.float64))
+    header = primary.header
+    header["BFPSFVER"] = (PSF_SCHEMA_VERSION, "bfpsf PSF product schema")
+    header["BUNIT"] = ("1/pixel", "unit-flux P0 per image pixel, oversampled")
+    header["OVERSAMX"] = (int(psf.oversampling[1]), "oversampling along x")
+    header["OVERSAMY"] = (int(psf.oversampling[0]), "oversampling along y")
+    header["ORIGINX"] = (float(psf.origin[0]), "x of the star centre in the data")
+    header["ORIGINY"] = (float(psf.origin[1]), "y of the star centre in the data")
+    header["GAIN"] = (float(psf.image_gain), "e-/ADU of the images")
+    header["MODE"] = (psf.mode, "BF term: table of phases or exact")
+    header["CALIB"] = (str(calibration or psf.calibration), "calibration of the shifts")
+    header["PIXRESP"] = (True, "pixel response included in P0")
+    for key, value in (meta or {}).items():
+        header[key] = value
+    north = fits.ImageHDU(np.asarray(psf.shifts.north), name="SHIFT_N")
+    east = fits.ImageHDU(np.asarray(psf.shifts.east), name="SHIFT_E")
+    north.header["BUNIT"] = "1/electron"
+    east.header["BUNIT"] = "1/electron"
+    fits.HDUList([primary, north, east]).writeto(path, overwrite=overwrite)
+
+
+def read_psf(path, *, cls=None, **kwargs):
+    """Read a PSF product written by `write_psf` (model in e-; ``image_gain`` from GAIN).
+
+    Parameters
+    ----------
+    path : str or path-like
+    cls : type, optional
+        `FluxDependentPSF` or a subclass (default `FluxDependentPSF`).
+    **kwargs
+        Override the stored options (e.g. ``mode='exact'``).
+
+    Raises
+    ------
+    BFPSFInputError
+        The file is missing, is not a PSF product, or has a newer schema.
+    """
+    from .model.psf import FluxDependentPSF
+    from .shifts import BoundaryShifts
+
+    cls = FluxDependentPSF if cls is None else cls
+    with open_product(path, keyword="BFPSFVER", version=PSF_SCHEMA_VERSION,
+                      kind="PSF product") as hdul:
+        header = hdul[0].header
+        data = np.array(hdul[0].data, dtype=float)
+        shifts = BoundaryShifts(np.array(hdul["SHIFT_N"].data, dtype=float),
+                                np.array(hdul["SHIFT_E"].data, dtype=float), check=False)
+        options = {"oversampling": (int(header["OVERSAMY"]), int(header["OVERSAMX"])),
+                   "origin": (float(header["ORIGINX"]), float(header["ORIGINY"])),
+                   "mode": str(header["MODE"])}
+        image_gain = float(header["GAIN"])
+        calibration = str(header["CALIB"])
+    options.update(kwargs)
+    psf = cls(data, shifts, **options)
+    psf.image_gain = image_gain
+    psf.calibration = calibration
+    return psf
