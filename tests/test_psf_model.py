@@ -228,6 +228,48 @@ def test_exact_boundary_density_table():
     assert np.abs(bf - truth)[inner, inner].max() < 2e-4 * np.abs(truth).max()
 
 
+def test_exact_density_in_exact_mode_with_and_without_buildup():
+    """density='exact' in mode='exact': the density at every evaluation phase, also inside the
+    build-up integration."""
+    from bfpsf.model.redistribution import exact_boundary_density, redistribute_buildup
+
+    table = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=4, size=25,
+                                         density="exact")
+    exact = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=4, size=25,
+                                         density="exact", mode="exact")
+    static = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS.scaled(0.0), oversampling=4, size=25)
+    y, x = np.mgrid[:27, :27]
+    # at a phase of the table (x 0.25, y -0.5) both modes are the operator: the same to the
+    # spline interpolation of P0 (measured 1e-5 of the largest BF pixel)
+    bf = [model.evaluate(x, y, BRIGHT, 13.25, 12.5) - static.evaluate(x, y, BRIGHT, 13.25, 12.5)
+          for model in (table, exact)]
+    assert np.abs(bf[0] - bf[1]).max() < 1e-4 * np.abs(bf[0]).max()
+    # one build-up step is the one-step model, to rounding
+    one = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=4, size=25,
+                                       density="exact", mode="exact", buildup_steps=1)
+    np.testing.assert_allclose(one.evaluate(x, y, BRIGHT, 13.3, 12.9),
+                               exact.evaluate(x, y, BRIGHT, 13.3, 12.9), rtol=0,
+                               atol=1e-12 * BRIGHT)
+    # K steps: the engine's build-up with the exact density of this star at this phase
+    steps = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=4, size=25,
+                                         density="exact", mode="exact", buildup_steps=8)
+    sub, phase = 8, (0.3, -0.1)
+    fine = MOFFAT.withFlux(BRIGHT).drawImage(nx=27 * sub, ny=27 * sub, scale=1 / sub,
+                                             offset=(phase[0] * sub, phase[1] * sub),
+                                             dtype=np.float64).array
+    density = exact_boundary_density(fine, sub)[1]
+    stamp = BRIGHT * pixelised_stamp(steps, x_phase=phase[0], y_phase=phase[1], half_size=13)
+    truth = redistribute_buildup(stamp, SHIFTS, nsteps=8, density=density)
+    model_image = steps.star_image(BRIGHT, x_phase=phase[0], y_phase=phase[1], half_size=13)
+    np.testing.assert_allclose(model_image, truth, rtol=0, atol=1e-9 * truth.max())
+    # the table mode builds its exact-density table from the same profile
+    rebuilt = FluxDependentPSF(table.data, SHIFTS, oversampling=4, density_profile=MOFFAT)
+    np.testing.assert_array_equal(rebuilt.bf_table, table.bf_table)
+    with pytest.raises(BFPSFValueError, match="density_oversampling"):
+        FluxDependentPSF(table.data, SHIFTS, oversampling=4, density_profile=MOFFAT,
+                         density_oversampling=1)
+
+
 def test_buildup_mode_is_the_engine(psf):
     from bfpsf.model.redistribution import redistribute_buildup
 

@@ -108,6 +108,15 @@ def _exact_density_table(profile, shifts, shape, oversampling, sub):
     return table
 
 
+def _phase_density(profile, x_phase, y_phase, half_size, sub):
+    """Exact boundary density of a unit-flux GalSim profile (no pixel) on the stamp of
+    `pixelised_stamp` (star at ``(x_phase, y_phase)`` from the central pixel's centre)."""
+    n = (2 * half_size + 1) * sub  # the fine image's centre is the central pixel's centre
+    fine = profile.drawImage(nx=n, ny=n, scale=1.0 / sub, offset=(x_phase * sub, y_phase * sub),
+                             dtype=np.float64).array  # charge per sub-pixel
+    return exact_boundary_density(fine, sub)[1]
+
+
 def pixelised_stamp(psf, *, x_phase=0.0, y_phase=0.0, half_size=None):
     """Unit-flux pixelised P0 of ``psf`` on the pixel grid of a star at a sub-pixel phase.
 
@@ -176,6 +185,15 @@ class FluxDependentPSF(Fittable2DModel):
         Precomputed R at every phase of ``data`` (same shape, ``mode='table'``), e.g. with
         the exact boundary density (`from_galsim` with ``density='exact'``); default
         `bf_response_table` of ``data`` (G15's mean density).
+    density_profile : galsim.GSObject, optional
+        The unit-flux profile (no pixel) whose charge density integrated along each pixel
+        boundary replaces G15's mean of the two pixels
+        (`bfpsf.model.redistribution.exact_boundary_density`): in mode 'table' it makes the
+        table (unless ``bf_table`` is given); in mode 'exact' it is used at every evaluation
+        phase and in every build-up step. `from_galsim` with ``density='exact'`` sets it.
+        Default None.
+    density_oversampling : int, optional
+        Sub-pixels per pixel for ``density_profile``. Default 8.
     fill_value : float, optional
         Model value outside the PSF data. Default 0.
 
@@ -197,7 +215,8 @@ class FluxDependentPSF(Fittable2DModel):
 
     def __init__(self, data, shifts, *, flux=flux.default, x_0=x_0.default, y_0=y_0.default,
                  origin=None, oversampling=1, gain=1.0, mode="table",
-                 buildup_steps=None, bf_table=None, fill_value=0.0, **kwargs):
+                 buildup_steps=None, bf_table=None, fill_value=0.0, density_profile=None,
+                 density_oversampling=8, **kwargs):
         self.data = _validate_data(data)
         self.data.flags.writeable = False
         self.shifts = _as_shifts(shifts)
@@ -232,6 +251,11 @@ class FluxDependentPSF(Fittable2DModel):
                 msg = (f"bf_table must have the shape of data {self.data.shape} and needs "
                        f"mode='table', got shape {bf_table.shape} and mode={mode!r}")
                 raise BFPSFValueError(msg, bf_table.shape)
+        if int(density_oversampling) != density_oversampling or density_oversampling < 2:
+            msg = f"density_oversampling must be an integer >= 2, got {density_oversampling!r}"
+            raise BFPSFValueError(msg, density_oversampling)
+        self.density_profile = density_profile
+        self.density_oversampling = int(density_oversampling)
         self.mode = mode
         self.fill_value = float(fill_value)
         #: e-/ADU of the images this PSF describes (product metadata).
@@ -242,6 +266,14 @@ class FluxDependentPSF(Fittable2DModel):
         y = np.arange(self.data.shape[0])
         self._base_spline = RectBivariateSpline(x, y, self.data.T, kx=3, ky=3, s=0)
         if mode == "table":
+            if bf_table is None and density_profile is not None:
+                if self.oversampling[0] != self.oversampling[1]:
+                    msg = ("density_profile needs the same oversampling in x and y, got "
+                           f"{tuple(self.oversampling.tolist())}")
+                    raise BFPSFValueError(msg, tuple(self.oversampling.tolist()))
+                bf_table = _exact_density_table(density_profile, self.shifts, self.data.shape,
+                                                int(self.oversampling[0]),
+                                                self.density_oversampling)
             self.bf_table = (bf_table if bf_table is not None
                              else bf_response_table(self.data, self.shifts, self.oversampling))
             self.bf_table.flags.writeable = False
@@ -301,8 +333,7 @@ class FluxDependentPSF(Fittable2DModel):
         image = pixelised.drawImage(nx=npix, ny=npix, scale=1.0 / over, method="no_pixel")
         data = image.array * over**2
         if density == "exact":
-            kwargs["bf_table"] = _exact_density_table(unit, shifts, data.shape, over,
-                                                      int(density_oversampling))
+            kwargs.update(density_profile=unit, density_oversampling=density_oversampling)
         return cls(data, shifts, oversampling=over, **kwargs)
 
     # -- astropy model interface -------------------------------------------------------------
@@ -363,10 +394,7 @@ class FluxDependentPSF(Fittable2DModel):
             px, py = phase_x[members][0], phase_y[members][0]
             # Offsets dx = n + px from the star: the star sits at phase -px on this grid.
             stamp = pixelised_stamp(self, x_phase=-px, y_phase=-py, half_size=half)
-            if self.buildup_steps is not None:
-                delta = self._buildup_delta(stamp, flux)
-            else:
-                delta = self.gain * flux * abs(flux) * redistribution_delta(stamp, self.shifts)
+            delta = self._stamp_delta(stamp, flux, -px, -py)
             col = np.rint(dx[members] - px).astype(int) + half
             row = np.rint(dy[members] - py).astype(int) + half
             inside = (col >= 0) & (col <= 2 * half) & (row >= 0) & (row <= 2 * half)
@@ -375,10 +403,26 @@ class FluxDependentPSF(Fittable2DModel):
             result[members] = values
         return result
 
-    def _buildup_delta(self, stamp, flux):
+    def _stamp_delta(self, stamp, flux, x_phase, y_phase):
+        """BF term (image unit) of a star of flux F on its pixelised unit stamp (star at
+        ``(x_phase, y_phase)`` from the central pixel), as mode='exact' computes it."""
+        density = None
+        if self.density_profile is not None:
+            half = stamp.shape[0] // 2
+            density = _phase_density(self.density_profile, x_phase, y_phase, half,
+                                     self.density_oversampling)
+        if self.buildup_steps is not None:
+            return self._buildup_delta(stamp, flux, density)
+        return self.gain * flux * abs(flux) * redistribution_delta(stamp, self.shifts,
+                                                                   density=density)
+
+    def _buildup_delta(self, stamp, flux, density=None):
         """BF term of the star (image unit) with the build-up integrated, odd in F."""
         charge = self.gain * abs(flux) * stamp
-        collected = redistribute_buildup(charge, self.shifts, nsteps=self.buildup_steps)
+        if density is not None:  # per unit flux -> e- of this star
+            density = tuple(self.gain * abs(flux) * part for part in density)
+        collected = redistribute_buildup(charge, self.shifts, nsteps=self.buildup_steps,
+                                         density=density)
         return np.sign(flux) * (collected - charge) / self.gain
 
     def evaluate(self, x, y, flux, x_0, y_0):
@@ -429,7 +473,8 @@ class FluxDependentPSF(Fittable2DModel):
     def star_image(self, flux, *, x_phase=0.0, y_phase=0.0, half_size=None):
         """Pixel image of a star of flux F, centred on the central pixel plus a phase.
 
-        Always exact (R recomputed at the phase), whatever the mode.
+        Always exact (R recomputed at the phase, with the exact boundary density when the
+        model has a ``density_profile``), whatever the mode.
 
         Parameters
         ----------
@@ -445,11 +490,9 @@ class FluxDependentPSF(Fittable2DModel):
         ndarray [y, x]
             F p + g F |F| R[p]; divide by F for the normalised P(F).
         """
-        stamp = pixelised_stamp(self, x_phase=x_phase, y_phase=y_phase, half_size=half_size)
-        if self.buildup_steps is not None:
-            return flux * stamp + self._buildup_delta(stamp, flux)
-        bf_term = redistribution_delta(stamp, self.shifts)
-        return flux * stamp + self.gain * flux * abs(flux) * bf_term
+        half = self.half_size if half_size is None else int(half_size)
+        stamp = pixelised_stamp(self, x_phase=x_phase, y_phase=y_phase, half_size=half)
+        return flux * stamp + self._stamp_delta(stamp, flux, x_phase, y_phase)
 
     # -- the PSF product (bfpsf.psf_product: the model layer knows nothing of files) ---------
     def write(self, path, *, calibration=None, meta=None, overwrite=False):
