@@ -33,6 +33,9 @@ def add_parser(subparsers):
                         help="fit box, pixels, odd (default about 3 FWHM)")
     parser.add_argument("--static", action="store_true",
                         help="fit the static P0 (no BF term), for comparison")
+    parser.add_argument("--no-cross-terms", action="store_true",
+                        help="skip the refit of blended stars without the BF of their charge "
+                             "on each other")
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     return parser
@@ -58,12 +61,15 @@ def run(args):
     for path in args.images:
         image_e = read_image(path)[0] * gain
         table = psf_photometry(image_e, model, read_noise_e=args.read_noise,
-                               fit_shape=args.fit_shape, detection_threshold=args.threshold)
+                               fit_shape=args.fit_shape, detection_threshold=args.threshold,
+                               cross_terms=not args.no_cross_terms)
         table.add_column(str(path), name="image", index=0)
         tables.append(table)
         per_image.append({"image": str(path), "n_stars": len(table),
                           "n_flagged": int(np.sum(table["flags"] != 0)),
-                          "background_e": table.meta["background_e"]})
+                          "background_e": table.meta["background_e"],
+                          "n_blended": int(np.sum(table["group_size"] > 1)),
+                          "cross_term_refits": table.meta["cross_term_refits"]})
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     result.meta.update({"psf": str(args.psf), "gain": gain, "flux_unit": "electron",
                         "static_psf": bool(args.static)})
