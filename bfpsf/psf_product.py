@@ -3,8 +3,10 @@
 Layout (schema `PSF_SCHEMA_VERSION`): primary HDU = P0 data (unit flux, oversampled, pixel
 response included) with ``BFPSFVER`` (schema), ``OVERSAMX``/``OVERSAMY``, ``ORIGINX``/``ORIGINY``,
 ``GAIN`` (e-/ADU of the images the PSF is meant for; the model itself works in e-), ``MODE``,
-``CALIB``, ``PIXRESP``; HDUs ``SHIFT_N`` and ``SHIFT_E`` = a^N and a^E (1/e-, [dy+m, dx+m]).
-The calibration file is not needed to read the product back.
+``CALIB``, ``PIXRESP``; HDUs ``SHIFT_N`` and ``SHIFT_E`` = a^N and a^E (1/e-, [dy+m, dx+m]);
+schema 2 adds an optional ``BFTABLE`` HDU, the table-mode R when it is not the default (e.g.
+built with the exact boundary density, ``density_profile``), since the profile it came from is
+not stored. The calibration file is not needed to read the product back.
 """
 
 import numpy as np
@@ -13,8 +15,8 @@ from .files import open_product, refuse_overwrite
 
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 
-#: Version of the PSF product layout written by `write_psf`.
-PSF_SCHEMA_VERSION = 1
+#: Version of the PSF product layout written by `write_psf` (2: optional BFTABLE HDU).
+PSF_SCHEMA_VERSION = 2
 
 
 def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
@@ -53,7 +55,12 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     east = fits.ImageHDU(np.asarray(psf.shifts.east), name="SHIFT_E")
     north.header["BUNIT"] = "1/electron"
     east.header["BUNIT"] = "1/electron"
-    fits.HDUList([primary, north, east]).writeto(path, overwrite=overwrite)
+    hdus = [primary, north, east]
+    if psf.mode == "table" and psf.density_profile is not None:
+        table = fits.ImageHDU(np.asarray(psf.bf_table, dtype=np.float64), name="BFTABLE")
+        table.header["BUNIT"] = ("1/(pixel electron)", "R[P0] per unit flux squared")
+        hdus.append(table)
+    fits.HDUList(hdus).writeto(path, overwrite=overwrite)
 
 
 def read_psf(path, *, cls=None, **kwargs):
@@ -85,6 +92,8 @@ def read_psf(path, *, cls=None, **kwargs):
         options = {"oversampling": (int(header["OVERSAMY"]), int(header["OVERSAMX"])),
                    "origin": (float(header["ORIGINX"]), float(header["ORIGINY"])),
                    "mode": str(header["MODE"])}
+        if "BFTABLE" in hdul and options["mode"] == "table":
+            options["bf_table"] = np.array(hdul["BFTABLE"].data, dtype=float)
         image_gain = float(header["GAIN"])
         calibration = str(header["CALIB"])
     options.update(kwargs)

@@ -157,6 +157,13 @@ def test_psf_product_round_trip_and_schema_checks(tmp_path):
     assert back.evaluate(3.2, 4.1, 2e5, 3.0, 4.0) == psf.evaluate(3.2, 4.1, 2e5, 3.0, 4.0)
     with pytest.raises(BFPSFFileExistsError, match="overwrite=True"):
         psf.write(path)
+    # an exact-density table is stored (its GalSim profile is not) and read back
+    exact = FluxDependentPSF.from_galsim(galsim.Moffat(beta=3.0, fwhm=3.0), shifts,
+                                        oversampling=2, size=11, density="exact")
+    exact.write(tmp_path / "exact.fits")
+    np.testing.assert_array_equal(FluxDependentPSF.read(tmp_path / "exact.fits").bf_table,
+                                  exact.bf_table)
+    assert not np.array_equal(exact.bf_table, back.bf_table)
     with fits.open(path, mode="update") as hdul:
         hdul[0].header["BFPSFVER"] = PSF_SCHEMA_VERSION + 1
     with pytest.raises(BFPSFInputError, match=f"schema version {PSF_SCHEMA_VERSION + 1}, newer"):
