@@ -11,6 +11,7 @@ not stored. The calibration file is not needed to read the product back.
 
 import numpy as np
 
+from .errors import BFPSFValueError
 from .files import open_product, refuse_overwrite
 
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
@@ -37,6 +38,11 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     from astropy.io import fits
 
     refuse_overwrite(path, overwrite)
+    if psf.mode == "exact" and psf.density_profile is not None:
+        msg = ("a mode='exact' model with a density_profile cannot be stored: the file keeps no "
+               "GalSim profile and would read back with G15's mean density; write the same "
+               "model in mode='table' (its exact-density table is stored)")
+        raise BFPSFValueError(msg, psf.mode)
     primary = fits.PrimaryHDU(np.asarray(psf.data, dtype=np.float64))
     header = primary.header
     header["BFPSFVER"] = (PSF_SCHEMA_VERSION, "bfpsf PSF product schema")

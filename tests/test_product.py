@@ -10,7 +10,7 @@ from bfpsf.calibration import ptc
 from bfpsf.calibration.linearity import measure_linearity
 from bfpsf.calibration.pedestal import measure_pedestal
 from bfpsf.calibration.product import SCHEMA_VERSION, Calibration
-from bfpsf.errors import BFPSFFileExistsError, BFPSFInputError
+from bfpsf.errors import BFPSFFileExistsError, BFPSFInputError, BFPSFValueError
 from bfpsf.shifts import BoundaryShifts
 
 JSON_KEYS = {"gain", "gain_err", "noise_e", "a", "a_err", "maxlag", "n_pairs", "turnoff_e",
@@ -164,6 +164,12 @@ def test_psf_product_round_trip_and_schema_checks(tmp_path):
     np.testing.assert_array_equal(FluxDependentPSF.read(tmp_path / "exact.fits").bf_table,
                                   exact.bf_table)
     assert not np.array_equal(exact.bf_table, back.bf_table)
+    exact_mode = FluxDependentPSF.from_galsim(galsim.Moffat(beta=3.0, fwhm=3.0), shifts,
+                                             oversampling=2, size=11, density="exact",
+                                             mode="exact")
+    with pytest.raises(BFPSFValueError, match="density_profile cannot be stored"):
+        exact_mode.write(tmp_path / "refused.fits")
+    assert not (tmp_path / "refused.fits").exists()
     with fits.open(path, mode="update") as hdul:
         hdul[0].header["BFPSFVER"] = PSF_SCHEMA_VERSION + 1
     with pytest.raises(BFPSFInputError, match=f"schema version {PSF_SCHEMA_VERSION + 1}, newer"):
