@@ -71,11 +71,8 @@ def _cross_term_image(psf, table, shape):
     G15 eq. scrambling_model is quadratic in the charge, so a blend's BF holds cross terms
     between the stars that no single-star model carries.
     """
-    from ..model.psf import FluxDependentPSF
     from ..model.redistribution import redistribution_delta
 
-    static_psf = FluxDependentPSF(psf.data, psf.shifts.scaled(0.0), origin=psf.origin,
-                                  oversampling=psf.oversampling)
     static, own = np.zeros(shape), np.zeros(shape)
     half = psf.half_size + 1
     for x_0, y_0, flux in zip(table["x_fit"], table["y_fit"], table["flux_fit"]):
@@ -87,7 +84,7 @@ def _cross_term_image(psf, table, shape):
         y, x = np.mgrid[box]
         if x.size == 0:
             continue
-        star = static_psf.evaluate(x, y, flux, x_0, y_0)
+        star = flux * psf._evaluate_base(x - x_0, y - y_0)  # F P0, no BF
         static[box] += star
         own[box] += psf.evaluate(x, y, flux, x_0, y_0) - star
     return redistribution_delta(static, psf.shifts) - own

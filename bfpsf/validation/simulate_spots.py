@@ -18,7 +18,8 @@ import numpy as np
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..files import refuse_overwrite
 
-__all__ = ["SpotSet", "StarField", "simulate_spots", "simulate_star_field", "write_image_adu"]
+__all__ = ["SpotSet", "StarField", "simulate_spots", "simulate_star_field", "write_image_adu",
+           "bf_free_sensor"]
 
 
 @dataclass(frozen=True)
@@ -126,6 +127,18 @@ def _make_sensor(sensor, rng):
     raise BFPSFValueError(msg, sensor)
 
 
+def bf_free_sensor(name, rng):
+    """The SiliconSensor ``name`` with its BF switched off, drawing on ``rng``.
+
+    Given a deviate seeded like that of a SiliconSensor draw, it consumes the same random
+    numbers in the same order (photons, conversion depths, diffusion steps), so the image it
+    makes is that draw without BF. GalSim divides by the strength, so it is 1e-9, not 0.
+    """
+    import galsim
+
+    return galsim.SiliconSensor(name=name, strength=1e-9, rng=rng)
+
+
 def _sensor_label(sensor):
     return sensor if isinstance(sensor, (str, type(None))) else type(sensor).__name__
 
@@ -208,12 +221,6 @@ def simulate_spots(*, sensor="lsst_e2v_50_8", fwhm=4.0, beta=3.5, peaks_e=(10e3,
     galsim_seed = int(rng.integers(1, 2**31 - 1))
     galsim_rng = galsim.BaseDeviate(galsim_seed)
     sensor_object = _make_sensor(sensor, galsim_rng)
-    if bf_free_twin:
-        # The twin consumes the same random numbers in the same order as the main draw: its
-        # own deviate, seeded alike, drives its photons and its sensor (BF strength ~0; GalSim
-        # divides by the strength, so it cannot be exactly 0).
-        twin_rng = galsim.BaseDeviate(galsim_seed)
-        twin_sensor = galsim.SiliconSensor(name=sensor, strength=1e-9, rng=twin_rng)
     profile = galsim.Moffat(fwhm=fwhm, beta=beta)
     if g1 or g2:
         profile = profile.shear(g1=g1, g2=g2)
@@ -222,21 +229,20 @@ def simulate_spots(*, sensor="lsst_e2v_50_8", fwhm=4.0, beta=3.5, peaks_e=(10e3,
     n_spots = level.size
     offsets = rng.uniform(-0.5, 0.5, size=(n_spots, 2))
     stamps = np.empty((n_spots, stamp_size, stamp_size))
-    if bf_free_twin:
-        twin = np.empty_like(stamps)
+    twin = np.empty_like(stamps) if bf_free_twin else None
+    draws = [(sensor_object, galsim_rng, stamps)]
+    if bf_free_twin:  # its own deviate, seeded alike: the same random numbers
+        twin_rng = galsim.BaseDeviate(galsim_seed)
+        draws.append((bf_free_sensor(sensor, twin_rng), twin_rng, twin))
     fluxes = np.empty(n_spots)
     for index in range(n_spots):
         offset = galsim.PositionD(*offsets[index])
         fluxes[index] = peaks[level[index]] / _peak_fraction(profile, stamp_size, offset)
-        image = galsim.ImageD(stamp_size, stamp_size, scale=1.0)
-        profile.withFlux(fluxes[index]).drawImage(
-            image=image, method="phot", sensor=sensor_object, rng=galsim_rng, offset=offset)
-        stamps[index] = image.array
-        if bf_free_twin:
+        for sensor_, deviate, out in draws:
             image = galsim.ImageD(stamp_size, stamp_size, scale=1.0)
             profile.withFlux(fluxes[index]).drawImage(
-                image=image, method="phot", sensor=twin_sensor, rng=twin_rng, offset=offset)
-            twin[index] = image.array
+                image=image, method="phot", sensor=sensor_, rng=deviate, offset=offset)
+            out[index] = image.array
     noise = np.zeros_like(stamps)
     if sky_e > 0:
         noise += rng.poisson(sky_e, size=stamps.shape) - sky_e

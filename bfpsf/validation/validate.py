@@ -285,11 +285,13 @@ def _stage_spots(config, progress=False):
     """
     import galsim
 
+    from .simulate_spots import bf_free_sensor
+
     rng = galsim.BaseDeviate(config.seed + 1)
     sensor = galsim.SiliconSensor(name=config.sensor, rng=rng)
     # the BF-free twin replays the same random numbers (photons, diffusion) with BF off
     twin_rng = galsim.BaseDeviate(config.seed + 1)
-    twin_sensor = galsim.SiliconSensor(name=config.sensor, strength=1e-9, rng=twin_rng)
+    draws = [(sensor, rng), (bf_free_sensor(config.sensor, twin_rng), twin_rng)]
     profile = galsim.Moffat(fwhm=config.fwhm, beta=config.beta)
     size = config.stamp_size
     phases = _phase_grid(config.n_per_level, config.seed)
@@ -306,14 +308,11 @@ def _stage_spots(config, progress=False):
             offset = galsim.PositionD(*phase)
             fraction = profile.drawImage(nx=size, ny=size, scale=1.0, offset=offset).array.max()
             flux = peak / fraction
-            image = galsim.ImageD(size, size, scale=1.0)
-            profile.withFlux(flux).drawImage(image=image, method="phot", sensor=sensor,
-                                             rng=rng, offset=offset)
-            stamps.append(image.array.copy())
-            image = galsim.ImageD(size, size, scale=1.0)
-            profile.withFlux(flux).drawImage(image=image, method="phot", sensor=twin_sensor,
-                                             rng=twin_rng, offset=offset)
-            twins.append(image.array.copy())
+            for (sensor_, deviate), out in zip(draws, (stamps, twins)):
+                image = galsim.ImageD(size, size, scale=1.0)
+                profile.withFlux(flux).drawImage(image=image, method="phot", sensor=sensor_,
+                                                 rng=deviate, offset=offset)
+                out.append(image.array.copy())
             xs.append(centre + phase[0])
             ys.append(centre + phase[1])
             fluxes.append(flux)
