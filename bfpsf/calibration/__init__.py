@@ -8,12 +8,13 @@ pedestal (`pedestal`), fit the photon transfer curve and the area coefficients a
 """
 
 import importlib
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import BFPSFValueError
 
-__all__ = ["calibrate"]
+__all__ = ["calibrate", "calibrate_detectors", "measure_pair", "PairTask"]
 
 
 def _shift_solver():
@@ -27,25 +28,24 @@ def _shift_solver():
     return getattr(module, "solve_boundary_shifts", None)
 
 
-def _progress(iterable, enabled, total, description):
-    if not enabled:
-        return iterable
-    from tqdm import tqdm
-
-    return tqdm(iterable, total=total, desc=description, unit="pair")
-
-
 def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-origin",
               saturation=None, mean_tolerance=0.05, clip_nsigma=4.0, pedestal_nsigma=4.0,
               pedestal_degree=2, linearity_threshold=None, solve_shifts=True,
-              n_monte_carlo=200, seed=0, progress=False):
-    """Calibrate brighter-fatter from flat-field pairs.
+              n_monte_carlo=200, seed=0, progress=False, amps=None, overscan="median",
+              workers=1, scheduler=None):
+    """Calibrate brighter-fatter from flat-field pairs, each amplifier on its own.
+
+    Returns a `~bfpsf.calibration.product.Calibration` when the flats have one amplifier
+    (single-image files or arrays, or ``amps`` naming one), else a
+    `~bfpsf.calibration.product.DetectorCalibration` of one per amplifier.
 
     Parameters
     ----------
     sources : sequence of str, path, ndarray or Flat
-        Bias-subtracted flats in ADU (FITS files with header EXPTIME, or arrays with
-        ``exptimes``). Flats of equal EXPTIME are paired in the order given.
+        Flats in ADU: FITS files with header EXPTIME (single-image bias-subtracted, or one
+        HDU per amplifier with EXTNAME and optional BIASSEC / DATASEC / DETSEC:
+        `bfpsf.io.amplifiers`), or arrays with ``exptimes``. Flats of one amplifier and equal
+        EXPTIME are paired in the order given.
     exptimes : sequence of float, optional
         Exposure times, s, one per source (required for arrays; overrides EXPTIME).
     maxlag : int, optional
@@ -78,20 +78,60 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
         Seed of the Monte Carlo. Default 0.
     progress : bool, optional
         Show a progress bar over the pairs. Default False.
+    amps : str or sequence of str, optional
+        Amplifiers (EXTNAME) to calibrate. Default: all.
+    overscan : {'median', 'clipped_mean'}, optional
+        Row-by-row overscan estimator where the files give a BIASSEC. Default ``'median'``.
+    workers : int, optional
+        Processes measuring the pairs (`bfpsf.parallel.parallel_map`; Dask above 1).
+        Default 1: in this process.
+    scheduler : str, optional
+        Address of an existing Dask scheduler.
 
     Returns
     -------
-    Calibration
+    Calibration or DetectorCalibration
         Gain (e-/ADU), read noise (e-), a and a_err (1/e-), shifts, PTC table, linearity,
         pedestal; see `~bfpsf.calibration.product.Calibration`.
     """
-    from .covariance import pair_covariance
-    from .flats import pair_flats, pair_mask, read_flats
-    from .linearity import DEFAULT_LINEARITY_THRESHOLD, measure_linearity
-    from .pedestal import measure_pedestal, subtract_pedestal
-    from .product import Calibration
-    from .ptc import (PTC_MODELS, _b_mask, covariance_errors, detect_turnoff, fit_ptc,
-                      ptc_table, stack_pairs)
+    return calibrate_detectors({"": sources}, exptimes={"": exptimes}, maxlag=maxlag,
+                               ptc_model=ptc_model, fit_b=fit_b, saturation=saturation,
+                               mean_tolerance=mean_tolerance, clip_nsigma=clip_nsigma,
+                               pedestal_nsigma=pedestal_nsigma, pedestal_degree=pedestal_degree,
+                               linearity_threshold=linearity_threshold,
+                               solve_shifts=solve_shifts, n_monte_carlo=n_monte_carlo,
+                               seed=seed, progress=progress, amps=amps, overscan=overscan,
+                               workers=workers, scheduler=scheduler)[""]
+
+
+def calibrate_detectors(detectors, *, exptimes=None, maxlag=8, ptc_model="full",
+                        fit_b="off-origin", saturation=None, mean_tolerance=0.05,
+                        clip_nsigma=4.0, pedestal_nsigma=4.0, pedestal_degree=2,
+                        linearity_threshold=None, solve_shifts=True, n_monte_carlo=200, seed=0,
+                        progress=False, amps=None, overscan="median", workers=1,
+                        scheduler=None):
+    """Calibrate several detectors: every pair of every amplifier of every detector in one
+    map (`bfpsf.parallel.parallel_map`), then one fit per amplifier.
+
+    Parameters
+    ----------
+    detectors : dict of str to sequence
+        Detector name -> its flat sources (as `calibrate`).
+    exptimes : dict of str to sequence, optional
+        Detector name -> exposure times of its sources.
+    Others
+        As `calibrate`.
+
+    Returns
+    -------
+    dict of str to Calibration or DetectorCalibration
+        Per detector, in the order given.
+    """
+    from ..parallel import parallel_map
+    from .flats import group_amplifiers, pair_flats, read_flats
+    from .linearity import DEFAULT_LINEARITY_THRESHOLD
+    from .product import DetectorCalibration
+    from .ptc import PTC_MODELS, _b_mask
 
     if int(maxlag) != maxlag or maxlag < 1:
         msg = f"maxlag must be a positive integer, got {maxlag!r}"
@@ -113,14 +153,77 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
         "n_monte_carlo": int(n_monte_carlo), "seed": int(seed),
     }
 
-    flats = read_flats(sources, exptimes)
-    pairs = pair_flats(flats, mean_tolerance=mean_tolerance)
-    covariances, reports = [], []
-    for pair in _progress(pairs, progress, len(pairs), "flat pairs"):
-        mask, report = pair_mask(pair.flat1, pair.flat2, saturation=saturation)
-        covariances.append(pair_covariance(pair.flat1, pair.flat2, mask=mask, maxlag=maxlag,
-                                           clip_nsigma=clip_nsigma))
-        reports.append(report)
+    options = {"ptc_model": ptc_model, "fit_b": fit_b, "pedestal_nsigma": pedestal_nsigma,
+               "pedestal_degree": pedestal_degree, "linearity_threshold": linearity_threshold,
+               "solve_shifts": solve_shifts, "n_monte_carlo": n_monte_carlo, "seed": seed}
+    exptimes = exptimes or {}
+    tasks, owners = [], []
+    for detector, sources in detectors.items():
+        flats = read_flats(sources, exptimes.get(detector), amps=amps, lazy=True,
+                           overscan=overscan)
+        for amplifier, amplifier_flats in group_amplifiers(flats).items():
+            pairs = pair_flats(amplifier_flats, mean_tolerance=mean_tolerance)
+            for pair in pairs:
+                tasks.append(PairTask(pair, saturation, maxlag, clip_nsigma, mean_tolerance,
+                                      overscan))
+                owners.append((detector, amplifier))
+    measured = parallel_map(measure_pair, tasks, workers=workers, scheduler=scheduler,
+                            progress=progress, description="flat pairs")
+    results = {}
+    for detector in detectors:
+        calibrations = {}
+        for owner, task, (covariance, report) in zip(owners, tasks, measured):
+            if owner[0] == detector:
+                calibrations.setdefault(owner[1], []).append((task.pair, covariance, report))
+        fitted = {amplifier: _fit_amplifier(amplifier, entries, dict(parameters), **options)
+                  for amplifier, entries in calibrations.items()}
+        results[detector] = (next(iter(fitted.values())) if len(fitted) == 1 else
+                             DetectorCalibration(fitted, detector=detector))
+    return results
+
+
+@dataclass(frozen=True, eq=False)
+class PairTask:
+    """What a worker needs to measure one flat pair (`measure_pair`)."""
+
+    pair: object
+    saturation: object
+    maxlag: int
+    clip_nsigma: float
+    mean_tolerance: float
+    overscan: str
+
+
+def measure_pair(task):
+    """Read a pair (if not in memory), check it, mask it and measure its covariances.
+
+    Returns
+    -------
+    (PairCovariance, MaskReport)
+    """
+    from .covariance import pair_covariance
+    from .flats import check_pair, pair_mask
+
+    flat1 = task.pair.flat1.load(overscan=task.overscan)
+    flat2 = task.pair.flat2.load(overscan=task.overscan)
+    check_pair(flat1, flat2, task.mean_tolerance)
+    mask, report = pair_mask(flat1, flat2, saturation=task.saturation)
+    covariance = pair_covariance(flat1, flat2, mask=mask, maxlag=task.maxlag,
+                                 clip_nsigma=task.clip_nsigma)
+    return covariance, report
+
+
+def _fit_amplifier(amplifier, entries, parameters, *, ptc_model, fit_b, pedestal_nsigma,
+                   pedestal_degree, linearity_threshold, solve_shifts, n_monte_carlo, seed):
+    """The PTC fit, linearity, pedestal and shifts of one amplifier from its measured pairs."""
+    from .linearity import measure_linearity
+    from .pedestal import measure_pedestal, subtract_pedestal
+    from .product import Calibration
+    from .ptc import covariance_errors, detect_turnoff, fit_ptc, ptc_table, stack_pairs
+
+    pairs = [pair for pair, _, _ in entries]
+    covariances = [covariance for _, covariance, _ in entries]
+    reports = [report for _, _, report in entries]
     data = stack_pairs(covariances)
 
     # The pedestal is the zero-flux intercept of R = C / V, measured below the PTC extremum.
@@ -167,7 +270,8 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
         turnoff_e=fit.turnoff_e, turnoff_detected=fit.turnoff_detected, chi2=fit.chi2,
         ndof=fit.ndof, shifts=shifts, shifts_north_err=north_err, shifts_east_err=east_err,
         shift_fit=shift_fit, covariances_adu=data.cov_adu, npix=data.npix,
-        inputs=[name for pair in pairs for name in pair.names], parameters=parameters)
+        inputs=[name for pair in pairs for name in pair.names], parameters=parameters,
+        amplifier=amplifier)
 
 
 def _solve_shifts(solver, fit, n_monte_carlo, seed, parameters):

@@ -1,0 +1,145 @@
+"""The map over pairs, amplifiers and detectors: in process, or on Dask (dask.distributed).
+
+The covariance measurement of a flat pair is independent of every other pair, amplifier and
+detector, so a focal plane is one flat list of tasks. `parallel_map` runs them
+
+* in this process when ``workers == 1`` and no scheduler is given, or when dask.distributed
+  is not installed (``pip install bfpsf[dask]``; a warning is logged);
+* on a `distributed.LocalCluster` of ``workers`` single-threaded worker processes; or
+* on an existing cluster, ``scheduler='tcp://host:8786'``.
+
+Tasks stream: at most ``max_in_flight`` (default two per worker) are submitted at a time and
+the next one goes in as one completes (`distributed.as_completed`), so the memory in use is a
+few tasks per worker, never the whole set. The tasks themselves should carry file references,
+not pixels (`bfpsf.calibration.flats.read_flats(..., lazy=True)`), so each worker reads only
+the pair it measures. Results come back in the order of the inputs, identical to the
+in-process ones (the same function runs on the same inputs).
+"""
+
+import logging
+import os
+
+__all__ = ["parallel_map", "default_workers", "dask_available"]
+
+log = logging.getLogger(__name__)
+
+
+def default_workers():
+    """The CPUs this process may use (the default ``--workers``)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def dask_available():
+    """True if dask.distributed can be imported."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _progress_bar(total, description, enabled):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=description, unit="task")
+
+
+def _in_process(function, items, bar):
+    results = []
+    for item in items:
+        results.append(function(item))
+        if bar is not None:
+            bar.update(1)
+    return results
+
+
+def _client(workers, scheduler):
+    from distributed import Client, LocalCluster
+
+    if scheduler is not None:
+        return Client(scheduler), None
+    cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                           dashboard_address=None)
+    return Client(cluster), cluster
+
+
+def _on_dask(function, items, workers, scheduler, max_in_flight, bar):
+    from distributed import as_completed
+
+    client, cluster = _client(workers, scheduler)
+    try:
+        n_workers = max(1, len(client.scheduler_info()["workers"]))
+        limit = max_in_flight or 2 * n_workers
+        results = [None] * len(items)
+        pending = iter(enumerate(items))
+        index_of = {}
+
+        def submit():
+            for index, item in pending:
+                future = client.submit(function, item, pure=False)
+                index_of[future.key] = index
+                return future
+            return None
+
+        first = [future for future in (submit() for _ in range(limit)) if future is not None]
+        stream = as_completed(first)
+        for future in stream:
+            results[index_of.pop(future.key)] = future.result()
+            future.release()
+            if bar is not None:
+                bar.update(1)
+            following = submit()
+            if following is not None:
+                stream.add(following)
+        return results
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def parallel_map(function, items, *, workers=1, scheduler=None, max_in_flight=None,
+                 progress=False, description="tasks"):
+    """``[function(item) for item in items]``, in process or on Dask.
+
+    Parameters
+    ----------
+    function : callable
+        A module-level function (workers import it); it must not rely on global state.
+    items : sequence
+        Its inputs (pickled to the workers: keep them small, e.g. file references).
+    workers : int, optional
+        Worker processes of a local cluster; 1 (default) runs in this process.
+        `default_workers` gives the CPU count.
+    scheduler : str, optional
+        Address of an existing Dask scheduler (then ``workers`` is ignored).
+    max_in_flight : int, optional
+        Tasks submitted at once. Default two per worker.
+    progress : bool, optional
+        Show a tqdm progress bar. Default False.
+    description : str, optional
+        Label of the progress bar.
+
+    Returns
+    -------
+    list
+        The results, in the order of ``items``. An exception raised by a task is re-raised.
+    """
+    items = list(items)
+    bar = _progress_bar(len(items), description, progress)
+    try:
+        if scheduler is None and int(workers) <= 1:
+            return _in_process(function, items, bar)
+        if not dask_available():
+            log.warning("dask.distributed is not installed (pip install bfpsf[dask]): running "
+                        "%d tasks in this process", len(items))
+            return _in_process(function, items, bar)
+        return _on_dask(function, items, workers, scheduler, max_in_flight, bar)
+    finally:
+        if bar is not None:
+            bar.close()
