@@ -1,25 +1,40 @@
-"""``bfpsf calibrate FLAT.fits... -o CALIB.fits``: flat-field calibration (issue 2).
+"""``bfpsf calibrate FLAT.fits... -o CALIB.fits``: flat-field calibration (issues 2 and 12).
 
-Parse, call `bfpsf.calibrate`, write the calibration file, the plots and the JSON summary.
+Parse, call `bfpsf.calibration.calibrate_detectors`, write the calibration file(s), the plots
+and the JSON summary. Inputs are flat files (one detector, one product) or directories (one
+detector each, every ``*.fits`` in it; ``-o`` is then a directory receiving ``DETECTOR.fits``).
 """
 
 from pathlib import Path
 
+from ..errors import BFPSFInputError
 from ._files import check_free, write_json
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
+AMPLIFIER_PLOT = "amplifiers.png"
 
 
 def add_parser(subparsers):
+    from ..parallel import default_workers
+
     parser = subparsers.add_parser(
         "calibrate", help="measure gain, a(dx, dy) and boundary shifts from flat pairs",
         description="Flat-field calibration of brighter-fatter (G15 sections 4 and 6.1): flats "
-                    "of equal EXPTIME are paired, their covariances fitted with the Astier+19 "
-                    "PTC model, and the boundary shifts a^X solved.")
+                    "of one amplifier and equal EXPTIME are paired, their covariances fitted "
+                    "with the Astier+19 PTC model, and the boundary shifts a^X solved, for "
+                    "each amplifier.")
     parser.add_argument("flats", nargs="+", metavar="FLAT.fits",
-                        help="bias-subtracted flats in ADU with header EXPTIME (s)")
+                        help="flats in ADU with header EXPTIME (s): single-image bias-"
+                             "subtracted files, or one HDU per amplifier (EXTNAME, optional "
+                             "BIASSEC/DATASEC/DETSEC); or directories, one per detector")
     parser.add_argument("-o", "--output", required=True, metavar="CALIB.fits",
-                        help="calibration file to write (versioned multi-extension FITS)")
+                        help="calibration file to write (versioned multi-extension FITS, one "
+                             "HDU group per amplifier); a directory for directory inputs")
+    parser.add_argument("--amp", action="append", metavar="NAME",
+                        help="calibrate only this amplifier (EXTNAME); repeatable")
+    parser.add_argument("--overscan", choices=("median", "clipped_mean"), default="median",
+                        help="row-by-row overscan estimator where BIASSEC is given "
+                             "(default median)")
     parser.add_argument("--maxlag", type=int, default=8,
                         help="largest lag of the covariances and of a(dx, dy) (default 8)")
     parser.add_argument("--model", choices=("full", "exponential", "quadratic"), default="full",
@@ -30,6 +45,12 @@ def add_parser(subparsers):
     parser.add_argument("--n-monte-carlo", type=int, default=200,
                         help="Monte Carlo draws for the boundary-shift errors (default 200)")
     parser.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
+    parallel = parser.add_mutually_exclusive_group()
+    parallel.add_argument("--workers", type=int, default=default_workers(), metavar="N",
+                          help="processes measuring the pairs (Dask LocalCluster; 1: in this "
+                               f"process; default the CPU count, {default_workers()})")
+    parallel.add_argument("--scheduler", metavar="ADDRESS",
+                          help="run on an existing Dask cluster (e.g. tcp://host:8786)")
     parser.add_argument("--plots", metavar="DIR",
                         help="write PTC, correlation-map and a(r) plots (PNG) into DIR")
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
@@ -39,38 +60,103 @@ def add_parser(subparsers):
     return parser
 
 
+def _detectors(args):
+    """``({detector: sources}, {detector: output path})``."""
+    paths = [Path(path) for path in args.flats]
+    directories = [path.is_dir() for path in paths]
+    if not any(directories):
+        return {"": args.flats}, {"": Path(args.output)}
+    if not all(directories):
+        msg = "give either flat files (one detector) or directories (one per detector), not both"
+        raise BFPSFInputError(msg, args.flats)
+    detectors, outputs = {}, {}
+    for path in paths:
+        files = sorted(str(file) for file in path.glob("*.fits"))
+        if not files:
+            msg = f"{path}: no *.fits flats in this detector directory"
+            raise BFPSFInputError(msg, str(path))
+        detectors[path.name] = files
+        outputs[path.name] = Path(args.output) / f"{path.name}.fits"
+    return detectors, outputs
+
+
+def _plot_paths(args, calibration):
+    if not args.plots:
+        return []
+    amplifiers = getattr(calibration, "amplifiers", None)
+    if amplifiers is None:
+        return [Path(args.plots) / name for name in PLOT_NAMES]
+    return [Path(args.plots) / AMPLIFIER_PLOT, *(Path(args.plots) / amp / name
+                                                  for amp in amplifiers for name in PLOT_NAMES)]
+
+
+def _print(detector, calibration):
+    for name, one in getattr(calibration, "amplifiers", {"": calibration}).items():
+        label = " ".join(part for part in (detector, name) if part)
+        prefix = f"{label}: " if label else ""
+        a = one.a
+        print(f"{prefix}gain {one.gain:.5f} +- {one.gain_err:.5f} e-/ADU, "
+              f"read noise {one.noise_e:.3f} e-, {one.n_pairs} pairs, "
+              f"turnoff {one.turnoff_e:.4g} e-"
+              + (" (detected)" if one.turnoff_detected else " (not reached)"))
+        print(f"{prefix}a(0,0) {a[0, 0]:.4e} +- {one.a_err[0, 0]:.2e}, a(1,0) {a[0, 1]:.4e}, "
+              f"a(0,1) {a[1, 0]:.4e} 1/e-  [{one.model} model]")
+        if one.linearity.flagged:
+            print(f"{prefix}WARNING: non-linear response, "
+                  f"{1e3 * one.linearity.peak_to_peak:.3g} per mil peak to peak > "
+                  f"{1e3 * one.linearity.threshold:.3g}")
+        if one.pedestal.any_detected:
+            print(f"{prefix}readout pedestal subtracted at "
+                  f"{int(one.pedestal.detected.sum())} lag(s)")
+
+
 def run(args):
-    from ..calibration import calibrate
+    from ..calibration import calibrate_detectors
 
+    detectors, outputs = _detectors(args)
     # Refuse before the (long) computation rather than after it.
-    check_free(args.output, args.overwrite)
+    for output in outputs.values():
+        check_free(output, args.overwrite)
     check_free(args.json, args.overwrite)
-    if args.plots:
-        for name in PLOT_NAMES:
-            check_free(Path(args.plots) / name, args.overwrite)
+    if args.plots and len(detectors) > 1:
+        msg = "--plots takes one detector; calibrate the directories one at a time for plots"
+        raise BFPSFInputError(msg, args.plots)
+    if len(detectors) > 1:
+        Path(args.output).mkdir(parents=True, exist_ok=True)
 
-    calibration = calibrate(args.flats, maxlag=args.maxlag, ptc_model=args.model,
-                            saturation=args.saturation, n_monte_carlo=args.n_monte_carlo,
-                            seed=args.seed, progress=args.progress)
-    calibration.write(args.output, overwrite=args.overwrite)
-    if args.plots:
-        from ..plotting.calibration import save_calibration_plots
-
-        save_calibration_plots(calibration, args.plots, overwrite=args.overwrite)
+    calibrations = calibrate_detectors(
+        detectors, maxlag=args.maxlag, ptc_model=args.model, saturation=args.saturation,
+        n_monte_carlo=args.n_monte_carlo, seed=args.seed, progress=args.progress,
+        amps=args.amp, overscan=args.overscan, workers=args.workers, scheduler=args.scheduler)
+    summaries = []
+    for detector, calibration in calibrations.items():
+        for path in _plot_paths(args, calibration):
+            check_free(path, args.overwrite)
+        calibration.write(outputs[detector], overwrite=args.overwrite)
+        if args.plots:
+            _save_plots(calibration, args.plots, args.overwrite)
+        summaries.append({"output": str(outputs[detector]), **calibration.to_json_dict()})
+        _print(detector, calibration)
+        print(f"wrote {outputs[detector]}")
     if args.json:
-        write_json(args.json, calibration.to_json_dict())
-
-    a = calibration.a
-    print(f"gain {calibration.gain:.5f} +- {calibration.gain_err:.5f} e-/ADU, "
-          f"read noise {calibration.noise_e:.3f} e-, {calibration.n_pairs} pairs, "
-          f"turnoff {calibration.turnoff_e:.4g} e-"
-          + (" (detected)" if calibration.turnoff_detected else " (not reached)"))
-    print(f"a(0,0) {a[0, 0]:.4e} +- {calibration.a_err[0, 0]:.2e}, a(1,0) {a[0, 1]:.4e}, "
-          f"a(0,1) {a[1, 0]:.4e} 1/e-  [{calibration.model} model]")
-    if calibration.linearity.flagged:
-        print(f"WARNING: non-linear response, {1e3 * calibration.linearity.peak_to_peak:.3g} "
-              f"per mil peak to peak > {1e3 * calibration.linearity.threshold:.3g}")
-    if calibration.pedestal.any_detected:
-        print(f"readout pedestal subtracted at {int(calibration.pedestal.detected.sum())} lag(s)")
-    print(f"wrote {args.output}")
+        write_json(args.json, summaries[0] if len(summaries) == 1 else {"detectors": summaries})
     return 0
+
+
+def _save_plots(calibration, directory, overwrite):
+    """The calibration plots; for several amplifiers, those of each in DIR/AMP/ and the
+    comparison of all in DIR/amplifiers.png."""
+    import matplotlib.pyplot as plt
+
+    from ..plotting.amplifiers import plot_amplifiers
+    from ..plotting.calibration import save_calibration_plots
+
+    amplifiers = getattr(calibration, "amplifiers", None)
+    if amplifiers is None:
+        save_calibration_plots(calibration, directory, overwrite=overwrite)
+        return
+    for name, one in amplifiers.items():
+        save_calibration_plots(one, Path(directory) / name, overwrite=overwrite)
+    figure = plot_amplifiers(calibration)
+    figure.savefig(Path(directory) / AMPLIFIER_PLOT, dpi=100)
+    plt.close(figure)

@@ -311,9 +311,10 @@ def subtract_overscan(data, datasec, biassec, *, method="median", clip_nsigma=3.
     else:
         centre = np.median(overscan, axis=1, keepdims=True)
         sigma = 1.4826 * np.median(np.abs(overscan - centre))
-        kept = np.abs(overscan - centre) <= clip_nsigma * sigma if sigma > 0 else \
-            np.ones(overscan.shape, dtype=bool)
-        level = np.sum(overscan * kept, axis=1) / np.maximum(np.sum(kept, axis=1), 1)
+        kept = np.abs(overscan - centre) <= clip_nsigma * sigma
+        count = np.sum(kept, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            level = np.where(count > 0, np.sum(overscan * kept, axis=1) / count, centre[:, 0])
     trimmed = np.asarray(data[datasec.y, datasec.x], dtype=np.float64) - level[:, None]
     return trimmed, level
 
