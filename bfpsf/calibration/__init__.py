@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import BFPSFValueError
 
-__all__ = ["calibrate", "calibrate_detectors", "measure_pair", "PairTask"]
+__all__ = ["calibrate", "calibrate_detectors", "calibrate_from_ptc", "fit_amplifier", "measure_pair", "PairTask"]
 
 
 def _shift_solver():
@@ -129,33 +129,14 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag=8, ptc_model="full",
     """
     from ..parallel import parallel_map
     from .flats import group_amplifiers, pair_flats, read_flats
-    from .linearity import DEFAULT_LINEARITY_THRESHOLD
     from .product import DetectorCalibration
-    from .ptc import PTC_MODELS, _b_mask
 
-    if int(maxlag) != maxlag or maxlag < 1:
-        msg = f"maxlag must be a positive integer, got {maxlag!r}"
-        raise BFPSFValueError(msg, maxlag)
-    maxlag = int(maxlag)
-    if ptc_model not in PTC_MODELS:
-        msg = f"ptc_model must be one of {PTC_MODELS}, got {ptc_model!r}"
-        raise BFPSFValueError(msg, ptc_model)
-    _b_mask(fit_b, 1)  # validates fit_b before the work
-    if linearity_threshold is None:
-        linearity_threshold = DEFAULT_LINEARITY_THRESHOLD
-    parameters = {
-        "maxlag": maxlag, "ptc_model": ptc_model,
-        "fit_b": fit_b if isinstance(fit_b, str) else bool(fit_b),
-        "saturation": None if saturation is None else float(saturation),
-        "mean_tolerance": float(mean_tolerance), "clip_nsigma": float(clip_nsigma),
-        "pedestal_nsigma": float(pedestal_nsigma), "pedestal_degree": int(pedestal_degree),
-        "linearity_threshold": float(linearity_threshold), "solve_shifts": bool(solve_shifts),
-        "n_monte_carlo": int(n_monte_carlo), "seed": int(seed),
-    }
-
-    options = {"ptc_model": ptc_model, "fit_b": fit_b, "pedestal_nsigma": pedestal_nsigma,
-               "pedestal_degree": pedestal_degree, "linearity_threshold": linearity_threshold,
-               "solve_shifts": solve_shifts, "n_monte_carlo": n_monte_carlo, "seed": seed}
+    parameters, options = _settings(
+        maxlag=maxlag, ptc_model=ptc_model, fit_b=fit_b, saturation=saturation,
+        mean_tolerance=mean_tolerance, clip_nsigma=clip_nsigma, pedestal_nsigma=pedestal_nsigma,
+        pedestal_degree=pedestal_degree, linearity_threshold=linearity_threshold,
+        solve_shifts=solve_shifts, n_monte_carlo=n_monte_carlo, seed=seed)
+    maxlag = parameters["maxlag"]
     exptimes = exptimes or {}
     tasks, owners = [], []
     for detector, sources in detectors.items():
@@ -175,11 +156,110 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag=8, ptc_model="full",
         for owner, task, (covariance, report) in zip(owners, tasks, measured):
             if owner[0] == detector:
                 calibrations.setdefault(owner[1], []).append((task.pair, covariance, report))
-        fitted = {amplifier: _fit_amplifier(amplifier, entries, dict(parameters), **options)
+        fitted = {amplifier: _fit_measured_pairs(amplifier, entries, dict(parameters), options)
                   for amplifier, entries in calibrations.items()}
         results[detector] = (next(iter(fitted.values())) if len(fitted) == 1 else
                              DetectorCalibration(fitted, detector=detector))
     return results
+
+
+def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsigma,
+              pedestal_nsigma, pedestal_degree, linearity_threshold, solve_shifts,
+              n_monte_carlo, seed):
+    """Validated parameters (recorded in the product) and the options of `fit_amplifier`."""
+    from .linearity import DEFAULT_LINEARITY_THRESHOLD
+    from .ptc import PTC_MODELS, _b_mask
+
+    if int(maxlag) != maxlag or maxlag < 1:
+        msg = f"maxlag must be a positive integer, got {maxlag!r}"
+        raise BFPSFValueError(msg, maxlag)
+    maxlag = int(maxlag)
+    if ptc_model not in PTC_MODELS:
+        msg = f"ptc_model must be one of {PTC_MODELS}, got {ptc_model!r}"
+        raise BFPSFValueError(msg, ptc_model)
+    _b_mask(fit_b, 1)  # validates fit_b before the work
+    if linearity_threshold is None:
+        linearity_threshold = DEFAULT_LINEARITY_THRESHOLD
+    parameters = {
+        "maxlag": maxlag, "ptc_model": ptc_model,
+        "fit_b": fit_b if isinstance(fit_b, str) else bool(fit_b),
+        "saturation": None if saturation is None else float(saturation),
+        "mean_tolerance": None if mean_tolerance is None else float(mean_tolerance),
+        "clip_nsigma": None if clip_nsigma is None else float(clip_nsigma),
+        "pedestal_nsigma": float(pedestal_nsigma), "pedestal_degree": int(pedestal_degree),
+        "linearity_threshold": float(linearity_threshold), "solve_shifts": bool(solve_shifts),
+        "n_monte_carlo": int(n_monte_carlo), "seed": int(seed),
+    }
+    options = {"ptc_model": ptc_model, "fit_b": fit_b, "pedestal_nsigma": pedestal_nsigma,
+               "pedestal_degree": pedestal_degree, "linearity_threshold": linearity_threshold,
+               "solve_shifts": solve_shifts, "n_monte_carlo": n_monte_carlo, "seed": seed}
+    return parameters, options
+
+
+def calibrate_from_ptc(path, *, amps=None, maxlag=None, ptc_model="full", fit_b="off-origin",
+                       pedestal_nsigma=4.0, pedestal_degree=2, linearity_threshold=None,
+                       solve_shifts=True, n_monte_carlo=200, seed=0):
+    """Calibrate from an LSST cp_pipe PTC dataset instead of flats (`bfpsf.io.cp_pipe`).
+
+    The per-pair means and covariances cp_pipe measured (the pairs its EXP_ID_MASK keeps) go
+    through the same fit as flats do (`fit_amplifier`: pedestal, the PTC model, linearity, the
+    boundary-shift solver with its Monte Carlo errors), so the product is what `calibrate`
+    would make from the same covariances. cp_pipe's own a(0, 0) and gain are kept in
+    ``parameters`` (``cp_pipe_a00``, ``cp_pipe_gain``) for comparison.
+
+    Parameters
+    ----------
+    path : str or path
+        The PhotonTransferCurveDataset FITS file.
+    amps : str or sequence of str, optional
+        Amplifiers to calibrate. Default: all.
+    maxlag : int, optional
+        Largest lag fitted (default: all of cp_pipe's, COV_MATRIX_SIDE - 1).
+    Others
+        As `calibrate`.
+
+    Returns
+    -------
+    Calibration or DetectorCalibration
+        One amplifier, or several.
+    """
+    from ..io.cp_pipe import read_ptc_dataset
+    from .product import DetectorCalibration
+    from .ptc import PTCData
+
+    dataset = read_ptc_dataset(path)
+    if amps is not None:
+        amps = [amps] if isinstance(amps, str) else list(amps)
+        missing = [name for name in amps if name not in dataset]
+        if missing:
+            msg = (f"{path}: no amplifier {', '.join(map(repr, missing))}; it has "
+                   f"{', '.join(map(repr, dataset))}")
+            raise BFPSFValueError(msg, missing)
+        dataset = {name: dataset[name] for name in amps}
+    fitted = {}
+    for name, amplifier in dataset.items():
+        side = amplifier.a.shape[0]
+        lags = side - 1 if maxlag is None else min(int(maxlag), side - 1)
+        parameters, options = _settings(
+            maxlag=lags, ptc_model=ptc_model, fit_b=fit_b, saturation=None,
+            mean_tolerance=None, clip_nsigma=None,
+            pedestal_nsigma=pedestal_nsigma, pedestal_degree=pedestal_degree,
+            linearity_threshold=linearity_threshold, solve_shifts=solve_shifts,
+            n_monte_carlo=n_monte_carlo, seed=seed)
+        parameters.update({"from_ptc": str(path), "cp_pipe_gain": amplifier.gain,
+                           "cp_pipe_a00": float(amplifier.a[0, 0]),
+                           "cp_pipe_fit_type": amplifier.fit_type})
+        data = amplifier.data
+        keep = slice(0, lags + 1)
+        data = PTCData(data.exptime, data.mean_adu, data.cov_adu[:, keep, keep],
+                       data.npix[:, keep, keep])
+        count = data.mean_adu.size
+        ids = amplifier.pair_ids or [(2 * index, 2 * index + 1) for index in range(count)]
+        fitted[name] = fit_amplifier(data, parameters, amplifier=name,
+                                     names=[(f"{path}:{first}", f"{path}:{second}")
+                                            for first, second in ids],
+                                     n_masked=[0] * count, n_clipped=[0] * count, **options)
+    return next(iter(fitted.values())) if len(fitted) == 1 else DetectorCalibration(fitted)
 
 
 @dataclass(frozen=True, eq=False)
@@ -213,18 +293,46 @@ def measure_pair(task):
     return covariance, report
 
 
-def _fit_amplifier(amplifier, entries, parameters, *, ptc_model, fit_b, pedestal_nsigma,
-                   pedestal_degree, linearity_threshold, solve_shifts, n_monte_carlo, seed):
-    """The PTC fit, linearity, pedestal and shifts of one amplifier from its measured pairs."""
+def _fit_measured_pairs(amplifier, entries, parameters, options):
+    """`fit_amplifier` of the (pair, PairCovariance, MaskReport) of one amplifier."""
+    from .ptc import stack_pairs
+
+    covariances = [covariance for _, covariance, _ in entries]
+    return fit_amplifier(
+        stack_pairs(covariances), parameters, amplifier=amplifier,
+        names=[pair.names for pair, _, _ in entries],
+        n_masked=[report.total for _, _, report in entries],
+        n_clipped=[int(getattr(covariance, "n_clipped", 0)) for covariance in covariances],
+        **options)
+
+
+def fit_amplifier(data, parameters, *, amplifier="", names, n_masked, n_clipped, ptc_model,
+                  fit_b, pedestal_nsigma, pedestal_degree, linearity_threshold, solve_shifts,
+                  n_monte_carlo, seed):
+    """The PTC fit, linearity, pedestal and shifts of one amplifier from its pair statistics.
+
+    Parameters
+    ----------
+    data : bfpsf.calibration.ptc.PTCData
+        Per-pair exposure times, means and covariances (ADU).
+    parameters : dict
+        The parameters to record in the product (completed here).
+    amplifier : str
+    names : sequence of (str, str)
+        The two flats of each pair.
+    n_masked, n_clipped : sequence of int
+        Pixels masked and clipped in each pair.
+    Others
+        As `calibrate`.
+
+    Returns
+    -------
+    Calibration
+    """
     from .linearity import measure_linearity
     from .pedestal import measure_pedestal, subtract_pedestal
     from .product import Calibration
-    from .ptc import covariance_errors, detect_turnoff, fit_ptc, ptc_table, stack_pairs
-
-    pairs = [pair for pair, _, _ in entries]
-    covariances = [covariance for _, covariance, _ in entries]
-    reports = [report for _, _, report in entries]
-    data = stack_pairs(covariances)
+    from .ptc import covariance_errors, detect_turnoff, fit_ptc, ptc_table
 
     # The pedestal is the zero-flux intercept of R = C / V, measured below the PTC extremum.
     below, _ = detect_turnoff(data.mean_adu, data.var_adu,
@@ -237,11 +345,10 @@ def _fit_amplifier(amplifier, entries, parameters, *, ptc_model, fit_b, pedestal
                                   threshold=linearity_threshold)
 
     table = ptc_table(data, fit.gain, fit.used)
-    table["name1"] = [pair.names[0] for pair in pairs]
-    table["name2"] = [pair.names[1] for pair in pairs]
-    table["n_masked"] = np.array([report.total for report in reports], dtype=np.int64)
-    table["n_clipped"] = np.array([int(getattr(cov, "n_clipped", 0)) for cov in covariances],
-                                  dtype=np.int64)
+    table["name1"] = [str(pair[0]) for pair in names]
+    table["name2"] = [str(pair[1]) for pair in names]
+    table["n_masked"] = np.array(n_masked, dtype=np.int64)
+    table["n_clipped"] = np.array(n_clipped, dtype=np.int64)
 
     shifts = north_err = east_err = None
     shift_fit = {}
@@ -270,7 +377,7 @@ def _fit_amplifier(amplifier, entries, parameters, *, ptc_model, fit_b, pedestal
         turnoff_e=fit.turnoff_e, turnoff_detected=fit.turnoff_detected, chi2=fit.chi2,
         ndof=fit.ndof, shifts=shifts, shifts_north_err=north_err, shifts_east_err=east_err,
         shift_fit=shift_fit, covariances_adu=data.cov_adu, npix=data.npix,
-        inputs=[name for pair in pairs for name in pair.names], parameters=parameters,
+        inputs=[str(name) for pair in names for name in pair], parameters=parameters,
         amplifier=amplifier)
 
 

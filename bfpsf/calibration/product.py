@@ -36,7 +36,8 @@ from ..shifts import BoundaryShifts
 from .linearity import Linearity
 from .pedestal import Pedestal
 
-__all__ = ["Calibration", "DetectorCalibration", "read_calibration", "SCHEMA_VERSION"]
+__all__ = ["Calibration", "DetectorCalibration", "read_calibration", "amplifiers_of",
+           "SCHEMA_VERSION"]
 
 #: Version of the FITS layout written by `Calibration.write`; `Calibration.read` refuses newer.
 #: 2: per-amplifier HDU groups (EXTVER, AMPNAME), NAMP in the primary header; 1 files read.
@@ -460,6 +461,13 @@ class DetectorCalibration:
             return cls({name: Calibration.from_group(hdul, extver)
                         for name, extver in groups.items()},
                        detector=str(hdul[0].header.get("DETECTOR", "")))
+
+
+def amplifiers_of(calibration):
+    """``{amplifier name: Calibration}`` of a `Calibration` (one) or a `DetectorCalibration`."""
+    if isinstance(calibration, DetectorCalibration):
+        return dict(calibration.amplifiers)
+    return {calibration.amplifier: calibration}
 
 
 def read_calibration(path):

@@ -23,13 +23,18 @@ def add_parser(subparsers):
                     "of one amplifier and equal EXPTIME are paired, their covariances fitted "
                     "with the Astier+19 PTC model, and the boundary shifts a^X solved, for "
                     "each amplifier.")
-    parser.add_argument("flats", nargs="+", metavar="FLAT.fits",
+    parser.add_argument("flats", nargs="*", metavar="FLAT.fits",
                         help="flats in ADU with header EXPTIME (s): single-image bias-"
                              "subtracted files, or one HDU per amplifier (EXTNAME, optional "
                              "BIASSEC/DATASEC/DETSEC); or directories, one per detector")
     parser.add_argument("-o", "--output", required=True, metavar="CALIB.fits",
                         help="calibration file to write (versioned multi-extension FITS, one "
                              "HDU group per amplifier); a directory for directory inputs")
+    parser.add_argument("--from-ptc", metavar="PTC.fits",
+                        help="start from an LSST cp_pipe PTC dataset (its per-pair covariances) "
+                             "instead of flats")
+    parser.add_argument("--export-ptc", metavar="PTC.fits",
+                        help="also write the calibration as a cp_pipe PTC dataset")
     parser.add_argument("--amp", action="append", metavar="NAME",
                         help="calibrate only this amplifier (EXTNAME); repeatable")
     parser.add_argument("--overscan", choices=("median", "clipped_mean"), default="median",
@@ -62,6 +67,11 @@ def add_parser(subparsers):
 
 def _detectors(args):
     """``({detector: sources}, {detector: output path})``."""
+    if bool(args.flats) == bool(args.from_ptc):
+        msg = "give flat files (or detector directories), or --from-ptc PTC.fits; not both"
+        raise BFPSFInputError(msg, args.flats)
+    if args.from_ptc:
+        return {"": None}, {"": Path(args.output)}
     paths = [Path(path) for path in args.flats]
     directories = [path.is_dir() for path in paths]
     if not any(directories):
@@ -91,7 +101,9 @@ def _plot_paths(args, calibration):
 
 
 def _print(detector, calibration):
-    for name, one in getattr(calibration, "amplifiers", {"": calibration}).items():
+    from ..calibration.product import amplifiers_of
+
+    for name, one in amplifiers_of(calibration).items():
         label = " ".join(part for part in (detector, name) if part)
         prefix = f"{label}: " if label else ""
         a = one.a
@@ -118,16 +130,28 @@ def run(args):
     for output in outputs.values():
         check_free(output, args.overwrite)
     check_free(args.json, args.overwrite)
+    check_free(args.export_ptc, args.overwrite)
+    if args.export_ptc and len(detectors) > 1:
+        msg = "--export-ptc takes one detector"
+        raise BFPSFInputError(msg, args.export_ptc)
     if args.plots and len(detectors) > 1:
         msg = "--plots takes one detector; calibrate the directories one at a time for plots"
         raise BFPSFInputError(msg, args.plots)
     if len(detectors) > 1:
         Path(args.output).mkdir(parents=True, exist_ok=True)
 
-    calibrations = calibrate_detectors(
-        detectors, maxlag=args.maxlag, ptc_model=args.model, saturation=args.saturation,
-        n_monte_carlo=args.n_monte_carlo, seed=args.seed, progress=args.progress,
-        amps=args.amp, overscan=args.overscan, workers=args.workers, scheduler=args.scheduler)
+    if args.from_ptc:
+        from ..calibration import calibrate_from_ptc
+
+        calibrations = {"": calibrate_from_ptc(
+            args.from_ptc, amps=args.amp, maxlag=args.maxlag, ptc_model=args.model,
+            n_monte_carlo=args.n_monte_carlo, seed=args.seed)}
+    else:
+        calibrations = calibrate_detectors(
+            detectors, maxlag=args.maxlag, ptc_model=args.model, saturation=args.saturation,
+            n_monte_carlo=args.n_monte_carlo, seed=args.seed, progress=args.progress,
+            amps=args.amp, overscan=args.overscan, workers=args.workers,
+            scheduler=args.scheduler)
     summaries = []
     for detector, calibration in calibrations.items():
         for path in _plot_paths(args, calibration):
@@ -138,6 +162,11 @@ def run(args):
         summaries.append({"output": str(outputs[detector]), **calibration.to_json_dict()})
         _print(detector, calibration)
         print(f"wrote {outputs[detector]}")
+        if args.export_ptc:
+            from ..io.cp_pipe import write_ptc_dataset
+
+            write_ptc_dataset(args.export_ptc, calibration, overwrite=args.overwrite)
+            print(f"wrote {args.export_ptc} (cp_pipe PTC dataset)")
     if args.json:
         write_json(args.json, summaries[0] if len(summaries) == 1 else {"detectors": summaries})
     return 0

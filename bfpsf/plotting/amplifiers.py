@@ -24,7 +24,9 @@ def plot_amplifiers(calibration, axes=None):
     """
     import matplotlib.pyplot as plt
 
-    amplifiers = getattr(calibration, "amplifiers", {calibration.amplifier: calibration})
+    from ..calibration.product import amplifiers_of
+
+    amplifiers = amplifiers_of(calibration)
     if axes is None:
         figure, axes = plt.subplots(2, 2, figsize=(8, 6), sharex=True, layout="constrained")
         axes = axes.ravel()
