@@ -37,6 +37,7 @@ from .linearity import Linearity
 from .pedestal import Pedestal
 
 __all__ = ["Calibration", "DetectorCalibration", "read_calibration", "amplifiers_of",
+           "calibration_of_amplifier",
            "SCHEMA_VERSION"]
 
 #: Version of the FITS layout written by `Calibration.write`; `Calibration.read` refuses newer.
@@ -468,6 +469,25 @@ def amplifiers_of(calibration):
     if isinstance(calibration, DetectorCalibration):
         return dict(calibration.amplifiers)
     return {calibration.amplifier: calibration}
+
+
+def calibration_of_amplifier(calibration, name, where=""):
+    """The `Calibration` that applies to amplifier ``name``: the one of that name in a
+    `DetectorCalibration`, or a one-amplifier calibration for any amplifier.
+
+    Raises
+    ------
+    BFPSFInputError
+        A calibration of several amplifiers has none named ``name``.
+    """
+    amplifiers = amplifiers_of(calibration)
+    if len(amplifiers) == 1:
+        return next(iter(amplifiers.values()))
+    if name not in amplifiers:
+        msg = (f"{where}{': ' if where else ''}amplifier {name!r} is not in the calibration "
+               f"(it has {', '.join(map(repr, amplifiers))})")
+        raise BFPSFInputError(msg, name)
+    return amplifiers[name]
 
 
 def read_calibration(path):

@@ -31,7 +31,8 @@ import numpy as np
 from ..errors import BFPSFInputError
 
 __all__ = ["Amplifier", "AmplifierLayout", "parse_section", "amplifier_layout",
-           "read_amplifiers", "read_amplifier", "subtract_overscan", "OVERSCAN_METHODS"]
+           "read_amplifiers", "read_amplifier", "subtract_overscan", "shared_sides",
+           "near_shared_side", "detector_offset", "OVERSCAN_METHODS"]
 
 #: Row-by-row estimators of the overscan level.
 OVERSCAN_METHODS = ("median", "clipped_mean")
@@ -373,3 +374,59 @@ def read_amplifier(layout, *, overscan="median"):
 
     with fits.open(layout.path, memmap=False) as hdus:
         return _amplifier(layout, hdus, overscan)
+
+
+def shared_sides(layouts):
+    """Sides of each amplifier that touch another amplifier on the detector (by DETSEC).
+
+    Returns
+    -------
+    dict of str to set
+        ``{name: {'left', 'right', 'bottom', 'top'}}`` (left: x = 0 side of the trimmed image);
+        empty for amplifiers without DETSEC, whose neighbours are unknown.
+    """
+    sides = {layout.name: set() for layout in layouts}
+    placed = [layout for layout in layouts if layout.detsec is not None]
+    for layout in placed:
+        box = layout.detsec
+        for other in placed:
+            if other is layout:
+                continue
+            theirs = other.detsec
+            rows = box.y.start < theirs.y.stop and theirs.y.start < box.y.stop
+            columns = box.x.start < theirs.x.stop and theirs.x.start < box.x.stop
+            if rows and theirs.x.stop == box.x.start:
+                sides[layout.name].add("right" if box.flip_x else "left")
+            if rows and theirs.x.start == box.x.stop:
+                sides[layout.name].add("left" if box.flip_x else "right")
+            if columns and theirs.y.stop == box.y.start:
+                sides[layout.name].add("top" if box.flip_y else "bottom")
+            if columns and theirs.y.start == box.y.stop:
+                sides[layout.name].add("bottom" if box.flip_y else "top")
+    return sides
+
+
+def near_shared_side(x, y, shape, sides, margin):
+    """True where (x, y) (pixels of the trimmed amplifier) lies within ``margin`` pixels of a
+    side in ``sides`` (`shared_sides`): a star whose light falls on two amplifiers."""
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    ny, nx = shape
+    near = np.zeros(np.broadcast(x, y).shape, dtype=bool)
+    if "left" in sides:
+        near |= x < margin - 0.5
+    if "right" in sides:
+        near |= x > nx - 0.5 - margin
+    if "bottom" in sides:
+        near |= y < margin - 0.5
+    if "top" in sides:
+        near |= y > ny - 0.5 - margin
+    return near
+
+
+def detector_offset(layout):
+    """(x0, y0): add to the trimmed amplifier's pixel coordinates for detector coordinates
+    (0 without DETSEC; readout flips are not undone, the positions stay in the amplifier's
+    own pixel order)."""
+    if layout.detsec is None:
+        return 0, 0
+    return layout.detsec.x.start, layout.detsec.y.start
