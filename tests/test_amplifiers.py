@@ -214,3 +214,63 @@ def test_two_amplifier_flats_match_galsim_truth_full():
         mef, single = _simulate_camera(Path(directory), size=256, levels=levels, pairs=2)
         detector = calibrate(mef, maxlag=4, n_monte_carlo=20)
         _check_against_truth(detector, single, maxlag=4, tolerance_gain=0.005)
+
+
+# -- per-amplifier stars: gains, detector positions, boundary flags ---------------------------
+def _star_detector(path, gains=(1.4, 1.7), size=64, seed=3):
+    """Gaussian stars (sigma 1.5 px) on a 2-amplifier detector (amplifiers side by side in x,
+    ``size`` x ``size`` each), Poisson noise, read out with each amplifier's gain and bias."""
+    rng = np.random.default_rng(seed)
+    stars = [(20.3, 20.6, 4e4), (40.7, 44.2, 8e4), (84.4, 24.1, 4e4), (108.2, 47.5, 8e4),
+             (64.2, 32.3, 6e4)]  # the last one straddles the two amplifiers
+    y, x = np.mgrid[0:size, 0:2 * size]
+    charge = np.full((size, 2 * size), 100.0)
+    for x0, y0, flux in stars:
+        charge += flux / (2 * np.pi * 1.5**2) * np.exp(-((x - x0) ** 2 + (y - y0) ** 2) / 4.5)
+    charge = rng.poisson(charge).astype(float)
+    images = [charge[:, :size] / gains[0], charge[:, size:] / gains[1]]
+    write_amplifier_file(path, images, ["C00", "C01"], bias_adu=[900.0, 1300.0],
+                         read_noise_adu=[2.0, 2.0], exptime=1.0, rng=rng)
+    return stars
+
+
+def test_measure_uses_each_amplifiers_gain_and_flags_the_boundary(tmp_path):
+    from astropy.table import Table
+
+    stars = _star_detector(tmp_path / "stars.fits")
+    # a calibration per amplifier (only the gains are used by measure)
+    from dataclasses import replace
+
+    from bfpsf.calibration.product import DetectorCalibration
+
+    base = _tiny_calibration()
+    detector = DetectorCalibration({"C00": replace(base, gain=1.4, amplifier="C00"),
+                                    "C01": replace(base, gain=1.7, amplifier="C01")})
+    detector.write(tmp_path / "cal.fits")
+    code = main(["measure", str(tmp_path / "stars.fits"), "--calib", str(tmp_path / "cal.fits"),
+                 "-o", str(tmp_path / "stars.ecsv")])
+    assert code == 0
+    table = Table.read(tmp_path / "stars.ecsv")
+    for x0, y0, flux in stars:
+        distance = np.hypot(table["x"] - x0, table["y"] - y0)
+        row = table[np.argmin(distance)]
+        if abs(x0 - 64) < 8:
+            # cut in two by the amplifier edge: each half is measured, and flagged
+            halves = table[distance < 3]
+            assert len(halves) == 2 and np.all(halves["amp_boundary"])
+            assert set(halves["amplifier"]) == {"C00", "C01"}
+        else:
+            assert distance.min() < 0.3  # detector pixels (DETSEC offset of C01 applied)
+            assert not row["amp_boundary"]
+            assert row["amplifier"] == ("C00" if x0 < 64 else "C01")
+            # electrons with the amplifier's own gain: the flux within its Poisson noise
+            # and the aperture loss of a 1.5 px Gaussian (< 1 %)
+            assert abs(row["flux_e"] / flux - 1) < 0.02, (row["flux_e"], flux)
+
+
+def _tiny_calibration():
+    """A Calibration of Poisson flats (gain 1): only its fields are reused here."""
+    rng = np.random.default_rng(0)
+    levels = np.repeat([1e3, 5e3, 1e4, 2e4, 4e4, 6e4], 2)
+    images = [rng.poisson(level, (40, 40)).astype(float) for level in levels]
+    return calibrate(images, exptimes=levels / 1e3, maxlag=1, solve_shifts=False, fit_b="none")
