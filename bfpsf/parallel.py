@@ -19,7 +19,8 @@ in-process ones (the same function runs on the same inputs).
 import logging
 import os
 
-__all__ = ["parallel_map", "default_workers", "dask_available"]
+__all__ = ["parallel_map", "parallel_session", "ParallelSession", "default_workers",
+           "dask_available"]
 
 log = logging.getLogger(__name__)
 
@@ -68,39 +69,87 @@ def _client(workers, scheduler):
     return Client(cluster), cluster
 
 
-def _on_dask(function, items, workers, scheduler, max_in_flight, bar):
+def _on_dask(client, function, items, max_in_flight, bar):
     from distributed import as_completed
 
-    client, cluster = _client(workers, scheduler)
-    try:
-        n_workers = max(1, len(client.scheduler_info()["workers"]))
-        limit = max_in_flight or 2 * n_workers
-        results = [None] * len(items)
-        pending = iter(enumerate(items))
-        index_of = {}
+    n_workers = max(1, len(client.scheduler_info()["workers"]))
+    limit = max_in_flight or 2 * n_workers
+    results = [None] * len(items)
+    pending = iter(enumerate(items))
+    index_of = {}
 
-        def submit():
-            for index, item in pending:
-                future = client.submit(function, item, pure=False)
-                index_of[future.key] = index
-                return future
-            return None
+    def submit():
+        for index, item in pending:
+            future = client.submit(function, item, pure=False)
+            index_of[future.key] = index
+            return future
+        return None
 
-        first = [future for future in (submit() for _ in range(limit)) if future is not None]
-        stream = as_completed(first)
-        for future in stream:
-            results[index_of.pop(future.key)] = future.result()
-            future.release()
+    first = [future for future in (submit() for _ in range(limit)) if future is not None]
+    stream = as_completed(first)
+    for future in stream:
+        results[index_of.pop(future.key)] = future.result()
+        future.release()
+        if bar is not None:
+            bar.update(1)
+        following = submit()
+        if following is not None:
+            stream.add(following)
+    return results
+
+
+class ParallelSession:
+    """Runs maps in this process or on one Dask client, kept for the whole session.
+
+    Use as a context manager (`parallel_session`); ``map`` as `parallel_map`.
+    """
+
+    def __init__(self, workers=1, scheduler=None, max_in_flight=None):
+        self.workers = int(workers)
+        self.scheduler = scheduler
+        self.max_in_flight = max_in_flight
+        self._client = self._cluster = None
+        self.on_dask = scheduler is not None or self.workers > 1
+        if self.on_dask and not dask_available():
+            log.warning("dask.distributed is not installed (pip install bfpsf[dask]): running "
+                        "in this process")
+            self.on_dask = False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc_info):
+        self.close()
+
+    def close(self):
+        """Close the client and the local cluster (if this session started them)."""
+        if self._client is not None:
+            self._client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+        self._client = self._cluster = None
+
+    def map(self, function, items, *, progress=False, description="tasks"):
+        """``[function(item) for item in items]``; see `parallel_map`."""
+        items = list(items)
+        bar = _progress_bar(len(items), description, progress)
+        try:
+            if not self.on_dask or len(items) <= 1:
+                return _in_process(function, items, bar)
+            if self._client is None:  # started at the first map that needs it
+                self._client, self._cluster = _client(self.workers, self.scheduler)
+            return _on_dask(self._client, function, items, self.max_in_flight, bar)
+        finally:
             if bar is not None:
-                bar.update(1)
-            following = submit()
-            if following is not None:
-                stream.add(following)
-        return results
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+                bar.close()
+
+
+def parallel_session(workers=1, scheduler=None, max_in_flight=None):
+    """A `ParallelSession`: several maps on one cluster (``with parallel_session(...) as s``).
+
+    Parameters as `parallel_map`.
+    """
+    return ParallelSession(workers, scheduler, max_in_flight)
 
 
 def parallel_map(function, items, *, workers=1, scheduler=None, max_in_flight=None,
@@ -130,16 +179,5 @@ def parallel_map(function, items, *, workers=1, scheduler=None, max_in_flight=No
     list
         The results, in the order of ``items``. An exception raised by a task is re-raised.
     """
-    items = list(items)
-    bar = _progress_bar(len(items), description, progress)
-    try:
-        if scheduler is None and int(workers) <= 1:
-            return _in_process(function, items, bar)
-        if not dask_available():
-            log.warning("dask.distributed is not installed (pip install bfpsf[dask]): running "
-                        "%d tasks in this process", len(items))
-            return _in_process(function, items, bar)
-        return _on_dask(function, items, workers, scheduler, max_in_flight, bar)
-    finally:
-        if bar is not None:
-            bar.close()
+    with parallel_session(workers, scheduler, max_in_flight) as session:
+        return session.map(function, items, progress=progress, description=description)

@@ -14,7 +14,8 @@ import numpy as np
 
 from ..errors import BFPSFValueError
 
-__all__ = ["calibrate", "calibrate_detectors", "calibrate_from_ptc", "fit_amplifier", "measure_pair", "PairTask"]
+__all__ = ["calibrate", "calibrate_detectors", "calibrate_from_ptc", "fit_amplifier",
+           "fit_measured_pairs", "measure_pair", "PairTask", "FitTask"]
 
 
 def _shift_solver():
@@ -127,7 +128,7 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag=8, ptc_model="full",
     dict of str to Calibration or DetectorCalibration
         Per detector, in the order given.
     """
-    from ..parallel import parallel_map
+    from ..parallel import parallel_session
     from .flats import group_amplifiers, pair_flats, read_flats
     from .product import DetectorCalibration
 
@@ -148,16 +149,19 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag=8, ptc_model="full",
                 tasks.append(PairTask(pair, saturation, maxlag, clip_nsigma, mean_tolerance,
                                       overscan))
                 owners.append((detector, amplifier))
-    measured = parallel_map(measure_pair, tasks, workers=workers, scheduler=scheduler,
-                            progress=progress, description="flat pairs")
+    with parallel_session(workers, scheduler) as session:
+        measured = session.map(measure_pair, tasks, progress=progress,
+                               description="flat pairs")
+        groups = {}
+        for owner, task, (covariance, report) in zip(owners, tasks, measured):
+            groups.setdefault(owner, []).append((task.pair.names, covariance, report))
+        fits = session.map(fit_measured_pairs,
+                           [FitTask(owner[1], entries, dict(parameters), options)
+                            for owner, entries in groups.items()],
+                           progress=progress, description="amplifier fits")
     results = {}
     for detector in detectors:
-        calibrations = {}
-        for owner, task, (covariance, report) in zip(owners, tasks, measured):
-            if owner[0] == detector:
-                calibrations.setdefault(owner[1], []).append((task.pair, covariance, report))
-        fitted = {amplifier: _fit_measured_pairs(amplifier, entries, dict(parameters), options)
-                  for amplifier, entries in calibrations.items()}
+        fitted = {owner[1]: fit for owner, fit in zip(groups, fits) if owner[0] == detector}
         results[detector] = (next(iter(fitted.values())) if len(fitted) == 1 else
                              DetectorCalibration(fitted, detector=detector))
     return results
@@ -293,14 +297,28 @@ def measure_pair(task):
     return covariance, report
 
 
-def _fit_measured_pairs(amplifier, entries, parameters, options):
-    """`fit_amplifier` of the (pair, PairCovariance, MaskReport) of one amplifier."""
+@dataclass(frozen=True, eq=False)
+class FitTask:
+    """What a worker needs to fit one amplifier (`fit_measured_pairs`): its name, its
+    ((name1, name2), PairCovariance, MaskReport) entries, the parameters and the fit
+    options."""
+
+    amplifier: str
+    entries: list
+    parameters: dict
+    options: dict
+
+
+def fit_measured_pairs(task):
+    """`fit_amplifier` of the measured pairs of one amplifier (a `FitTask`)."""
     from .ptc import stack_pairs
 
+    amplifier, entries, parameters, options = (task.amplifier, task.entries, task.parameters,
+                                               task.options)
     covariances = [covariance for _, covariance, _ in entries]
     return fit_amplifier(
         stack_pairs(covariances), parameters, amplifier=amplifier,
-        names=[pair.names for pair, _, _ in entries],
+        names=[names for names, _, _ in entries],
         n_masked=[report.total for _, _, report in entries],
         n_clipped=[int(getattr(covariance, "n_clipped", 0)) for covariance in covariances],
         **options)
