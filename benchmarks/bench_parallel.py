@@ -56,19 +56,25 @@ def focal_plane(directory, *, detectors, amplifiers, pairs, size, seed=0):
 
 
 def timed(detectors, workers, scheduler_mode):
-    start = time.perf_counter()
+    """Wall seconds, CPU seconds (this process, or the sum over the workers) and the result."""
     if scheduler_mode == "in-process":
+        start, start_cpu = time.perf_counter(), time.process_time()
         result = calibrate_detectors(detectors, workers=1, **OPTIONS)
-    else:
-        from distributed import Client, LocalCluster
+        return time.perf_counter() - start, time.process_time() - start_cpu, result
+    from bfpsf.parallel import _client
 
-        # the cluster is started outside the timing: a long run amortises it
-        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                          dashboard_address=None) as cluster, Client(cluster):
-            start = time.perf_counter()
-            result = calibrate_detectors(detectors, scheduler=cluster.scheduler_address,
-                                         **OPTIONS)
-    return time.perf_counter() - start, result
+    # the cluster (started as bfpsf starts it) is outside the timing: a long run amortises it
+    client, cluster = _client(workers, None)
+    try:
+        cpu_before = sum(client.run(time.process_time).values())
+        start = time.perf_counter()
+        result = calibrate_detectors(detectors, scheduler=cluster.scheduler_address, **OPTIONS)
+        wall = time.perf_counter() - start
+        cpu = sum(client.run(time.process_time).values()) - cpu_before
+    finally:
+        client.close()
+        cluster.close()
+    return wall, cpu, result
 
 
 def speed(args):
@@ -81,9 +87,10 @@ def speed(args):
         runs = {}
         for label, workers, mode in (("in process", 1, "in-process"), ("Dask, 1 worker", 1, "dask"),
                                      ("Dask, 2 workers", 2, "dask")):
-            seconds, result = timed(detectors, workers, mode)
+            seconds, cpu, result = timed(detectors, workers, mode)
             runs[label] = (seconds, result)
-            print(f"  {label:16s} {seconds:7.2f} s")
+            print(f"  {label:16s} {seconds:7.2f} s wall, {cpu:7.2f} s CPU (the workers' for "
+                  "Dask: a CPU time near the wall time times the workers means each had a core)")
         reference = runs["in process"][1]
         identical = all(
             np.array_equal(result[detector][amp].a, reference[detector][amp].a)
@@ -94,42 +101,44 @@ def speed(args):
               f"gains and a(dx, dy) identical in all runs: {identical}")
 
 
-def one_memory_run(pairs, size, workers):
-    """Run in a fresh process: peak RSS (MB) of this process and of the largest child."""
-    with tempfile.TemporaryDirectory() as directory:
-        detectors = focal_plane(directory, detectors=1, amplifiers=("C00",), pairs=pairs,
-                                size=size)
-        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        calibrate_detectors(detectors, workers=workers, **OPTIONS)
+def one_memory_run(directory, workers):
+    """Run in a fresh process on flats written by the parent: peak RSS (MB) after the imports,
+    at the end, and of the largest child (a Dask worker)."""
+    files = sorted(str(path) for path in Path(directory).glob("*.fits"))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    calibrate_detectors({"R00": files}, workers=workers, **OPTIONS)
     main = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     print(json.dumps({"before": before, "main": main, "children": children}))
 
 
 def memory(args):
-    print(f"peak resident memory, one amplifier of {args.size}^2 (MB; one image "
-          f"{args.size**2 * 8 / 1e6:.1f} MB):")
-    for workers in (1, 2):
-        label = "in process" if workers == 1 else "Dask, 2 workers"
-        for pairs in (4, 16, 64):
-            output = subprocess.run(
-                [sys.executable, __file__, "--memory-run", str(pairs), "--size", str(args.size),
-                 "--workers", str(workers)], check=True, capture_output=True, text=True).stdout
-            peaks = json.loads(output.strip().splitlines()[-1])
-            print(f"  {label:16s} {pairs:3d} pairs: main process {peaks['main']:7.1f} "
-                  f"(after the set was written: {peaks['before']:.1f}), "
-                  f"largest worker {peaks['children']:7.1f}")
+    print(f"peak resident memory, one amplifier of {args.size}^2 (MB; one flat "
+          f"{args.size**2 * 8 / 1e6:.1f} MB, so holding every pair would take 4.2 MB per pair):")
+    for pairs in (4, 16, 64):
+        with tempfile.TemporaryDirectory() as directory:
+            focal_plane(directory, detectors=1, amplifiers=("C00",), pairs=pairs, size=args.size)
+            for workers in (1, 2):
+                label = "in process" if workers == 1 else "Dask, 2 workers"
+                output = subprocess.run(
+                    [sys.executable, __file__, "--memory-run", str(Path(directory) / "R00"),
+                     "--workers", str(workers)], check=True, capture_output=True,
+                    text=True).stdout
+                peaks = json.loads(output.strip().splitlines()[-1])
+                print(f"  {label:16s} {pairs:3d} pairs: main process {peaks['main']:7.1f} "
+                      f"(after the imports {peaks['before']:.1f}), largest worker "
+                      f"{peaks['children']:7.1f}")
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=512, help="amplifier side, pixels")
     parser.add_argument("--pairs", type=int, default=6, help="pairs per amplifier (speed)")
-    parser.add_argument("--memory-run", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--memory-run", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--workers", type=int, default=1, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.memory_run is not None:
-        one_memory_run(args.memory_run, args.size, args.workers)
+        one_memory_run(args.memory_run, args.workers)
         return
     speed(args)
     memory(args)
