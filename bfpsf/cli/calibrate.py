@@ -159,7 +159,8 @@ def run(args):
         calibration.write(outputs[detector], overwrite=args.overwrite)
         if args.plots:
             _save_plots(calibration, args.plots, args.overwrite)
-        summaries.append({"output": str(outputs[detector]), **calibration.to_json_dict()})
+        summaries.append({"output": str(outputs[detector]), "detector": detector,
+                          **calibration.to_json_dict()})
         _print(detector, calibration)
         print(f"wrote {outputs[detector]}")
         if args.export_ptc:
