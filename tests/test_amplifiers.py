@@ -274,3 +274,64 @@ def _tiny_calibration():
     levels = np.repeat([1e3, 5e3, 1e4, 2e4, 4e4, 6e4], 2)
     images = [rng.poisson(level, (40, 40)).astype(float) for level in levels]
     return calibrate(images, exptimes=levels / 1e3, maxlag=1, solve_shifts=False, fit_b="none")
+
+
+def test_photometry_applies_each_amplifiers_gain_and_shifts(tmp_path, capsys):
+    from dataclasses import replace
+
+    import galsim
+    from astropy.table import Table
+
+    from bfpsf.calibration import calibrate_from_ptc
+    from bfpsf.calibration.product import DetectorCalibration
+    from bfpsf.io.cp_pipe import ptc_table_hdu
+    from bfpsf.model.psf import FluxDependentPSF
+    from test_cp_pipe import cp_pipe_table
+
+    # per-amplifier shifts from a cp_pipe-like PTC (a(0,0) -3.3e-6, two different amplifiers)
+    a = np.zeros((3, 3))
+    a[0, 0], a[1, 0], a[0, 1] = -3.3e-6, 1.75e-7, 4.16e-7
+    fits.HDUList([fits.PrimaryHDU(), ptc_table_hdu(cp_pipe_table(
+        {"X0": (a, 1.6), "X1": (1.3 * a, 1.6)}))]).writeto(tmp_path / "ptc.fits")
+    solved = calibrate_from_ptc(tmp_path / "ptc.fits", n_monte_carlo=0)
+    detector = DetectorCalibration({"C00": replace(solved["X0"], gain=1.4, amplifier="C00"),
+                                    "C01": replace(solved["X1"], gain=1.7, amplifier="C01")})
+    detector.write(tmp_path / "cal.fits")
+    psf = FluxDependentPSF.from_galsim(galsim.Gaussian(sigma=1.5), detector["C00"].shifts,
+                                       oversampling=2, size=15)
+    psf.write(tmp_path / "psf.fits")
+    stars = _star_detector(tmp_path / "stars.fits")
+
+    arguments = ["photometry", str(tmp_path / "stars.fits"), "--psf", str(tmp_path / "psf.fits")]
+    assert main([*arguments, "-o", str(tmp_path / "no.ecsv")]) == 1
+    assert capsys.readouterr().err == (
+        f"bfpsf photometry: error: {tmp_path / 'stars.fits'} has 2 amplifiers: give --calib "
+        "CALIB.fits for the gain and boundary shifts of each\n")
+    code = main([*arguments, "--calib", str(tmp_path / "cal.fits"), "-o",
+                 str(tmp_path / "phot.ecsv"), "--json", str(tmp_path / "phot.json")])
+    assert code == 0, capsys.readouterr().err
+    table = Table.read(tmp_path / "phot.ecsv")
+    for x0, y0, flux in stars:
+        distance = np.hypot(table["x_fit"] - x0, table["y_fit"] - y0)
+        row = table[np.argmin(distance)]
+        if abs(x0 - 64) < 8:
+            assert np.all(table["amp_boundary"][distance < 3])
+            continue
+        assert distance.min() < 0.2 and not row["amp_boundary"]
+        assert row["amplifier"] == ("C00" if x0 < 64 else "C01")
+        # electrons with the amplifier's gain; the model is the pixel-integrated Gaussian,
+        # the image the sampled one (0.3 % wider): within 2 %
+        assert abs(row["flux_fit"] / flux - 1) < 0.02, (row["flux_fit"], flux)
+    import json
+
+    summary = json.loads((tmp_path / "phot.json").read_text())
+    assert [entry["gain"] for entry in summary["images"]] == [1.4, 1.7]
+    # each amplifier's model carries that amplifier's boundary shifts
+    from bfpsf.cli.photometry import _amplifier_model
+
+    back = read_calibration(tmp_path / "cal.fits")
+    for amplifier in read_amplifiers(tmp_path / "stars.fits"):
+        gain, model = _amplifier_model(psf, 1.0, back, amplifier, "stars.fits", None, False)
+        np.testing.assert_array_equal(model.shifts.north, back[amplifier.name].shifts.north)
+        assert gain == back[amplifier.name].gain
+    assert not np.array_equal(back["C00"].shifts.north, back["C01"].shifts.north)
