@@ -35,7 +35,7 @@ def expected_area(sensor, nsteps, maxlag):
     return silicon_area_coefficients(sensor, maxlag=maxlag) * (1.0 - 1.0 / nsteps**2)
 
 
-def run(sensor, levels, *, pairs, size, nsteps, maxlag, seed=0, n_monte_carlo=100,
+def run(sensor, levels, *, pairs, size, nsteps, maxlag, seed=0, n_monte_carlo=20,
         solve_shifts=True, **options):
     """Simulate flats with `simulate_flats` (``options`` inject effects) and calibrate them."""
     flats = simulate_flats(sensor, levels, pairs=pairs, size=size, nsteps=nsteps, gain=GAIN,
