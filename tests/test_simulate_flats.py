@@ -9,7 +9,7 @@ from bfpsf.calibration.covariance import pair_covariance
 from bfpsf.calibration.flats import pair_flats, pair_mask, read_flats
 from bfpsf.cli import main
 from bfpsf.errors import BFPSFFileExistsError
-from bfpsf.interop.galsim import silicon_area_coefficients
+from bfpsf.interop.silicon_truth import silicon_area_coefficients
 from bfpsf.validation.simulate_flats import simulate_flats, write_flats
 
 SENSOR = "lsst_itl_50_8"

@@ -7,24 +7,11 @@ pedestal (`pedestal`), fit the photon transfer curve and the area coefficients a
 (`coefficients`), and return a `~bfpsf.calibration.product.Calibration`.
 """
 
-import importlib
-
 import numpy as np
 
-from ..errors import BFPSFValueError
+from ..errors import BFPSFCovarianceError, BFPSFValueError
 
 __all__ = ["calibrate"]
-
-
-def _shift_solver():
-    """`solve_boundary_shifts` if the coefficients module is installed, else None."""
-    try:
-        module = importlib.import_module(f"{__name__}.coefficients")
-    except ModuleNotFoundError as error:
-        if error.name != f"{__name__}.coefficients":
-            raise
-        return None
-    return getattr(module, "solve_boundary_shifts", None)
 
 
 def _progress(iterable, enabled, total, description):
@@ -142,10 +129,9 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
 
     shifts = north_err = east_err = None
     shift_fit = {}
-    solver = _shift_solver() if solve_shifts else None
-    if solver is not None:
+    if solve_shifts:
         try:
-            solution = _solve_shifts(solver, fit, n_monte_carlo, seed, parameters)
+            solution = _solve_shifts(fit, n_monte_carlo, seed, parameters)
         except BFPSFValueError as error:
             # A measurement failure, not a usage error (e.g. no brighter-fatter signal, a(0, 0)
             # >= 0): the calibration is still returned, without shifts, and says why.
@@ -170,18 +156,19 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
         inputs=[name for pair in pairs for name in pair.names], parameters=parameters)
 
 
-def _solve_shifts(solver, fit, n_monte_carlo, seed, parameters):
+def _solve_shifts(fit, n_monte_carlo, seed, parameters):
     """Solve a^X with Monte Carlo errors over the correlated errors of a (full model) when the
     fit provides a usable covariance, else over independent errors."""
+    from .coefficients import solve_boundary_shifts as solver
+
     if fit.a_cov is not None:
         try:
             solution = solver(np.array(fit.a), np.array(fit.a_err), area_cov=fit.a_cov,
                               n_monte_carlo=n_monte_carlo, seed=seed)
             parameters["shift_error_covariance"] = "full"
             return solution
-        except BFPSFValueError as error:
-            if "covariance" not in str(error).lower():
-                raise
+        except BFPSFCovarianceError:
+            pass
     parameters["shift_error_covariance"] = "diagonal"
     return solver(np.array(fit.a), np.array(fit.a_err), n_monte_carlo=n_monte_carlo, seed=seed)
 

@@ -16,13 +16,6 @@ COMMANDS = ["simulate", "calibrate", "measure", "slope", "psf", "photometry", "v
             "diagnose"]
 
 
-def _available_commands():
-    for name in COMMANDS:
-        try:
-            yield name, importlib.import_module(f"{__name__}.{name}")
-        except ModuleNotFoundError as error:
-            if error.name != f"{__name__}.{name}":
-                raise
 
 
 def build_parser():
@@ -30,7 +23,8 @@ def build_parser():
         prog="bfpsf", description="Brighter-fatter aware PSF models (Guyonnet et al. 2015).")
     parser.add_argument("--version", action="version", version=f"bfpsf {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, module in _available_commands():
+    for name in COMMANDS:
+        module = importlib.import_module(f"{__name__}.{name}")
         sub = module.add_parser(subparsers)
         sub.set_defaults(_run=module.run)
     return parser

@@ -1,8 +1,5 @@
-"""Files of the commands: FITS images in, outputs never overwritten without ``--overwrite``,
-JSON summaries."""
+"""Files of the commands: FITS images in, outputs never overwritten without ``--overwrite``."""
 
-import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -19,28 +16,6 @@ def check_free(path, overwrite):
     """
     if path is not None:
         refuse_overwrite(path, overwrite, how="--overwrite")
-
-
-def _strict(value):
-    """Plain JSON types; NaN and infinities (not JSON) become null."""
-    if isinstance(value, dict):
-        return {str(key): _strict(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_strict(item) for item in value]
-    if isinstance(value, np.ndarray):
-        return _strict(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
-def write_json(path, summary):
-    """Write a command's machine-readable summary as strict JSON (NaN written as null)."""
-    with open(path, "w") as stream:
-        json.dump(_strict(summary), stream, indent=1, allow_nan=False)
-        stream.write("\n")
 
 
 def read_image(path):

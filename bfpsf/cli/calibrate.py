@@ -5,7 +5,8 @@ Parse, call `bfpsf.calibrate`, write the calibration file, the plots and the JSO
 
 from pathlib import Path
 
-from ._files import check_free, write_json
+from ..files import write_json
+from ._files import check_free
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 
@@ -58,7 +59,7 @@ def run(args):
 
         save_calibration_plots(calibration, args.plots, overwrite=args.overwrite)
     if args.json:
-        write_json(args.json, calibration.to_json_dict())
+        write_json(args.json, calibration.to_json_dict(), overwrite=args.overwrite)
 
     a = calibration.a
     print(f"gain {calibration.gain:.5f} +- {calibration.gain_err:.5f} e-/ADU, "

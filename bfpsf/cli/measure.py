@@ -8,7 +8,8 @@ Parse, read the images (ADU, converted to electrons with the gain), call
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ._files import check_free, read_image, write_json
+from ..files import write_json
+from ._files import check_free, read_image
 
 
 def add_parser(subparsers):
@@ -100,7 +101,7 @@ def run(args):
                "n_clean": int(np.sum(stars["flags"] == 0)),
                "n_flagged": int(np.sum(stars["flags"] != 0)), "images": summary_images}
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     print(f"{len(stars)} sources ({summary['n_clean']} clean) in {len(args.images)} image(s); "
           f"wrote {args.output}")
     return 0

@@ -8,7 +8,8 @@ PSF), write the table (fluxes in e-) and the JSON summary.
 
 import numpy as np
 
-from ._files import check_free, read_image, write_json
+from ..files import write_json
+from ._files import check_free, read_image
 
 
 def add_parser(subparsers):
@@ -80,7 +81,7 @@ def run(args):
                "static_psf": bool(args.static), "n_stars": len(result),
                "n_flagged": int(np.sum(result["flags"] != 0)), "images": per_image}
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "
           f"({summary['n_flagged']} flagged); wrote {args.output}")
     return 0

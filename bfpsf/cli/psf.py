@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ._files import check_free, read_image, write_json
+from ..files import write_json
+from ._files import check_free, read_image
 
 
 def add_parser(subparsers):
@@ -104,7 +105,7 @@ def run(args):
                if np.any(used) else None,
                "images": per_image}
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "
           f"{len(args.images)} image(s), {result.iterations} iterations "
           f"({'converged' if result.converged else 'NOT converged'}); wrote {args.output}")

@@ -12,7 +12,8 @@ slope in pixels per 100 ke- of peak, relative_percent in percent of the intercep
 from pathlib import Path
 
 from ..errors import BFPSFInputError
-from ._files import check_free, write_json
+from ..files import write_json
+from ._files import check_free
 
 
 def add_parser(subparsers):
@@ -91,7 +92,7 @@ def run(args):
         "stars": str(args.stars),
     }
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     if args.plot:
         from ..plotting.moments import plot_size_vs_peak
 

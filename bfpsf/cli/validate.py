@@ -89,7 +89,8 @@ def _print_table(result):
 
 
 def run(args):
-    from ..validation.report import write_json, write_validation_report
+    from ..files import write_json
+    from ..validation.report import write_validation_report
     from ..validation.validate import validate
 
     check_free(args.json, args.overwrite)
@@ -101,7 +102,7 @@ def run(args):
     if args.json:
         summary = {key: value for key, value in result.items()
                    if key not in ("diagnosis", "truth_area", "residual_images")}
-        write_json(summary, args.json, overwrite=args.overwrite)
+        write_json(args.json, summary, overwrite=args.overwrite)
     if args.report:
         path = write_validation_report(result, args.report, overwrite=args.overwrite)
         print(f"report: {path}", file=sys.stderr)

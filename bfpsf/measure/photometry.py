@@ -27,27 +27,14 @@ def _background(image):
 
 
 def _initial_positions(image_e, detection_threshold):
-    """Detections: bfpsf.measure.sources when available, else photutils DAOStarFinder."""
-    try:
-        from .sources import measure_sources
-    except ImportError:  # pragma: no cover - sources is written concurrently
-        measure_sources = None
-    if measure_sources is not None:
-        sources = measure_sources(image_e, threshold=detection_threshold)
-        table = Table()
-        table["x_init"] = np.asarray(sources["x"], dtype=float)
-        table["y_init"] = np.asarray(sources["y"], dtype=float)
-        table["flux_init"] = np.asarray(sources["flux_e"], dtype=float)
-        return table
-    from astropy.stats import sigma_clipped_stats
-    from photutils.detection import DAOStarFinder
+    """Detections of `bfpsf.measure.sources.measure_sources`, as photutils' initial table."""
+    from .sources import measure_sources
 
-    _, _, std = sigma_clipped_stats(image_e, sigma=3.0)
-    found = DAOStarFinder(threshold=detection_threshold * std, fwhm=3.0)(image_e)
+    sources = measure_sources(image_e, threshold=detection_threshold)
     table = Table()
-    table["x_init"] = np.asarray(found["xcentroid"], dtype=float)
-    table["y_init"] = np.asarray(found["ycentroid"], dtype=float)
-    table["flux_init"] = np.asarray(found["flux"], dtype=float)
+    table["x_init"] = np.asarray(sources["x"], dtype=float)
+    table["y_init"] = np.asarray(sources["y"], dtype=float)
+    table["flux_init"] = np.asarray(sources["flux_e"], dtype=float)
     return table
 
 
@@ -84,7 +71,7 @@ def _cross_term_image(psf, table, shape):
         y, x = np.mgrid[box]
         if x.size == 0:
             continue
-        star = flux * psf._evaluate_base(x - x_0, y - y_0)  # F P0, no BF
+        star = flux * psf.evaluate_base(x - x_0, y - y_0)  # F P0, no BF
         static[box] += star
         own[box] += psf.evaluate(x, y, flux, x_0, y_0) - star
     return redistribution_delta(static, psf.shifts) - own

@@ -4,14 +4,13 @@
 into a directory; they refuse to replace existing files unless ``overwrite=True``.
 """
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from ..files import refuse_overwrite
 
-__all__ = ["write_diagnosis_report", "write_validation_report", "format_number", "to_json"]
+__all__ = ["write_diagnosis_report", "write_validation_report", "format_number"]
 
 
 def format_number(value, digits=3):
@@ -27,24 +26,6 @@ def format_number(value, digits=3):
     if not np.isfinite(value):
         return "n/a"
     return f"{value:.{digits}g}"
-
-
-def to_json(value):
-    """JSON-safe copy: arrays to lists, NaN to None, objects dropped."""
-    if isinstance(value, dict):
-        return {str(key): to_json(item) for key, item in value.items()
-                if not hasattr(item, "__dataclass_fields__")}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [to_json(item) for item in value]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if np.isfinite(value) else None
-    if value is None or isinstance(value, str):
-        return value
-    return str(value)
 
 
 def _prepare(directory, names, overwrite):
@@ -317,13 +298,4 @@ def write_validation_report(result, directory, *, overwrite=False):
         figures += ["residual_images.png", "radial_profile.png"]
     path = directory / "report.md"
     path.write_text(validation_markdown(result, figures=figures))
-    return path
-
-
-def write_json(summary, path, *, overwrite=False):
-    """Write a JSON summary (refuses to replace a file unless ``overwrite``)."""
-    path = Path(path)
-    refuse_overwrite(path, overwrite)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(to_json(summary), indent=2) + "\n")
     return path
