@@ -19,9 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import BFPSFFileExistsError, BFPSFInputError
+from .errors import BFPSFError, BFPSFFileExistsError, BFPSFInputError
 
-__all__ = ["refuse_overwrite", "open_product", "atomic_path", "write_json", "json_safe"]
+__all__ = ["refuse_overwrite", "check_outputs", "check_input", "reading", "refuse_duplicates",
+           "read_table",
+           "open_product", "atomic_path", "write_json",
+           "write_text", "write_fits", "write_table", "save_figure", "json_safe"]
 
 
 def refuse_overwrite(path, overwrite, *, how="overwrite=True (--overwrite)"):
@@ -37,6 +40,130 @@ def refuse_overwrite(path, overwrite, *, how="overwrite=True (--overwrite)"):
     if Path(path).exists() and not overwrite:
         msg = f"{path} exists; pass {how} to replace it"
         raise BFPSFFileExistsError(msg, str(path))
+
+
+def check_outputs(paths, overwrite, *, how="--overwrite", directories=()):
+    """Check every output before any work: distinct, in a writable directory, free.
+
+    Parameters
+    ----------
+    paths : iterable of str, path-like or None
+        Output files (None: an output not requested).
+    overwrite : bool
+        Whether existing files may be replaced.
+    how : str, optional
+        How the caller asks for an overwrite, quoted in the message.
+    directories : iterable of str, path-like or None, optional
+        Output directories the command creates (e.g. a report folder): they must not be
+        files, and their nearest existing parent must be writable. Files inside them are
+        checked as if the directory existed.
+
+    Raises
+    ------
+    BFPSFInputError
+        Two outputs with the same path, a missing or unwritable directory, or an output that
+        is a directory.
+    BFPSFFileExistsError
+        An output exists and ``overwrite`` is false.
+    """
+    created = []
+    for directory in directories:
+        if directory is None:
+            continue
+        directory = Path(directory)
+        if directory.exists() and not directory.is_dir():
+            msg = f"output directory {directory} is a file"
+            raise BFPSFInputError(msg, str(directory))
+        parent = directory
+        while not parent.exists():
+            parent = parent.parent
+        if not os.access(parent, os.W_OK | os.X_OK):
+            msg = f"cannot create output directory {directory}: {parent} is not writable"
+            raise BFPSFInputError(msg, str(directory))
+        created.append(directory.resolve())
+    seen = {}
+    for path in paths:
+        if path is None:
+            continue
+        path = Path(path)
+        resolved = path.resolve()
+        if resolved in seen:
+            msg = f"{seen[resolved]} and {path} are the same file: give each output its own path"
+            raise BFPSFInputError(msg, str(path))
+        seen[resolved] = path
+        if path.is_dir():
+            msg = f"output {path} is a directory"
+            raise BFPSFInputError(msg, str(path))
+        parent = resolved.parent
+        if any(parent == directory or directory in parent.parents for directory in created):
+            continue
+        if not parent.is_dir():
+            msg = f"cannot write {path}: directory {path.parent} does not exist"
+            raise BFPSFInputError(msg, str(path))
+        if not os.access(parent, os.W_OK | os.X_OK):
+            msg = f"cannot write {path}: directory {path.parent} is not writable"
+            raise BFPSFInputError(msg, str(path))
+        refuse_overwrite(path, overwrite, how=how)
+
+
+def check_input(path, what):
+    """Raise a one-line `BFPSFInputError` if the input ``path`` is missing or a directory.
+
+    ``what`` names the input in the message (e.g. ``'image'``, ``'star table'``).
+    """
+    path = Path(path)
+    if path.is_dir():
+        msg = f"{what} {path} is a directory, not a file"
+        raise BFPSFInputError(msg, str(path))
+    if not path.exists():
+        msg = f"{what} {path} does not exist"
+        raise BFPSFInputError(msg, str(path))
+    return path
+
+
+@contextmanager
+def reading(path, what):
+    """Turn the low-level errors of reading ``path`` into one-line `BFPSFInputError` s.
+
+    A file that is truncated, damaged or of another format makes astropy and numpy raise
+    OSError, ValueError, TypeError or UnicodeDecodeError, and a missing extension or column a
+    KeyError; inside this block each becomes a message naming the file. bfpsf's own errors
+    pass through unchanged.
+    """
+    try:
+        yield
+    except BFPSFError:
+        raise
+    except KeyError as error:
+        detail = error.args[0] if error.args else error
+        if not str(detail).endswith("not found."):  # astropy's missing extension says so
+            detail = f"no column or extension {detail!r}"
+        msg = f"{path} is an incomplete {what} ({str(detail).rstrip('.')})"
+        raise BFPSFInputError(msg, str(path)) from None
+    except (OSError, ValueError, TypeError, EOFError) as error:  # UnicodeDecodeError included
+        msg = f"{path} is not a readable {what} (truncated, damaged or another format)"
+        raise BFPSFInputError(msg, str(path)) from error
+
+
+def read_table(path, what, *, format=None):  # noqa: A002
+    """An `astropy.table.Table` read from ``path``, with one-line errors naming the file."""
+    from astropy.table import Table
+
+    path = check_input(path, what)
+    with reading(path, what):
+        return Table.read(path, format=format)
+
+
+def refuse_duplicates(paths, what):
+    """Raise `BFPSFInputError` if a file is given twice (it would be counted twice)."""
+    seen = {}
+    for path in paths:
+        key = Path(path).resolve() if isinstance(path, (str, os.PathLike)) else id(path)
+        if key in seen:
+            msg = (f"{what} {path} is given twice (as {seen[key]} too): each file may be used "
+                   "once")
+            raise BFPSFInputError(msg, str(path))
+        seen[key] = path
 
 
 @contextmanager
@@ -67,11 +194,13 @@ def open_product(path, *, keyword, version, kind):
 
     from . import __version__
 
-    path = Path(path)
-    if not path.exists():
-        msg = f"{kind} file {path} does not exist"
-        raise BFPSFInputError(msg, str(path))
-    with fits.open(path, memmap=False) as hdul:
+    path = check_input(path, f"{kind} file")
+    try:
+        hdul = fits.open(path, memmap=False)
+    except (OSError, ValueError) as error:
+        msg = f"{path} is not a bfpsf {kind} file (not FITS)"
+        raise BFPSFInputError(msg, str(path)) from error
+    with hdul, reading(path, f"bfpsf {kind} file"):
         header = hdul[0].header
         if keyword not in header:
             msg = f"{path} is not a bfpsf {kind} file (no {keyword} keyword)"
@@ -129,6 +258,49 @@ def json_safe(value):
     if value is None or isinstance(value, str):
         return value
     return str(value)
+
+
+def write_text(path, text, *, overwrite=False):
+    """Write a text file atomically (refused if it exists unless ``overwrite``)."""
+    path = Path(path)
+    refuse_overwrite(path, overwrite)
+    with atomic_path(path) as temporary:
+        temporary.write_text(text)
+    return path
+
+
+def write_fits(hdus, path, *, overwrite=False):
+    """Write an `astropy.io.fits.HDUList` atomically (refused if it exists unless
+    ``overwrite``)."""
+    path = Path(path)
+    refuse_overwrite(path, overwrite)
+    with atomic_path(path) as temporary:
+        hdus.writeto(temporary)
+    return path
+
+
+def write_table(table, path, *, overwrite=False, format="ascii.ecsv"):  # noqa: A002
+    """Write an `astropy.table.Table` atomically (refused if it exists unless ``overwrite``)."""
+    path = Path(path)
+    refuse_overwrite(path, overwrite)
+    with atomic_path(path) as temporary:
+        table.write(temporary, format=format)
+    return path
+
+
+def save_figure(figure, path, *, overwrite=False, close=True, **savefig_kwargs):
+    """Save a matplotlib figure atomically (refused if it exists unless ``overwrite``)."""
+    path = Path(path)
+    refuse_overwrite(path, overwrite)
+    try:
+        with atomic_path(path) as temporary:
+            figure.savefig(temporary, **savefig_kwargs)
+    finally:
+        if close:
+            import matplotlib.pyplot as plt
+
+            plt.close(figure)
+    return path
 
 
 def write_json(path, summary, *, overwrite=False):

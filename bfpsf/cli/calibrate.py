@@ -3,10 +3,10 @@
 Parse, call `bfpsf.calibrate`, write the calibration file, the plots and the JSON summary.
 """
 
+import sys
 from pathlib import Path
 
-from ..files import write_json
-from ._files import check_free
+from ..files import check_outputs, write_json
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 
@@ -44,11 +44,8 @@ def run(args):
     from ..calibration import calibrate
 
     # Refuse before the (long) computation rather than after it.
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
-    if args.plots:
-        for name in PLOT_NAMES:
-            check_free(Path(args.plots) / name, args.overwrite)
+    plots = [Path(args.plots) / name for name in PLOT_NAMES] if args.plots else []
+    check_outputs([args.output, args.json, *plots], args.overwrite, directories=[args.plots])
 
     calibration = calibrate(args.flats, maxlag=args.maxlag, ptc_model=args.model,
                             saturation=args.saturation, n_monte_carlo=args.n_monte_carlo,
@@ -58,8 +55,11 @@ def run(args):
         from ..plotting.calibration import save_calibration_plots
 
         save_calibration_plots(calibration, args.plots, overwrite=args.overwrite)
+    warnings = _warnings(calibration)
     if args.json:
-        write_json(args.json, calibration.to_json_dict(), overwrite=args.overwrite)
+        summary = calibration.to_json_dict()
+        summary["warnings"] = list(summary.get("warnings", [])) + warnings
+        write_json(args.json, summary, overwrite=args.overwrite)
 
     a = calibration.a
     print(f"gain {calibration.gain:.5f} +- {calibration.gain_err:.5f} e-/ADU, "
@@ -73,5 +73,16 @@ def run(args):
               f"per mil peak to peak > {1e3 * calibration.linearity.threshold:.3g}")
     if calibration.pedestal.any_detected:
         print(f"readout pedestal subtracted at {int(calibration.pedestal.detected.sum())} lag(s)")
+    for warning in warnings:
+        print(f"WARNING: {warning}", file=sys.stderr)
     print(f"wrote {args.output}")
     return 0
+
+
+def _warnings(calibration):
+    """What the user must know about a calibration that still succeeded."""
+    if calibration.shifts is not None:
+        return []
+    reason = calibration.parameters.get("shifts_failure")
+    return ["no measurable brighter-fatter in these flats: the calibration has no boundary "
+            "shifts" + (f" ({reason})" if reason else "")]

@@ -20,7 +20,6 @@ import sys
 from pathlib import Path
 
 from ..errors import BFPSFInputError
-from ._files import check_free
 
 __all__ = ["add_parser", "run"]
 
@@ -87,7 +86,7 @@ def _observables(args):
 
 def run(args):
     from ..validation.diagnose import diagnose
-    from ..files import write_json
+    from ..files import check_outputs, write_json
     from ..validation.report import write_diagnosis_report
 
     if args.list_measured:
@@ -97,9 +96,8 @@ def run(args):
             print(f"{name}: {description}")
         return 0
 
-    check_free(args.json, args.overwrite)
-    if args.report:
-        check_free(Path(args.report) / "report.md", args.overwrite)
+    report = Path(args.report) / "report.md" if args.report else None
+    check_outputs([args.json, report], args.overwrite, directories=[args.report])
     observables = _observables(args)
     result = diagnose(observables, threshold=args.threshold,
                       prefer_physical=args.physical_first)

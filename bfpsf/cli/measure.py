@@ -8,8 +8,8 @@ Parse, read the images (ADU, converted to electrons with the gain), call
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import write_json
-from ._files import check_free, read_image
+from ..files import check_outputs, read_table, write_json, write_table
+from ._files import read_image
 
 
 def add_parser(subparsers):
@@ -72,9 +72,8 @@ def run(args):
 
     from ..measure.sources import measure_sources
 
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
-    external = Table.read(args.catalog) if args.catalog else None
+    check_outputs([args.output, args.json], args.overwrite)
+    external = read_table(args.catalog, "catalog") if args.catalog else None
     tables, summary_images = [], []
     calibration_gain = _calibration_gain(args.calib) if args.calib else None
     for path in args.images:
@@ -96,7 +95,7 @@ def run(args):
     stars = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     stars.meta["gains"] = [entry["gain"] for entry in summary_images]
     stars.meta["images"] = [entry["image"] for entry in summary_images]
-    stars.write(args.output, format="ascii.ecsv", overwrite=args.overwrite)
+    write_table(stars, args.output, overwrite=args.overwrite)
     summary = {"output": str(args.output), "n_stars": len(stars),
                "n_clean": int(np.sum(stars["flags"] == 0)),
                "n_flagged": int(np.sum(stars["flags"] != 0)), "images": summary_images}

@@ -8,8 +8,8 @@ PSF), write the table (fluxes in e-) and the JSON summary.
 
 import numpy as np
 
-from ..files import write_json
-from ._files import check_free, read_image
+from ..files import check_outputs, write_json, write_table
+from ._files import read_image
 
 
 def add_parser(subparsers):
@@ -50,8 +50,7 @@ def run(args):
     from ..measure.photometry import psf_photometry
     from ..model.psf import FluxDependentPSF
 
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite)
     psf = FluxDependentPSF.read(args.psf)
     gain = psf.image_gain if args.gain is None else float(args.gain)
     if not (np.isfinite(gain) and gain > 0):
@@ -76,7 +75,7 @@ def run(args):
                         "static_psf": bool(args.static)})
     result["flux_fit"].unit = "electron"
     result["flux_err"].unit = "electron"
-    result.write(args.output, format="ascii.ecsv", overwrite=args.overwrite)
+    write_table(result, args.output, overwrite=args.overwrite)
     summary = {"output": str(args.output), "psf": str(args.psf), "gain": gain,
                "static_psf": bool(args.static), "n_stars": len(result),
                "n_flagged": int(np.sum(result["flags"] != 0)), "images": per_image}

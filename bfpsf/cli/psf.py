@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import write_json
-from ._files import check_free, read_image
+from ..files import check_outputs, write_json
+from ._files import read_image
 
 
 def add_parser(subparsers):
@@ -62,8 +62,7 @@ def run(args):
     from ..calibration.product import Calibration
     from ..model.psf_fit import fit_psf
 
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite)
     calibration = Calibration.read(args.calib)
     if calibration.shifts is None:
         msg = f"{args.calib} has no boundary shifts (calibration solved without them)"

@@ -9,11 +9,8 @@ slope in pixels per 100 ke- of peak, relative_percent in percent of the intercep
 100 ke-), ``n_stars``, and ``details`` (full fits, colour fit, peak range).
 """
 
-from pathlib import Path
-
 from ..errors import BFPSFInputError
-from ..files import write_json
-from ._files import check_free
+from ..files import check_outputs, read_table, save_figure, write_json
 
 
 def add_parser(subparsers):
@@ -59,17 +56,11 @@ def _model_residual(stars, args, colour_fit):
 
 
 def run(args):
-    from astropy.table import Table
-
     from ..measure.colour import correct_size_colour
     from ..measure.slopes import bf_slopes
 
-    check_free(args.json, args.overwrite)
-    check_free(args.plot, args.overwrite)
-    if not Path(args.stars).exists():
-        msg = f"star table {args.stars} does not exist"
-        raise BFPSFInputError(msg, args.stars)
-    stars = Table.read(args.stars, format="ascii.ecsv")
+    check_outputs([args.json, args.plot], args.overwrite)
+    stars = read_table(args.stars, "star table", format="ascii.ecsv")
     colour_fit = None
     if args.colour:
         stars, colour_fit = correct_size_colour(stars, args.colour,
@@ -97,7 +88,7 @@ def run(args):
         from ..plotting.moments import plot_size_vs_peak
 
         figure = plot_size_vs_peak(stars, slopes, max_peak_e=args.max_peak)
-        figure.savefig(args.plot, dpi=120)
+        save_figure(figure, args.plot, overwrite=args.overwrite, dpi=120)
     for key, label in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "IQ")):
         fit = slopes[key]
         if residual is not None:

@@ -7,7 +7,6 @@ chain, print the side-by-side table, write the JSON summary and the Markdown rep
 import sys
 from pathlib import Path
 
-from ._files import check_free
 
 __all__ = ["add_parser", "run"]
 
@@ -89,13 +88,12 @@ def _print_table(result):
 
 
 def run(args):
-    from ..files import write_json
+    from ..files import check_outputs, write_json
     from ..validation.report import write_validation_report
     from ..validation.validate import validate
 
-    check_free(args.json, args.overwrite)
-    if args.report:
-        check_free(Path(args.report) / "report.md", args.overwrite)
+    report = Path(args.report) / "report.md" if args.report else None
+    check_outputs([args.json, report], args.overwrite, directories=[args.report])
     result = validate(_config(args), progress=not args.no_progress,
                       shifts_for_model=args.model_shifts)
     _print_table(result)

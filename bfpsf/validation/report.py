@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..files import refuse_overwrite
+from ..files import refuse_overwrite, save_figure, write_text
 
 __all__ = ["write_diagnosis_report", "write_validation_report", "format_number"]
 
@@ -37,10 +37,8 @@ def _prepare(directory, names, overwrite):
 
 
 def _save(figure, path):
-    import matplotlib.pyplot as plt
-
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    # _prepare has checked the names: a figure replaces a file only with overwrite
+    save_figure(figure, path, overwrite=True, dpi=110)
 
 
 def _residual_rows(before, after, physical=None):
@@ -174,8 +172,8 @@ def write_diagnosis_report(result, directory, *, title="bfpsf diagnose", context
         _save_residual_images(residual_images, directory)
         figures += ["residual_images.png", "radial_profile.png"]
     path = directory / "report.md"
-    path.write_text(diagnosis_markdown(result, title=title, figures=figures, context=context,
-                                       star_residual=star_residual))
+    write_text(path, diagnosis_markdown(result, title=title, figures=figures, context=context,
+                                        star_residual=star_residual), overwrite=True)
     return path
 
 
@@ -297,5 +295,5 @@ def write_validation_report(result, directory, *, overwrite=False):
         _save_residual_images(images, directory)
         figures += ["residual_images.png", "radial_profile.png"]
     path = directory / "report.md"
-    path.write_text(validation_markdown(result, figures=figures))
+    write_text(path, validation_markdown(result, figures=figures), overwrite=True)
     return path
