@@ -12,6 +12,7 @@ __all__ = [
     "BFPSFFileExistsError",
     "BFPSFConvergenceError",
     "BFPSFCovarianceError",
+    "BFPSFWarning",
 ]
 
 
@@ -66,3 +67,8 @@ class BFPSFConvergenceError(BFPSFError, RuntimeError):
 class BFPSFCovarianceError(BFPSFValueError):
     """A covariance matrix given as input is not a usable covariance (wrong shape, not finite,
     not symmetric or not positive semi-definite)."""
+
+
+class BFPSFWarning(UserWarning):
+    """A result was computed but may be wrong: the user should look (e.g. fluxes beyond the
+    first-order brighter-fatter model)."""

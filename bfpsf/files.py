@@ -14,6 +14,7 @@ import json
 import math
 import os
 import tempfile
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -126,12 +127,19 @@ def reading(path, what):
     """Turn the low-level errors of reading ``path`` into one-line `BFPSFInputError` s.
 
     A file that is truncated, damaged or of another format makes astropy and numpy raise
-    OSError, ValueError, TypeError or UnicodeDecodeError, and a missing extension or column a
-    KeyError; inside this block each becomes a message naming the file. bfpsf's own errors
-    pass through unchanged.
+    OSError, ValueError, TypeError or UnicodeDecodeError (or astropy only warn that the file
+    is shorter than its header says), and a missing extension or column a KeyError; inside
+    this block each becomes a message naming the file. bfpsf's own errors pass through, and
+    other warnings are passed on.
     """
+    from astropy.utils.exceptions import AstropyUserWarning
+
+    unreadable = f"{path} is not a readable {what} (truncated, damaged or another format)"
+    caught = []
     try:
-        yield
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            yield
     except BFPSFError:
         raise
     except KeyError as error:
@@ -141,8 +149,18 @@ def reading(path, what):
         msg = f"{path} is an incomplete {what} ({str(detail).rstrip('.')})"
         raise BFPSFInputError(msg, str(path)) from None
     except (OSError, ValueError, TypeError, EOFError) as error:  # UnicodeDecodeError included
-        msg = f"{path} is not a readable {what} (truncated, damaged or another format)"
-        raise BFPSFInputError(msg, str(path)) from error
+        raise BFPSFInputError(unreadable, str(path)) from error
+    finally:
+        truncated = False
+        for warning in caught:
+            if issubclass(warning.category, AstropyUserWarning) and "truncated" in str(
+                    warning.message):
+                truncated = True
+            else:
+                warnings.warn_explicit(warning.message, warning.category, warning.filename,
+                                       warning.lineno)
+    if truncated:
+        raise BFPSFInputError(unreadable, str(path))
 
 
 def read_table(path, what, *, format=None):  # noqa: A002
@@ -160,8 +178,8 @@ def refuse_duplicates(paths, what):
     for path in paths:
         key = Path(path).resolve() if isinstance(path, (str, os.PathLike)) else id(path)
         if key in seen:
-            msg = (f"{what} {path} is given twice (as {seen[key]} too): each file may be used "
-                   "once")
+            same = "" if str(seen[key]) == str(path) else f" ({seen[key]} is the same file)"
+            msg = f"{what} {path} is given twice{same}: each file may be used once"
             raise BFPSFInputError(msg, str(path))
         seen[key] = path
 

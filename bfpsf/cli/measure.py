@@ -8,7 +8,7 @@ Parse, read the images (ADU, converted to electrons with the gain), call
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import check_outputs, read_table, write_json, write_table
+from ..files import check_outputs, read_table, refuse_duplicates, write_json, write_table
 from ._files import read_image
 
 
@@ -73,6 +73,7 @@ def run(args):
     from ..measure.sources import measure_sources
 
     check_outputs([args.output, args.json], args.overwrite)
+    refuse_duplicates(args.images, "image")
     external = read_table(args.catalog, "catalog") if args.catalog else None
     tables, summary_images = [], []
     calibration_gain = _calibration_gain(args.calib) if args.calib else None

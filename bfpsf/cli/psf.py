@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import check_outputs, write_json
+from ..files import check_outputs, refuse_duplicates, write_json
 from ._files import read_image
 
 
@@ -63,6 +63,7 @@ def run(args):
     from ..model.psf_fit import fit_psf
 
     check_outputs([args.output, args.json], args.overwrite)
+    refuse_duplicates(args.images, "image")
     calibration = Calibration.read(args.calib)
     if calibration.shifts is None:
         msg = f"{args.calib} has no boundary shifts (calibration solved without them)"

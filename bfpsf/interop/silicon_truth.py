@@ -12,10 +12,30 @@ from ..errors import BFPSFValueError
 from ..shifts import BoundaryShifts
 
 __all__ = [
+    "silicon_sensor",
+    "silicon_sensor_names",
     "silicon_area_coefficients",
     "silicon_boundary_shifts",
     "silicon_diffusion_sigma",
 ]
+
+
+def silicon_sensor_names():
+    """Names of the SiliconSensor models GalSim ships (its ``share/sensors/*.cfg``)."""
+    import glob
+    import os
+
+    pattern = os.path.join(galsim.meta_data.share_dir, "sensors", "*.cfg")
+    return sorted(os.path.basename(path)[:-len(".cfg")] for path in glob.glob(pattern))
+
+
+def silicon_sensor(name, **sensor_kwargs):
+    """`galsim.SiliconSensor` by name, refusing an unknown name with the list of known ones."""
+    names = silicon_sensor_names()
+    if name not in names:
+        msg = f"unknown GalSim SiliconSensor {name!r}; GalSim has {', '.join(names)}"
+        raise BFPSFValueError(msg, name)
+    return galsim.SiliconSensor(name=name, **sensor_kwargs)
 
 
 def silicon_area_coefficients(sensor="lsst_itl_50_8", *, charge=1000.0, maxlag=4, **sensor_kwargs):
@@ -55,7 +75,7 @@ def silicon_area_coefficients(sensor="lsst_itl_50_8", *, charge=1000.0, maxlag=4
         msg = f"charge must be positive, got {charge}"
         raise BFPSFValueError(msg, charge)
     if isinstance(sensor, str):
-        sensor = galsim.SiliconSensor(name=sensor, **sensor_kwargs)
+        sensor = silicon_sensor(sensor, **sensor_kwargs)
     size = 2 * (int(maxlag) + 6) + 1
     centre = size // 2
     image = galsim.ImageD(size, size, init_value=0.0)

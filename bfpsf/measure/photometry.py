@@ -77,6 +77,37 @@ def _cross_term_image(psf, table, shape):
     return redistribution_delta(static, psf.shifts) - own
 
 
+#: Largest group of stars fitted together that `psf_photometry` accepts: photutils fits a
+#: group as one model with 3 parameters per star, so a larger one is slow and poorly conditioned.
+MAX_GROUP_SIZE = 25
+
+
+def _check_groups(psf, fit_shape, group_separation, init):
+    """Refuse a fit box (or group separation) so wide against the star spacing that many stars
+    would be fitted as one group: slow, and biased with flags 0."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from ..interop.photutils import default_fit_shape
+
+    if len(init) <= MAX_GROUP_SIZE:
+        return
+    side = float(np.max(np.atleast_1d(default_fit_shape(psf) if fit_shape is None
+                                      else fit_shape)))
+    separation = side if group_separation is None else float(group_separation)
+    xy = np.column_stack([np.asarray(init["x_init"], float), np.asarray(init["y_init"], float)])
+    pairs = cKDTree(xy).query_pairs(separation, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(xy),) * 2)
+    _, labels = connected_components(graph, directed=False)
+    largest = int(np.bincount(labels).max())
+    if largest > MAX_GROUP_SIZE:
+        msg = (f"fit shape {side:g} px (group separation {separation:g} px) puts {largest} of "
+               f"the {len(xy)} stars in one group fitted together (at most {MAX_GROUP_SIZE}): "
+               "the stars are closer than that; give a smaller fit shape")
+        raise BFPSFValueError(msg, side)
+
+
 def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background_e=None,
                    fit_shape=None, group_separation=None, detection_threshold=5.0,
                    weights="model", cross_terms=True, **kwargs):
@@ -162,6 +193,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     if len(init) == 0:
         msg = "no star to fit (no detection and no positions given)"
         raise BFPSFInputError(msg, 0)
+    _check_groups(psf, fit_shape, group_separation, init)
     photometry = make_psf_photometry(psf, fit_shape=fit_shape, group_separation=group_separation,
                                      **kwargs)
     mask = mask if mask.any() else None

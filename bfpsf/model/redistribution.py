@@ -32,9 +32,11 @@ finite neighbours, redistributes the filled image and returns NaN again at those
 masked pixels stay masked; charge is then conserved for the filled image.
 """
 
+import warnings
+
 import numpy as np
 
-from ..errors import BFPSFInputError, BFPSFValueError
+from ..errors import BFPSFInputError, BFPSFValueError, BFPSFWarning
 from ..shifts import as_shifts
 from .nanfill import harmonic_fill
 from .tiles import run_bands
@@ -52,10 +54,17 @@ _DTYPES = (np.float64, np.float32)
 
 # -- input validation ----------------------------------------------------------------------------
 def as_image(image, nan_policy="raise"):
-    """Return (finite float64 image, mask of the pixels that were not finite or None)."""
+    """Return (finite float64 image, mask of the pixels that were not finite or None).
+
+    The masked pixels of a numpy masked array are treated as non-finite (``nan_policy``)."""
+    if np.ma.isMaskedArray(image):
+        image = np.ma.filled(np.ma.asarray(image, dtype=float), np.nan)
     image = np.asarray(image, dtype=float)
     if image.ndim != 2:
         msg = f"image must be 2-D [y, x], got {image.ndim} dimensions"
+        raise BFPSFInputError(msg, image.shape)
+    if image.size == 0:
+        msg = f"image has no pixel (shape {image.shape})"
         raise BFPSFInputError(msg, image.shape)
     if nan_policy not in _NAN_POLICIES:
         msg = f"nan_policy must be one of {_NAN_POLICIES}, got {nan_policy!r}"
@@ -312,9 +321,20 @@ def redistribute(image_e, shifts, *, density=None, nan_policy="raise", dtype=np.
     image, bad = as_image(image_e, nan_policy)
     result = add_redistribution(np.empty(image.shape), image, as_shifts(shifts), density,
                             validate_dtype(dtype), workers, base=image)
+    _warn_beyond_first_order(image, result)
     if bad is not None:
         result[bad] = np.nan
     return result
+
+
+def _warn_beyond_first_order(image, result):
+    """Warn when the image is so bright that G15's first-order model breaks: a pixel that held
+    charge ends with less than none."""
+    broken = (result < 0) & (image >= 0)
+    if broken.any():
+        warnings.warn(f"charge up to {image.max():.3g} e- is beyond the first-order BF model "
+                      f"(G15): {np.count_nonzero(broken)} pixel(s) went negative; the fluxes are "
+                      "too large for these boundary shifts", BFPSFWarning, stacklevel=3)
 
 
 def single_pixel_delta(charge, shifts):

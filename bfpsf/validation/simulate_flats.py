@@ -39,7 +39,9 @@ def _sensor(sensor):
     import galsim
 
     if isinstance(sensor, str):
-        return galsim.SiliconSensor(name=sensor)
+        from ..interop.silicon_truth import silicon_sensor
+
+        return silicon_sensor(sensor)
     if not isinstance(sensor, galsim.Sensor):
         msg = f"sensor must be a GalSim sensor name or a galsim.Sensor, got {sensor!r}"
         raise BFPSFValueError(msg, sensor)
