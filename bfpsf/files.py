@@ -297,10 +297,55 @@ def write_fits(hdus, path, *, overwrite=False):
     return path
 
 
+#: Version of the layout of the tables bfpsf writes (ECSV meta ``bfpsf_schema``).
+TABLE_SCHEMA_VERSION = 1
+
+
+def _plain(value):
+    """Plain YAML-able copy of a meta value; objects that are not data are left out (None)."""
+    if isinstance(value, dict):
+        items = {str(key): _plain(item) for key, item in value.items()}
+        return {key: item for key, item in items.items() if item is not None
+                or value.get(key) is None}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_plain(item) for item in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value)
+    if value is None or isinstance(value, str):
+        return value
+    return None
+
+
+def product_table(table):
+    """A copy of ``table`` as bfpsf writes it: each ``X_err`` column without a unit takes the
+    unit of ``X``, the meta holds only plain values (no object reprs), plus ``bfpsf_schema``
+    and ``bfpsf_version``."""
+    from . import __version__
+
+    table = table.copy(copy_data=False)
+    for name in table.colnames:
+        base = name[:-len("_err")] if name.endswith("_err") else None
+        if base in table.colnames and table[name].unit is None:
+            table[name].unit = table[base].unit
+    meta = {str(key): _plain(value) for key, value in table.meta.items()
+            if value is None or _plain(value) is not None}
+    table.meta.clear()
+    table.meta.update(meta)
+    table.meta["bfpsf_schema"] = TABLE_SCHEMA_VERSION
+    table.meta["bfpsf_version"] = __version__
+    return table
+
+
 def write_table(table, path, *, overwrite=False, format="ascii.ecsv"):  # noqa: A002
-    """Write an `astropy.table.Table` atomically (refused if it exists unless ``overwrite``)."""
+    """Write an `astropy.table.Table` (`product_table`) atomically (refused if it exists unless
+    ``overwrite``)."""
     path = Path(path)
     refuse_overwrite(path, overwrite)
+    table = product_table(table)
     with atomic_path(path) as temporary:
         table.write(temporary, format=format)
     return path

@@ -121,3 +121,23 @@ def test_calibrate_warns_when_the_flats_show_no_brighter_fatter(tmp_path, capsys
     warnings = [w for w in summary["warnings"] if w.startswith("no measurable brighter-fatter")]
     assert len(warnings) == 1
     assert f"WARNING: {warnings[0]}\n" in capsys.readouterr().err
+
+
+def test_tables_carry_units_on_errors_schema_and_version_and_no_object_reprs(tmp_path):
+    import astropy.units as u
+
+    from bfpsf import __version__
+    from bfpsf.files import TABLE_SCHEMA_VERSION
+
+    table = Table({"sigma_x": [1.0] * u.pix, "sigma_x_err": [0.1], "flux_e": [5.0] * u.electron,
+                   "flux_e_err": [0.5]})
+    table.meta.update({"gains": [np.float64(1.7)], "threshold": 5.0, "saturation_e": None,
+                       "solution": object()})
+    write_table(table, tmp_path / "t.ecsv")
+    text = (tmp_path / "t.ecsv").read_text()
+    assert "object at 0x" not in text
+    back = Table.read(tmp_path / "t.ecsv")
+    assert back["sigma_x_err"].unit == u.pix and back["flux_e_err"].unit == u.electron
+    assert back.meta == {"gains": [1.7], "threshold": 5.0, "saturation_e": None,
+                         "bfpsf_schema": TABLE_SCHEMA_VERSION, "bfpsf_version": __version__}
+    assert "sigma_x_err" in table.colnames and table["sigma_x_err"].unit is None  # not modified
