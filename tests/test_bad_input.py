@@ -172,7 +172,7 @@ def test_photometry_fit_shape_wider_than_the_star_spacing():
 
 
 def test_simulate_unknown_sensor(capsys, tmp_path):
-    code, err = run(capsys, "simulate", "flats", "--sensor", "nosuch", "--out",
+    code, err = run(capsys, "simulate", "flats", "--sensor", "nosuch", "-o",
                     str(tmp_path / "sim"), "--levels", "1000", "--size", "16")
     assert code == 1
     assert err.startswith("bfpsf simulate: error: unknown GalSim SiliconSensor 'nosuch'; GalSim "
@@ -204,3 +204,24 @@ def test_huge_fluxes_warn_where_first_order_breaks():
     image[4, 4] = 1e12
     with pytest.warns(BFPSFWarning, match="beyond the first-order BF model"):
         redistribute(image, SHIFTS)
+
+
+def test_photometry_carries_the_blend_flags_of_the_detection():
+    from bfpsf.interop.galsim_psf import render_stars
+    from bfpsf.measure.photometry import psf_photometry
+    from bfpsf.measure.sources import SourceFlag
+    from bfpsf.model.psf import FluxDependentPSF
+
+    galsim = pytest.importorskip("galsim")
+    y, x = np.mgrid[-12:13, -12:13]
+    psf = FluxDependentPSF(np.exp(-(x**2 + y**2) / 8.0) / (8 * np.pi), SHIFTS)
+    xy = np.array([[30.0, 30.0], [90.0, 40.0], [95.5, 43.0], [40.0, 90.0]])  # one close pair
+    image = render_stars(galsim.Gaussian(sigma=2.0), xy, np.full(4, 2e5), (130, 130)) + 100.0
+    image += np.random.default_rng(3).normal(0.0, 10.0, image.shape)
+    result = psf_photometry(image, psf, background_e=100.0, read_noise_e=10.0, cross_terms=0,
+                            weights="data")
+    assert "source_flags" in result.colnames
+    blended = (np.asarray(result["source_flags"]) & SourceFlag.BLENDED) != 0
+    near_pair = np.hypot(result["x_fit"] - 92.7, result["y_fit"] - 41.5) < 6
+    assert near_pair.sum() >= 1 and np.all(blended[near_pair])
+    assert not blended[~near_pair].any()

@@ -120,7 +120,12 @@ def test_calibrate_warns_when_the_flats_show_no_brighter_fatter(tmp_path, capsys
     summary = json.loads(json_path.read_text())
     warnings = [w for w in summary["warnings"] if w.startswith("no measurable brighter-fatter")]
     assert len(warnings) == 1
-    assert f"WARNING: {warnings[0]}\n" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"WARNING: {warnings[0]}\n" in err
+    # five pairs: too few for the full PTC model, and said so
+    assert ("WARNING: the full PTC model is under-constrained by 5 flat pairs (gain, read noise "
+            "and a can be biased); give at least 8 pairs over the flux range or use --model "
+            "exponential\n") in err
 
 
 def test_tables_carry_units_on_errors_schema_and_version_and_no_object_reprs(tmp_path):

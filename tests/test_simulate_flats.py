@@ -154,7 +154,7 @@ def test_write_flats_headers_pairing_and_overwrite(tmp_path):
 def test_command_line_writes_flats(tmp_path, capsys):
     argv = ["simulate", "flats", "--sensor", SENSOR, "--levels", "1000", "2000", "--pairs", "1",
             "--size", "32", "--gain", "1.2", "--read-noise", "3", "--nsteps", "1", "--seed", "2",
-            "--out", str(tmp_path), "--quiet"]
+            "-o", str(tmp_path), "--no-progress"]
     assert main(argv) == 0
     files = sorted(tmp_path.glob("*.fits"))
     assert len(files) == 4

@@ -1,4 +1,4 @@
-"""``bfpsf measure IMAGE... -o STARS.ecsv``: detect and measure stars (issue 4).
+"""``bfpsf measure IMAGE... -o STARS.ecsv``: detect and measure stars.
 
 Parse, read the images (ADU, converted to electrons with the gain), call
 `bfpsf.measure.sources.measure_sources`, write the star table (ECSV) and the JSON summary.
@@ -9,6 +9,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError
 from ..files import check_outputs, read_table, refuse_duplicates, write_json, write_table
+from ..measure.sources import DETECTION_THRESHOLD
 from ._files import read_image
 
 
@@ -32,8 +33,9 @@ def add_parser(subparsers):
                              "image's CATALOG extension (x, y in 0-based pixels); repeatable")
     parser.add_argument("--catalog", metavar="FILE",
                         help="table with x, y and colour columns (default: CATALOG HDU)")
-    parser.add_argument("--threshold", type=float, default=5.0,
-                        help="detection threshold, RMS of the smoothed image (default 5)")
+    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+                        help=f"detection threshold, RMS of the smoothed image (default "
+                             f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--stamp-size", type=int, default=32,
                         help="measurement stamp side, pixels (default 32)")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",

@@ -1,4 +1,4 @@
-"""``bfpsf photometry IMAGE... --psf PSF.fits -o PHOT.ecsv``: PSF photometry with P(F) (issue 5).
+"""``bfpsf photometry IMAGE... --psf PSF.fits -o PHOT.ecsv``: PSF photometry with P(F).
 
 Parse, read the PSF product and the images (ADU -> e- with the product's gain), call
 `bfpsf.measure.photometry.psf_photometry` (photutils PSFPhotometry with the flux-dependent
@@ -9,6 +9,7 @@ PSF), write the table (fluxes in e-) and the JSON summary.
 import numpy as np
 
 from ..files import check_outputs, write_json, write_table
+from ..measure.sources import DETECTION_THRESHOLD
 from ._files import read_image
 
 
@@ -28,8 +29,9 @@ def add_parser(subparsers):
                         help="e-/ADU (default: the gain stored in the PSF product)")
     parser.add_argument("--read-noise", type=float, default=0.0, metavar="E",
                         help="read noise, e- rms, for the pixel errors (default 0)")
-    parser.add_argument("--threshold", type=float, default=5.0,
-                        help="detection threshold, RMS of the smoothed image (default 5)")
+    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+                        help=f"detection threshold, RMS of the smoothed image (default "
+                             f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--fit-shape", type=int, default=None,
                         help="fit box, pixels, odd (default about 3 FWHM)")
     parser.add_argument("--static", action="store_true",

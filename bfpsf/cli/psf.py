@@ -1,4 +1,4 @@
-"""``bfpsf psf IMAGE... --calib CALIB.fits -o PSF.fits``: fit the flux-dependent PSF (issue 5).
+"""``bfpsf psf IMAGE... --calib CALIB.fits -o PSF.fits``: fit the flux-dependent PSF.
 
 Parse, read the images (ADU -> e- with the calibration gain), detect isolated stars
 (`bfpsf.measure.sources.measure_sources`), fit P0 from stars of all fluxes with the
@@ -12,6 +12,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError
 from ..files import check_outputs, refuse_duplicates, write_json
+from ..measure.sources import DETECTION_THRESHOLD
 from ._files import read_image
 
 
@@ -31,8 +32,9 @@ def add_parser(subparsers):
                         help="oversampling of P0 (default 2; 4 needs several hundred stars)")
     parser.add_argument("--size", type=int, default=25,
                         help="support of P0 and star cutouts, pixels, odd (default 25)")
-    parser.add_argument("--threshold", type=float, default=10.0,
-                        help="detection threshold, RMS of the smoothed image (default 10)")
+    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+                        help=f"detection threshold, RMS of the smoothed image (default "
+                             f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
                         help="saturation level, ADU: saturated stars are not used")
     parser.add_argument("--max-iterations", type=int, default=40,

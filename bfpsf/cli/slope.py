@@ -1,4 +1,4 @@
-"""``bfpsf slope STARS.ecsv``: brighter-fatter slopes of the star sizes (issue 4).
+"""``bfpsf slope STARS.ecsv``: brighter-fatter slopes of the star sizes.
 
 Parse, read the star table of ``bfpsf measure``, optionally correct the size-colour relation
 (G15 section 3.3), fit sigma_x, sigma_y and IQ against peak flux
@@ -20,7 +20,7 @@ def add_parser(subparsers):
                     "IQ against peak flux below a maximum peak (G15 section 3.3, fig. mbf).")
     parser.add_argument("stars", metavar="STARS.ecsv", help="star table from bfpsf measure")
     parser.add_argument("--psf", metavar="PSF.fits",
-                        help="flux-dependent PSF product (issue 5): adds model_residual")
+                        help="flux-dependent PSF product: also fit the slopes of the sizes minus the model's")
     parser.add_argument("--color", "--colour", dest="colour", metavar="COLUMN",
                         help="correct the size-colour relation with this column first")
     parser.add_argument("--color-max-peak", dest="colour_max_peak", type=float, metavar="E",

@@ -12,6 +12,7 @@ from astropy.table import Table
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import make_psf_photometry
+from .sources import DETECTION_THRESHOLD, measure_sources
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 
@@ -28,13 +29,12 @@ def _background(image):
 
 def _initial_positions(image_e, detection_threshold):
     """Detections of `bfpsf.measure.sources.measure_sources`, as photutils' initial table."""
-    from .sources import measure_sources
-
     sources = measure_sources(image_e, threshold=detection_threshold)
     table = Table()
     table["x_init"] = np.asarray(sources["x"], dtype=float)
     table["y_init"] = np.asarray(sources["y"], dtype=float)
     table["flux_init"] = np.asarray(sources["flux_e"], dtype=float)
+    table["source_flags"] = np.asarray(sources["flags"], dtype=np.int64)
     return table
 
 
@@ -109,8 +109,9 @@ def _check_groups(psf, fit_shape, group_separation, init):
 
 
 def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background_e=None,
-                   fit_shape=None, group_separation=None, detection_threshold=5.0,
-                   weights="model", cross_terms=True, **kwargs):
+                   fit_shape=None, group_separation=None,
+                   detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
+                   **kwargs):
     """Fit every star of an image with the flux-dependent PSF.
 
     Parameters
@@ -159,6 +160,9 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         (e-), ``flags`` (photutils bit flags, `photutils.psf.decode_psf_flags`) and photutils'
         other columns; ``meta['background_e']`` holds the subtracted sky and
         ``meta['weights']`` the variance model, ``meta['cross_term_refits']`` the refits made.
+        With the stars detected here (or ``positions`` a table with a ``source_flags``
+        column), ``source_flags`` carries the detection's `bfpsf.measure.sources.SourceFlag`
+        bits (``BLENDED``: an unresolved neighbour) to each fitted star.
     """
     image = np.asarray(image_e, dtype=float)
     if image.ndim != 2:
@@ -194,6 +198,11 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         msg = "no star to fit (no detection and no positions given)"
         raise BFPSFInputError(msg, 0)
     _check_groups(psf, fit_shape, group_separation, init)
+    source_flags = None
+    if "source_flags" in init.colnames:  # measure_sources' flags (blended, ...), carried over
+        source_flags = np.asarray(init["source_flags"], dtype=np.int64)
+        init = init.copy()
+        init.remove_column("source_flags")
     photometry = make_psf_photometry(psf, fit_shape=fit_shape, group_separation=group_separation,
                                      **kwargs)
     mask = mask if mask.any() else None
@@ -218,6 +227,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
                 if name in result.colnames and name not in ("id", "group_id", "group_size"):
                     result[name][blended] = refit[name]
             n_cross += 1
+    if source_flags is not None:
+        result["source_flags"] = source_flags[np.asarray(result["id"], dtype=int) - 1]
     result.meta["background_e"] = float(background_e)
     result.meta["cross_term_refits"] = n_cross
     result.meta["weights"] = weights

@@ -16,7 +16,8 @@ import scipy.fft
 
 from ..errors import BFPSFValueError
 
-__all__ = ["TILE", "correlate", "default_workers", "run_bands", "validate_workers"]
+__all__ = ["TILE", "correlate", "default_workers", "run_bands", "set_default_workers",
+           "validate_workers"]
 
 # FFT size of a tile by precision. A tile's transforms must stay in the core's cache: on the
 # development machine (AMD EPYC, 512 kB of L2 per core) a float64 inverse rfft2 costs 4x more
@@ -25,8 +26,20 @@ __all__ = ["TILE", "correlate", "default_workers", "run_bands", "validate_worker
 TILE = {np.float64: 192, np.float32: 256}
 
 
+_WORKERS = None
+
+
+def set_default_workers(count):
+    """Threads used when ``workers`` is None (``bfpsf --threads``); None: every CPU."""
+    global _WORKERS  # noqa: PLW0603
+    _WORKERS = None if count is None else validate_workers(count)
+
+
 def default_workers():
-    """Threads used when ``workers`` is None: the CPUs this process may run on."""
+    """Threads used when ``workers`` is None: `set_default_workers`, else the CPUs this
+    process may run on."""
+    if _WORKERS is not None:
+        return _WORKERS
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
