@@ -15,7 +15,7 @@ import pytest
 
 from bfpsf import calibrate
 from bfpsf.calibration.boundary_shifts import solve_boundary_shifts
-from bfpsf.interop.galsim import silicon_boundary_shifts, silicon_diffusion_sigma
+from bfpsf.interop.silicon_truth import silicon_boundary_shifts, silicon_diffusion_sigma
 from bfpsf.measure.moments import adaptive_moments_batch
 from bfpsf.measure.slopes import fit_bf_slope, model_size_increments
 from bfpsf.model.psf import FluxDependentPSF
@@ -103,3 +103,28 @@ def test_the_ei_solver_gets_the_split_wrong_on_the_same_flats(calibration, measu
     predicted = predicted_slopes(solution.shifts)
     ratios = [predicted[axis] / measured_slopes[axis][0] for axis in ("x", "y")]
     assert not all(ratio == pytest.approx(1.0, abs=0.15) for ratio in ratios), ratios
+
+
+@pytest.mark.slow
+def test_pulls_over_independent_flat_sets(measured_slopes):
+    """Ten independent small flat sets (seeds 200-209): the predicted X and Y slopes scatter
+    about the measured ones as their calibration errors say (pull std 0.7-1.4), and a^N(0,0),
+    a^E(0,0) are negative and within 25 % of the landing truth in every set."""
+    landing = silicon_boundary_shifts(SENSOR, charge=1e3, radius=4)
+    k = landing.radius
+    pulls = []
+    for seed in range(200, 210):
+        flats = simulate_flats(SENSOR, FLAT_LEVELS, pairs=3, size=128, nsteps=10, gain=1.5,
+                               read_noise_e=5.0, seed=seed)
+        cal = calibrate([image for image, _, _ in flats], exptimes=[t for _, t, _ in flats],
+                        maxlag=6, fit_b=False, n_monte_carlo=30)
+        m = cal.shifts.radius
+        for name in ("north", "east"):
+            ratio = getattr(cal.shifts, name)[m, m] / getattr(landing, name)[k, k]
+            assert 0.75 < ratio < 1.25, (seed, name, ratio)
+        predicted = prediction_with_error(cal.shifts, cal.shift_samples())
+        for axis in ("x", "y"):
+            value, error = predicted[axis]
+            slope, slope_err = measured_slopes[axis]
+            pulls.append((value - slope) / np.hypot(error, slope_err))
+    assert 0.7 < np.std(pulls, ddof=1) < 1.4, pulls

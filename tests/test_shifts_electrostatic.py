@@ -113,7 +113,7 @@ def test_fit_to_galsim_areas_recovers_the_landing_shifts(sensor):
     """SiliconSensor's noise-free area response to 1e3 e- (calculate_pixel_areas), fitted:
     a^N(0,0), a^E(0,0) and the boundaries of the nearest neighbours against the shifts
     SiliconSensor's photons land with (`silicon_boundary_shifts`, independent)."""
-    from bfpsf.interop.galsim import silicon_area_coefficients, silicon_boundary_shifts
+    from bfpsf.interop.silicon_truth import silicon_area_coefficients, silicon_boundary_shifts
 
     area = silicon_area_coefficients(sensor, charge=1e3, maxlag=3)
     landing = silicon_boundary_shifts(sensor, charge=1e3, radius=4)

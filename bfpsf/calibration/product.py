@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..files import open_product, refuse_overwrite
+from ..files import open_product, refuse_overwrite, write_fits
 from ..shifts import BoundaryShifts
 from .linearity import Linearity
 from .pedestal import Pedestal
@@ -323,7 +323,7 @@ class Calibration:
         if not self.parameters:
             params = Table({"key": np.array([], dtype="U1"), "value": np.array([], dtype="U1")})
         hdus.append(_table_hdu(params, "PARAMS"))
-        fits.HDUList(hdus).writeto(path, overwrite=overwrite)
+        write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
 
     @classmethod
     def read(cls, path):

@@ -1,11 +1,12 @@
-"""``bfpsf calibrate FLAT.fits... -o CALIB.fits``: flat-field calibration (issue 2).
+"""``bfpsf calibrate FLAT.fits... -o CALIB.fits``: flat-field calibration.
 
 Parse, call `bfpsf.calibrate`, write the calibration file, the plots and the JSON summary.
 """
 
+import sys
 from pathlib import Path
 
-from ._files import check_free, write_json
+from ..files import check_outputs, write_json
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 
@@ -43,7 +44,6 @@ def add_parser(subparsers):
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace existing output files")
-    parser.add_argument("--progress", action="store_true", help="show a progress bar")
     return parser
 
 
@@ -51,11 +51,8 @@ def run(args):
     from ..calibration import calibrate
 
     # Refuse before the (long) computation rather than after it.
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
-    if args.plots:
-        for name in PLOT_NAMES:
-            check_free(Path(args.plots) / name, args.overwrite)
+    plots = [Path(args.plots) / name for name in PLOT_NAMES] if args.plots else []
+    check_outputs([args.output, args.json, *plots], args.overwrite, directories=[args.plots])
 
     calibration = calibrate(args.flats, maxlag=args.maxlag, ptc_model=args.model,
                             saturation=args.saturation, shift_method=args.shift_method,
@@ -67,7 +64,7 @@ def run(args):
 
         save_calibration_plots(calibration, args.plots, overwrite=args.overwrite)
     if args.json:
-        write_json(args.json, calibration.to_json_dict())
+        write_json(args.json, calibration.to_json_dict(), overwrite=args.overwrite)
 
     a = calibration.a
     print(f"gain {calibration.gain:.5f} +- {calibration.gain_err:.5f} e-/ADU, "
@@ -88,6 +85,7 @@ def run(args):
               f"{calibration.shifts_north_err[m, m]:.1e}, a^E(0,0) {east:.3e} +- "
               f"{calibration.shifts_east_err[m, m]:.1e} 1/e-")
     for warning in calibration.warnings:
-        print(f"WARNING: {warning}")
+        print(f"WARNING: {warning}", file=sys.stderr)
     print(f"wrote {args.output}")
     return 0
+

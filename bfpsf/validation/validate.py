@@ -3,8 +3,8 @@
 `validate` simulates SiliconSensor flats and Moffat spots, runs the whole chain and reports, side
 by side:
 
-1. truth a(dx, dy) (`bfpsf.interop.galsim.silicon_area_coefficients`) against the a recovered
-   by `bfpsf.calibrate` from the simulated flats;
+1. truth a(dx, dy) (`bfpsf.interop.silicon_truth.silicon_area_coefficients`) against the a
+   recovered by `bfpsf.calibrate` from the simulated flats;
 2. the measured BF slope of the spots in X and Y (adaptive moments, G15 section 3.2) against
    the slope predicted from the boundary shifts (G15 section 6.3: the faint-spot model scaled
    and redistributed), for the shifts of the flats calibration (with the error propagated from
@@ -33,7 +33,6 @@ SiliconSensor uses OpenMP; run with ``OMP_NUM_THREADS`` at most the free cores.
 """
 
 import dataclasses
-import importlib
 import time
 
 import numpy as np
@@ -113,15 +112,6 @@ QUICK = ValidationConfig(fwhm=3.0, peaks_e=(5e3, 2.5e4, 5e4, 7.5e4, 1e5, 1.2e5),
                          flat_size=256, flat_nsteps=8, stamp_size=24, psf_oversampling=2)
 #: `bfpsf validate`: the full run (about 30 minutes on 2 cores).
 FULL = ValidationConfig()
-
-
-def _module(name):
-    try:
-        return importlib.import_module(name)
-    except ModuleNotFoundError as error:
-        if error.name == name:
-            return None
-        raise
 
 
 def _unavailable(reason):
@@ -215,10 +205,9 @@ def _residual_entries(spots, raw, measured, twin, predicted=(0.0, 0.0), static=(
 
 # -- stages ---------------------------------------------------------------------------------------
 def _stage_flats(config):
-    simulate = _module("bfpsf.validation.simulate_flats")
-    calibration = _module("bfpsf.calibration")
-    if simulate is None or not hasattr(calibration, "calibrate"):
-        return _unavailable("flat simulator or calibration not installed"), None
+    from .. import calibration
+    from . import simulate_flats as simulate
+
     flats = simulate.simulate_flats(config.sensor, config.flat_levels_e, pairs=config.flat_pairs,
                                     size=config.flat_size, gain=config.gain,
                                     read_noise_e=config.read_noise_e, nsteps=config.flat_nsteps,
@@ -238,7 +227,7 @@ def _stage_flats(config):
 
 
 def _stage_truth(config, cal):
-    from ..interop import galsim as interop
+    from ..interop import silicon_truth as interop
 
     truth = interop.silicon_area_coefficients(config.sensor, maxlag=config.maxlag)
     out = {"available": True, "lags": [], "truth": [], "recovered": [], "recovered_err": [],
@@ -251,9 +240,7 @@ def _stage_truth(config, cal):
             out["recovered"].append(value)
             out["recovered_err"].append(error)
             out["pull"].append((value - truth[dy, dx]) / error if error > 0 else None)
-    shifts = None
-    if hasattr(interop, "silicon_boundary_shifts"):
-        shifts = interop.silicon_boundary_shifts(config.sensor, radius=config.maxlag)
+    shifts = interop.silicon_boundary_shifts(config.sensor, radius=config.maxlag)
     return out, truth, shifts
 
 
@@ -336,7 +323,7 @@ def _stage_prediction(config, spots, measured, shift_sets, cal=None, n_draws=20)
 
     from .effects import SpotForwardModel
 
-    from ..interop.galsim import silicon_diffusion_sigma
+    from ..interop.silicon_truth import silicon_diffusion_sigma
 
     # the spots BF acts on are the optical Moffat blurred by SiliconSensor's charge diffusion
     profile = galsim.Convolve(galsim.Moffat(fwhm=config.fwhm, beta=config.beta),
@@ -398,9 +385,8 @@ def _flux_fit(psf, stamp, x, y, flux_guess, *, flux_dependent, iterations=3):
 
 
 def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts, progress):
-    psf_fit = _module("bfpsf.model.psf_fit")
-    if psf_fit is None:
-        return _unavailable("bfpsf.model.psf_fit not installed"), None
+    from ..model import psf_fit
+
     fluxes = spots.stamps.sum(axis=(1, 2))
     positions = [[(x, y)] for x, y in zip(spots.x, spots.y)]
     images = list(spots.stamps)
@@ -437,24 +423,23 @@ def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts, progress)
                              [positions[i] for i in np.flatnonzero(bright)], shifts,
                              oversampling=config.psf_oversampling, size=size,
                              include_bf=False, max_iterations=20).psf
-    photometry = _module("bfpsf.measure.photometry")
-    magnitudes = {"static": [], "flux_dependent": []}
-    if photometry is not None:
-        magnitudes.update({"photutils_static": [], "photutils_flux_dependent": []})
+    from ..measure import photometry
+
+    magnitudes = {"static": [], "flux_dependent": [], "photutils_static": [],
+                  "photutils_flux_dependent": []}
     for index in range(len(images)):
         for key, model, dependent in (("static", static, False),
                                       ("flux_dependent", psf, True)):
             flux = _flux_fit(model, images[index], spots.x[index], spots.y[index],
                              fluxes[index], flux_dependent=dependent)
             magnitudes[key].append(-_MAG * np.log(flux / fluxes[index]))
-            if photometry is not None:
-                # the sky is noiseless: the bias is not buried in its photon noise
-                table = photometry.psf_photometry(
-                    images[index] + PHOTOMETRY_SKY_E, model, background_e=PHOTOMETRY_SKY_E,
-                    read_noise_e=config.read_noise_e,
-                    positions=np.array([[spots.x[index], spots.y[index]]]))
-                flux = float(table["flux_fit"][0])
-                magnitudes[f"photutils_{key}"].append(-_MAG * np.log(flux / fluxes[index]))
+            # the sky is noiseless: the bias is not buried in its photon noise
+            table = photometry.psf_photometry(
+                images[index] + PHOTOMETRY_SKY_E, model, background_e=PHOTOMETRY_SKY_E,
+                read_noise_e=config.read_noise_e,
+                positions=np.array([[spots.x[index], spots.y[index]]]))
+            flux = float(table["flux_fit"][0])
+            magnitudes[f"photutils_{key}"].append(-_MAG * np.log(flux / fluxes[index]))
     for key, values in magnitudes.items():
         values = np.asarray(values)
         faint = values[spots.level == spots.level.min()].mean()
@@ -466,10 +451,9 @@ def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts, progress)
 
 
 def _stage_inverse(spots, raw, twin_sizes, shifts):
-    redistribution = _module("bfpsf.model.redistribution")
-    if not hasattr(redistribution, "correct"):
-        return _unavailable("bfpsf.correct not installed")
-    corrected = np.array([redistribution.correct(np.clip(stamp, 0, None), shifts)
+    from ..model.inverse import correct
+
+    corrected = np.array([correct(np.clip(stamp, 0, None), shifts)
                           for stamp in spots.stamps])
     sigma_x, sigma_y, _ = _moments(corrected)
     return {"available": True,
