@@ -161,7 +161,7 @@ def _simulate_camera(directory, *, size, levels, pairs, seed=0):
 
 
 def _check_against_truth(detector, single, maxlag, tolerance_gain):
-    from bfpsf.interop.galsim import silicon_area_coefficients
+    from bfpsf.interop.silicon_truth import silicon_area_coefficients
 
     truth = silicon_area_coefficients("lsst_itl_50_8", maxlag=maxlag) * (1 - 1 / NSTEPS**2)
     assert isinstance(detector, DetectorCalibration) and detector.names == list(GAINS)

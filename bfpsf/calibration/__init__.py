@@ -7,33 +7,31 @@ pedestal (`pedestal`), fit the photon transfer curve and the area coefficients a
 (`coefficients`), and return a `~bfpsf.calibration.product.Calibration`.
 """
 
-import importlib
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import BFPSFValueError
+from ..errors import BFPSFCovarianceError, BFPSFInputError, BFPSFValueError
+from ..files import refuse_duplicates
 
 __all__ = ["calibrate", "calibrate_detectors", "calibrate_from_ptc", "fit_amplifier",
            "fit_measured_pairs", "measure_pair", "PairTask", "FitTask"]
 
+#: Largest maxlag of the full PTC model: its convolution tensor holds 8 (maxlag + 1)^6 bytes and
+#: the fit's time grows as fast (maxlag 8: 1.3 s; 16: 106 s and 190 MB; 60: 384 GiB).
+MAX_FULL_MODEL_MAXLAG = 12
 
-def _shift_solver():
-    """`solve_boundary_shifts` if the coefficients module is installed, else None."""
-    try:
-        module = importlib.import_module(f"{__name__}.coefficients")
-    except ModuleNotFoundError as error:
-        if error.name != f"{__name__}.coefficients":
-            raise
-        return None
-    return getattr(module, "solve_boundary_shifts", None)
+#: Fewest flat pairs for the full PTC model (a, b and the noise at every lag): with fewer the
+#: fit is under-constrained (4 levels at maxlag 8 gave a gain 13 % high and 27 e- read noise).
+MIN_PAIRS_FULL_MODEL = 8
 
 
 def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-origin",
               saturation=None, mean_tolerance=0.05, clip_nsigma=4.0, pedestal_nsigma=4.0,
               pedestal_degree=2, linearity_threshold=None, solve_shifts=True,
-              n_monte_carlo=200, seed=0, progress=False, amps=None, overscan="median",
-              workers=1, scheduler=None):
+              shift_method="electrostatic", thickness=10.0, n_monte_carlo=100, seed=0,
+              progress=False, amps=None, overscan="median", workers=1, scheduler=None):
     """Calibrate brighter-fatter from flat-field pairs, each amplifier on its own.
 
     Returns a `~bfpsf.calibration.product.Calibration` when the flats have one amplifier
@@ -72,11 +70,19 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
         Peak-to-peak fractional non-linearity that raises the linearity flag. Default
         `bfpsf.calibration.linearity.DEFAULT_LINEARITY_THRESHOLD` (3e-3).
     solve_shifts : bool, optional
-        Solve the boundary shifts a^X (G15 section 6.1). Default True.
+        Solve the boundary shifts a^X. Default True.
+    shift_method : {'electrostatic', 'ei'}, optional
+        Solver of the shifts (`bfpsf.calibration.boundary_shifts`). Default
+        ``'electrostatic'`` (Astier & Regnault 2023); ``'ei'`` is G15's section 6.1. Both are
+        run; the other's chi2 is reported in ``shift_fit``.
+    thickness : float, optional
+        Sensor thickness in pixels for the electrostatic model. Default 10 (100 um sensors
+        with 10 um pixels).
     n_monte_carlo : int, optional
-        Monte Carlo draws of the shift errors. Default 200.
+        Samples of the shifts drawn from the calibration error (kept in the product and
+        propagated to every prediction). Default 100.
     seed : int, optional
-        Seed of the Monte Carlo. Default 0.
+        Seed of the samples. Default 0.
     progress : bool, optional
         Show a progress bar over the pairs. Default False.
     amps : str or sequence of str, optional
@@ -100,7 +106,8 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
                                mean_tolerance=mean_tolerance, clip_nsigma=clip_nsigma,
                                pedestal_nsigma=pedestal_nsigma, pedestal_degree=pedestal_degree,
                                linearity_threshold=linearity_threshold,
-                               solve_shifts=solve_shifts, n_monte_carlo=n_monte_carlo,
+                               solve_shifts=solve_shifts, shift_method=shift_method,
+                               thickness=thickness, n_monte_carlo=n_monte_carlo,
                                seed=seed, progress=progress, amps=amps, overscan=overscan,
                                workers=workers, scheduler=scheduler)[""]
 
@@ -108,7 +115,8 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
 def calibrate_detectors(detectors, *, exptimes=None, maxlag=8, ptc_model="full",
                         fit_b="off-origin", saturation=None, mean_tolerance=0.05,
                         clip_nsigma=4.0, pedestal_nsigma=4.0, pedestal_degree=2,
-                        linearity_threshold=None, solve_shifts=True, n_monte_carlo=200, seed=0,
+                        linearity_threshold=None, solve_shifts=True,
+                        shift_method="electrostatic", thickness=10.0, n_monte_carlo=100, seed=0,
                         progress=False, amps=None, overscan="median", workers=1,
                         scheduler=None):
     """Calibrate several detectors: every pair of every amplifier of every detector in one
@@ -136,13 +144,19 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag=8, ptc_model="full",
         maxlag=maxlag, ptc_model=ptc_model, fit_b=fit_b, saturation=saturation,
         mean_tolerance=mean_tolerance, clip_nsigma=clip_nsigma, pedestal_nsigma=pedestal_nsigma,
         pedestal_degree=pedestal_degree, linearity_threshold=linearity_threshold,
-        solve_shifts=solve_shifts, n_monte_carlo=n_monte_carlo, seed=seed)
+        solve_shifts=solve_shifts, shift_method=shift_method, thickness=thickness,
+        n_monte_carlo=n_monte_carlo, seed=seed)
     maxlag = parameters["maxlag"]
     exptimes = exptimes or {}
     tasks, owners = [], []
     for detector, sources in detectors.items():
+        if not isinstance(sources, (str, os.PathLike, np.ndarray)):
+            refuse_duplicates([source for source in sources
+                               if isinstance(source, (str, os.PathLike))], "flat")
         flats = read_flats(sources, exptimes.get(detector), amps=amps, lazy=True,
                            overscan=overscan)
+        for flat in flats:
+            _check_size(flat, maxlag)
         for amplifier, amplifier_flats in group_amplifiers(flats).items():
             pairs = pair_flats(amplifier_flats, mean_tolerance=mean_tolerance)
             for pair in pairs:
@@ -169,8 +183,9 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag=8, ptc_model="full",
 
 def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsigma,
               pedestal_nsigma, pedestal_degree, linearity_threshold, solve_shifts,
-              n_monte_carlo, seed):
+              shift_method, thickness, n_monte_carlo, seed):
     """Validated parameters (recorded in the product) and the options of `fit_amplifier`."""
+    from .boundary_shifts import SHIFT_METHODS
     from .linearity import DEFAULT_LINEARITY_THRESHOLD
     from .ptc import PTC_MODELS, _b_mask
 
@@ -181,7 +196,15 @@ def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsig
     if ptc_model not in PTC_MODELS:
         msg = f"ptc_model must be one of {PTC_MODELS}, got {ptc_model!r}"
         raise BFPSFValueError(msg, ptc_model)
+    if ptc_model == "full" and maxlag > MAX_FULL_MODEL_MAXLAG:
+        msg = (f"maxlag {maxlag} is too large for the full PTC model: its memory and time grow "
+               f"as (maxlag + 1)^6 ({8 * (maxlag + 1) ** 6 / 2**30:.3g} GiB here); use maxlag "
+               f"<= {MAX_FULL_MODEL_MAXLAG} or the exponential PTC model")
+        raise BFPSFValueError(msg, maxlag)
     _b_mask(fit_b, 1)  # validates fit_b before the work
+    if shift_method not in SHIFT_METHODS:
+        msg = f"shift_method must be one of {SHIFT_METHODS}, got {shift_method!r}"
+        raise BFPSFValueError(msg, shift_method)
     if linearity_threshold is None:
         linearity_threshold = DEFAULT_LINEARITY_THRESHOLD
     parameters = {
@@ -192,17 +215,20 @@ def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsig
         "clip_nsigma": None if clip_nsigma is None else float(clip_nsigma),
         "pedestal_nsigma": float(pedestal_nsigma), "pedestal_degree": int(pedestal_degree),
         "linearity_threshold": float(linearity_threshold), "solve_shifts": bool(solve_shifts),
+        "shift_method": str(shift_method), "thickness": float(thickness),
         "n_monte_carlo": int(n_monte_carlo), "seed": int(seed),
     }
     options = {"ptc_model": ptc_model, "fit_b": fit_b, "pedestal_nsigma": pedestal_nsigma,
                "pedestal_degree": pedestal_degree, "linearity_threshold": linearity_threshold,
-               "solve_shifts": solve_shifts, "n_monte_carlo": n_monte_carlo, "seed": seed}
+               "solve_shifts": solve_shifts, "shift_method": shift_method,
+               "thickness": thickness, "n_monte_carlo": n_monte_carlo, "seed": seed}
     return parameters, options
 
 
 def calibrate_from_ptc(path, *, amps=None, maxlag=None, ptc_model="full", fit_b="off-origin",
                        pedestal_nsigma=4.0, pedestal_degree=2, linearity_threshold=None,
-                       solve_shifts=True, n_monte_carlo=200, seed=0):
+                       solve_shifts=True, shift_method="electrostatic", thickness=10.0,
+                       n_monte_carlo=100, seed=0):
     """Calibrate from an LSST cp_pipe PTC dataset instead of flats (`bfpsf.io.cp_pipe`).
 
     The per-pair means and covariances cp_pipe measured (the pairs its EXP_ID_MASK keeps) go
@@ -249,7 +275,8 @@ def calibrate_from_ptc(path, *, amps=None, maxlag=None, ptc_model="full", fit_b=
             mean_tolerance=None, clip_nsigma=None,
             pedestal_nsigma=pedestal_nsigma, pedestal_degree=pedestal_degree,
             linearity_threshold=linearity_threshold, solve_shifts=solve_shifts,
-            n_monte_carlo=n_monte_carlo, seed=seed)
+            shift_method=shift_method, thickness=thickness, n_monte_carlo=n_monte_carlo,
+            seed=seed)
         parameters.update({"from_ptc": str(path), "cp_pipe_gain": amplifier.gain,
                            "cp_pipe_a00": float(amplifier.a[0, 0]),
                            "cp_pipe_fit_type": amplifier.fit_type})
@@ -290,11 +317,29 @@ def measure_pair(task):
 
     flat1 = task.pair.flat1.load(overscan=task.overscan)
     flat2 = task.pair.flat2.load(overscan=task.overscan)
+    for flat in (flat1, flat2):
+        finite = flat.data[np.isfinite(flat.data)]
+        if finite.size == 0 or np.ptp(finite) == 0:
+            msg = f"flat {flat.name} has zero variance (a constant image), not a flat-field exposure"
+            raise BFPSFInputError(msg, flat.name)
     check_pair(flat1, flat2, task.mean_tolerance)
     mask, report = pair_mask(flat1, flat2, saturation=task.saturation)
     covariance = pair_covariance(flat1, flat2, mask=mask, maxlag=task.maxlag,
                                  clip_nsigma=task.clip_nsigma)
+    if not covariance.var_adu > 0:
+        msg = (f"flats {flat1.name} and {flat2.name} are identical (their difference "
+               "has zero variance): a pair needs two exposures")
+        raise BFPSFInputError(msg, (flat1.name, flat2.name))
     return covariance, report
+
+
+def _check_size(flat, maxlag):
+    """Raise `BFPSFInputError` if ``flat`` is too small for the lags ``maxlag``."""
+    ny, nx = flat.shape
+    if ny < 2 * maxlag + 2 or nx < 2 * maxlag + 2:
+        msg = (f"flat {flat.name} ({nx} x {ny} pixels) is too small for maxlag {maxlag}: "
+               f"give maxlag < {min(ny, nx) // 2}")
+        raise BFPSFInputError(msg, flat.name)
 
 
 @dataclass(frozen=True, eq=False)
@@ -326,7 +371,7 @@ def fit_measured_pairs(task):
 
 def fit_amplifier(data, parameters, *, amplifier="", names, n_masked, n_clipped, ptc_model,
                   fit_b, pedestal_nsigma, pedestal_degree, linearity_threshold, solve_shifts,
-                  n_monte_carlo, seed):
+                  shift_method="electrostatic", thickness=10.0, n_monte_carlo, seed):
     """The PTC fit, linearity, pedestal and shifts of one amplifier from its pair statistics.
 
     Parameters
@@ -368,62 +413,88 @@ def fit_amplifier(data, parameters, *, amplifier="", names, n_masked, n_clipped,
     table["n_masked"] = np.array(n_masked, dtype=np.int64)
     table["n_clipped"] = np.array(n_clipped, dtype=np.int64)
 
-    shifts = north_err = east_err = None
-    shift_fit = {}
-    solver = _shift_solver() if solve_shifts else None
-    if solver is not None:
-        try:
-            solution = _solve_shifts(solver, fit, n_monte_carlo, seed, parameters)
-        except BFPSFValueError as error:
-            # A measurement failure, not a usage error (e.g. no brighter-fatter signal, a(0, 0)
-            # >= 0): the calibration is still returned, without shifts, and says why.
-            solution = None
-            parameters["shifts_failure"] = str(error)
-        if solution is not None:
-            shifts = solution.shifts
-            north_err = solution.north_err
-            east_err = solution.east_err
-            shift_fit = _scalar_fields(solution, ("p0", "p1", "p0_err", "p1_err", "chi2", "dof",
-                                                  "far_scale", "truncation_residual",
-                                                  "sensitivity"))
-    parameters["shifts_solved"] = shifts is not None
+    solved = _solve_shifts(fit, shift_method, thickness, n_monte_carlo, seed,
+                           parameters) if solve_shifts else None
+    parameters["shifts_solved"] = solved is not None
+    warnings = [] if solved is None else list(solved["warnings"])
+    if solve_shifts and solved is None:
+        warnings.append("no measurable brighter-fatter in these flats: the calibration has no "
+                        f"boundary shifts ({parameters['shifts_failure']})")
+    if fit.model == "full" and len(names) < MIN_PAIRS_FULL_MODEL:
+        warnings.insert(0, f"the full PTC model is under-constrained by {len(names)} flat "
+                           f"pairs (gain, read noise and a can be biased); give at least "
+                           f"{MIN_PAIRS_FULL_MODEL} pairs over the flux range or use --model "
+                           "exponential")
+    solved = solved or {}
 
     return Calibration(
         gain=fit.gain, gain_err=fit.gain_err, noise_e=fit.noise_e, noise_e_err=fit.noise_e_err,
         a=fit.a, a_err=fit.a_err, b=fit.b, b_err=fit.b_err, noise_matrix_e2=fit.noise_matrix_e2,
         ptc=table, linearity=linearity, pedestal=pedestal, model=fit.model,
         turnoff_e=fit.turnoff_e, turnoff_detected=fit.turnoff_detected, chi2=fit.chi2,
-        ndof=fit.ndof, shifts=shifts, shifts_north_err=north_err, shifts_east_err=east_err,
-        shift_fit=shift_fit, covariances_adu=data.cov_adu, npix=data.npix,
+        ndof=fit.ndof, shifts=solved.get("shifts"), shifts_north_err=solved.get("north_err"),
+        shifts_east_err=solved.get("east_err"), shift_fit=solved.get("fit", {}),
+        shift_samples_north=solved.get("samples_north"),
+        shift_samples_east=solved.get("samples_east"),
+        shift_method=shift_method if solved else None, warnings=warnings,
+        covariances_adu=data.cov_adu, npix=data.npix,
         inputs=[str(name) for pair in names for name in pair], parameters=parameters,
         amplifier=amplifier)
 
 
-def _solve_shifts(solver, fit, n_monte_carlo, seed, parameters):
-    """Solve a^X with Monte Carlo errors over the correlated errors of a (full model) when the
-    fit provides a usable covariance, else over independent errors."""
-    if fit.a_cov is not None:
+def _solve_shifts(fit, method, thickness, n_samples, seed, parameters):
+    """Solve a^X with the chosen method, and the other one for its chi2 on the same a.
+
+    Returns a dict (shifts, errors, samples, scalars, warnings), or None with the reason in
+    ``parameters['shifts_failure']`` when the flats show no brighter-fatter signal (a(0, 0)
+    >= 0): a measurement failure, not a usage error, so the calibration is still returned.
+    """
+    from .boundary_shifts import SHIFT_METHODS, shift_warnings, solve_boundary_shifts
+
+    area, area_err, area_cov = np.array(fit.a), np.array(fit.a_err), fit.a_cov
+    if not area[0, 0] < 0:
+        parameters["shifts_failure"] = (f"the flats show no brighter-fatter effect "
+                                        f"(a(0,0) = {area[0, 0]:.3g} >= 0)")
+        return None
+    parameters["shift_error_covariance"] = "full" if area_cov is not None else "diagonal"
+    scalars = {}
+    for other in SHIFT_METHODS:
+        if other == method:
+            continue
         try:
-            solution = solver(np.array(fit.a), np.array(fit.a_err), area_cov=fit.a_cov,
-                              n_monte_carlo=n_monte_carlo, seed=seed)
-            parameters["shift_error_covariance"] = "full"
-            return solution
+            alternative = solve_boundary_shifts(area, area_err, area_cov=area_cov, method=other,
+                                                n_samples=0, thickness=thickness)
         except BFPSFValueError as error:
-            if "covariance" not in str(error).lower():
-                raise
-    parameters["shift_error_covariance"] = "diagonal"
-    return solver(np.array(fit.a), np.array(fit.a_err), n_monte_carlo=n_monte_carlo, seed=seed)
+            parameters[f"{other}_failure"] = str(error)
+            continue
+        scalars.update(_scalar_fields(alternative, other))
+    try:
+        solution = solve_boundary_shifts(area, area_err, area_cov=area_cov, method=method,
+                                         n_samples=n_samples, seed=seed, thickness=thickness)
+    except BFPSFCovarianceError:
+        if area_cov is None:
+            raise
+        # a PTC-fit covariance the solver cannot use (not positive semi-definite)
+        parameters["shift_error_covariance"] = "diagonal"
+        solution = solve_boundary_shifts(area, area_err, method=method, n_samples=n_samples,
+                                         seed=seed, thickness=thickness)
+    scalars.update(_scalar_fields(solution, method))
+    return {"shifts": solution.shifts, "north_err": solution.north_err,
+            "east_err": solution.east_err, "samples_north": solution.samples_north,
+            "samples_east": solution.samples_east, "fit": scalars,
+            "warnings": shift_warnings(solution)}
 
 
-def _scalar_fields(solution, names):
-    """The finite scalar attributes of a shift solution (a dict value is flattened)."""
-    values = {}
-    for name in names:
-        value = getattr(solution, name, None)
-        if isinstance(value, dict):
-            for key, item in value.items():
-                if np.ndim(item) == 0:
-                    values[f"{name}_{key}"] = float(item)
-        elif value is not None and np.ndim(value) == 0:
-            values[name] = float(value)
-    return values
+def _scalar_fields(solution, prefix):
+    """The scalars of a shift solution worth keeping, as ``{prefix}_{name}``."""
+    values = {"chi2": solution.chi2, "dof": solution.dof}
+    if prefix == "electrostatic":
+        values.update(solution.geometry.as_dict())
+        values.update(alpha=solution.alpha, error_scale=solution.error_scale)
+    else:
+        values.update(p0=solution.p0, p1=solution.p1, p1_err=solution.p1_err,
+                      far_scale=solution.far_scale,
+                      truncation_residual=solution.truncation_residual)
+        values.update({f"sensitivity_{key}": value
+                       for key, value in solution.sensitivity.items() if np.ndim(value) == 0})
+    return {f"{prefix}_{name}": float(value) for name, value in values.items()}

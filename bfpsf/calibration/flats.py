@@ -12,7 +12,6 @@ Images are ``data[y, x]`` in ADU, bias-subtracted (DESIGN.md conventions).
 import logging
 import os
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 
@@ -207,10 +206,7 @@ def read_flats(sources, exptimes=None, *, amps=None, lazy=False, overscan="media
                 source = replace(source, exptime=_as_exptime(override, source.name))
             flats.append(source if lazy else source.load(overscan=overscan))
         elif isinstance(source, (str, os.PathLike)):
-            if not Path(source).exists():
-                msg = f"flat file not found: {source}"
-                raise BFPSFInputError(msg, str(source))
-            for layout in amplifier_layout(source, amps):
+            for layout in amplifier_layout(source, amps, what="flat file"):
                 exptime = override if override is not None else layout.exptime
                 if exptime is None:
                     msg = (f"{layout.label}: header keyword EXPTIME is missing (exposure time "

@@ -1,46 +1,8 @@
-"""Files of the commands: FITS images in, outputs never overwritten without ``--overwrite``,
-JSON summaries."""
-
-import json
-import math
-from pathlib import Path
+"""Input files of the commands: FITS images (outputs: `bfpsf.files`)."""
 
 import numpy as np
 
-from ..errors import BFPSFInputError
-from ..files import refuse_overwrite
-
-
-def check_free(path, overwrite):
-    """Raise `BFPSFFileExistsError` if ``path`` exists and ``overwrite`` is false.
-
-    Called for every output before any work is done, so a refused run writes nothing.
-    ``path=None`` (an output not requested) is accepted.
-    """
-    if path is not None:
-        refuse_overwrite(path, overwrite, how="--overwrite")
-
-
-def _strict(value):
-    """Plain JSON types; NaN and infinities (not JSON) become null."""
-    if isinstance(value, dict):
-        return {str(key): _strict(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_strict(item) for item in value]
-    if isinstance(value, np.ndarray):
-        return _strict(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
-def write_json(path, summary):
-    """Write a command's machine-readable summary as strict JSON (NaN written as null)."""
-    with open(path, "w") as stream:
-        json.dump(_strict(summary), stream, indent=1, allow_nan=False)
-        stream.write("\n")
+from ..files import reading
 
 
 def read_image(path, amps=None):
@@ -61,12 +23,9 @@ def read_image(path, amps=None):
 
     from ..io.amplifiers import read_amplifiers
 
-    if not Path(path).exists():
-        msg = f"image {path} does not exist"
-        raise BFPSFInputError(msg, str(path))
-    amplifiers = read_amplifiers(path, amps)
+    amplifiers = read_amplifiers(path, amps, what="image")
     catalog = None
-    with fits.open(path) as hdus:
+    with reading(path, "FITS image"), fits.open(path, memmap=False) as hdus:
         if "CATALOG" in hdus:
             from astropy.table import Table
 

@@ -5,10 +5,11 @@ and the JSON summary. Inputs are flat files (one detector, one product) or direc
 detector each, every ``*.fits`` in it; ``-o`` is then a directory receiving ``DETECTOR.fits``).
 """
 
+import sys
 from pathlib import Path
 
 from ..errors import BFPSFInputError
-from ._files import check_free, write_json
+from ..files import check_outputs, write_json
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 AMPLIFIER_PLOT = "amplifiers.png"
@@ -47,9 +48,17 @@ def add_parser(subparsers):
                              "'exponential', or G15's 'quadratic'")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
                         help="mask pixels at or above this level (ADU)")
-    parser.add_argument("--n-monte-carlo", type=int, default=200,
-                        help="Monte Carlo draws for the boundary-shift errors (default 200)")
-    parser.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
+    parser.add_argument("--shift-method", choices=("electrostatic", "ei"),
+                        default="electrostatic",
+                        help="solver of the boundary shifts: the electrostatic sensor model of "
+                             "Astier & Regnault 2023 (default) or G15's Ei smoothing model")
+    parser.add_argument("--thickness", type=float, default=10.0, metavar="PIXELS",
+                        help="sensor thickness in pixels for the electrostatic model "
+                             "(default 10: 100 um with 10 um pixels)")
+    parser.add_argument("--n-monte-carlo", type=int, default=100,
+                        help="samples of the boundary shifts drawn from the calibration error, "
+                             "kept for error propagation (default 100)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the samples (default 0)")
     parallel = parser.add_mutually_exclusive_group()
     parallel.add_argument("--workers", type=int, default=default_workers(), metavar="N",
                           help="processes measuring the pairs (Dask LocalCluster; 1: in this "
@@ -61,7 +70,6 @@ def add_parser(subparsers):
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace existing output files")
-    parser.add_argument("--progress", action="store_true", help="show a progress bar")
     return parser
 
 
@@ -77,8 +85,10 @@ def _detectors(args):
     if not any(directories):
         return {"": args.flats}, {"": Path(args.output)}
     if not all(directories):
-        msg = "give either flat files (one detector) or directories (one per detector), not both"
-        raise BFPSFInputError(msg, args.flats)
+        # directories are detectors only when every input is one
+        directory = paths[directories.index(True)]
+        msg = f"flat file {directory} is a directory, not a file"
+        raise BFPSFInputError(msg, str(directory))
     detectors, outputs = {}, {}
     for path in paths:
         files = sorted(str(file) for file in path.glob("*.fits"))
@@ -120,6 +130,12 @@ def _print(detector, calibration):
         if one.pedestal.any_detected:
             print(f"{prefix}readout pedestal subtracted at "
                   f"{int(one.pedestal.detected.sum())} lag(s)")
+        if one.shifts is not None:
+            m = one.shifts.radius
+            north, east = one.shifts.north[m, m], one.shifts.east[m, m]
+            print(f"{prefix}boundary shifts ({one.shift_method}): a^N(0,0) {north:.3e} +- "
+                  f"{one.shifts_north_err[m, m]:.1e}, a^E(0,0) {east:.3e} +- "
+                  f"{one.shifts_east_err[m, m]:.1e} 1/e-")
 
 
 def run(args):
@@ -127,16 +143,14 @@ def run(args):
 
     detectors, outputs = _detectors(args)
     # Refuse before the (long) computation rather than after it.
-    for output in outputs.values():
-        check_free(output, args.overwrite)
-    check_free(args.json, args.overwrite)
-    check_free(args.export_ptc, args.overwrite)
     if args.export_ptc and len(detectors) > 1:
         msg = "--export-ptc takes one detector"
         raise BFPSFInputError(msg, args.export_ptc)
     if args.plots and len(detectors) > 1:
         msg = "--plots takes one detector; calibrate the directories one at a time for plots"
         raise BFPSFInputError(msg, args.plots)
+    check_outputs([*outputs.values(), args.json, args.export_ptc], args.overwrite,
+                  directories=[args.plots, args.output if len(detectors) > 1 else None])
     if len(detectors) > 1:
         Path(args.output).mkdir(parents=True, exist_ok=True)
 
@@ -145,23 +159,27 @@ def run(args):
 
         calibrations = {"": calibrate_from_ptc(
             args.from_ptc, amps=args.amp, maxlag=args.maxlag, ptc_model=args.model,
+            shift_method=args.shift_method, thickness=args.thickness,
             n_monte_carlo=args.n_monte_carlo, seed=args.seed)}
     else:
         calibrations = calibrate_detectors(
             detectors, maxlag=args.maxlag, ptc_model=args.model, saturation=args.saturation,
+            shift_method=args.shift_method, thickness=args.thickness,
             n_monte_carlo=args.n_monte_carlo, seed=args.seed, progress=args.progress,
             amps=args.amp, overscan=args.overscan, workers=args.workers,
             scheduler=args.scheduler)
+    for calibration in calibrations.values():
+        check_outputs(_plot_paths(args, calibration), args.overwrite, directories=[args.plots])
     summaries = []
     for detector, calibration in calibrations.items():
-        for path in _plot_paths(args, calibration):
-            check_free(path, args.overwrite)
         calibration.write(outputs[detector], overwrite=args.overwrite)
         if args.plots:
             _save_plots(calibration, args.plots, args.overwrite)
         summaries.append({"output": str(outputs[detector]), "detector": detector,
                           **calibration.to_json_dict()})
         _print(detector, calibration)
+        for warning in calibration.warnings:
+            print(f"WARNING: {' '.join(filter(None, (detector, warning)))}", file=sys.stderr)
         print(f"wrote {outputs[detector]}")
         if args.export_ptc:
             from ..io.cp_pipe import write_ptc_dataset
@@ -169,15 +187,15 @@ def run(args):
             write_ptc_dataset(args.export_ptc, calibration, overwrite=args.overwrite)
             print(f"wrote {args.export_ptc} (cp_pipe PTC dataset)")
     if args.json:
-        write_json(args.json, summaries[0] if len(summaries) == 1 else {"detectors": summaries})
+        write_json(args.json, summaries[0] if len(summaries) == 1 else {"detectors": summaries},
+                   overwrite=args.overwrite)
     return 0
 
 
 def _save_plots(calibration, directory, overwrite):
     """The calibration plots; for several amplifiers, those of each in DIR/AMP/ and the
     comparison of all in DIR/amplifiers.png."""
-    import matplotlib.pyplot as plt
-
+    from ..files import save_figure
     from ..plotting.amplifiers import plot_amplifiers
     from ..plotting.calibration import save_calibration_plots
 
@@ -187,6 +205,5 @@ def _save_plots(calibration, directory, overwrite):
         return
     for name, one in amplifiers.items():
         save_calibration_plots(one, Path(directory) / name, overwrite=overwrite)
-    figure = plot_amplifiers(calibration)
-    figure.savefig(Path(directory) / AMPLIFIER_PLOT, dpi=100)
-    plt.close(figure)
+    save_figure(plot_amplifiers(calibration), Path(directory) / AMPLIFIER_PLOT,
+                overwrite=overwrite, dpi=100)

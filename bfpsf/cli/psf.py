@@ -1,4 +1,4 @@
-"""``bfpsf psf IMAGE... --calib CALIB.fits -o PSF.fits``: fit the flux-dependent PSF (issue 5).
+"""``bfpsf psf IMAGE... --calib CALIB.fits -o PSF.fits``: fit the flux-dependent PSF.
 
 Parse, read the images (ADU -> e- with the calibration gain), detect isolated stars
 (`bfpsf.measure.sources.measure_sources`), fit P0 from stars of all fluxes with the
@@ -11,7 +11,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ._files import check_free, read_image, write_json
+from ..files import check_outputs, refuse_duplicates, write_json
+from ..measure.sources import DETECTION_THRESHOLD
+from ._files import read_image
+
+
+#: Shift samples of the calibration kept in the PSF product for predictions with errors.
+PREDICTION_SAMPLES = 30
 
 
 def add_parser(subparsers):
@@ -33,8 +39,9 @@ def add_parser(subparsers):
                         help="oversampling of P0 (default 2; 4 needs several hundred stars)")
     parser.add_argument("--size", type=int, default=25,
                         help="support of P0 and star cutouts, pixels, odd (default 25)")
-    parser.add_argument("--threshold", type=float, default=10.0,
-                        help="detection threshold, RMS of the smoothed image (default 10)")
+    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+                        help=f"detection threshold, RMS of the smoothed image (default "
+                             f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
                         help="saturation level, ADU: saturated stars are not used")
     parser.add_argument("--max-iterations", type=int, default=40,
@@ -59,15 +66,18 @@ def _isolated_stars(image_e, threshold, saturation_e, size):
 
 
 def _star_weighted(used):
-    """Shifts, gain and read noise of the amplifiers the stars came from: those of the one
-    calibration, or for several amplifiers their averages weighted by the number of stars
-    (the P0 fit takes one set of shifts; photometry with --calib applies each amplifier's)."""
+    """Shifts, gain, read noise and shift samples (`PREDICTION_SAMPLES` at most) of the
+    amplifiers the stars came from: those of the one calibration, or for several amplifiers
+    their averages weighted by the number of stars (the P0 fit takes one set of shifts;
+    photometry with --calib applies each amplifier's). Sample i of the average is the
+    weighted average of the amplifiers' samples i (none unless every amplifier has some)."""
     from ..shifts import BoundaryShifts
 
     calibrations = {id(one): one for one, _ in used}
     if len(calibrations) == 1:
         one = used[0][0]
-        return one.shifts, float(one.gain), float(one.noise_e)
+        return (one.shifts, float(one.gain), float(one.noise_e),
+                tuple(one.shift_samples(limit=PREDICTION_SAMPLES)))
     weights = np.array([count for _, count in used], dtype=float)
     if weights.sum() == 0:
         weights[:] = 1.0
@@ -76,7 +86,14 @@ def _star_weighted(used):
     east = sum(weight * one.shifts.east for (one, _), weight in zip(used, weights))
     gain = float(sum(weight * one.gain for (one, _), weight in zip(used, weights)))
     noise = float(sum(weight * one.noise_e for (one, _), weight in zip(used, weights)))
-    return BoundaryShifts(north, east, check=False), gain, noise
+    per_entry = [one.shift_samples(limit=PREDICTION_SAMPLES) for one, _ in used]
+    count = min(len(samples) for samples in per_entry)
+    samples = tuple(
+        BoundaryShifts(sum(weight * entry[i].north for entry, weight in zip(per_entry, weights)),
+                       sum(weight * entry[i].east for entry, weight in zip(per_entry, weights)),
+                       check=False)
+        for i in range(count))
+    return BoundaryShifts(north, east, check=False), gain, noise, samples
 
 
 def run(args):
@@ -86,8 +103,8 @@ def run(args):
     from ..io.amplifiers import near_shared_side, shared_sides
     from ..model.psf_fit import fit_psf
 
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite)
+    refuse_duplicates(args.images, "image")
     calibration = read_calibration(args.calib)
     images, positions, skies, per_image, used = [], [], [], [], []
     for path in args.images:
@@ -120,7 +137,7 @@ def run(args):
                               "n_detected": int(n_detected), "n_isolated": int(len(xy)),
                               "n_amp_boundary": int(np.sum(boundary)),
                               "background_e": float(background)})
-    shifts, gain, noise = _star_weighted(used)
+    shifts, gain, noise, samples = _star_weighted(used)
     result = fit_psf(images, positions, shifts, oversampling=args.oversampling,
                      size=args.size, read_noise=noise,
                      sky_e=skies, include_bf=args.include_bf,
@@ -128,6 +145,7 @@ def run(args):
     psf = result.psf
     psf.image_gain = gain
     psf.calibration = Path(args.calib).name
+    psf.shift_samples = samples
     psf.write(args.output, meta={"NSTARS": int(np.sum(result.stars["flags"] == 0)),
                                  "CONVERGD": bool(result.converged),
                                  "BFTERM": bool(args.include_bf)},
@@ -145,7 +163,7 @@ def run(args):
                if np.any(used) else None,
                "images": per_image}
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "
           f"{len(args.images)} image(s), {result.iterations} iterations "
           f"({'converged' if result.converged else 'NOT converged'}); wrote {args.output}")

@@ -24,11 +24,11 @@ without EXTNAME, two amplifiers of one name) is a `BFPSFInputError` naming the f
 
 import re
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ..errors import BFPSFInputError
+from ..files import check_input, reading
 
 __all__ = ["Amplifier", "AmplifierLayout", "parse_section", "amplifier_layout",
            "read_amplifiers", "read_amplifier", "subtract_overscan", "shared_sides",
@@ -161,12 +161,6 @@ def _hdu_name(index, hdu):
     return f"HDU {index} ({hdu.name})" if hdu.name and hdu.name != "PRIMARY" else f"HDU {index}"
 
 
-def _check_missing(path):
-    if not Path(path).exists():
-        msg = f"{path} does not exist"
-        raise BFPSFInputError(msg, str(path))
-
-
 def _image_hdus(path, hdus):
     """(index, hdu) of the amplifier images; raises on HDUs the package cannot interpret."""
     images = []
@@ -248,7 +242,7 @@ def _select(path, layouts, amps):
     return [by_name[name] for name in amps]
 
 
-def amplifier_layout(path, amps=None):
+def amplifier_layout(path, amps=None, *, what="FITS file"):
     """The amplifiers of a FITS file, from the headers alone.
 
     Parameters
@@ -256,6 +250,8 @@ def amplifier_layout(path, amps=None):
     path : str or path-like
     amps : str or sequence of str, optional
         Amplifier names (EXTNAME) to keep, in that order. Default: all.
+    what : str, optional
+        What the file is, in error messages (``'flat file'``, ``'image'``).
 
     Returns
     -------
@@ -269,16 +265,19 @@ def amplifier_layout(path, amps=None):
     """
     from astropy.io import fits
 
-    _check_missing(path)
-    try:
-        with fits.open(path, memmap=False, lazy_load_hdus=True) as hdus:
-            images = _image_hdus(path, hdus)
-            primary = hdus[0].header
-            layouts = [_layout(path, index, hdu, primary) for index, hdu in images]
-    except OSError as error:
-        msg = f"{path}: cannot read as FITS ({error})"
-        raise BFPSFInputError(msg, str(path)) from error
+    check_input(path, what)
+    with reading(path, _readable(what)), fits.open(path, memmap=False,
+                                                  lazy_load_hdus=True) as hdus:
+        images = _image_hdus(path, hdus)
+        primary = hdus[0].header
+        layouts = [_layout(path, index, hdu, primary) for index, hdu in images]
     return _select(path, layouts, amps)
+
+
+def _readable(what):
+    """The file kind in `bfpsf.files.reading` messages: 'flat file' -> 'flat FITS file',
+    'image' -> 'FITS image'."""
+    return {"flat file": "flat FITS file", "image": "FITS image"}.get(what, what)
 
 
 def subtract_overscan(data, datasec, biassec, *, method="median", clip_nsigma=3.0):
@@ -329,7 +328,7 @@ def _pixels(layout, hdu, overscan):
     return np.array(data, dtype=np.float64), None
 
 
-def read_amplifiers(path, amps=None, *, overscan="median"):
+def read_amplifiers(path, amps=None, *, overscan="median", what="FITS file"):
     """Read the amplifiers of a FITS file: overscan-subtracted, trimmed, in ADU.
 
     Parameters
@@ -351,9 +350,9 @@ def read_amplifiers(path, amps=None, *, overscan="median"):
     """
     from astropy.io import fits
 
-    layouts = amplifier_layout(path, amps)
+    layouts = amplifier_layout(path, amps, what=what)
     amplifiers = []
-    with fits.open(path, memmap=False) as hdus:
+    with reading(path, _readable(what)), fits.open(path, memmap=False) as hdus:
         for layout in layouts:
             amplifiers.append(_amplifier(layout, hdus, overscan))
     return amplifiers
@@ -372,7 +371,7 @@ def read_amplifier(layout, *, overscan="median"):
     """One amplifier given its layout (as a worker of `bfpsf.parallel` reads one flat)."""
     from astropy.io import fits
 
-    with fits.open(layout.path, memmap=False) as hdus:
+    with reading(layout.path, "FITS file"), fits.open(layout.path, memmap=False) as hdus:
         return _amplifier(layout, hdus, overscan)
 
 
