@@ -18,9 +18,10 @@ from bfpsf.calibration.coefficients import solve_boundary_shifts
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
 from bfpsf.measure.moments import adaptive_moments_batch
 from bfpsf.model.redistribution import exact_boundary_density, redistribute
-from bfpsf.validation.diagnose import diagnose, observables_from_sizes
-from bfpsf.validation.effects import (CorrelationTable, LinearityTable, SizeTable,
-                                      quadrupole_shifts, _add_shifts)
+from bfpsf.diagnosis.catalogue import add_shifts, quadrupole_shifts
+from bfpsf.diagnosis.loop import diagnose
+from bfpsf.diagnosis.observables import (CorrelationTable, LinearityTable, SizeTable,
+                                         observables_from_sizes)
 
 PEAKS = np.linspace(1.5e4, 1.5e5, 8)
 SIGMA = 1.2
@@ -66,7 +67,7 @@ def render_sizes(shifts, *, n_phases=16, sigma=SIGMA, seed=1, nonlinearity=0.0, 
     phases = _phases(n_phases)
     model_shifts = shifts
     if quadrupole:
-        model_shifts = _add_shifts(shifts, quadrupole_shifts(shifts, quadrupole))
+        model_shifts = add_shifts(shifts, quadrupole_shifts(shifts, quadrupole))
     stamps, level, phase_index, colours = [], [], [], []
     for k, peak in enumerate(peaks):
         for j, (px, py) in enumerate(phases):
@@ -288,8 +289,7 @@ def _calibrated_flats(nonlinearity):
 
 
 def _flat_observables(cal):
-    from bfpsf.validation.diagnose import flat_observables, ptc_observable
-    from bfpsf.validation.effects import Observables
+    from bfpsf.diagnosis.observables import Observables, flat_observables, ptc_observable
 
     linearity, correlations = flat_observables(cal)
     return Observables(linearity=linearity, correlations=correlations,
@@ -363,7 +363,7 @@ def test_stacked_star_residual_consistent_with_noise(shifts, star_field):
     import galsim
 
     from bfpsf.model.psf import FluxDependentPSF
-    from bfpsf.validation.diagnose import stacked_star_residual
+    from bfpsf.diagnosis.star_residual import stacked_star_residual
 
     psf, image, table = star_field
     same = stacked_star_residual([image], [table], psf, half_size=7, noise_e=5.0)

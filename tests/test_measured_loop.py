@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from bfpsf.errors import BFPSFInputError
-from bfpsf.validation.diagnose import (MEASURED_SETS, diagnose, observables_from_measured,
+from bfpsf.diagnosis.loop import diagnose
+from bfpsf.diagnosis.readers import (MEASURED_SETS, observables_from_measured,
                                        read_lage_spot_table)
 
 MEASURED = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "measured")

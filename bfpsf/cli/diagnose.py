@@ -1,6 +1,6 @@
 """``bfpsf diagnose``: the closed loop, residual -> missing effect -> added -> before / after.
 
-Two modes (a thin layer over `bfpsf.validation.diagnose`):
+Two modes (a thin layer over `bfpsf.diagnosis`):
 
 * images: ``bfpsf diagnose --flats FLAT.fits... --images IMAGE.fits... [--beta B]``: calibrate
   the flats (`bfpsf.calibrate`), measure the spots of the images (`bfpsf.measure.sources`),
@@ -28,7 +28,7 @@ def add_parser(subparsers):
     parser = subparsers.add_parser(
         "diagnose", help="find the effect the BF model misses (closed loop)",
         description="Fit the brighter-fatter model, test a catalogue of candidate effects on "
-                    "the residuals, add the best by BIC, repeat (bfpsf.validation.diagnose).")
+                    "the residuals, add the best by BIC, repeat (bfpsf.diagnosis).")
     data = parser.add_argument_group("images mode")
     data.add_argument("--flats", nargs="+", metavar="FLAT.fits", help="flat-field FITS (ADU)")
     data.add_argument("--images", nargs="+", metavar="IMAGE.fits",
@@ -61,26 +61,27 @@ def add_parser(subparsers):
 
 
 def _observables(args):
-    from ..validation import diagnose as loop
+    from ..diagnosis import observables as builders
+    from ..diagnosis import readers
 
     if args.measured:
-        return loop.observables_from_measured(args.measured, corrected=args.corrected)
+        return readers.observables_from_measured(args.measured, corrected=args.corrected)
     if args.correlations or args.sizes:
         if not (args.correlations and args.sizes):
             msg = "table mode needs both --correlations and --sizes"
             raise BFPSFInputError(msg)
-        return loop.observables_from_tables(args.correlations, args.sizes, gain=args.gain,
+        return readers.observables_from_tables(args.correlations, args.sizes, gain=args.gain,
                                             corrected=args.corrected)
     if args.flats and args.images:
-        return loop.observables_from_images(args.flats, args.images, beta=args.beta,
-                                            maxlag=args.maxlag, n_bins=args.bins,
-                                            fit_b=args.fit_b)
+        return builders.observables_from_images(args.flats, args.images, beta=args.beta,
+                                                maxlag=args.maxlag, n_bins=args.bins,
+                                                fit_b=args.fit_b)
     msg = ("give --flats and --images, or --correlations and --sizes, or --measured DIR")
     raise BFPSFInputError(msg)
 
 
 def run(args):
-    from ..validation.diagnose import diagnose
+    from ..diagnosis.loop import diagnose
     from ..validation.report import write_diagnosis_report, write_json
 
     check_free(args.json, args.overwrite)

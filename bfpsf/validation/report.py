@@ -161,7 +161,7 @@ def write_diagnosis_report(result, directory, *, title="bfpsf diagnose", context
     residual_images : dict, optional
         Label -> stacked residual image (e-); drawn with their radial profiles.
     star_residual : dict, optional
-        `bfpsf.validation.diagnose.stacked_star_residual` output: summarised in the text.
+        `bfpsf.diagnosis.star_residual.stacked_star_residual` output: summarised in the text.
     overwrite : bool
 
     Returns
