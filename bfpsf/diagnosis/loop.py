@@ -47,7 +47,8 @@ import numpy as np
 from ..errors import BFPSFInputError, BFPSFValueError
 from .catalogue import CATALOGUE
 
-__all__ = ["DiagnosisResult", "diagnose", "DEFAULT_THRESHOLD", "slope_residuals"]
+__all__ = ["DiagnosisResult", "diagnose", "DEFAULT_THRESHOLD", "slope_residuals", "split_observables",
+           "describe_unexplained", "UNEXPLAINED_NSIGMA"]
 
 #: Delta BIC below which a candidate is added (Kass & Raftery 1995: "very strong").
 DEFAULT_THRESHOLD = -10.0
@@ -64,9 +65,17 @@ class _Problem:
     residual: np.ndarray   # data - fixed base prediction
     sigma: np.ndarray
     nuisance: np.ndarray   # (N, m)
+    global_columns: tuple = ()  # nuisance columns held fixed on held-out data (size scale)
 
 
 def _size_block(observables):
+    """Size residuals; nuisance: an intercept per group and axis and, when the observables
+    carry the calibration's BF amplitude error (``meta['scale_err']``), a common scale of the
+    shifts within it (a Gaussian prior, one pseudo data point): the prediction is no better
+    than its flats. The scale is a global nuisance: fitted in-sample, fixed on held-out data.
+    """
+    from .catalogue import get_effect
+
     sizes, model = observables.sizes, observables.spot_model
     predicted_x, predicted_y = model.sizes(sizes.peak_e)
     residual = np.concatenate([sizes.sigma_x - predicted_x, sizes.sigma_y - predicted_y])
@@ -75,7 +84,15 @@ def _size_block(observables):
     nuisance = np.zeros((2 * n, 2 * groups))
     for axis in range(2):
         nuisance[axis * n + np.arange(n), axis * groups + sizes.group] = 1.0
-    return residual, sigma, nuisance
+    scale_err = float(observables.meta.get("scale_err", 0.0) or 0.0)
+    if not scale_err > 0:
+        return residual, sigma, nuisance
+    template = get_effect("calibration_scale").templates(observables)["sizes"]
+    nuisance = np.hstack([nuisance, template])
+    prior_design = np.zeros((1, nuisance.shape[1]))
+    prior_design[0, -1] = 1.0
+    return (residual, sigma, nuisance, (prior_design, np.array([scale_err])),
+            (nuisance.shape[1] - 1,))
 
 
 def _linearity_block(observables):
@@ -117,12 +134,15 @@ _BLOCKS = {"sizes": _size_block, "linearity": _linearity_block,
 
 
 def _build_problem(observables):
-    keys, slices, residuals, sigmas, nuisances = [], {}, [], [], []
+    keys, slices, residuals, sigmas, nuisances, global_columns = [], {}, [], [], [], []
     start = 0
     for key, block in _BLOCKS.items():
         if getattr(observables, key) is None:
             continue
         residual, sigma, nuisance, *prior = block(observables)
+        if len(prior) == 2:
+            offset = sum(n.shape[1] for n in nuisances)
+            global_columns += [offset + column for column in prior.pop()]
         keys.append(key)
         slices[key] = slice(start, start + residual.size)
         start += residual.size
@@ -145,7 +165,7 @@ def _build_problem(observables):
         design[rows, column:column + nuisance.shape[1]] = nuisance
         column += nuisance.shape[1]
     return _Problem(tuple(keys), slices, np.concatenate(residuals), np.concatenate(sigmas),
-                    design)
+                    design, tuple(global_columns))
 
 
 def _effect_design(problem, templates):
@@ -254,7 +274,8 @@ class DiagnosisResult:
     Attributes
     ----------
     residual_before, residual_after : dict
-        Residual summaries of the base model and of the final model (see module notes).
+        Residual summaries of the base model (the prediction as it stands: only the local
+        nuisances fitted) and of the final model (effects and global nuisances fitted).
     candidates : list of dict
         One entry per candidate and round: ``round``, ``name``, ``statistic`` (Delta chi2,
         positive = better fit; None if not testable), ``delta_bic`` (None if not testable),
@@ -268,6 +289,22 @@ class DiagnosisResult:
     curves : dict
         Arrays for the plots: ``peak_e``, ``sigma_x``, ``sigma_y``, errors, ``base_x``,
         ``base_y`` (base model with fitted intercepts), ``final_x``, ``final_y``, ``group``.
+    nuisance : dict
+        Fitted global nuisances: ``calibration_scale`` {value, error, prior} when the size
+        prediction carries the flats' BF amplitude error (``meta['scale_err']``).
+    residual_before_heldout, residual_after_heldout : dict or None
+        With a held-out split: the residual summaries (same keys as ``residual_after``) on the
+        held-out data, the effects and global nuisances fixed at their in-sample values and
+        only the local nuisances (intercepts, linearity zero point and slope, PTC noise and
+        gain) refitted.
+    confirmed : dict
+        Selected effect -> True when adding it lowered the held-out chi2 (in the order
+        selected), False ("not confirmed") otherwise. Empty without a split.
+    holdout : dict or None
+        How the data were split (``fraction``, ``sizes_split_by``, row counts).
+    unexplained : list of dict
+        Significant residuals no confirmed effect explains: {observable, axis, parity,
+        flux_dependence, significance} (`describe_unexplained`).
     ptc_curves : dict
         PTC residuals for the plot (empty without a PTC observable): ``mean_e``,
         ``residual_raw`` (data minus the calibrated sum-rule model, nothing refitted),
@@ -285,6 +322,12 @@ class DiagnosisResult:
     ambiguous: dict = field(default_factory=dict)
     residual_physical: dict = None
     ptc_curves: dict = field(default_factory=dict)
+    nuisance: dict = field(default_factory=dict)
+    residual_before_heldout: dict = None
+    residual_after_heldout: dict = None
+    confirmed: dict = field(default_factory=dict)
+    holdout: dict = None
+    unexplained: list = field(default_factory=list)
 
     def to_json_dict(self):
         """The ``--json`` summary: residual_before, candidates, selected, residual_after (+)."""
@@ -305,11 +348,15 @@ class DiagnosisResult:
                       "selected": self.selected, "residual_after": self.residual_after,
                       "parameters": self.parameters, "threshold": self.threshold,
                       "ambiguous": self.ambiguous,
-                      "residual_physical": self.residual_physical})
+                      "residual_physical": self.residual_physical, "nuisance": self.nuisance,
+                      "residual_before_heldout": self.residual_before_heldout,
+                      "residual_after_heldout": self.residual_after_heldout,
+                      "confirmed": self.confirmed, "holdout": self.holdout,
+                      "unexplained": self.unexplained})
 
 
 def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, max_rounds=4,
-             prefer_physical=False):
+             prefer_physical=False, holdout_fraction=None):
     """Find, by information criterion, the effects the base model is missing.
 
     Parameters
@@ -326,11 +373,25 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
         value, ``name@physical``) when it passes the threshold, before considering fitted
         effects (Occam: a prediction beats a fit that explains the same residual). Default
         False: plain BIC ranking.
+    holdout_fraction : float, optional
+        Fit on part of the data and report the residual on the rest (`split_observables`):
+        ``residual_before_heldout``, ``residual_after_heldout`` and, per selected effect,
+        whether it improves the held-out residual (``confirmed``). Default None: no split.
 
     Returns
     -------
     DiagnosisResult
     """
+    if holdout_fraction:
+        fit_part, heldout = split_observables(observables, holdout_fraction)
+        result, state = _run_loop(fit_part, catalogue, threshold, max_rounds, prefer_physical)
+        return _with_heldout(result, state, heldout, catalogue, holdout_fraction)
+    result, state = _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical)
+    return _with_unexplained(result, state, observables)
+
+
+def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
+    """The loop itself: the result and what the held-out evaluation needs."""
     if not threshold < 0:
         msg = f"threshold must be a negative Delta BIC, got {threshold!r}"
         raise BFPSFValueError(msg, threshold)
@@ -380,6 +441,10 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
 
     selected = []
     _, _, chi2_current, model_before = fit([])
+    if problem.global_columns:
+        # "before": the prediction as it stands, global nuisances (the size scale) at zero
+        local = np.delete(problem.nuisance, list(problem.global_columns), axis=1)
+        model_before = _wls(problem.residual, problem.sigma, local)[3]
     candidates = []
     ambiguous = {}
     for round_index in range(int(max_rounds)):
@@ -470,11 +535,262 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
                       "residual_raw": observables.ptc.residual_e,
                       "residual_before": problem.residual[block] - model_before[block],
                       "residual_after": problem.residual[block] - model_after[block]}
-    return DiagnosisResult(residual_before=_summary(problem, observables, model_before),
-                           candidates=candidates, selected=selected,
-                           residual_after=_summary(problem, observables, model_after),
-                           parameters=parameters, threshold=float(threshold), curves=curves,
-                           ambiguous=ambiguous, residual_physical=residual_physical,
-                           ptc_curves=ptc_curves)
+    nuisance = {}
+    if problem.global_columns:
+        column = problem.global_columns[0]
+        nuisance["calibration_scale"] = {
+            "value": float(params[column]),
+            "error": float(np.sqrt(abs(covariance[column, column]))),
+            "prior": float(observables.meta["scale_err"])}
+    result = DiagnosisResult(residual_before=_summary(problem, observables, model_before),
+                             candidates=candidates, selected=selected,
+                             residual_after=_summary(problem, observables, model_after),
+                             parameters=parameters, threshold=float(threshold), curves=curves,
+                             ambiguous=ambiguous, residual_physical=residual_physical,
+                             ptc_curves=ptc_curves, nuisance=nuisance)
+    # for the held-out evaluation: the effect and global-nuisance values of each step, the
+    # first one the bare prediction
+    steps = [{"names": [], "global": np.zeros(len(problem.global_columns)), "effects": {},
+              "model": model_before}] if problem.global_columns else []
+    for k in range(len(selected) + 1):
+        names = selected[:k]
+        values, _, _, model = fit(names)
+        steps.append({"names": names, "global": values[list(problem.global_columns)],
+                      "effects": _effect_values(values, problem, names, fixed, by_name, family),
+                      "model": model})
+    state = {"problem": problem, "steps": steps, "fixed": fixed, "family": family,
+             "by_name": by_name}
+    return result, state
 
 
+def _effect_values(values, problem, names, fixed, by_name, family):
+    """name -> parameter vector of each effect of a joint fit over ``names``."""
+    out = {}
+    column = problem.nuisance.shape[1]
+    for name in names:
+        effect = by_name[family(name)]
+        if name in fixed:
+            out[name] = np.asarray(effect.physical_value, float)
+            continue
+        out[name] = values[column:column + effect.k]
+        column += effect.k
+    return out
+
+
+
+
+# -- held-out split ------------------------------------------------------------------------------
+def _interleaved(n, fraction):
+    """Boolean mask of the held-out members of n ordered items, evenly interleaved."""
+    index = np.arange(n)
+    return np.floor((index + 1) * fraction) > np.floor(index * fraction)
+
+
+def split_observables(observables, fraction=0.5):
+    """Split the observables into a part to fit and a held-out part.
+
+    Sizes: by exposure when the table has it (``SizeTable.exposure``: whole exposures held
+    out, evenly interleaved), otherwise alternate peak bins within each group. Flat tables
+    (linearity, correlations, PTC): alternate flat pairs in order of mean signal. The spot
+    model and ``meta`` are shared.
+
+    Returns
+    -------
+    (Observables, Observables)
+    """
+    from .observables import CorrelationTable, LinearityTable, Observables, PTCTable
+
+    if not 0 < fraction < 1:
+        msg = f"holdout_fraction must be between 0 and 1 (exclusive), got {fraction!r}"
+        raise BFPSFValueError(msg, fraction)
+    parts = {"fit": {}, "heldout": {}}
+    how = None
+    sizes = observables.sizes
+    if sizes is not None:
+        exposures = None if sizes.exposure is None else np.unique(sizes.exposure)
+        if exposures is not None and exposures.size >= 2:
+            held_exposures = exposures[_interleaved(exposures.size, fraction)]
+            held = np.isin(sizes.exposure, held_exposures)
+            how = "exposure"
+        else:
+            held = np.zeros(len(sizes), bool)
+            for group in np.unique(sizes.group):
+                members = np.flatnonzero(sizes.group == group)
+                members = members[np.argsort(sizes.peak_e[members])]
+                held[members[_interleaved(members.size, fraction)]] = True
+            how = "alternate peak bins"
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            if rows.sum() < 3 or len(np.unique(sizes.group[rows])) < sizes.n_groups:
+                msg = (f"the {part} part of a {fraction:g} held-out split holds {rows.sum()} "
+                       "size entries: too few (at least 3 and every group); give more "
+                       "exposures or no held-out split (--holdout-fraction 0)")
+                raise BFPSFInputError(msg, int(rows.sum()))
+            parts[part]["sizes"] = sizes.subset(rows)
+
+    def rows_by_mean(mean):
+        order = np.argsort(mean)
+        held = np.zeros(mean.size, bool)
+        held[order[_interleaved(mean.size, fraction)]] = True
+        return held
+
+    table = observables.linearity
+    if table is not None:
+        held = rows_by_mean(table.mean_e)
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            parts[part]["linearity"] = LinearityTable(table.exptime[rows], table.mean_e[rows],
+                                                      table.mean_err_e[rows],
+                                                      error_floor=table.error_floor)
+    table = observables.correlations
+    if table is not None:
+        held = rows_by_mean(table.mean_e)
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            parts[part]["correlations"] = CorrelationTable(table.mean_e[rows], table.lags,
+                                                           table.r[rows], table.r_err[rows])
+    table = observables.ptc
+    if table is not None:
+        held = rows_by_mean(table.mean_e)
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            parts[part]["ptc"] = PTCTable(table.mean_e[rows], table.var_e[rows],
+                                          table.var_err_e[rows], table.model_e[rows],
+                                          table.model_slope[rows],
+                                          sum_rule_err=table.sum_rule_err)
+    meta = dict(observables.meta)
+    meta["holdout_sizes_split_by"] = how
+    return tuple(Observables(spot_model=observables.spot_model, meta=meta, **parts[part])
+                 for part in ("fit", "heldout"))
+
+
+def _evaluate(state, observables, catalogue, step):
+    """Residual model on ``observables`` with one step's effects and global nuisances fixed
+    at their in-sample values and the local nuisances refitted: (problem, model)."""
+    problem = _build_problem(observables)
+    by_name = state["by_name"]
+    offset = np.zeros_like(problem.residual)
+    for name, values in step["effects"].items():
+        templates = by_name[state["family"](name)].templates(observables)
+        offset += _effect_design(problem, templates) @ np.asarray(values, float)
+    global_columns = list(problem.global_columns)
+    if global_columns:
+        offset += problem.nuisance[:, global_columns] @ step["global"]
+    local = np.delete(problem.nuisance, global_columns, axis=1)
+    _, _, _, model = _wls(problem.residual - offset, problem.sigma, local)
+    return problem, model + offset
+
+
+def _with_heldout(result, state, heldout, catalogue, fraction):
+    """The result with the held-out residuals, the confirmation of each selected effect and
+    the unexplained residuals (judged on the held-out data)."""
+    import dataclasses
+
+    chi2 = []
+    evaluations = []
+    for step in state["steps"]:
+        problem, model = _evaluate(state, heldout, catalogue, step)
+        evaluations.append((problem, model))
+        chi2.append(float((((problem.residual - model) / problem.sigma) ** 2).sum()))
+    names = ["calibration_scale (nuisance)"] * (len(state["steps"]) - 1 - len(result.selected))
+    names += result.selected
+    confirmed = {name: chi2[k + 1] < chi2[k] for k, name in enumerate(names)}
+    before = _summary(evaluations[0][0], heldout, evaluations[0][1])
+    after = _summary(evaluations[-1][0], heldout, evaluations[-1][1])
+    sizes = heldout.sizes
+    holdout = {"fraction": float(fraction),
+               "sizes_split_by": heldout.meta.get("holdout_sizes_split_by"),
+               "n_fit": int(result.residual_after["n"]), "n_heldout": int(after["n"]),
+               "heldout_size_entries": 0 if sizes is None else len(sizes)}
+    # unexplained: judged on the held-out data with the confirmed effects only
+    kept = [name for name in result.selected if confirmed[name]]
+    step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
+    if not confirmed.get("calibration_scale (nuisance)", True):
+        step = dict(step, **{"global": np.zeros_like(step["global"])})
+    problem, model = _evaluate(state, heldout, catalogue, step)
+    unexplained = describe_unexplained(problem, heldout, model)
+    return dataclasses.replace(result, residual_before_heldout=before,
+                               residual_after_heldout=after, confirmed=confirmed,
+                               holdout=holdout, unexplained=unexplained)
+
+
+def _with_unexplained(result, state, observables):
+    import dataclasses
+
+    model = state["steps"][-1]["model"]
+    return dataclasses.replace(result, unexplained=describe_unexplained(
+        state["problem"], observables, model))
+
+
+#: Significance (sigma) above which a residual is reported as unexplained.
+UNEXPLAINED_NSIGMA = 3.0
+
+
+def _parity(star, axis):
+    """'even' or 'odd': the larger part of the stacked star residual under reflection along
+    ``axis`` (x: columns mirrored, y: rows mirrored); None without a stacked residual."""
+    if not star:
+        return None
+    image = np.asarray(star["image"], float)
+    mirrored = image[:, ::-1] if axis == "x" else image[::-1, :]
+    even = 0.5 * (image + mirrored)
+    odd = 0.5 * (image - mirrored)
+    return "even" if np.sum(even ** 2) >= np.sum(odd ** 2) else "odd"
+
+
+def _flux_dependence(peak, residual, sigma, group):
+    """How a residual grows with peak: 'constant', 'linear' or 'quadratic' (the highest power
+    significant at 3 sigma in a fit with per-group intercepts), with the coefficients."""
+    x = np.asarray(peak, float) / 1e5
+    columns = [x, x ** 2] + [(group == g).astype(float) for g in np.unique(group)]
+    params, covariance, _, _ = _wls(residual, sigma, np.column_stack(columns))
+    errors = np.sqrt(np.abs(np.diag(covariance)[:2]))
+    significant = [abs(p) > UNEXPLAINED_NSIGMA * e for p, e in zip(params[:2], errors)]
+    kind = "quadratic" if significant[1] else "linear" if significant[0] else "constant"
+    return {"kind": kind, "per_1e5": float(params[0]), "per_1e10": float(params[1])}
+
+
+def describe_unexplained(problem, observables, model):
+    """Significant residuals left by a model, with their signature.
+
+    Sizes, per axis: the slope of the size residual against peak (per-group intercepts) at
+    more than `UNEXPLAINED_NSIGMA` of its error; its parity is that of the stacked star
+    residual under reflection along the axis (when the observables hold one); its flux
+    dependence the highest significant power of peak. Other observables: a chi2 per point
+    whose excess over its degrees of freedom is significant, (chi2 - N) / sqrt(2 N).
+
+    Returns
+    -------
+    list of dict
+        {observable, axis, parity, flux_dependence, significance (sigma)}.
+    """
+    residual = problem.residual - model
+    out = []
+    for key in problem.keys:
+        block = problem.slices[key]
+        part, sigma = residual[block], problem.sigma[block]
+        if key == "sizes":
+            from ..measure.slopes import fit_bf_slope
+
+            sizes = observables.sizes
+            n = len(sizes)
+            for index, axis in enumerate("xy"):
+                values, errors = part[index * n:(index + 1) * n], sigma[index * n:(index + 1) * n]
+                fit = fit_bf_slope(sizes.peak_e, values, size_err=errors, group=sizes.group,
+                                   scale_errors=False)
+                significance = abs(fit.slope) / fit.slope_err
+                if significance > UNEXPLAINED_NSIGMA:
+                    out.append({"observable": "sizes", "axis": axis,
+                                "parity": _parity(observables.meta.get("star_residual"), axis),
+                                "flux_dependence": _flux_dependence(sizes.peak_e, values, errors,
+                                                                    sizes.group),
+                                "significance": float(significance)})
+            continue
+        n_points = part.size
+        chi2 = float(np.sum((part / sigma) ** 2))
+        significance = (chi2 - n_points) / np.sqrt(2.0 * n_points)
+        if significance > UNEXPLAINED_NSIGMA:
+            mean = {"linearity": getattr(observables.linearity, "mean_e", None),
+                    "ptc": getattr(observables.ptc, "mean_e", None)}.get(key)
+            dependence = None
+            if mean is not None and mean.size > 3:
+                dependence = _flux_dependence(mean, part, sigma, np.zeros(mean.size, int))
+            out.append({"observable": key, "axis": None, "parity": None,
+                        "flux_dependence": dependence, "significance": float(significance)})
+    return out

@@ -27,7 +27,8 @@ from .spot_model import FLUX_SCALE, SpotForwardModel
 
 __all__ = ["SizeTable", "LinearityTable", "CorrelationTable", "PTCTable", "Observables",
            "matched_profile", "observables_from_sizes", "observables_from_images",
-           "flat_observables", "ptc_observable", "FLUX_SCALE"]
+           "flat_observables", "ptc_observable", "lamp_error_floor", "bf_scale_error",
+           "FLUX_SCALE"]
 
 def _column(values, name, n=None, positive=False):
     array = np.asarray(values, dtype=float).ravel()
@@ -60,6 +61,9 @@ class SizeTable:
     colour : ndarray (n,) or None
         Colour of each entry (magnitudes), for the size-colour candidate.
     label : str
+    exposure : ndarray of int (n,) or None
+        Exposure each entry was measured on, when known: the held-out split
+        (`bfpsf.diagnosis.loop.split_observables`) keeps whole exposures apart.
     """
 
     peak_e: np.ndarray
@@ -70,6 +74,7 @@ class SizeTable:
     group: np.ndarray = None
     colour: np.ndarray = None
     label: str = ""
+    exposure: np.ndarray = None
 
     def __post_init__(self):
         n = np.size(self.peak_e)
@@ -83,6 +88,12 @@ class SizeTable:
         object.__setattr__(self, "group", np.unique(group, return_inverse=True)[1])
         if self.colour is not None:
             object.__setattr__(self, "colour", _column(self.colour, "colour", n))
+        if self.exposure is not None:
+            exposure = np.asarray(self.exposure).ravel()
+            if exposure.size != n:
+                msg = f"exposure must have {n} values, got {exposure.size}"
+                raise BFPSFInputError(msg, exposure.size)
+            object.__setattr__(self, "exposure", exposure.astype(int))
         if n < 3:
             msg = f"a size table needs at least 3 entries, got {n}"
             raise BFPSFInputError(msg, n)
@@ -94,6 +105,16 @@ class SizeTable:
     def __len__(self):
         return self.peak_e.size
 
+    def subset(self, rows):
+        """The table restricted to ``rows`` (boolean mask or indices)."""
+        def pick(values):
+            return None if values is None else np.asarray(values)[rows]
+
+        return SizeTable(self.peak_e[rows], self.sigma_x[rows], self.sigma_y[rows],
+                         self.sigma_x_err[rows], self.sigma_y_err[rows], group=self.group[rows],
+                         colour=pick(self.colour), label=self.label,
+                         exposure=pick(self.exposure))
+
 
 @dataclass(frozen=True)
 class LinearityTable:
@@ -103,11 +124,16 @@ class LinearityTable:
     ----------
     exptime : ndarray (n,), s
     mean_e, mean_err_e : ndarray (n,), e-
+        ``mean_err_e`` includes the error floor.
+    error_floor : float
+        Relative error added in quadrature to the shot noise of each mean (lamp flicker,
+        `lamp_error_floor`); reported by the loop. Default 0.
     """
 
     exptime: np.ndarray
     mean_e: np.ndarray
     mean_err_e: np.ndarray
+    error_floor: float = 0.0
 
     def __post_init__(self):
         n = np.size(self.exptime)
@@ -283,11 +309,14 @@ def _intercepts(table):
     return px[1], py[1]
 
 
-def observables_from_sizes(sizes, shifts, *, area=None, beta=None, measure="moments", phases=3,
-                           linearity=None, correlations=None, meta=None, ptc=None):
+def observables_from_sizes(sizes, shifts, *, area=None, area_err=None, beta=None,
+                           measure="moments", phases=3, linearity=None, correlations=None,
+                           meta=None, ptc=None):
     """Observables for a size table and a set of boundary shifts (the G15 prediction).
 
     The model spot is matched to the zero-flux intercepts of the sizes (`matched_profile`).
+    With ``area`` and ``area_err`` (the calibrated a and their errors), the relative error of
+    the predicted BF amplitude (`bf_scale_error`) is kept in ``meta['scale_err']``.
     """
     sigma_x0, sigma_y0 = _intercepts(sizes)
     profile = matched_profile(sigma_x0, sigma_y0, beta=beta, measure=measure)
@@ -295,41 +324,107 @@ def observables_from_sizes(sizes, shifts, *, area=None, beta=None, measure="mome
     meta = dict(meta or {})
     if area is not None:
         meta["area"] = np.asarray(area, dtype=float)
+        if area_err is not None:
+            meta["scale_err"] = bf_scale_error(model, area, area_err, sizes.peak_e)
     return Observables(sizes=sizes, spot_model=model, linearity=linearity,
                        correlations=correlations, meta=meta, ptc=ptc)
 
 
-def _binned_sizes(peak, sigma_x, sigma_y, n_bins, label):
-    """Mean sizes in quantile bins of peak, errors from the scatter in each bin."""
+def _binned_sizes(peak, sigma_x, sigma_y, exposure, n_bins, label):
+    """Mean sizes in quantile bins of peak for each exposure (the same bin edges for all),
+    errors from the scatter in each bin; bins with fewer than 3 stars are left out."""
     edges = np.quantile(peak, np.linspace(0.0, 1.0, n_bins + 1))
     index = np.clip(np.searchsorted(edges, peak, side="right") - 1, 0, n_bins - 1)
     rows = []
-    for k in range(n_bins):
-        members = index == k
-        if members.sum() < 3:
-            continue
-        root_n = np.sqrt(members.sum())
-        rows.append((peak[members].mean(), sigma_x[members].mean(), sigma_y[members].mean(),
-                     sigma_x[members].std(ddof=1) / root_n, sigma_y[members].std(ddof=1) / root_n))
+    for image in np.unique(exposure):
+        for k in range(n_bins):
+            members = (index == k) & (exposure == image)
+            if members.sum() < 3:
+                continue
+            root_n = np.sqrt(members.sum())
+            rows.append((peak[members].mean(), sigma_x[members].mean(), sigma_y[members].mean(),
+                         sigma_x[members].std(ddof=1) / root_n,
+                         sigma_y[members].std(ddof=1) / root_n, image))
     if len(rows) < 3:
         msg = f"only {len(rows)} peak bins hold 3 or more stars: too few to diagnose"
         raise BFPSFInputError(msg, len(rows))
     rows = np.array(rows)
-    return SizeTable(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], label=label)
+    return SizeTable(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], label=label,
+                     exposure=rows[:, 5].astype(int))
+
+
+def bf_scale_error(spot_model, area, area_err, peaks_e, *, n_draws=8, seed=0):
+    """Relative error of the predicted BF slope from the errors of the area coefficients.
+
+    The a(dx, dy) are drawn within their errors, solved into shifts
+    (`bfpsf.calibration.coefficients.solve_boundary_shifts`) and the model spot's size change
+    between the faintest and brightest peak recomputed; the rms of its ratio to the nominal
+    one, averaged over X and Y. The loop gives the size block a common scale within this
+    error (a nuisance with a Gaussian prior): the prediction is no better than its flats.
+    """
+    from ..calibration.coefficients import solve_boundary_shifts
+    from ..errors import BFPSFError
+
+    area, area_err = np.asarray(area, float), np.asarray(area_err, float)
+    if not np.any(area_err > 0):
+        return 0.0
+    peaks = np.array([np.min(peaks_e), np.max(peaks_e)])
+    nominal = np.array([np.diff(v)[0] for v in spot_model.sizes(peaks)])
+    rng = np.random.default_rng(seed)
+    ratios = []
+    for _ in range(int(n_draws)):
+        draw = area + rng.standard_normal(area.shape) * area_err
+        try:
+            shifts = solve_boundary_shifts(draw, n_monte_carlo=0).shifts
+        except BFPSFError:
+            continue
+        sizes = spot_model.sizes(peaks, shifts=shifts)
+        ratios.append(np.array([np.diff(v)[0] for v in sizes]) / nominal)
+    if len(ratios) < 3:
+        return 0.0
+    return float(np.mean(np.std(np.array(ratios), axis=0, ddof=1)))
+
+
+def lamp_error_floor(exptime, mean_e, shot_e):
+    """Relative error floor of flat means from their scatter (lamp flicker), dimensionless.
+
+    Real lamps vary by about 0.1 % from exposure to exposure, hundreds of times the shot noise
+    of a large flat's mean. The floor f is the value that makes the scatter of the means about
+    a quadratic in exposure time consistent with sqrt(shot^2 + (f mean)^2) (chi2 / dof = 1);
+    0 when the shot noise already explains it. A quadratic, so that a smooth non-linearity
+    (which the loop tests) does not enter the floor.
+    """
+    from scipy.optimize import brentq
+
+    exptime, mean_e, shot_e = (np.asarray(v, float) for v in (exptime, mean_e, shot_e))
+    dof = exptime.size - 3
+    if dof < 2:
+        return 0.0
+
+    def excess(floor):
+        sigma = np.hypot(shot_e, floor * mean_e)
+        fit = np.polyval(np.polyfit(exptime, mean_e, 2, w=1.0 / sigma), exptime)
+        return float(np.sum(((mean_e - fit) / sigma) ** 2)) / dof - 1.0
+
+    if excess(0.0) <= 0:
+        return 0.0
+    return float(brentq(excess, 0.0, 1.0, xtol=1e-7))
 
 
 def flat_observables(calibration):
     """Linearity and correlation tables of a `Calibration` (its per-pair PTC table).
 
     The correlations are R(dx, dy) = C(dx, dy) / C(0, 0) of each pair BEFORE the pedestal
-    subtraction, for lags (1, 0) and (0, 1), with error 1 / sqrt(pixel products).
+    subtraction, for lags (1, 0) and (0, 1), with error 1 / sqrt(pixel products). The means'
+    errors are the shot noise plus the lamp-flicker floor (`lamp_error_floor`).
     """
     ptc = calibration.ptc
     used = np.asarray(ptc["used"], bool)
     mean = np.asarray(ptc["mean_e"], float)[used]
-    linearity = LinearityTable(np.asarray(ptc["exptime"], float)[used], mean,
-                               np.sqrt(np.asarray(ptc["var_e"], float)[used]
-                                       / np.asarray(ptc["npix"], float)[used]))
+    exptime = np.asarray(ptc["exptime"], float)[used]
+    shot = np.sqrt(np.asarray(ptc["var_e"], float)[used] / np.asarray(ptc["npix"], float)[used])
+    floor = lamp_error_floor(exptime, mean, shot)
+    linearity = LinearityTable(exptime, mean, np.hypot(shot, floor * mean), error_floor=floor)
     correlations = None
     if calibration.covariances_adu is not None:
         cov = np.asarray(calibration.covariances_adu, float)[used]
@@ -393,7 +488,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
 
     The flats are calibrated (`bfpsf.calibrate`), the sources of every image measured
     (`bfpsf.measure.sources.measure_sources`, unflagged sources only) and their sizes averaged
-    in ``n_bins`` quantile bins of peak; the spot model is matched to the zero-flux intercept
+    in ``n_bins`` quantile bins of peak for each image (rows labelled by exposure, for the
+    held-out split); the spot model is matched to the zero-flux intercept
     (a Moffat of index ``beta``, or a Gaussian). ``fit_b`` is passed to `bfpsf.calibrate`
     (False for a few small flats, whose b term is unconstrained).
 
@@ -412,21 +508,28 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
         reason = cal.parameters.get("shifts_failure", "not solved")
         msg = f"the calibration has no boundary shifts ({reason})"
         raise BFPSFInputError(msg)
+    from astropy.stats import sigma_clipped_stats
+
     gain = cal.gain if gain is None else gain
-    peaks, sigma_x, sigma_y = [], [], []
-    pixels, tables = [], []
-    for path in images:
+    peaks, sigma_x, sigma_y, exposure = [], [], [], []
+    pixels, tables, sky_noise = [], [], []
+    for index, path in enumerate(images):
         with fits.open(path) as hdus:
-            data = np.asarray(hdus[0].data, float)
-        table = measure_sources(data * gain)
-        pixels.append(data * gain)
+            data = np.asarray(hdus[0].data, float) * gain
+        table = measure_sources(data)
+        # the sky left in the image (level and noise), for the stacked residual
+        _, sky, noise = sigma_clipped_stats(data, sigma=3.0, maxiters=10)
+        pixels.append(data - sky)
+        sky_noise.append(noise)
         tables.append(table)
         good = np.asarray(table["flags"]) == 0
         peaks.append(np.asarray(table["peak_e"], float)[good])
         sigma_x.append(np.asarray(table["sigma_x"], float)[good])
         sigma_y.append(np.asarray(table["sigma_y"], float)[good])
-    peaks, sigma_x, sigma_y = (np.concatenate(v) for v in (peaks, sigma_x, sigma_y))
-    sizes = _binned_sizes(peaks, sigma_x, sigma_y, n_bins, f"{len(images)} images")
+        exposure.append(np.full(good.sum(), index))
+    peaks, sigma_x, sigma_y, exposure = (np.concatenate(v) for v in
+                                         (peaks, sigma_x, sigma_y, exposure))
+    sizes = _binned_sizes(peaks, sigma_x, sigma_y, exposure, n_bins, f"{len(images)} images")
     linearity, correlations = flat_observables(cal)
     meta = {"flats": len(list(flats)), "images": len(list(images)), "gain": float(gain),
             "n_sources": int(peaks.size)}
@@ -436,15 +539,17 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
         # e.g. a calibration read from a file without per-pair covariances: said, not hidden
         ptc = None
         meta["ptc_unavailable"] = str(error)
-    observables = observables_from_sizes(sizes, cal.shifts, area=cal.a, beta=beta,
+    observables = observables_from_sizes(sizes, cal.shifts, area=cal.a, area_err=cal.a_err,
+                                         beta=beta,
                                          linearity=linearity, correlations=correlations,
                                          meta=meta, ptc=ptc)
     from ..model.psf import FluxDependentPSF
     from .star_residual import stacked_star_residual
 
     psf = FluxDependentPSF.from_galsim(observables.spot_model.profile, cal.shifts)
+    # sky-subtracted images; the noise per pixel is the sky's (read noise included)
     star = stacked_star_residual(pixels, tables, psf, half_size=min(psf.half_size, 7),
-                                 noise_e=float(cal.noise_e))
+                                 noise_e=float(np.median(sky_noise)))
     if star is not None:
         observables.meta["star_residual"] = star
         observables.meta["residual_images"] = {"stars - P(F), stacked / F": star["image"]}

@@ -149,7 +149,8 @@ def observables_from_tables(correlations, sizes, *, kind=None, gain=None, measur
     meta = {"correlations": str(correlations), "sizes": str(sizes), "kind": kind,
             "measure": measure, "shift_solution": solution, "area_err": measured.area_err,
             "gain": gain, "corrected": corrected}
-    return observables_from_sizes(table, solution.shifts, area=measured.area, measure=measure,
+    return observables_from_sizes(table, solution.shifts, area=measured.area,
+                                  area_err=measured.area_err, measure=measure,
                                   phases=phases, meta=meta)
 
 
