@@ -21,6 +21,8 @@ File layout (schema version `SCHEMA_VERSION`)::
     PTC          per-pair table (`bfpsf.calibration.ptc.ptc_table` columns and more)
     LINEARITY    exptime, mean_adu, frac_residual, used
     INPUTS       input file names;  PARAMS  key / JSON value of the calibrate() parameters
+    REFINE       (optional) one JSON string: the closed loop's refinement and its provenance
+                 (`bfpsf.diagnosis.refine`)
 """
 
 import json
@@ -93,6 +95,9 @@ class Calibration:
         Input flats.
     parameters : dict
         Parameters of `bfpsf.calibrate` (JSON-serialisable).
+    refinement : dict
+        Empty, or what the closed loop folded into this calibration and how, with the data it
+        came from (`bfpsf.diagnosis.refine.refine_calibration`; JSON-serialisable).
     bfpsf_version : str
     schema_version : int
     """
@@ -122,6 +127,7 @@ class Calibration:
     npix: np.ndarray = None
     inputs: tuple = ()
     parameters: dict = field(default_factory=dict)
+    refinement: dict = field(default_factory=dict)
     bfpsf_version: str = __version__
     schema_version: int = SCHEMA_VERSION
 
@@ -188,7 +194,7 @@ class Calibration:
             "units": {"gain": "electron/adu", "noise_e": "electron", "a": "1/electron",
                       "turnoff_e": "electron", "pedestal": "dimensionless"},
             "shifts_solved": self.shifts is not None,
-            "parameters": dict(self.parameters),
+            "parameters": dict(self.parameters), "refinement": dict(self.refinement),
             "inputs": list(self.inputs), "bfpsf_version": self.bfpsf_version,
             "schema_version": self.schema_version,
         }
@@ -287,6 +293,8 @@ class Calibration:
         if not self.parameters:
             params = Table({"key": np.array([], dtype="U1"), "value": np.array([], dtype="U1")})
         hdus.append(_table_hdu(params, "PARAMS"))
+        if self.refinement:
+            hdus.append(_table_hdu(Table({"json": [json.dumps(self.refinement)]}), "REFINE"))
         fits.HDUList(hdus).writeto(path, overwrite=overwrite)
 
     @classmethod
@@ -344,6 +352,8 @@ class Calibration:
                 shifts_north_err=image("SHIFT_N_ERR"), shifts_east_err=image("SHIFT_E_ERR"),
                 shift_fit=shift_fit, covariances_adu=image("COV"), npix=image("NPIX"),
                 inputs=inputs, parameters=parameters,
+                refinement=(json.loads(str(Table.read(hdul["REFINE"])["json"][0]))
+                            if "REFINE" in names else {}),
                 bfpsf_version=str(header["BFVERSIO"]),
                 schema_version=int(header["BFSCHEMA"]))
 

@@ -68,9 +68,18 @@ def run(args):
         msg = f"{args.calib} has no boundary shifts (calibration solved without them)"
         raise BFPSFInputError(msg, args.calib)
     gain = float(calibration.gain)
+    # a calibration refined by `bfpsf diagnose --output-calib`: its linearity correction and
+    # build-up (the shifts are already refined)
+    refinement = calibration.refinement
+    linearity_c = float(refinement.get("linearity_c_per_1e5") or 0.0)
+    buildup = refinement.get("buildup_steps")
     images, positions, skies, per_image = [], [], [], []
     for path in args.images:
         image_e = read_image(path)[0] * gain
+        if linearity_c:
+            from ..diagnosis.refine import linearise
+
+            image_e = linearise(image_e, linearity_c)
         _, background, _ = sigma_clipped_stats(image_e[np.isfinite(image_e)], sigma=3.0)
         image_e = image_e - background
         saturation_e = None if args.saturation is None else args.saturation * gain - background
@@ -83,7 +92,8 @@ def run(args):
     result = fit_psf(images, positions, calibration.shifts, oversampling=args.oversampling,
                      size=args.size, read_noise=float(calibration.noise_e),
                      sky_e=skies, include_bf=args.include_bf,
-                     max_iterations=args.max_iterations)
+                     max_iterations=args.max_iterations,
+                     **({"mode": "exact", "buildup_steps": int(buildup)} if buildup else {}))
     psf = result.psf
     psf.image_gain = gain
     psf.calibration = Path(args.calib).name
@@ -102,7 +112,8 @@ def run(args):
                "flux_range_e": [float(np.min(result.stars["flux_fit"][used])),
                                 float(np.max(result.stars["flux_fit"][used]))]
                if np.any(used) else None,
-               "images": per_image}
+               "images": per_image,
+               "refinement_applied": sorted(refinement.get("applied", {}))}
     if args.json:
         write_json(args.json, summary)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "

@@ -267,6 +267,21 @@ def _summary(problem, observables, model):
     return out
 
 
+def json_ready(value):
+    """A JSON-serialisable copy: numpy scalars and arrays to Python, NaN and inf to None."""
+    if isinstance(value, dict):
+        return {str(key): json_ready(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [json_ready(item) for item in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
 @dataclass(frozen=True)
 class DiagnosisResult:
     """Outcome of the closed loop.
@@ -331,20 +346,7 @@ class DiagnosisResult:
 
     def to_json_dict(self):
         """The ``--json`` summary: residual_before, candidates, selected, residual_after (+)."""
-        def clean(value):
-            if isinstance(value, dict):
-                return {key: clean(item) for key, item in value.items()}
-            if isinstance(value, (list, tuple, np.ndarray)):
-                return [clean(item) for item in value]
-            if isinstance(value, (float, np.floating)):
-                return float(value) if np.isfinite(value) else None
-            if isinstance(value, np.integer):
-                return int(value)
-            if isinstance(value, np.bool_):
-                return bool(value)
-            return value
-
-        return clean({"residual_before": self.residual_before, "candidates": self.candidates,
+        return json_ready({"residual_before": self.residual_before, "candidates": self.candidates,
                       "selected": self.selected, "residual_after": self.residual_after,
                       "parameters": self.parameters, "threshold": self.threshold,
                       "ambiguous": self.ambiguous,
@@ -696,6 +698,9 @@ def _with_heldout(result, state, heldout, catalogue, fraction):
     sizes = heldout.sizes
     holdout = {"fraction": float(fraction),
                "sizes_split_by": heldout.meta.get("holdout_sizes_split_by"),
+               "heldout_exposures": (sorted(np.unique(sizes.exposure).tolist())
+                                     if sizes is not None and sizes.exposure is not None
+                                     else None),
                "n_fit": int(result.residual_after["n"]), "n_heldout": int(after["n"]),
                "heldout_size_entries": 0 if sizes is None else len(sizes)}
     # unexplained: judged on the held-out data with the confirmed effects only

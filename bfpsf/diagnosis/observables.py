@@ -532,7 +532,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
     sizes = _binned_sizes(peaks, sigma_x, sigma_y, exposure, n_bins, f"{len(images)} images")
     linearity, correlations = flat_observables(cal)
     meta = {"flats": len(list(flats)), "images": len(list(images)), "gain": float(gain),
-            "n_sources": int(peaks.size)}
+            "n_sources": int(peaks.size), "calibration": cal,
+            "image_paths": [str(path) for path in images]}
     try:
         ptc = ptc_observable(cal)
     except (BFPSFInputError, BFPSFValueError) as error:
