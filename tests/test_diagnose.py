@@ -402,13 +402,16 @@ def test_cli_images_mode_ptc_and_star_residual(tmp_path, star_field):
     _, stars, _ = star_field
     fits.PrimaryHDU(stars / 1.5).writeto(tmp_path / "stars.fits")
     code = main(["diagnose", "--flats", *paths, "--images", str(tmp_path / "stars.fits"),
-                 "--no-fit-b", "--maxlag", "3", "--bins", "5", "--report",
+                 "--no-fit-b", "--maxlag", "3", "--bins", "6", "--report",
                  str(tmp_path / "report"), "--json", str(tmp_path / "d.json")])
     assert code == 0
     data = json.loads((tmp_path / "d.json").read_text())
-    for key in ("residual_before", "candidates", "selected", "residual_after"):
+    for key in ("residual_before", "candidates", "selected", "residual_after", "unexplained"):
         assert key in data
     assert "ptc_chi2_per_point" in data["residual_before"]
+    # one image: the held-out half is every other peak bin, with the same summary keys
+    assert data["holdout"]["sizes_split_by"] == "alternate peak bins"
+    assert set(data["residual_after_heldout"]) == set(data["residual_after"])
     star = data["star_residual"]
     # unflagged sources only (measure_sources flags some of the 64 bright, close stars)
     assert 20 <= star["n_stars"] <= 64

@@ -164,6 +164,9 @@ def test_refined_calibration_round_trip(flat_sets, tmp_path):
                     "gain_nonlinearity": {"names": ["c"], "value": [-0.01], "error": [0.001]},
                     "flux_diffusion": {"names": ["d"], "value": [0.01], "error": [0.001]}},
         nuisance={"calibration_scale": {"value": 0.1, "error": 0.05, "prior": 0.2}},
+        folded={"names": ["xy_anisotropy", "gain_nonlinearity"],
+                "effects": {"xy_anisotropy": [0.5], "gain_nonlinearity": [-0.01]},
+                "scale_nuisance": 0.1},
         confirmed={"calibration_scale (nuisance)": True, "xy_anisotropy": True,
                    "gain_nonlinearity": True, "flux_diffusion": False})
     refined = refine_calibration(cal, result, provenance={"images": ["a.fits"]})

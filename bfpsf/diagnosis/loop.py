@@ -50,6 +50,9 @@ from .catalogue import CATALOGUE
 __all__ = ["DiagnosisResult", "diagnose", "DEFAULT_THRESHOLD", "slope_residuals", "split_observables",
            "describe_unexplained", "UNEXPLAINED_NSIGMA"]
 
+#: Families `bfpsf.diagnosis.refine` folds into a calibration (second order: when positive).
+_FOLDABLE = ("calibration_scale", "xy_anisotropy", "gain_nonlinearity")
+
 #: Delta BIC below which a candidate is added (Kass & Raftery 1995: "very strong").
 DEFAULT_THRESHOLD = -10.0
 
@@ -312,6 +315,8 @@ class DiagnosisResult:
         held-out data, the effects and global nuisances fixed at their in-sample values and
         only the local nuisances (intercepts, linearity zero point and slope, PTC noise and
         gain) refitted.
+    residual_physical_heldout : dict or None
+        ``residual_physical`` on the held-out data.
     confirmed : dict
         Selected effect -> True when adding it lowered the held-out chi2 (in the order
         selected), False ("not confirmed") otherwise. Empty without a split.
@@ -320,6 +325,9 @@ class DiagnosisResult:
     unexplained : list of dict
         Significant residuals no confirmed effect explains: {observable, axis, parity,
         flux_dependence, significance} (`describe_unexplained`).
+    folded : dict
+        The joint fit of the selected effects a calibration can hold (``names``, ``effects``:
+        name -> values, ``scale_nuisance``), for `bfpsf.diagnosis.refine`.
     ptc_curves : dict
         PTC residuals for the plot (empty without a PTC observable): ``mean_e``,
         ``residual_raw`` (data minus the calibrated sum-rule model, nothing refitted),
@@ -340,9 +348,11 @@ class DiagnosisResult:
     nuisance: dict = field(default_factory=dict)
     residual_before_heldout: dict = None
     residual_after_heldout: dict = None
+    residual_physical_heldout: dict = None
     confirmed: dict = field(default_factory=dict)
     holdout: dict = None
     unexplained: list = field(default_factory=list)
+    folded: dict = field(default_factory=dict)
 
     def to_json_dict(self):
         """The ``--json`` summary: residual_before, candidates, selected, residual_after (+)."""
@@ -353,8 +363,9 @@ class DiagnosisResult:
                       "residual_physical": self.residual_physical, "nuisance": self.nuisance,
                       "residual_before_heldout": self.residual_before_heldout,
                       "residual_after_heldout": self.residual_after_heldout,
+                      "residual_physical_heldout": self.residual_physical_heldout,
                       "confirmed": self.confirmed, "holdout": self.holdout,
-                      "unexplained": self.unexplained})
+                      "unexplained": self.unexplained, "folded": self.folded})
 
 
 def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, max_rounds=4,
@@ -497,7 +508,11 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
     physical_names = sorted(fixed)
     residual_physical = None
     if physical_names:
-        residual_physical = _summary(problem, observables, fit(physical_names)[3])
+        # parameter-free: the physical values, global nuisances (the size scale) at zero
+        offset = sum(fixed[name] for name in physical_names)
+        local = np.delete(problem.nuisance, list(problem.global_columns), axis=1)
+        model_physical = _wls(problem.residual - offset, problem.sigma, local)[3] + offset
+        residual_physical = _summary(problem, observables, model_physical)
         residual_physical["effects"] = physical_names
     params, covariance, _, model_after = fit(selected)
     parameters = {}
@@ -544,12 +559,24 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
             "value": float(params[column]),
             "error": float(np.sqrt(abs(covariance[column, column]))),
             "prior": float(observables.meta["scale_err"])}
+    # what a calibration can hold (`bfpsf.diagnosis.refine`), refitted jointly without the
+    # rest: a fitted second order goes into the build-up only when positive (the build-up's
+    # own second order strengthens BF); otherwise the others are refitted without it
+    foldable = [name for name in selected if family(name) in _FOLDABLE
+                or (family(name) == "second_order" and parameters[name]["value"][0] > 0)]
+    values = fit(foldable)[0]
+    folded = {"names": foldable,
+              "effects": {name: np.asarray(value).tolist() for name, value in
+                          _effect_values(values, problem, foldable, fixed, by_name,
+                                         family).items()},
+              "scale_nuisance": (float(values[problem.global_columns[0]])
+                                 if problem.global_columns else None)}
     result = DiagnosisResult(residual_before=_summary(problem, observables, model_before),
                              candidates=candidates, selected=selected,
                              residual_after=_summary(problem, observables, model_after),
                              parameters=parameters, threshold=float(threshold), curves=curves,
                              ambiguous=ambiguous, residual_physical=residual_physical,
-                             ptc_curves=ptc_curves, nuisance=nuisance)
+                             ptc_curves=ptc_curves, nuisance=nuisance, folded=folded)
     # for the held-out evaluation: the effect and global-nuisance values of each step, the
     # first one the bare prediction
     steps = [{"names": [], "global": np.zeros(len(problem.global_columns)), "effects": {},
@@ -694,6 +721,15 @@ def _with_heldout(result, state, heldout, catalogue, fraction):
     names += result.selected
     confirmed = {name: chi2[k + 1] < chi2[k] for k, name in enumerate(names)}
     before = _summary(evaluations[0][0], heldout, evaluations[0][1])
+    physical = None
+    if result.residual_physical:
+        names = result.residual_physical["effects"]
+        step = {"names": names, "global": np.zeros(len(state["problem"].global_columns)),
+                "effects": {name: np.asarray(state["by_name"][state["family"](name)]
+                                             .physical_value, float) for name in names}}
+        problem, model = _evaluate(state, heldout, catalogue, step)
+        physical = _summary(problem, heldout, model)
+        physical["effects"] = names
     after = _summary(evaluations[-1][0], heldout, evaluations[-1][1])
     sizes = heldout.sizes
     holdout = {"fraction": float(fraction),
@@ -712,6 +748,7 @@ def _with_heldout(result, state, heldout, catalogue, fraction):
     unexplained = describe_unexplained(problem, heldout, model)
     return dataclasses.replace(result, residual_before_heldout=before,
                                residual_after_heldout=after, confirmed=confirmed,
+                               residual_physical_heldout=physical,
                                holdout=holdout, unexplained=unexplained)
 
 

@@ -43,6 +43,8 @@ _NOT_APPLIED = {
     "sum_rule_tail": "a change of a(0, 0) beyond the measured lags: recalibrate with more lags",
     "chromatic_size": "a colour term of the size, not of the brighter-fatter response",
     "readout_pedestal": "the calibration already subtracts the readout pedestal",
+    "second_order": "a negative second order is not the build-up's (which strengthens BF); "
+                    "the scale and anisotropy were refitted without it",
 }
 
 
@@ -98,19 +100,25 @@ def refine_calibration(calibration, result, *, provenance=None):
     applied, not_applied, parameters = {}, {}, {}
     linearity_c, buildup = 0.0, None
     scale = 0.0
-    nuisance = result.nuisance.get("calibration_scale")
-    if nuisance and result.confirmed.get("calibration_scale (nuisance)", True):
-        scale += nuisance["value"]
+    folded = result.folded or {"names": [], "effects": {}, "scale_nuisance": None}
+    nuisance = folded.get("scale_nuisance")
+    if nuisance is not None and result.confirmed.get("calibration_scale (nuisance)", True):
+        scale += nuisance
         applied["calibration_scale (nuisance)"] = "shifts times (1 + s)"
-        parameters["calibration_scale (nuisance)"] = nuisance
+        parameters["calibration_scale (nuisance)"] = dict(result.nuisance["calibration_scale"],
+                                                          value=nuisance)
     for name in result.selected:
         family = name.split("@")[0]
-        entry = result.parameters[name]
-        parameters[name] = entry
+        parameters[name] = result.parameters[name]
         if not result.confirmed.get(name, True):
             not_applied[name] = "not confirmed on the held-out data"
             continue
-        value = entry["value"]
+        if name not in folded["names"]:
+            not_applied[name] = _NOT_APPLIED.get(family, "no place in the calibration")
+            continue
+        # the values of the joint fit of what the calibration holds
+        value = folded["effects"][name]
+        parameters[name] = dict(parameters[name], folded_value=value)
         if family == "calibration_scale":
             scale += value[0]
             applied[name] = "shifts times (1 + s)"
@@ -123,8 +131,6 @@ def refine_calibration(calibration, result, *, provenance=None):
         elif family == "second_order":
             buildup = BUILDUP_STEPS
             applied[name] = f"build-up of the shifts integrated in {BUILDUP_STEPS} steps"
-        else:
-            not_applied[name] = _NOT_APPLIED.get(family, "no place in the calibration")
     if scale:
         shifts = shifts.scaled(1.0 + scale)
     refinement = {"effects": list(result.selected), "parameters": parameters,
