@@ -330,11 +330,16 @@ def observables_from_sizes(sizes, shifts, *, area=None, area_err=None, beta=None
                        correlations=correlations, meta=meta, ptc=ptc)
 
 
-def _binned_sizes(peak, sigma_x, sigma_y, exposure, n_bins, label):
-    """Mean sizes in quantile bins of peak for each exposure (the same bin edges for all),
-    errors from the scatter in each bin; bins with fewer than 3 stars are left out."""
-    edges = np.quantile(peak, np.linspace(0.0, 1.0, n_bins + 1))
-    index = np.clip(np.searchsorted(edges, peak, side="right") - 1, 0, n_bins - 1)
+def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label):
+    """Mean peak and sizes in quantile bins of flux for each exposure (the same bin edges for
+    all), errors from the scatter in each bin; bins with fewer than 3 stars are left out.
+
+    Bins are in total flux, not in measured peak: at one flux the peak of a pixelised star
+    depends on its sub-pixel phase (by 30 % for a 3 px FWHM), and so does its size, so bins
+    of measured peak would select phases and bias the sizes with the peak.
+    """
+    edges = np.quantile(flux, np.linspace(0.0, 1.0, n_bins + 1))
+    index = np.clip(np.searchsorted(edges, flux, side="right") - 1, 0, n_bins - 1)
     rows = []
     for image in np.unique(exposure):
         for k in range(n_bins):
@@ -488,7 +493,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
 
     The flats are calibrated (`bfpsf.calibrate`), the sources of every image measured
     (`bfpsf.measure.sources.measure_sources`, unflagged sources only) and their sizes averaged
-    in ``n_bins`` quantile bins of peak for each image (rows labelled by exposure, for the
+    in ``n_bins`` quantile bins of flux for each image (rows labelled by exposure, for the
     held-out split); the spot model is matched to the zero-flux intercept
     (a Moffat of index ``beta``, or a Gaussian). ``fit_b`` is passed to `bfpsf.calibrate`
     (False for a few small flats, whose b term is unconstrained).
@@ -511,7 +516,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
     from astropy.stats import sigma_clipped_stats
 
     gain = cal.gain if gain is None else gain
-    peaks, sigma_x, sigma_y, exposure = [], [], [], []
+    fluxes, peaks, sigma_x, sigma_y, exposure = [], [], [], [], []
     pixels, tables, sky_noise = [], [], []
     for index, path in enumerate(images):
         with fits.open(path) as hdus:
@@ -523,13 +528,15 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
         sky_noise.append(noise)
         tables.append(table)
         good = np.asarray(table["flags"]) == 0
+        fluxes.append(np.asarray(table["flux_e"], float)[good])
         peaks.append(np.asarray(table["peak_e"], float)[good])
         sigma_x.append(np.asarray(table["sigma_x"], float)[good])
         sigma_y.append(np.asarray(table["sigma_y"], float)[good])
         exposure.append(np.full(good.sum(), index))
-    peaks, sigma_x, sigma_y, exposure = (np.concatenate(v) for v in
-                                         (peaks, sigma_x, sigma_y, exposure))
-    sizes = _binned_sizes(peaks, sigma_x, sigma_y, exposure, n_bins, f"{len(images)} images")
+    fluxes, peaks, sigma_x, sigma_y, exposure = (np.concatenate(v) for v in
+                                                 (fluxes, peaks, sigma_x, sigma_y, exposure))
+    sizes = _binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
+                          f"{len(images)} images")
     linearity, correlations = flat_observables(cal)
     meta = {"flats": len(list(flats)), "images": len(list(images)), "gain": float(gain),
             "n_sources": int(peaks.size), "calibration": cal,
