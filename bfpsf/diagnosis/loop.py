@@ -1,6 +1,6 @@
 """The closed loop: residual -> missing effect -> added -> before / after.
 
-`diagnose` fits the base model to the observables (`bfpsf.diagnosis.observables`, `bfpsf.diagnosis.catalogue`), looks at what
+`diagnose` fits the base model to the observables (`bfpsf.diagnosis.observables`), looks at what
 is left, and tests every candidate of the catalogue: each candidate's template is fitted
 jointly with the base model's nuisance parameters and the effects already selected, by weighted
 least squares with the observables' errors. Its statistic is the chi-square improvement
@@ -398,7 +398,7 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
     if holdout_fraction:
         fit_part, heldout = split_observables(observables, holdout_fraction)
         result, state = _run_loop(fit_part, catalogue, threshold, max_rounds, prefer_physical)
-        return _with_heldout(result, state, heldout, catalogue, holdout_fraction)
+        return _with_heldout(result, state, heldout, holdout_fraction)
     result, state = _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical)
     return _with_unexplained(result, state, observables)
 
@@ -689,7 +689,7 @@ def split_observables(observables, fraction=0.5):
                  for part in ("fit", "heldout"))
 
 
-def _evaluate(state, observables, catalogue, step):
+def _evaluate(state, observables, step):
     """Residual model on ``observables`` with one step's effects and global nuisances fixed
     at their in-sample values and the local nuisances refitted: (problem, model)."""
     problem = _build_problem(observables)
@@ -706,7 +706,7 @@ def _evaluate(state, observables, catalogue, step):
     return problem, model + offset
 
 
-def _with_heldout(result, state, heldout, catalogue, fraction):
+def _with_heldout(result, state, heldout, fraction):
     """The result with the held-out residuals, the confirmation of each selected effect and
     the unexplained residuals (judged on the held-out data)."""
     import dataclasses
@@ -714,7 +714,7 @@ def _with_heldout(result, state, heldout, catalogue, fraction):
     chi2 = []
     evaluations = []
     for step in state["steps"]:
-        problem, model = _evaluate(state, heldout, catalogue, step)
+        problem, model = _evaluate(state, heldout, step)
         evaluations.append((problem, model))
         chi2.append(float((((problem.residual - model) / problem.sigma) ** 2).sum()))
     names = ["calibration_scale (nuisance)"] * (len(state["steps"]) - 1 - len(result.selected))
@@ -727,7 +727,7 @@ def _with_heldout(result, state, heldout, catalogue, fraction):
         step = {"names": names, "global": np.zeros(len(state["problem"].global_columns)),
                 "effects": {name: np.asarray(state["by_name"][state["family"](name)]
                                              .physical_value, float) for name in names}}
-        problem, model = _evaluate(state, heldout, catalogue, step)
+        problem, model = _evaluate(state, heldout, step)
         physical = _summary(problem, heldout, model)
         physical["effects"] = names
     after = _summary(evaluations[-1][0], heldout, evaluations[-1][1])
@@ -744,7 +744,7 @@ def _with_heldout(result, state, heldout, catalogue, fraction):
     step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
     if not confirmed.get("calibration_scale (nuisance)", True):
         step = dict(step, **{"global": np.zeros_like(step["global"])})
-    problem, model = _evaluate(state, heldout, catalogue, step)
+    problem, model = _evaluate(state, heldout, step)
     unexplained = describe_unexplained(problem, heldout, model)
     return dataclasses.replace(result, residual_before_heldout=before,
                                residual_after_heldout=after, confirmed=confirmed,
