@@ -12,7 +12,7 @@ not stored. The calibration file is not needed to read the product back.
 import numpy as np
 
 from .errors import BFPSFValueError
-from .files import open_product, refuse_overwrite
+from .files import open_product, refuse_overwrite, write_fits
 
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 
@@ -66,7 +66,7 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
         table = fits.ImageHDU(np.asarray(psf.bf_table, dtype=np.float64), name="BFTABLE")
         table.header["BUNIT"] = ("1/(pixel electron)", "R[P0] per unit flux squared")
         hdus.append(table)
-    fits.HDUList(hdus).writeto(path, overwrite=overwrite)
+    write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
 
 
 def read_psf(path, *, cls=None, **kwargs):

@@ -1,6 +1,6 @@
 """End-to-end calibration of GalSim SiliconSensor flats against GalSim's own truth.
 
-Truth: `bfpsf.interop.galsim.silicon_area_coefficients`, the pixel-area response to a small
+Truth: `bfpsf.interop.silicon_truth.silicon_area_coefficients`, the pixel-area response to a small
 charge in one pixel of an empty sensor, i.e. the zero-flux a(dx, dy) that the Astier+19 model
 fits (its b term carries the flux dependence of a, which is large in GalSim: a(1, 0) of
 lsst_e2v_50_8 falls by a third between 0 and 1e5 e-).
@@ -23,7 +23,7 @@ import pytest
 
 from bfpsf.calibration import calibrate
 from bfpsf.calibration.ptc import PTCData, fit_ptc, summed_covariance_ptc
-from bfpsf.interop.galsim import silicon_area_coefficients
+from bfpsf.interop.silicon_truth import silicon_area_coefficients
 from bfpsf.validation.simulate_flats import simulate_flats
 
 GAIN = 1.5

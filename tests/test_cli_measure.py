@@ -95,7 +95,7 @@ def test_slope_psf_model_residual_removes_the_bf_slope(tmp_path):
     slope left after subtracting the sizes P(F) predicts is zero within errors."""
     import galsim
 
-    from bfpsf.interop.galsim import BFSensor
+    from bfpsf.interop.galsim_sensor import BFSensor
     from bfpsf.model.psf import FluxDependentPSF
     from bfpsf.shifts import BoundaryShifts
 

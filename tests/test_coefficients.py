@@ -1,6 +1,5 @@
 """Boundary shifts from area coefficients (G15 section 6.1): closure, symmetries, errors, data."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,20 +10,17 @@ from scipy.special import expi
 from bfpsf.calibration.coefficients import (_layout, _unit_east, _unit_north, fit_smoothing_model,
                                             non_nearest_mask, solve_boundary_shifts)
 from bfpsf.calibration.measured import read_measured_area
+from bfpsf.data import measured_path
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
 from bfpsf.shifts import BoundaryShifts
 
-# The measured data sets live in shared/ beside the checkout (as in CI).
-MEASURED = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured"
-needs_measured = pytest.mark.skipif(not MEASURED.is_dir(),
-                                    reason=f"measured data folder {MEASURED} not found")
+# The measured data sets ship with the package (bfpsf/data/measured).
 MEASURED_SETS = {
-    "itl3800c002_corr_meas": MEASURED / "lage_BF_Kernel_ITL3800C002"
-                             / "corr_meas_VBB60_7_2_3500flats.txt",
-    "lage_e2v": MEASURED / "lage_Poisson_CCD_measurements" / "e2v_covariances_21oct19.txt",
-    "lage_itl": MEASURED / "lage_Poisson_CCD_measurements" / "itl_covariances_21oct19.txt",
-    "cp_pipe_r22_s11": MEASURED / "lsst_cp_pipe_LSSTCam_R22_S11_amatrix"
-                       / "amatrix_LSSTCam_R22_S11_E2V-CCD250-382.csv",
+    "itl3800c002_corr_meas": measured_path("itl3800c002", "corr_meas_VBB60_7_2_3500flats.txt"),
+    "lage_e2v": measured_path("poisson_ccd", "e2v_covariances_21oct19.txt"),
+    "lage_itl": measured_path("poisson_ccd", "itl_covariances_21oct19.txt"),
+    "cp_pipe_r22_s11": measured_path("cp_pipe_r22_s11",
+                                     "amatrix_LSSTCam_R22_S11_E2V-CCD250-382.csv"),
 }
 
 P0, P1 = -2e-7, -0.8   # f(r) = P0 Ei(P1 r) > 0: repulsion decaying over ~1.3 pixels
@@ -254,7 +250,6 @@ def test_without_errors_no_monte_carlo_is_run():
 
 
 # -- measured data ---------------------------------------------------------------------------
-@needs_measured
 def test_readers_follow_the_package_axis_convention():
     corr = read_measured_area(MEASURED_SETS["itl3800c002_corr_meas"])
     assert corr.table_format == "corr_meas" and corr.area.shape == (6, 6)
@@ -282,7 +277,6 @@ def test_reader_refuses_unknown_tables(tmp_path):
         read_measured_area(path)
 
 
-@needs_measured
 @pytest.mark.parametrize("name", sorted(MEASURED_SETS))
 def test_measured_area_solves_with_symmetries_and_sums_back(name):
     measured = read_measured_area(MEASURED_SETS[name])
@@ -301,7 +295,6 @@ def test_measured_area_solves_with_symmetries_and_sums_back(name):
     assert np.all(np.isfinite(solution.north_err)) and solution.north_err[m, m] > 0
 
 
-@needs_measured
 def test_corr_meas_is_normalised_to_a_zero_truncated_sum():
     """Lage's C00 = Cov00 / V_tot - 1 with V_tot the sum over lags -5..5: the truncated sum rule
     is zero by construction, so the farthest boundaries carry no flux."""
@@ -336,7 +329,7 @@ def test_plot_radial_profile_draws_both_panels():
 @pytest.mark.parametrize("sensor", ["lsst_itl_50_8", "lsst_e2v_50_8"])
 def test_galsim_silicon_sensor_area_gives_physical_boundary_shifts(sensor):
     """GalSim's SiliconSensor a(dx, dy) (independent physics, DESIGN.md) solved for a^X."""
-    from bfpsf.interop.galsim import silicon_area_coefficients
+    from bfpsf.interop.silicon_truth import silicon_area_coefficients
 
     area = silicon_area_coefficients(sensor, maxlag=4)
     solution = solve_boundary_shifts(area, n_monte_carlo=0)

@@ -17,7 +17,8 @@ import pytest
 from bfpsf.calibration.coefficients import solve_boundary_shifts
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
 from bfpsf.measure.moments import adaptive_moments_batch
-from bfpsf.model.redistribution import exact_boundary_density, redistribute
+from bfpsf.model.density import exact_boundary_density
+from bfpsf.model.redistribution import redistribute
 from bfpsf.diagnosis.catalogue import add_shifts, quadrupole_shifts
 from bfpsf.diagnosis.loop import diagnose
 from bfpsf.diagnosis.observables import (CorrelationTable, LinearityTable, SizeTable,
@@ -234,7 +235,7 @@ def test_loop_on_silicon_sensor_null_and_injected_nonlinearity():
     the null selects nothing; the same spots with an injected non-linearity select it."""
     import galsim
 
-    from bfpsf.interop.galsim import silicon_boundary_shifts
+    from bfpsf.interop.silicon_truth import silicon_boundary_shifts
 
     sensor_name = "lsst_itl_50_8"
     truth = silicon_boundary_shifts(sensor_name)

@@ -7,7 +7,8 @@ import pytest
 from scipy.special import exp1
 
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
-from bfpsf.model.redistribution import exact_boundary_density, redistribute
+from bfpsf.model.density import exact_boundary_density
+from bfpsf.model.redistribution import redistribute
 from bfpsf.shifts import BoundaryShifts
 from bfpsf.diagnosis.catalogue import (CATALOGUE, add_shifts, effect_names, get_effect,
                                        quadrupole_shifts)

@@ -67,7 +67,7 @@ def residual_fractions(spots, psf):
 @pytest.fixture(scope="module")
 def flats_limit_shifts():
     from bfpsf.calibration.coefficients import solve_boundary_shifts
-    from bfpsf.interop.galsim import silicon_area_coefficients
+    from bfpsf.interop.silicon_truth import silicon_area_coefficients
 
     area = silicon_area_coefficients(SENSOR, maxlag=4)
     return solve_boundary_shifts(area, n_monte_carlo=0).shifts
@@ -85,7 +85,7 @@ def test_residual_slope_quick(flats_limit_shifts):
     """CI variant: 24 paired spots, P0 = the Moffat convolved with SiliconSensor's diffusion."""
     import galsim
 
-    from bfpsf.interop.galsim import silicon_diffusion_sigma
+    from bfpsf.interop.silicon_truth import silicon_diffusion_sigma
 
     spots = twin_spots(3.5, (1e4, 6e4, 1.2e5), 8, seed=3)
     profile = galsim.Convolve(galsim.Moffat(beta=3.0, fwhm=3.5),
@@ -134,7 +134,7 @@ def test_residual_slope_through_simulated_flats():
 
     from bfpsf.calibration import calibrate
     from bfpsf.calibration.coefficients import solve_boundary_shifts
-    from bfpsf.interop.galsim import silicon_diffusion_sigma
+    from bfpsf.interop.silicon_truth import silicon_diffusion_sigma
     from bfpsf.validation.simulate_flats import simulate_flats
 
     levels = [100.0, *np.linspace(1.5e5 / 20, 1.5e5, 20)]

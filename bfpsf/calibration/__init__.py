@@ -7,24 +7,18 @@ pedestal (`pedestal`), fit the photon transfer curve and the area coefficients a
 (`coefficients`), and return a `~bfpsf.calibration.product.Calibration`.
 """
 
-import importlib
+import os
 
 import numpy as np
 
-from ..errors import BFPSFValueError
+from ..errors import BFPSFCovarianceError, BFPSFInputError, BFPSFValueError
+from ..files import refuse_duplicates
 
 __all__ = ["calibrate"]
 
-
-def _shift_solver():
-    """`solve_boundary_shifts` if the coefficients module is installed, else None."""
-    try:
-        module = importlib.import_module(f"{__name__}.coefficients")
-    except ModuleNotFoundError as error:
-        if error.name != f"{__name__}.coefficients":
-            raise
-        return None
-    return getattr(module, "solve_boundary_shifts", None)
+#: Largest maxlag of the full PTC model: its convolution tensor holds 8 (maxlag + 1)^6 bytes and
+#: the fit's time grows as fast (maxlag 8: 1.3 s; 16: 106 s and 190 MB; 60: 384 GiB).
+MAX_FULL_MODEL_MAXLAG = 12
 
 
 def _progress(iterable, enabled, total, description):
@@ -100,6 +94,11 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
     if ptc_model not in PTC_MODELS:
         msg = f"ptc_model must be one of {PTC_MODELS}, got {ptc_model!r}"
         raise BFPSFValueError(msg, ptc_model)
+    if ptc_model == "full" and maxlag > MAX_FULL_MODEL_MAXLAG:
+        msg = (f"maxlag {maxlag} is too large for the full PTC model: its memory and time grow "
+               f"as (maxlag + 1)^6 ({8 * (maxlag + 1) ** 6 / 2**30:.3g} GiB here); use maxlag "
+               f"<= {MAX_FULL_MODEL_MAXLAG} or the exponential PTC model")
+        raise BFPSFValueError(msg, maxlag)
     _b_mask(fit_b, 1)  # validates fit_b before the work
     if linearity_threshold is None:
         linearity_threshold = DEFAULT_LINEARITY_THRESHOLD
@@ -113,13 +112,29 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
         "n_monte_carlo": int(n_monte_carlo), "seed": int(seed),
     }
 
+    if not isinstance(sources, (str, os.PathLike, np.ndarray)):
+        refuse_duplicates([source for source in sources if isinstance(source, (str, os.PathLike))],
+                          "flat")
     flats = read_flats(sources, exptimes)
+    for flat in flats:
+        if flat.data.shape[0] < 2 * maxlag + 2 or flat.data.shape[1] < 2 * maxlag + 2:
+            msg = (f"flat {flat.name} ({flat.data.shape[1]} x {flat.data.shape[0]} pixels) is too "
+                   f"small for maxlag {maxlag}: give maxlag < {min(flat.data.shape) // 2}")
+            raise BFPSFInputError(msg, flat.name)
+        finite = flat.data[np.isfinite(flat.data)]
+        if finite.size == 0 or np.ptp(finite) == 0:
+            msg = f"flat {flat.name} has zero variance (a constant image), not a flat-field exposure"
+            raise BFPSFInputError(msg, flat.name)
     pairs = pair_flats(flats, mean_tolerance=mean_tolerance)
     covariances, reports = [], []
     for pair in _progress(pairs, progress, len(pairs), "flat pairs"):
         mask, report = pair_mask(pair.flat1, pair.flat2, saturation=saturation)
         covariances.append(pair_covariance(pair.flat1, pair.flat2, mask=mask, maxlag=maxlag,
                                            clip_nsigma=clip_nsigma))
+        if not covariances[-1].var_adu > 0:
+            msg = (f"flats {pair.names[0]} and {pair.names[1]} are identical (their difference "
+                   "has zero variance): a pair needs two exposures")
+            raise BFPSFInputError(msg, pair.names)
         reports.append(report)
     data = stack_pairs(covariances)
 
@@ -142,10 +157,9 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
 
     shifts = north_err = east_err = None
     shift_fit = {}
-    solver = _shift_solver() if solve_shifts else None
-    if solver is not None:
+    if solve_shifts:
         try:
-            solution = _solve_shifts(solver, fit, n_monte_carlo, seed, parameters)
+            solution = _solve_shifts(fit, n_monte_carlo, seed, parameters)
         except BFPSFValueError as error:
             # A measurement failure, not a usage error (e.g. no brighter-fatter signal, a(0, 0)
             # >= 0): the calibration is still returned, without shifts, and says why.
@@ -170,18 +184,19 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
         inputs=[name for pair in pairs for name in pair.names], parameters=parameters)
 
 
-def _solve_shifts(solver, fit, n_monte_carlo, seed, parameters):
+def _solve_shifts(fit, n_monte_carlo, seed, parameters):
     """Solve a^X with Monte Carlo errors over the correlated errors of a (full model) when the
     fit provides a usable covariance, else over independent errors."""
+    from .coefficients import solve_boundary_shifts as solver
+
     if fit.a_cov is not None:
         try:
             solution = solver(np.array(fit.a), np.array(fit.a_err), area_cov=fit.a_cov,
                               n_monte_carlo=n_monte_carlo, seed=seed)
             parameters["shift_error_covariance"] = "full"
             return solution
-        except BFPSFValueError as error:
-            if "covariance" not in str(error).lower():
-                raise
+        except BFPSFCovarianceError:
+            pass
     parameters["shift_error_covariance"] = "diagonal"
     return solver(np.array(fit.a), np.array(fit.a_err), n_monte_carlo=n_monte_carlo, seed=seed)
 

@@ -65,7 +65,7 @@ import functools
 import numpy as np
 from scipy.special import expi
 
-from ..errors import BFPSFValueError
+from ..errors import BFPSFCovarianceError, BFPSFValueError
 from ..shifts import BoundaryShifts
 
 __all__ = ["ShiftSolution", "solve_boundary_shifts", "fit_smoothing_model",
@@ -534,11 +534,11 @@ def _validate_covariance(area_cov, area):
     if area_cov.shape != (size, size):
         msg = (f"area_cov (covariance of area.ravel(), [dy, dx] order) must have shape "
                f"({size}, {size}), got {area_cov.shape}")
-        raise BFPSFValueError(msg, area_cov.shape)
+        raise BFPSFCovarianceError(msg, area_cov.shape)
     if not np.all(np.isfinite(area_cov)) or not np.allclose(area_cov, area_cov.T, rtol=1e-8,
                                                             atol=0.0):
         msg = "area_cov must be a finite symmetric covariance matrix"
-        raise BFPSFValueError(msg)
+        raise BFPSFCovarianceError(msg)
     try:
         return np.linalg.cholesky(area_cov)
     except np.linalg.LinAlgError:
@@ -548,7 +548,7 @@ def _validate_covariance(area_cov, area):
     if eigenvalues.min() < -1e-10 * max(eigenvalues.max(), 0.0) or eigenvalues.max() <= 0:
         msg = (f"area_cov is not a positive semi-definite covariance "
                f"(smallest eigenvalue {eigenvalues.min():.3g})")
-        raise BFPSFValueError(msg, float(eigenvalues.min()))
+        raise BFPSFCovarianceError(msg, float(eigenvalues.min()))
     return eigenvectors * np.sqrt(np.clip(eigenvalues, 0.0, None))
 
 
@@ -632,7 +632,10 @@ def solve_boundary_shifts(area, area_err=None, *, area_cov=None, n_monte_carlo=2
 
     # solved far boundaries = amplitude * unit / max|unit|; the Ei extrapolation = p0 * unit
     far_unit = layout.far_model(np.array([p1]))[0]
-    far_scale = (float(amplitude[0] / np.max(np.abs(far_unit)) / p0) if p0 != 0 else np.nan)
+    # nan when p0 is 0 or so small (a denormal far tail) that the ratio is not a number
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        far_scale = float(amplitude[0] / np.max(np.abs(far_unit)) / p0) if p0 != 0 else np.nan
+    far_scale = far_scale if np.isfinite(far_scale) else np.nan
     signs = np.ones_like(area)
     signs[1:, :] *= 2.0
     signs[:, 1:] *= 2.0

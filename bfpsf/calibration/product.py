@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..files import open_product, refuse_overwrite
+from ..files import open_product, refuse_overwrite, write_fits
 from ..shifts import BoundaryShifts
 from .linearity import Linearity
 from .pedestal import Pedestal
@@ -295,7 +295,7 @@ class Calibration:
         hdus.append(_table_hdu(params, "PARAMS"))
         if self.refinement:
             hdus.append(_table_hdu(Table({"json": [json.dumps(self.refinement)]}), "REFINE"))
-        fits.HDUList(hdus).writeto(path, overwrite=overwrite)
+        write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
 
     @classmethod
     def read(cls, path):

@@ -1,11 +1,12 @@
-"""``bfpsf calibrate FLAT.fits... -o CALIB.fits``: flat-field calibration (issue 2).
+"""``bfpsf calibrate FLAT.fits... -o CALIB.fits``: flat-field calibration.
 
 Parse, call `bfpsf.calibrate`, write the calibration file, the plots and the JSON summary.
 """
 
+import sys
 from pathlib import Path
 
-from ._files import check_free, write_json
+from ..files import check_outputs, write_json
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 
@@ -35,7 +36,6 @@ def add_parser(subparsers):
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace existing output files")
-    parser.add_argument("--progress", action="store_true", help="show a progress bar")
     return parser
 
 
@@ -43,11 +43,8 @@ def run(args):
     from ..calibration import calibrate
 
     # Refuse before the (long) computation rather than after it.
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
-    if args.plots:
-        for name in PLOT_NAMES:
-            check_free(Path(args.plots) / name, args.overwrite)
+    plots = [Path(args.plots) / name for name in PLOT_NAMES] if args.plots else []
+    check_outputs([args.output, args.json, *plots], args.overwrite, directories=[args.plots])
 
     calibration = calibrate(args.flats, maxlag=args.maxlag, ptc_model=args.model,
                             saturation=args.saturation, n_monte_carlo=args.n_monte_carlo,
@@ -57,8 +54,11 @@ def run(args):
         from ..plotting.calibration import save_calibration_plots
 
         save_calibration_plots(calibration, args.plots, overwrite=args.overwrite)
+    warnings = _warnings(calibration)
     if args.json:
-        write_json(args.json, calibration.to_json_dict())
+        summary = calibration.to_json_dict()
+        summary["warnings"] = list(summary.get("warnings", [])) + warnings
+        write_json(args.json, summary, overwrite=args.overwrite)
 
     a = calibration.a
     print(f"gain {calibration.gain:.5f} +- {calibration.gain_err:.5f} e-/ADU, "
@@ -72,5 +72,27 @@ def run(args):
               f"per mil peak to peak > {1e3 * calibration.linearity.threshold:.3g}")
     if calibration.pedestal.any_detected:
         print(f"readout pedestal subtracted at {int(calibration.pedestal.detected.sum())} lag(s)")
+    for warning in warnings:
+        print(f"WARNING: {warning}", file=sys.stderr)
     print(f"wrote {args.output}")
     return 0
+
+
+#: Fewest flat pairs for the full PTC model (a, b and the noise at every lag): with fewer the
+#: fit is under-constrained (4 levels at maxlag 8 gave a gain 13 % high and 27 e- read noise).
+MIN_PAIRS_FULL_MODEL = 8
+
+
+def _warnings(calibration):
+    """What the user must know about a calibration that still succeeded."""
+    warnings = []
+    if calibration.model == "full" and calibration.n_pairs < MIN_PAIRS_FULL_MODEL:
+        warnings.append(f"the full PTC model is under-constrained by {calibration.n_pairs} flat "
+                        f"pairs (gain, read noise and a can be biased); give at least "
+                        f"{MIN_PAIRS_FULL_MODEL} pairs over the flux range or use --model "
+                        "exponential")
+    if calibration.shifts is None:
+        reason = calibration.parameters.get("shifts_failure")
+        warnings.append("no measurable brighter-fatter in these flats: the calibration has no "
+                        "boundary shifts" + (f" ({reason})" if reason else ""))
+    return warnings

@@ -7,7 +7,8 @@ Two modes (a thin layer over `bfpsf.diagnosis`):
   predict their sizes from the shifts, and test the catalogue on the sizes, the flat linearity
   and the flat correlations.
 * tables: ``bfpsf diagnose --correlations A.txt --sizes SIZES.csv [--gain G]`` or
-  ``bfpsf diagnose --measured DIR`` for the published data sets in ``shared/data/measured``.
+  ``bfpsf diagnose --measured NAME`` for a published data set shipped with bfpsf
+  (``bfpsf diagnose --list-measured`` lists them; `bfpsf.data`).
 
 JSON keys: ``residual_before``, ``candidates``, ``selected``, ``residual_after``,
 ``residual_before_heldout``, ``residual_after_heldout`` (same keys as ``residual_after``),
@@ -21,7 +22,6 @@ import sys
 from pathlib import Path
 
 from ..errors import BFPSFInputError
-from ._files import check_free
 
 __all__ = ["add_parser", "run"]
 
@@ -47,9 +47,11 @@ def add_parser(subparsers):
                         help="measured a / correlation table (corr_meas, Poisson_CCD, cp_pipe)")
     tables.add_argument("--sizes", metavar="FILE", help="size-vs-flux table (Lage ITL or BOT)")
     tables.add_argument("--gain", type=float, help="e-/ADU of a size table in ADU")
-    tables.add_argument("--measured", metavar="DIR",
-                        help="a measured data-set folder (e.g. "
-                             "shared/data/measured/lage_BF_Kernel_ITL3800C002)")
+    tables.add_argument("--measured", metavar="NAME",
+                        help="a measured data set shipped with bfpsf, by short name (e.g. "
+                             "itl3800c002; see --list-measured)")
+    tables.add_argument("--list-measured", action="store_true",
+                        help="list the shipped measured data sets and exit")
     tables.add_argument("--corrected", action="store_true",
                         help="use the sizes after the published kernel correction")
     parser.add_argument("--threshold", type=float, default=-10.0,
@@ -74,7 +76,10 @@ def _observables(args):
     from ..diagnosis import readers
 
     if args.measured:
-        return readers.observables_from_measured(args.measured, corrected=args.corrected)
+        from ..data import measured_path
+
+        return readers.observables_from_measured(measured_path(args.measured),
+                                                 corrected=args.corrected)
     if args.correlations or args.sizes:
         if not (args.correlations and args.sizes):
             msg = "table mode needs both --correlations and --sizes"
@@ -85,20 +90,28 @@ def _observables(args):
         return builders.observables_from_images(args.flats, args.images, beta=args.beta,
                                                 maxlag=args.maxlag, n_bins=args.bins,
                                                 fit_b=args.fit_b)
-    msg = ("give --flats and --images, or --correlations and --sizes, or --measured DIR")
+    msg = ("give --flats and --images, or --correlations and --sizes, or --measured NAME")
     raise BFPSFInputError(msg)
 
 
 def run(args):
     from ..diagnosis.loop import diagnose
-    from ..validation.report import write_diagnosis_report, write_json
+    from ..files import check_outputs, write_json
+    from ..validation.report import write_diagnosis_report
 
-    check_free(args.json, args.overwrite)
-    check_free(args.output_calib, args.overwrite)
-    if args.report:
-        check_free(Path(args.report) / "report.md", args.overwrite)
+    if args.list_measured:
+        from ..data import measured_sets
+
+        for name, description in measured_sets().items():
+            print(f"{name}: {description}")
+        return 0
+
+    report = Path(args.report) / "report.md" if args.report else None
+    check_outputs([args.json, report, args.output_calib], args.overwrite,
+                  directories=[args.report])
     if args.output_calib and not (args.flats and args.images):
-        msg = "--output-calib needs images mode (--flats and --images): it refines their calibration"
+        msg = ("--output-calib needs images mode (--flats and --images): it refines their "
+               "calibration")
         raise BFPSFInputError(msg)
     if not 0 <= args.holdout_fraction < 1:
         msg = f"--holdout-fraction must be in [0, 1), got {args.holdout_fraction}"
@@ -153,7 +166,7 @@ def run(args):
         else:
             print(f"{label}: chi2 {values['chi2']:.1f} / {values['n']}")
     if args.json:
-        write_json(summary, args.json, overwrite=args.overwrite)
+        write_json(args.json, summary, overwrite=args.overwrite)
     if args.report:
         label = getattr(observables.sizes, "label", "") if observables.sizes is not None else ""
         context = [f"Data: {label or 'flats and images'}."]

@@ -1,4 +1,4 @@
-"""``bfpsf slope STARS.ecsv``: brighter-fatter slopes of the star sizes (issue 4).
+"""``bfpsf slope STARS.ecsv``: brighter-fatter slopes of the star sizes.
 
 Parse, read the star table of ``bfpsf measure``, optionally correct the size-colour relation
 (G15 section 3.3), fit sigma_x, sigma_y and IQ against peak flux
@@ -9,10 +9,8 @@ slope in pixels per 100 ke- of peak, relative_percent in percent of the intercep
 100 ke-), ``n_stars``, and ``details`` (full fits, colour fit, peak range).
 """
 
-from pathlib import Path
-
 from ..errors import BFPSFInputError
-from ._files import check_free, write_json
+from ..files import check_outputs, read_table, save_figure, write_json
 
 
 def add_parser(subparsers):
@@ -22,7 +20,7 @@ def add_parser(subparsers):
                     "IQ against peak flux below a maximum peak (G15 section 3.3, fig. mbf).")
     parser.add_argument("stars", metavar="STARS.ecsv", help="star table from bfpsf measure")
     parser.add_argument("--psf", metavar="PSF.fits",
-                        help="flux-dependent PSF product (issue 5): adds model_residual")
+                        help="flux-dependent PSF product: also fit the slopes of the sizes minus the model's")
     parser.add_argument("--color", "--colour", dest="colour", metavar="COLUMN",
                         help="correct the size-colour relation with this column first")
     parser.add_argument("--color-max-peak", dest="colour_max_peak", type=float, metavar="E",
@@ -58,17 +56,11 @@ def _model_residual(stars, args, colour_fit):
 
 
 def run(args):
-    from astropy.table import Table
-
     from ..measure.colour import correct_size_colour
     from ..measure.slopes import bf_slopes
 
-    check_free(args.json, args.overwrite)
-    check_free(args.plot, args.overwrite)
-    if not Path(args.stars).exists():
-        msg = f"star table {args.stars} does not exist"
-        raise BFPSFInputError(msg, args.stars)
-    stars = Table.read(args.stars, format="ascii.ecsv")
+    check_outputs([args.json, args.plot], args.overwrite)
+    stars = read_table(args.stars, "star table", format="ascii.ecsv")
     colour_fit = None
     if args.colour:
         stars, colour_fit = correct_size_colour(stars, args.colour,
@@ -91,12 +83,12 @@ def run(args):
         "stars": str(args.stars),
     }
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     if args.plot:
         from ..plotting.moments import plot_size_vs_peak
 
         figure = plot_size_vs_peak(stars, slopes, max_peak_e=args.max_peak)
-        figure.savefig(args.plot, dpi=120)
+        save_figure(figure, args.plot, overwrite=args.overwrite, dpi=120)
     for key, label in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "IQ")):
         fit = slopes[key]
         if residual is not None:

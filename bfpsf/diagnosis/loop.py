@@ -222,9 +222,9 @@ def slope_residuals(sizes, residual_x, residual_y):
                                             ("y", sizes.sigma_y, sizes.sigma_y_err, residual_y)):
         # the given errors, not rescaled by the scatter (the chi2 is reported apart)
         raw = fit_bf_slope(sizes.peak_e, measured, size_err=error, group=sizes.group,
-                           scale_errors=False).slope
+                           scale_errors=False, clip_nsigma=None).slope
         fit = fit_bf_slope(sizes.peak_e, residual, size_err=error, group=sizes.group,
-                           scale_errors=False)
+                           scale_errors=False, clip_nsigma=None)
         out[f"raw_slope_{axis}"] = raw
         out[f"slope_{axis}_percent"] = 100.0 * fit.slope / raw
         out[f"slope_{axis}_percent_err"] = 100.0 * fit.slope_err / abs(raw)
@@ -815,7 +815,7 @@ def describe_unexplained(problem, observables, model):
             for index, axis in enumerate("xy"):
                 values, errors = part[index * n:(index + 1) * n], sigma[index * n:(index + 1) * n]
                 fit = fit_bf_slope(sizes.peak_e, values, size_err=errors, group=sizes.group,
-                                   scale_errors=False)
+                                   scale_errors=False, clip_nsigma=None)
                 significance = abs(fit.slope) / fit.slope_err
                 if significance > UNEXPLAINED_NSIGMA:
                     out.append({"observable": "sizes", "axis": axis,

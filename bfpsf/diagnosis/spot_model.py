@@ -114,7 +114,7 @@ class SpotForwardModel:
     def _draw_fine(self, px, py):
         """Pixel charges and exact boundary densities of the unit-flux spot at a phase
         (`bfpsf.model.redistribution.exact_boundary_density`)."""
-        from ..model.redistribution import exact_boundary_density
+        from ..model.density import exact_boundary_density
 
         s, n = self.oversampling, self.stamp_size
         fine = self.profile.drawImage(nx=n * s, ny=n * s, scale=1.0 / s, method="no_pixel",

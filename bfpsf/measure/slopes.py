@@ -55,6 +55,9 @@ class SlopeFit:
     slope_err_colour : float
         Part of ``slope_err`` from the size-colour fit's coefficient errors (pixels per
         100 ke-; 0 without colour correction), added in quadrature by `bf_slopes`.
+    n_clipped : int
+        Outliers left out by the clipping (``clip_nsigma`` of `fit_bf_slope`), not counted in
+        ``n_points``.
     """
 
     slope: float
@@ -71,6 +74,7 @@ class SlopeFit:
     peak_min_e: float
     peak_max_e: float
     slope_err_colour: float = 0.0
+    n_clipped: int = 0
 
     def as_dict(self, short=False):
         """The fit as a dict (``short=True``: slope, slope_err, intercept, relative_percent)."""
@@ -87,7 +91,7 @@ class SlopeFit:
 
 
 def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=None,
-                 scale_errors=True, group=None):
+                 scale_errors=True, clip_nsigma=5.0, group=None):
     """Weighted linear fit ``size = intercept + slope * peak / 100 ke-``.
 
     The one slope fitter of bfpsf (``bfpsf slope``, ``bfpsf validate`` and the closed loop).
@@ -107,6 +111,11 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
     scale_errors : bool, optional
         Multiply the errors by ``sqrt(chi2 / dof)`` when it exceeds 1 (default True), so
         scatter beyond the given errors (e.g. PSF variations) shows up in the slope error.
+    clip_nsigma : float or None, optional
+        Leave out, iteratively, the points whose normalised residual is more than
+        ``clip_nsigma`` robust standard deviations (1.4826 x the median absolute deviation)
+        from the line: one unresolved blend must not set the slope. Default 5; None: no
+        clipping. The number left out is ``SlopeFit.n_clipped``.
     group : array_like of int, optional
         A free intercept per group (an amplifier, a data set, the sub-pixel phase of a spot)
         and one common slope; ``intercept`` is then the mean of the group intercepts.
@@ -135,20 +144,34 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
         msg = (f"a brighter-fatter slope needs at least 3 usable objects in the peak range "
                f"[{min_peak_e}, {max_peak_e}] e-, got {n_points}")
         raise BFPSFValueError(msg, n_points)
-    x = peak[keep] / PEAK_UNIT_E
-    y = values[keep]
-    weights = np.ones(n_points) if errors is None else 1.0 / errors[keep]**2
-    labels = np.zeros(n_points, int) if group is None else np.unique(
-        np.broadcast_to(np.asarray(group), values.shape).ravel()[keep], return_inverse=True)[1]
-    n_groups = int(labels.max()) + 1
-    design = np.column_stack([x] + [(labels == g).astype(float) for g in range(n_groups)])
-    normal = design.T @ (weights[:, None] * design)
-    if np.linalg.cond(normal) > 1e12:
-        msg = "the peak fluxes span no range: the slope is undetermined"
-        raise BFPSFValueError(msg, (x.min(), x.max()))
-    covariance = np.linalg.inv(normal)
-    params = covariance @ (design.T @ (weights * y))
-    residual = y - design @ params
+    n_usable = n_points
+    group = None if group is None else np.broadcast_to(np.asarray(group), values.shape).ravel()
+    for _ in range(20):
+        x = peak[keep] / PEAK_UNIT_E
+        y = values[keep]
+        weights = np.ones(n_points) if errors is None else 1.0 / errors[keep]**2
+        labels = (np.zeros(n_points, int) if group is None
+                  else np.unique(group[keep], return_inverse=True)[1])
+        n_groups = int(labels.max()) + 1
+        design = np.column_stack([x] + [(labels == g).astype(float) for g in range(n_groups)])
+        normal = design.T @ (weights[:, None] * design)
+        if np.linalg.cond(normal) > 1e12:
+            msg = "the peak fluxes span no range: the slope is undetermined"
+            raise BFPSFValueError(msg, (x.min(), x.max()))
+        covariance = np.linalg.inv(normal)
+        params = covariance @ (design.T @ (weights * y))
+        residual = y - design @ params
+        if clip_nsigma is None or n_points <= 3:
+            break
+        normalised = residual * np.sqrt(weights)
+        scale = 1.4826 * np.median(np.abs(normalised - np.median(normalised)))
+        outliers = np.abs(normalised) > clip_nsigma * scale if scale > 0 else np.zeros(
+            n_points, dtype=bool)
+        if not outliers.any() or n_points - outliers.sum() < 3:
+            break
+        indices = np.flatnonzero(keep)
+        keep[indices[outliers]] = False
+        n_points = int(keep.sum())
     dof = n_points - design.shape[1]
     if dof < 1:
         msg = f"{n_points} objects cannot constrain a slope and {n_groups} intercepts"
@@ -182,7 +205,8 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
                     relative_percent_err=float(relative_err),
                     range_percent=float(relative * span), chi2=chi2, dof=int(dof),
                     error_scale=float(error_scale), n_points=n_points,
-                    peak_min_e=float(peak[keep].min()), peak_max_e=float(peak[keep].max()))
+                    peak_min_e=float(peak[keep].min()), peak_max_e=float(peak[keep].max()),
+                    n_clipped=n_usable - n_points)
 
 
 #: (result key, size column, error column) fitted by `bf_slopes`

@@ -3,8 +3,8 @@
 `validate` simulates SiliconSensor flats and Moffat spots, runs the whole chain and reports, side
 by side:
 
-1. truth a(dx, dy) (`bfpsf.interop.galsim.silicon_area_coefficients`) against the a recovered
-   by `bfpsf.calibrate` from the simulated flats;
+1. truth a(dx, dy) (`bfpsf.interop.silicon_truth.silicon_area_coefficients`) against the a
+   recovered by `bfpsf.calibrate` from the simulated flats;
 2. the measured BF slope of the spots in X and Y (adaptive moments, G15 section 3.2) against
    the slope predicted from the boundary shifts (G15 section 6.3: the faint-spot model scaled
    and redistributed), for the shifts of the flats calibration (with the error propagated from
@@ -33,7 +33,6 @@ SiliconSensor uses OpenMP; run with ``OMP_NUM_THREADS`` at most the free cores.
 """
 
 import dataclasses
-import importlib
 import time
 
 import numpy as np
@@ -111,15 +110,6 @@ QUICK = ValidationConfig(fwhm=3.0, peaks_e=(5e3, 2.5e4, 5e4, 7.5e4, 1e5, 1.2e5),
 FULL = ValidationConfig()
 
 
-def _module(name):
-    try:
-        return importlib.import_module(name)
-    except ModuleNotFoundError as error:
-        if error.name == name:
-            return None
-        raise
-
-
 def _unavailable(reason):
     return {"available": False, "reason": reason}
 
@@ -145,7 +135,7 @@ def _slope(peak_e, values, group=None):
 
     peak = np.asarray(peak_e, float)
     y = np.asarray(values, float)
-    first = fit_bf_slope(peak, y, group=group)
+    first = fit_bf_slope(peak, y, group=group, clip_nsigma=None)
     # residuals of the first pass: refit the group intercepts at the common slope
     detrended = y - first.slope * peak / PEAK_UNIT_E
     labels = np.zeros(y.size, int) if group is None else np.unique(group, return_inverse=True)[1]
@@ -156,7 +146,7 @@ def _slope(peak_e, values, group=None):
     for level in np.unique(peak):
         members = peak == level
         error[members] = np.sqrt(max(np.mean(residual[members] ** 2) / dof_fraction, 1e-30))
-    fit = fit_bf_slope(peak, y, size_err=error, group=group)
+    fit = fit_bf_slope(peak, y, size_err=error, group=group, clip_nsigma=None)
     return fit.slope, fit.slope_err, fit.intercept
 
 
@@ -211,10 +201,9 @@ def _residual_entries(spots, raw, measured, twin, predicted=(0.0, 0.0), static=(
 
 # -- stages ---------------------------------------------------------------------------------------
 def _stage_flats(config):
-    simulate = _module("bfpsf.validation.simulate_flats")
-    calibration = _module("bfpsf.calibration")
-    if simulate is None or not hasattr(calibration, "calibrate"):
-        return _unavailable("flat simulator or calibration not installed"), None
+    from .. import calibration
+    from . import simulate_flats as simulate
+
     flats = simulate.simulate_flats(config.sensor, config.flat_levels_e, pairs=config.flat_pairs,
                                     size=config.flat_size, gain=config.gain,
                                     read_noise_e=config.read_noise_e, nsteps=config.flat_nsteps,
@@ -234,7 +223,7 @@ def _stage_flats(config):
 
 
 def _stage_truth(config, cal):
-    from ..interop import galsim as interop
+    from ..interop import silicon_truth as interop
 
     truth = interop.silicon_area_coefficients(config.sensor, maxlag=config.maxlag)
     out = {"available": True, "lags": [], "truth": [], "recovered": [], "recovered_err": [],
@@ -247,9 +236,7 @@ def _stage_truth(config, cal):
             out["recovered"].append(value)
             out["recovered_err"].append(error)
             out["pull"].append((value - truth[dy, dx]) / error if error > 0 else None)
-    shifts = None
-    if hasattr(interop, "silicon_boundary_shifts"):
-        shifts = interop.silicon_boundary_shifts(config.sensor, radius=config.maxlag)
+    shifts = interop.silicon_boundary_shifts(config.sensor, radius=config.maxlag)
     return out, truth, shifts
 
 
@@ -279,7 +266,7 @@ def _stage_prediction(config, spots, measured, shift_sets, cal=None, n_draws=20)
 
     from ..diagnosis.spot_model import SpotForwardModel
 
-    from ..interop.galsim import silicon_diffusion_sigma
+    from ..interop.silicon_truth import silicon_diffusion_sigma
 
     # the spots BF acts on are the optical Moffat blurred by SiliconSensor's charge diffusion
     profile = galsim.Convolve(galsim.Moffat(fwhm=config.fwhm, beta=config.beta),
@@ -345,9 +332,8 @@ def _flux_fit(psf, stamp, x, y, flux_guess, *, flux_dependent, iterations=3):
 
 
 def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts, progress):
-    psf_fit = _module("bfpsf.model.psf_fit")
-    if psf_fit is None:
-        return _unavailable("bfpsf.model.psf_fit not installed"), None
+    from ..model import psf_fit
+
     fluxes = spots.stamps.sum(axis=(1, 2))
     positions = [[(x, y)] for x, y in zip(spots.x, spots.y)]
     images = list(spots.stamps)
@@ -384,24 +370,23 @@ def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts, progress)
                              [positions[i] for i in np.flatnonzero(bright)], shifts,
                              oversampling=config.psf_oversampling, size=size,
                              include_bf=False, max_iterations=20).psf
-    photometry = _module("bfpsf.measure.photometry")
-    magnitudes = {"static": [], "flux_dependent": []}
-    if photometry is not None:
-        magnitudes.update({"photutils_static": [], "photutils_flux_dependent": []})
+    from ..measure import photometry
+
+    magnitudes = {"static": [], "flux_dependent": [], "photutils_static": [],
+                  "photutils_flux_dependent": []}
     for index in range(len(images)):
         for key, model, dependent in (("static", static, False),
                                       ("flux_dependent", psf, True)):
             flux = _flux_fit(model, images[index], spots.x[index], spots.y[index],
                              fluxes[index], flux_dependent=dependent)
             magnitudes[key].append(-_MAG * np.log(flux / fluxes[index]))
-            if photometry is not None:
-                # the sky is noiseless: the bias is not buried in its photon noise
-                table = photometry.psf_photometry(
-                    images[index] + PHOTOMETRY_SKY_E, model, background_e=PHOTOMETRY_SKY_E,
-                    read_noise_e=config.read_noise_e,
-                    positions=np.array([[spots.x[index], spots.y[index]]]))
-                flux = float(table["flux_fit"][0])
-                magnitudes[f"photutils_{key}"].append(-_MAG * np.log(flux / fluxes[index]))
+            # the sky is noiseless: the bias is not buried in its photon noise
+            table = photometry.psf_photometry(
+                images[index] + PHOTOMETRY_SKY_E, model, background_e=PHOTOMETRY_SKY_E,
+                read_noise_e=config.read_noise_e,
+                positions=np.array([[spots.x[index], spots.y[index]]]))
+            flux = float(table["flux_fit"][0])
+            magnitudes[f"photutils_{key}"].append(-_MAG * np.log(flux / fluxes[index]))
     for key, values in magnitudes.items():
         values = np.asarray(values)
         faint = values[spots.level == spots.level.min()].mean()
@@ -413,10 +398,9 @@ def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts, progress)
 
 
 def _stage_inverse(spots, raw, twin_sizes, shifts):
-    redistribution = _module("bfpsf.model.redistribution")
-    if not hasattr(redistribution, "correct"):
-        return _unavailable("bfpsf.correct not installed")
-    corrected = np.array([redistribution.correct(np.clip(stamp, 0, None), shifts)
+    from ..model.inverse import correct
+
+    corrected = np.array([correct(np.clip(stamp, 0, None), shifts)
                           for stamp in spots.stamps])
     sigma_x, sigma_y, _ = _moments(corrected)
     return {"available": True,
