@@ -22,7 +22,7 @@ _EXPORTS = {
     "adaptive_moments": "bfpsf.measure.moments",
     "Moments": "bfpsf.measure.moments",
     "FluxDependentPSF": "bfpsf.model.psf",
-    "solve_boundary_shifts": "bfpsf.calibration.coefficients",
+    "solve_boundary_shifts": "bfpsf.calibration.boundary_shifts",
     "adaptive_moments_batch": "bfpsf.measure.moments",
     "measure_sources": "bfpsf.measure.sources",
     "BFSensor": "bfpsf.interop.galsim_sensor",

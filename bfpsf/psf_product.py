@@ -6,7 +6,8 @@ response included) with ``BFPSFVER`` (schema), ``OVERSAMX``/``OVERSAMY``, ``ORIG
 ``CALIB``, ``PIXRESP``; HDUs ``SHIFT_N`` and ``SHIFT_E`` = a^N and a^E (1/e-, [dy+m, dx+m]);
 schema 2 adds an optional ``BFTABLE`` HDU, the table-mode R when it is not the default (e.g.
 built with the exact boundary density, ``density_profile``), since the profile it came from is
-not stored. The calibration file is not needed to read the product back.
+not stored; optional ``SHIFT_N_SAMP`` / ``SHIFT_E_SAMP`` [sample, dy+m, dx+m] hold the shift
+samples of the calibration (its uncertainty, propagated by ``bfpsf slope --psf``). The calibration file is not needed to read the product back.
 """
 
 import numpy as np
@@ -62,6 +63,13 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     north.header["BUNIT"] = "1/electron"
     east.header["BUNIT"] = "1/electron"
     hdus = [primary, north, east]
+    if psf.shift_samples:
+        # the calibration's uncertainty, for predictions with errors (optional HDUs)
+        for name, attribute in (("SHIFT_N_SAMP", "north"), ("SHIFT_E_SAMP", "east")):
+            samples = fits.ImageHDU(np.array([getattr(sample, attribute)
+                                              for sample in psf.shift_samples]), name=name)
+            samples.header["BUNIT"] = "1/electron"
+            hdus.append(samples)
     if psf.mode == "table" and psf.density_profile is not None:
         table = fits.ImageHDU(np.asarray(psf.bf_table, dtype=np.float64), name="BFTABLE")
         table.header["BUNIT"] = ("1/(pixel electron)", "R[P0] per unit flux squared")
@@ -102,8 +110,14 @@ def read_psf(path, *, cls=None, **kwargs):
             options["bf_table"] = np.array(hdul["BFTABLE"].data, dtype=float)
         image_gain = float(header["GAIN"])
         calibration = str(header["CALIB"])
+        samples = ()
+        if "SHIFT_N_SAMP" in hdul:
+            samples = tuple(BoundaryShifts(north, east, check=False) for north, east in
+                            zip(np.array(hdul["SHIFT_N_SAMP"].data, dtype=float),
+                                np.array(hdul["SHIFT_E_SAMP"].data, dtype=float)))
     options.update(kwargs)
     psf = cls(data, shifts, **options)
     psf.image_gain = image_gain
     psf.calibration = calibration
+    psf.shift_samples = samples
     return psf

@@ -14,7 +14,7 @@ rms for the pedestal); a null data set selects nothing.
 import numpy as np
 import pytest
 
-from bfpsf.calibration.coefficients import solve_boundary_shifts
+from bfpsf.calibration.coefficients import solve_ei_shifts
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
 from bfpsf.measure.moments import adaptive_moments_batch
 from bfpsf.model.density import exact_boundary_density
@@ -38,7 +38,7 @@ def shifts():
     area[0, 2], area[2, 0], area[1, 2], area[2, 1] = 1.8e-8, 2.4e-8, 1.26e-8, 1.45e-8
     area[2, 2], area[0, 3], area[3, 0] = 8.9e-9, 5e-9, 1.06e-8
     area[1, 3], area[3, 1], area[2, 3], area[3, 2], area[3, 3] = 5e-9, 6e-9, 4e-9, 4e-9, 3e-9
-    return solve_boundary_shifts(area, n_monte_carlo=0).shifts
+    return solve_ei_shifts(area, n_monte_carlo=0).shifts
 
 
 def _phases(n, seed=0):

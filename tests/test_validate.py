@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bfpsf.cli import main
-from bfpsf.validation.validate import FULL, QUICK, validate
+from bfpsf.validation.validate import FULL, QUICK, TRUTH_LABEL, validate
 
 
 #: A very small run for the quick test: 4 levels x 9 phases of FWHM 3 px spots, tiny flats.
@@ -17,7 +17,9 @@ TINY = dataclasses.replace(QUICK, peaks_e=(1e4, 5e4, 9e4, 1.2e5), n_per_level=9,
 
 @pytest.fixture(scope="module")
 def tiny_run():
-    return validate(TINY)
+    # SiliconSensor landing shifts: a diagnostic of the PSF model alone (the flats path is
+    # tested in test_flats_to_psf.py)
+    return validate(TINY, shifts_for_model="truth")
 
 
 def test_validate_runs_every_stage(tiny_run):
@@ -33,7 +35,7 @@ def test_validate_physics(tiny_run):
     # SiliconSensor spots broaden with flux, faster in Y (parallel) on ITL (G15 table 1)
     assert slopes["slope_x"] > 0 and slopes["slope_y"] > 0
     truth_row = [row for row in tiny_run["prediction"]["rows"]
-                 if row["shifts"] == "SiliconSensor truth"][0]
+                 if row["shifts"] == TRUTH_LABEL][0]
     # the G15 prediction from SiliconSensor's own shifts matches the measured slope; 36 spots
     # measure it to ~10 %, so allow 30 %
     assert 0.7 < truth_row["predicted_over_measured_x"] < 1.3

@@ -28,9 +28,17 @@ def add_parser(subparsers):
                              "'exponential', or G15's 'quadratic'")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
                         help="mask pixels at or above this level (ADU)")
-    parser.add_argument("--n-monte-carlo", type=int, default=200,
-                        help="Monte Carlo draws for the boundary-shift errors (default 200)")
-    parser.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
+    parser.add_argument("--shift-method", choices=("electrostatic", "ei"),
+                        default="electrostatic",
+                        help="solver of the boundary shifts: the electrostatic sensor model of "
+                             "Astier & Regnault 2023 (default) or G15's Ei smoothing model")
+    parser.add_argument("--thickness", type=float, default=10.0, metavar="PIXELS",
+                        help="sensor thickness in pixels for the electrostatic model "
+                             "(default 10: 100 um with 10 um pixels)")
+    parser.add_argument("--n-monte-carlo", type=int, default=100,
+                        help="samples of the boundary shifts drawn from the calibration error, "
+                             "kept for error propagation (default 100)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the samples (default 0)")
     parser.add_argument("--plots", metavar="DIR",
                         help="write PTC, correlation-map and a(r) plots (PNG) into DIR")
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
@@ -47,18 +55,16 @@ def run(args):
     check_outputs([args.output, args.json, *plots], args.overwrite, directories=[args.plots])
 
     calibration = calibrate(args.flats, maxlag=args.maxlag, ptc_model=args.model,
-                            saturation=args.saturation, n_monte_carlo=args.n_monte_carlo,
+                            saturation=args.saturation, shift_method=args.shift_method,
+                            thickness=args.thickness, n_monte_carlo=args.n_monte_carlo,
                             seed=args.seed, progress=args.progress)
     calibration.write(args.output, overwrite=args.overwrite)
     if args.plots:
         from ..plotting.calibration import save_calibration_plots
 
         save_calibration_plots(calibration, args.plots, overwrite=args.overwrite)
-    warnings = _warnings(calibration)
     if args.json:
-        summary = calibration.to_json_dict()
-        summary["warnings"] = list(summary.get("warnings", [])) + warnings
-        write_json(args.json, summary, overwrite=args.overwrite)
+        write_json(args.json, calibration.to_json_dict(), overwrite=args.overwrite)
 
     a = calibration.a
     print(f"gain {calibration.gain:.5f} +- {calibration.gain_err:.5f} e-/ADU, "
@@ -72,27 +78,14 @@ def run(args):
               f"per mil peak to peak > {1e3 * calibration.linearity.threshold:.3g}")
     if calibration.pedestal.any_detected:
         print(f"readout pedestal subtracted at {int(calibration.pedestal.detected.sum())} lag(s)")
-    for warning in warnings:
+    if calibration.shifts is not None:
+        m = calibration.shifts.radius
+        north, east = calibration.shifts.north[m, m], calibration.shifts.east[m, m]
+        print(f"boundary shifts ({calibration.shift_method}): a^N(0,0) {north:.3e} +- "
+              f"{calibration.shifts_north_err[m, m]:.1e}, a^E(0,0) {east:.3e} +- "
+              f"{calibration.shifts_east_err[m, m]:.1e} 1/e-")
+    for warning in calibration.warnings:
         print(f"WARNING: {warning}", file=sys.stderr)
     print(f"wrote {args.output}")
     return 0
 
-
-#: Fewest flat pairs for the full PTC model (a, b and the noise at every lag): with fewer the
-#: fit is under-constrained (4 levels at maxlag 8 gave a gain 13 % high and 27 e- read noise).
-MIN_PAIRS_FULL_MODEL = 8
-
-
-def _warnings(calibration):
-    """What the user must know about a calibration that still succeeded."""
-    warnings = []
-    if calibration.model == "full" and calibration.n_pairs < MIN_PAIRS_FULL_MODEL:
-        warnings.append(f"the full PTC model is under-constrained by {calibration.n_pairs} flat "
-                        f"pairs (gain, read noise and a can be biased); give at least "
-                        f"{MIN_PAIRS_FULL_MODEL} pairs over the flux range or use --model "
-                        "exponential")
-    if calibration.shifts is None:
-        reason = calibration.parameters.get("shifts_failure")
-        warnings.append("no measurable brighter-fatter in these flats: the calibration has no "
-                        "boundary shifts" + (f" ({reason})" if reason else ""))
-    return warnings

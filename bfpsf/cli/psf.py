@@ -16,6 +16,10 @@ from ..measure.sources import DETECTION_THRESHOLD
 from ._files import read_image
 
 
+#: Shift samples of the calibration kept in the PSF product for predictions with errors.
+PREDICTION_SAMPLES = 30
+
+
 def add_parser(subparsers):
     parser = subparsers.add_parser(
         "psf", help="fit the flux-dependent PSF P(F) = P0 + F R[P0] from stars of all fluxes",
@@ -100,6 +104,7 @@ def run(args):
     psf = result.psf
     psf.image_gain = gain
     psf.calibration = Path(args.calib).name
+    psf.shift_samples = tuple(calibration.shift_samples(limit=PREDICTION_SAMPLES))
     psf.write(args.output, meta={"NSTARS": int(np.sum(result.stars["flags"] == 0)),
                                  "CONVERGD": bool(result.converged),
                                  "BFTERM": bool(args.include_bf)},

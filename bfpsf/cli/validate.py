@@ -31,8 +31,10 @@ def add_parser(subparsers):
     parser.add_argument("--flat-pairs", type=int, default=None, help="pairs per flat level")
     parser.add_argument("--flat-levels", type=float, nargs="+", default=None, metavar="E",
                         help="flat levels, electrons (default: the configuration's)")
-    parser.add_argument("--model-shifts", choices=("truth", "flats"), default="truth",
-                        help="shifts for P(F), the inverse and the loop (default: truth)")
+    parser.add_argument("--model-shifts", choices=("flats", "truth"), default="flats",
+                        help="shifts for P(F), the inverse and the loop: from the simulated "
+                             "flats (default, the path a user takes) or SiliconSensor's landing "
+                             "truth (a diagnostic, labelled as such)")
     parser.add_argument("--seed", type=int, default=None,
                         help="random seed (default: the configuration's)")
     parser.add_argument("--report", metavar="DIR", help="write report.md and PNG figures")
@@ -65,7 +67,9 @@ def _print_table(result):
             error = row.get(f"predicted_slope_{axis}_err")
             text.append(f"{axis.upper()} {row[f'predicted_slope_{axis}']:.4f}"
                         + (f" +- {error:.4f}" if error is not None else "")
-                        + f" ({100 * row[f'predicted_over_measured_{axis}']:.1f} %)")
+                        + f" ({100 * row[f'predicted_over_measured_{axis}']:.1f} %"
+                        + (f", pull {row[f'pull_{axis}']:+.1f}" if f"pull_{axis}" in row else "")
+                        + ")")
         print(f"predicted from {row['shifts']}: {', '.join(text)}")
     for key, label in (("psf", "residual slope after P(F)"),
                        ("inverse", "residual slope after pixel inverse")):
@@ -86,6 +90,7 @@ def _print_table(result):
         print(f"photometry bias bright - faint: static PSF "
               f"{psf['photometry_bias_static_mmag']:+.2f} mmag, P(F) "
               f"{psf['photometry_bias_flux_dependent_mmag']:+.2f} mmag")
+    print(f"P(F), inverse and loop used the shifts of: {result['model_shifts']}")
     print(f"closed loop selected: {', '.join(result['diagnose']['selected']) or 'nothing'}")
 
 

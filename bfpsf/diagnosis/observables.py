@@ -362,12 +362,12 @@ def bf_scale_error(spot_model, area, area_err, peaks_e, *, n_draws=8, seed=0):
     """Relative error of the predicted BF slope from the errors of the area coefficients.
 
     The a(dx, dy) are drawn within their errors, solved into shifts
-    (`bfpsf.calibration.coefficients.solve_boundary_shifts`) and the model spot's size change
+    (`bfpsf.calibration.coefficients.solve_ei_shifts`) and the model spot's size change
     between the faintest and brightest peak recomputed; the rms of its ratio to the nominal
     one, averaged over X and Y. The loop gives the size block a common scale within this
     error (a nuisance with a Gaussian prior): the prediction is no better than its flats.
     """
-    from ..calibration.coefficients import solve_boundary_shifts
+    from ..calibration.coefficients import solve_ei_shifts
     from ..errors import BFPSFError
 
     area, area_err = np.asarray(area, float), np.asarray(area_err, float)
@@ -380,7 +380,7 @@ def bf_scale_error(spot_model, area, area_err, peaks_e, *, n_draws=8, seed=0):
     for _ in range(int(n_draws)):
         draw = area + rng.standard_normal(area.shape) * area_err
         try:
-            shifts = solve_boundary_shifts(draw, n_monte_carlo=0).shifts
+            shifts = solve_ei_shifts(draw, n_monte_carlo=0).shifts
         except BFPSFError:
             continue
         sizes = spot_model.sizes(peaks, shifts=shifts)

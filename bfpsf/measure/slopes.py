@@ -349,3 +349,37 @@ def model_size_increments(psf, flux_e, *, n_grid=24):
     sizes = {"x": np.sqrt(moments.mxx), "y": np.sqrt(moments.myy), "iq": moments.sigma}
     return {key: np.interp(flux_e, grid, value - value[0], left=np.nan, right=np.nan)
             for key, value in sizes.items()}
+
+
+def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors=True):
+    """The BF slopes a flux-dependent PSF predicts for a star table, with the calibration error.
+
+    The model's size increments at each star's flux (`model_size_increments`) are fitted
+    exactly as the measured sizes are (`bf_slopes`: same stars, peak range and weights); the
+    fit of every shift sample the model carries (``psf.shift_samples``, the calibration's
+    uncertainty) gives the error.
+
+    Returns
+    -------
+    dict
+        ``{'x': {...}, 'y': {...}, 'iq': {...}, 'n_samples': int}``; each axis holds
+        ``slope`` and ``slope_err`` (pixels per 100 ke- of peak; the error is that of the
+        calibration, NaN without samples).
+    """
+    def slopes_of(model):
+        increments = model_size_increments(model, table["flux_e"])
+        predicted = table.copy()
+        for key, column, _ in _AXES:
+            predicted[column] = increments[key]
+        fits = bf_slopes(predicted, min_peak_e=min_peak_e, max_peak_e=max_peak_e,
+                         use_errors=use_errors)
+        return np.array([fits[key].slope for key, _, _ in _AXES])
+
+    best = slopes_of(psf)
+    draws = np.array([slopes_of(psf.with_shifts(sample)) for sample in psf.shift_samples])
+    errors = (draws.std(axis=0, ddof=1) if len(draws) >= 2
+              else np.full(best.shape, np.nan))
+    out = {key: {"slope": float(value), "slope_err": float(error)}
+           for (key, _, _), value, error in zip(_AXES, best, errors)}
+    out["n_samples"] = int(len(draws))
+    return out

@@ -264,6 +264,13 @@ class FluxDependentPSF(Fittable2DModel):
         self.image_gain = 1.0
         #: Name of the calibration file the shifts come from (product metadata).
         self.calibration = ""
+        #: Shifts drawn from the calibration's uncertainty (`Calibration.shift_samples`):
+        #: predictions made with this model propagate them (``bfpsf slope --psf``).
+        self.shift_samples = tuple(shifts.shift_samples()) if hasattr(shifts, "shift_samples") else ()
+        self._options = dict(origin=tuple(origin), oversampling=tuple(self.oversampling.tolist()),
+                             gain=self.gain, mode=mode, buildup_steps=buildup_steps,
+                             fill_value=float(fill_value), density_profile=density_profile,
+                             density_oversampling=self.density_oversampling)
         x = np.arange(self.data.shape[1])
         y = np.arange(self.data.shape[0])
         self._base_spline = RectBivariateSpline(x, y, self.data.T, kx=3, ky=3, s=0)
@@ -349,6 +356,15 @@ class FluxDependentPSF(Fittable2DModel):
     def deepcopy(self):
         """A copy that owns every array."""
         return copy.deepcopy(self)
+
+    def with_shifts(self, shifts):
+        """The same P0 and options with other boundary shifts (a new model; the BF table, if
+        any, is recomputed from the new shifts, a custom ``bf_table`` is not carried over)."""
+        new = self.__class__(self.data, shifts, flux=self.flux.value, x_0=self.x_0.value,
+                             y_0=self.y_0.value, **self._options)
+        new.image_gain = self.image_gain
+        new.calibration = self.calibration
+        return new
 
     @property
     def half_size(self):

@@ -39,7 +39,11 @@ import numpy as np
 
 from ..errors import BFPSFError, BFPSFValueError
 
-__all__ = ["ValidationConfig", "QUICK", "FULL", "validate"]
+__all__ = ["ValidationConfig", "QUICK", "FULL", "validate", "FLATS_LABEL", "TRUTH_LABEL"]
+
+#: How the two sources of boundary shifts are named in every result and table.
+FLATS_LABEL = "flats calibration"
+TRUTH_LABEL = "SiliconSensor landing truth (diagnostic)"
 
 _MAG = 2.5 / np.log(10.0)
 
@@ -284,24 +288,20 @@ def _stage_prediction(config, spots, measured, shift_sets, cal=None, n_draws=20)
         row = {"shifts": label}
         slopes = predict(shifts)
         errors = (None, None)
-        if label == "flats calibration" and cal is not None and n_draws:
-            # propagate the errors of the measured a through the shift solution to the slope
-            from ..calibration.coefficients import solve_boundary_shifts
-
-            rng = np.random.default_rng(config.seed)
-            draws = []
-            for _ in range(n_draws):
-                area = np.array(cal.a) + rng.standard_normal(cal.a.shape) * np.array(cal.a_err)
-                try:
-                    draws.append(predict(solve_boundary_shifts(area, n_monte_carlo=0).shifts))
-                except BFPSFError:
-                    continue
+        if label == FLATS_LABEL and cal is not None and n_draws:
+            # the calibration error: the slope of every shift sample the calibration carries
+            draws = [predict(sample) for sample in cal.shift_samples(limit=n_draws)]
             if len(draws) >= 2:
                 errors = tuple(np.std(np.array(draws), axis=0, ddof=1))
         for index, axis in enumerate("xy"):
             row[f"predicted_slope_{axis}"] = slopes[index]
             row[f"predicted_slope_{axis}_err"] = errors[index]
             row[f"predicted_over_measured_{axis}"] = slopes[index] / measured[f"slope_{axis}"]
+            # pull against the BF-free-twin slope (the measured slope without photon noise)
+            if errors[index] is not None:
+                difference = slopes[index] - measured[f"paired_slope_{axis}"]
+                sigma = np.hypot(errors[index], measured[f"paired_slope_{axis}_err"])
+                row[f"pull_{axis}"] = float(difference / sigma)
         out["rows"].append(row)
     return out
 
@@ -423,7 +423,7 @@ def _stage_diagnose(config, spots, sizes_x, sizes_y, shifts, cal):
     return diagnose(observables)
 
 
-def validate(config=None, *, quick=False, progress=False, shifts_for_model="truth"):
+def validate(config=None, *, quick=False, progress=False, shifts_for_model="flats"):
     """Run the end-to-end validation on GalSim SiliconSensor simulations.
 
     Parameters
@@ -433,11 +433,11 @@ def validate(config=None, *, quick=False, progress=False, shifts_for_model="trut
     quick : bool, optional
     progress : bool, optional
         tqdm progress bar over the stages.
-    shifts_for_model : {'truth', 'flats'}, optional
-        Boundary shifts given to P(F), the pixel inverse and the closed loop: SiliconSensor's own
-        (``'truth'``, default: isolates the PSF model from calibration noise) or the flats
-        calibration (``'flats'``: the whole chain; needs flats large enough to measure a to a
-        few percent). The slope prediction is reported for both.
+    shifts_for_model : {'flats', 'truth'}, optional
+        Boundary shifts given to P(F), the pixel inverse and the closed loop: the flats
+        calibration (``'flats'``, default: the path a user takes) or SiliconSensor's own
+        landing shifts (``'truth'``: a diagnostic that isolates the PSF model from the
+        calibration; every table names it as such). The slope prediction is reported for both.
 
     Returns
     -------
@@ -487,18 +487,20 @@ def validate(config=None, *, quick=False, progress=False, shifts_for_model="trut
     result["slopes"] = slopes
 
     shift_sets = {}
-    if truth_shifts is not None:
-        shift_sets["SiliconSensor truth"] = truth_shifts
     if cal is not None and cal.shifts is not None:
-        shift_sets["flats calibration"] = cal.shifts
+        shift_sets[FLATS_LABEL] = cal.shifts
+    if truth_shifts is not None:
+        shift_sets[TRUTH_LABEL] = truth_shifts
     result["prediction"] = step("prediction", _stage_prediction, config, spots, slopes,
                                 shift_sets, cal)
-    model_shifts = (truth_shifts if shifts_for_model == "truth" or cal is None
-                    else cal.shifts)
-    if model_shifts is None:
-        model_shifts = cal.shifts if cal is not None else None
-    result["model_shifts"] = ("SiliconSensor truth" if model_shifts is truth_shifts
-                              else "flats calibration")
+    flats_shifts = cal.shifts if cal is not None else None
+    if shifts_for_model == "flats" and flats_shifts is None:
+        msg = ("the flats calibration gave no boundary shifts "
+               f"({result['calibration'].get('reason', 'no brighter-fatter signal')}); "
+               "use shifts_for_model='truth' for a diagnostic run")
+        raise BFPSFValueError(msg, shifts_for_model)
+    model_shifts = flats_shifts if shifts_for_model == "flats" else truth_shifts
+    result["model_shifts"] = FLATS_LABEL if shifts_for_model == "flats" else TRUTH_LABEL
     result["psf"], result["residual_images"] = step(
         "P(F)", _stage_psf, config, spots, (sizes_x, sizes_y), (twin_x, twin_y), raw, model_shifts,
         progress)
