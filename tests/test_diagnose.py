@@ -19,9 +19,10 @@ from bfpsf.errors import BFPSFInputError, BFPSFValueError
 from bfpsf.measure.moments import adaptive_moments_batch
 from bfpsf.model.density import exact_boundary_density
 from bfpsf.model.redistribution import redistribute
-from bfpsf.validation.diagnose import diagnose, observables_from_sizes
-from bfpsf.validation.effects import (CorrelationTable, LinearityTable, SizeTable,
-                                      quadrupole_shifts, _add_shifts)
+from bfpsf.diagnosis.catalogue import add_shifts, quadrupole_shifts
+from bfpsf.diagnosis.loop import diagnose
+from bfpsf.diagnosis.observables import (CorrelationTable, LinearityTable, SizeTable,
+                                         observables_from_sizes)
 
 PEAKS = np.linspace(1.5e4, 1.5e5, 8)
 SIGMA = 1.2
@@ -67,7 +68,7 @@ def render_sizes(shifts, *, n_phases=16, sigma=SIGMA, seed=1, nonlinearity=0.0, 
     phases = _phases(n_phases)
     model_shifts = shifts
     if quadrupole:
-        model_shifts = _add_shifts(shifts, quadrupole_shifts(shifts, quadrupole))
+        model_shifts = add_shifts(shifts, quadrupole_shifts(shifts, quadrupole))
     stamps, level, phase_index, colours = [], [], [], []
     for k, peak in enumerate(peaks):
         for j, (px, py) in enumerate(phases):
@@ -289,8 +290,7 @@ def _calibrated_flats(nonlinearity):
 
 
 def _flat_observables(cal):
-    from bfpsf.validation.diagnose import flat_observables, ptc_observable
-    from bfpsf.validation.effects import Observables
+    from bfpsf.diagnosis.observables import Observables, flat_observables, ptc_observable
 
     linearity, correlations = flat_observables(cal)
     return Observables(linearity=linearity, correlations=correlations,
@@ -364,7 +364,7 @@ def test_stacked_star_residual_consistent_with_noise(shifts, star_field):
     import galsim
 
     from bfpsf.model.psf import FluxDependentPSF
-    from bfpsf.validation.diagnose import stacked_star_residual
+    from bfpsf.diagnosis.star_residual import stacked_star_residual
 
     psf, image, table = star_field
     same = stacked_star_residual([image], [table], psf, half_size=7, noise_e=5.0)
@@ -403,13 +403,16 @@ def test_cli_images_mode_ptc_and_star_residual(tmp_path, star_field):
     _, stars, _ = star_field
     fits.PrimaryHDU(stars / 1.5).writeto(tmp_path / "stars.fits")
     code = main(["diagnose", "--flats", *paths, "--images", str(tmp_path / "stars.fits"),
-                 "--no-fit-b", "--maxlag", "3", "--bins", "5", "--report",
+                 "--no-fit-b", "--maxlag", "3", "--bins", "6", "--report",
                  str(tmp_path / "report"), "--json", str(tmp_path / "d.json")])
     assert code == 0
     data = json.loads((tmp_path / "d.json").read_text())
-    for key in ("residual_before", "candidates", "selected", "residual_after"):
+    for key in ("residual_before", "candidates", "selected", "residual_after", "unexplained"):
         assert key in data
     assert "ptc_chi2_per_point" in data["residual_before"]
+    # one image: the held-out half is every other peak bin, with the same summary keys
+    assert data["holdout"]["sizes_split_by"] == "alternate peak bins"
+    assert set(data["residual_after_heldout"]) == set(data["residual_after"])
     star = data["star_residual"]
     # unflagged sources only (measure_sources flags some of the 64 bright, close stars)
     assert 20 <= star["n_stars"] <= 64

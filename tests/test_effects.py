@@ -8,11 +8,13 @@ from scipy.special import exp1
 
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
 from bfpsf.model.density import exact_boundary_density
-from bfpsf.model.redistribution import redistribute, redistribution_delta
+from bfpsf.model.redistribution import redistribute
 from bfpsf.shifts import BoundaryShifts
-from bfpsf.validation.effects import (CATALOGUE, CorrelationTable, LinearityTable, Observables,
-                                      SizeTable, SpotForwardModel, effect_names,
-                                      exact_density_delta, get_effect, quadrupole_shifts)
+from bfpsf.diagnosis.catalogue import (CATALOGUE, add_shifts, effect_names, get_effect,
+                                       quadrupole_shifts)
+from bfpsf.diagnosis.observables import (CorrelationTable, LinearityTable, Observables, PTCTable,
+                                         SizeTable)
+from bfpsf.diagnosis.spot_model import SpotForwardModel
 
 
 @pytest.fixture(scope="module")
@@ -38,43 +40,32 @@ def test_quadrupole_moves_bf_from_x_to_y(shifts):
     """q > 0 moves the E/W boundaries of a charged pixel out (it shrinks less in x, more in
     y): sigma_x grows slower with flux, sigma_y faster, by the same amount for a round spot."""
     model = SpotForwardModel(galsim.Gaussian(sigma=1.2), shifts, phases=2)
-    from bfpsf.validation.effects import _add_shifts
-
     peaks = np.array([1e5])
     base_x, base_y = model.sizes(peaks)
-    new_x, new_y = model.sizes(peaks, shifts=_add_shifts(shifts, quadrupole_shifts(shifts, 0.5)))
+    new_x, new_y = model.sizes(peaks, shifts=add_shifts(shifts, quadrupole_shifts(shifts, 0.5)))
     assert new_x[0] < base_x[0] and new_y[0] > base_y[0]
     # round spot, x/y symmetric base shifts: opposite changes of equal size (to 2 %: the
     # moments respond to second order too)
     assert base_x[0] - new_x[0] == pytest.approx(new_y[0] - base_y[0], rel=0.02)
 
 
-def test_exact_density_matches_approximation_on_smooth_image(shifts):
-    """With densities equal to (Q_00 + Q_X)/2 the exact-density operator is G15's."""
-    rng = np.random.default_rng(0)
-    image = 1e4 + rng.uniform(0, 1e3, (20, 22))
-    north = 0.5 * (image[:-1] + image[1:])
-    east = 0.5 * (image[:, :-1] + image[:, 1:])
-    delta = exact_density_delta(image, north, east, shifts)
-    assert np.allclose(delta, redistribution_delta(image, shifts), rtol=0, atol=1e-9)
-    assert abs(delta.sum()) < 1e-9 * np.abs(delta).max()     # charge conserved
-
-
-def test_forward_model_density_agrees_with_engine(shifts):
-    """The forward model's boundary densities (2-point interface average, 10 sub-pixels) agree
-    with the redistribution engine's (4th-order interface formula) to 0.5 % for a 0.8 px
-    Gaussian, and so do the redistributed images."""
+def test_forward_model_is_the_engine(shifts):
+    """The forward model's stamps are the model layer's redistribution of the same pixels, with
+    G15's density and with the exact (4th-order) boundary density, to rounding."""
     profile = galsim.Gaussian(sigma=0.8)
     model = SpotForwardModel(profile, shifts, phases=1, stamp_size=15, oversampling=8)
-    pixels, north, east = model._fine[0]
     fine = profile.drawImage(nx=120, ny=120, scale=1 / 8, method="no_pixel").array
-    pixels2, (north2, east2) = exact_boundary_density(fine, 8)
-    assert np.allclose(pixels, pixels2, atol=1e-7)
-    assert np.abs(north - north2).max() < 5e-3 * north.max()
-    flux = 1e5 / pixels.max()
-    mine = exact_density_delta(flux * pixels, flux * north, flux * east, shifts)
-    engine = redistribute(flux * pixels2, shifts, density=(flux * north2, flux * east2))
-    assert np.abs(mine - (engine - flux * pixels2)).max() < 5e-3 * np.abs(mine).max()
+    pixels, density = exact_boundary_density(fine, 8)
+    peak = 1e5
+    flux = model.fluxes([peak])[0]
+    for option, expected in (("approx", redistribute(flux * pixels, shifts)),
+                             ("exact", redistribute(flux * pixels, shifts,
+                                                    density=tuple(flux * d for d in density)))):
+        stamp = model.stamps([peak], density=option)[0, 0]
+        assert np.abs(stamp - expected).max() < 1e-9 * flux
+    # the exact density differs from G15's: a real option, not a no-op
+    change = model.stamps([peak], density="exact") - model.stamps([peak])
+    assert np.abs(change).max() > 1e-3 * np.abs(expected - flux * pixels).max()
 
 
 def test_exact_density_increases_bf_of_undersampled_spots(shifts):
@@ -150,8 +141,6 @@ def test_catalogue_and_errors():
 def test_ptc_table_and_nonlinearity_ptc_template():
     """The gain non-linearity's PTC template is the first-order change of the variance at a
     fixed measured mean: for V = m + a m^2, (3 m^2 + 2 a m^3) / 1e5 (analytic)."""
-    from bfpsf.validation.effects import PTCTable, get_effect
-
     a = -1e-6
     mean = np.linspace(1e4, 1.2e5, 6)
     model = mean + a * mean ** 2

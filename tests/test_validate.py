@@ -150,7 +150,7 @@ def test_cli_diagnose_images_mode(tmp_path):
     write_image_adu(image, field.image, gain=1.5)
     out = tmp_path / "d.json"
     code = main(["diagnose", "--flats", *map(str, flats), "--images", str(image), "--beta",
-                 "3.5", "--bins", "5", "--no-fit-b", "--json", str(out), "--report", str(tmp_path / "r")])
+                 "3.5", "--bins", "6", "--no-fit-b", "--json", str(out), "--report", str(tmp_path / "r")])
     assert code == 0
     summary = json.loads(out.read_text())
     assert {"residual_before", "candidates", "selected", "residual_after"} <= set(summary)

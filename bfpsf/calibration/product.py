@@ -28,6 +28,8 @@ header holds the amplifier's MODEL and SHIFTMTH, the solver of its shifts):
     PTC          per-pair table (`bfpsf.calibration.ptc.ptc_table` columns and more)
     LINEARITY    exptime, mean_adu, frac_residual, used
     INPUTS       input file names;  PARAMS  key / JSON value of the calibrate() parameters
+    REFINE       (optional) one JSON string: the closed loop's refinement and its provenance
+                 (`bfpsf.diagnosis.refine`)
 """
 
 import json
@@ -115,6 +117,9 @@ class Calibration:
         Input flats.
     parameters : dict
         Parameters of `bfpsf.calibrate` (JSON-serialisable).
+    refinement : dict
+        Empty, or what the closed loop folded into this calibration and how, with the data it
+        came from (`bfpsf.diagnosis.refine.refine_calibration`; JSON-serialisable).
     bfpsf_version : str
     schema_version : int
     amplifier : str
@@ -150,6 +155,7 @@ class Calibration:
     npix: np.ndarray = None
     inputs: tuple = ()
     parameters: dict = field(default_factory=dict)
+    refinement: dict = field(default_factory=dict)
     bfpsf_version: str = __version__
     schema_version: int = SCHEMA_VERSION
     amplifier: str = ""
@@ -229,7 +235,7 @@ class Calibration:
             "shifts_solved": self.shifts is not None,
             "shift_method": self.shift_method,
             "warnings": list(self.warnings),
-            "parameters": dict(self.parameters),
+            "parameters": dict(self.parameters), "refinement": dict(self.refinement),
             "inputs": list(self.inputs), "bfpsf_version": self.bfpsf_version,
             "schema_version": self.schema_version,
         }
@@ -346,6 +352,8 @@ class Calibration:
         if not self.parameters:
             params = Table({"key": np.array([], dtype="U1"), "value": np.array([], dtype="U1")})
         hdus.append(_table_hdu(params, "PARAMS"))
+        if self.refinement:
+            hdus.append(_table_hdu(Table({"json": [json.dumps(self.refinement)]}), "REFINE"))
         for hdu in hdus:
             hdu.ver = int(extver)
             hdu.header["AMPNAME"] = (self.amplifier, "amplifier of this HDU group")
@@ -441,6 +449,7 @@ class Calibration:
                       if "WARNINGS" in names else ()),
             covariances_adu=image("COV"), npix=image("NPIX"),
             inputs=inputs, parameters=parameters,
+            refinement=(json.loads(str(table("REFINE")["json"][0])) if "REFINE" in names else {}),
             bfpsf_version=str(header["BFVERSIO"]),
             schema_version=int(header["BFSCHEMA"]),
             amplifier=str(group.get("AMPNAME", "")))

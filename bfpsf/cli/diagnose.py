@@ -1,6 +1,6 @@
 """``bfpsf diagnose``: the closed loop, residual -> missing effect -> added -> before / after.
 
-Two modes (a thin layer over `bfpsf.validation.diagnose`):
+Two modes (a thin layer over `bfpsf.diagnosis`):
 
 * images: ``bfpsf diagnose --flats FLAT.fits... --images IMAGE.fits... [--beta B]``: calibrate
   the flats (`bfpsf.calibrate`), measure the spots of the images (`bfpsf.measure.sources`),
@@ -10,7 +10,9 @@ Two modes (a thin layer over `bfpsf.validation.diagnose`):
   ``bfpsf diagnose --measured NAME`` for a published data set shipped with bfpsf
   (``bfpsf diagnose --list-measured`` lists them; `bfpsf.data`).
 
-JSON keys: ``residual_before``, ``candidates``, ``selected``, ``residual_after`` (plus
+JSON keys: ``residual_before``, ``candidates``, ``selected``, ``residual_after``,
+``residual_before_heldout``, ``residual_after_heldout`` (same keys as ``residual_after``),
+``confirmed``, ``holdout``, ``unexplained`` (plus ``nuisance``, ``output_calib``,
 ``parameters``, ``ambiguous``, ``residual_physical``, ``threshold``, ``inputs``, and in images
 mode ``star_residual``: the stacked residual of the stars against P(F), ``rms_over_peak``,
 ``chi2_per_pixel``, ``n_stars`` and its radial profile).
@@ -28,7 +30,7 @@ def add_parser(subparsers):
     parser = subparsers.add_parser(
         "diagnose", help="find the effect the BF model misses (closed loop)",
         description="Fit the brighter-fatter model, test a catalogue of candidate effects on "
-                    "the residuals, add the best by BIC, repeat (bfpsf.validation.diagnose).")
+                    "the residuals, add the best by BIC, repeat (bfpsf.diagnosis).")
     data = parser.add_argument_group("images mode")
     data.add_argument("--flats", nargs="+", metavar="FLAT.fits", help="flat-field FITS (ADU)")
     data.add_argument("--images", nargs="+", metavar="IMAGE.fits",
@@ -58,6 +60,13 @@ def add_parser(subparsers):
                         help="Delta BIC below which an effect is added (default -10)")
     parser.add_argument("--physical-first", action="store_true",
                         help="add parameter-free physical predictions before fitted effects")
+    parser.add_argument("--holdout-fraction", type=float, default=0.5, metavar="F",
+                        help="fit on the rest, report the residual on this fraction of the "
+                             "data (whole exposures where known, else alternate flux bins; "
+                             "0: no split; default 0.5)")
+    parser.add_argument("--output-calib", metavar="REFINED.fits",
+                        help="images mode: write the flats' calibration with the confirmed "
+                             "effects folded in (bfpsf.diagnosis.refine), for bfpsf psf")
     parser.add_argument("--report", metavar="DIR", help="write report.md and PNG figures")
     parser.add_argument("--json", metavar="FILE", help="write the JSON summary")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
@@ -65,29 +74,30 @@ def add_parser(subparsers):
 
 
 def _observables(args):
-    from ..validation import diagnose as loop
+    from ..diagnosis import observables as builders
+    from ..diagnosis import readers
 
     if args.measured:
         from ..data import measured_path
 
-        return loop.observables_from_measured(measured_path(args.measured),
-                                              corrected=args.corrected)
+        return readers.observables_from_measured(measured_path(args.measured),
+                                                 corrected=args.corrected)
     if args.correlations or args.sizes:
         if not (args.correlations and args.sizes):
             msg = "table mode needs both --correlations and --sizes"
             raise BFPSFInputError(msg)
-        return loop.observables_from_tables(args.correlations, args.sizes, gain=args.gain,
+        return readers.observables_from_tables(args.correlations, args.sizes, gain=args.gain,
                                             corrected=args.corrected)
     if args.flats and args.images:
-        return loop.observables_from_images(args.flats, args.images, beta=args.beta,
-                                            maxlag=args.maxlag, n_bins=args.bins,
-                                            fit_b=args.fit_b, amp=args.amp)
+        return builders.observables_from_images(args.flats, args.images, beta=args.beta,
+                                                maxlag=args.maxlag, n_bins=args.bins,
+                                                fit_b=args.fit_b, amp=args.amp)
     msg = ("give --flats and --images, or --correlations and --sizes, or --measured NAME")
     raise BFPSFInputError(msg)
 
 
 def run(args):
-    from ..validation.diagnose import diagnose
+    from ..diagnosis.loop import diagnose
     from ..files import check_outputs, write_json
     from ..validation.report import write_diagnosis_report
 
@@ -99,11 +109,39 @@ def run(args):
         return 0
 
     report = Path(args.report) / "report.md" if args.report else None
-    check_outputs([args.json, report], args.overwrite, directories=[args.report])
+    check_outputs([args.json, report, args.output_calib], args.overwrite,
+                  directories=[args.report])
+    if args.output_calib and not (args.flats and args.images):
+        msg = ("--output-calib needs images mode (--flats and --images): it refines their "
+               "calibration")
+        raise BFPSFInputError(msg)
+    if not 0 <= args.holdout_fraction < 1:
+        msg = f"--holdout-fraction must be in [0, 1), got {args.holdout_fraction}"
+        raise BFPSFInputError(msg, args.holdout_fraction)
     observables = _observables(args)
     result = diagnose(observables, threshold=args.threshold,
-                      prefer_physical=args.physical_first)
+                      prefer_physical=args.physical_first,
+                      holdout_fraction=args.holdout_fraction or None)
     summary = result.to_json_dict()
+    images = observables.meta.get("image_paths")
+    if result.holdout and images and observables.sizes.exposure is not None:
+        held = result.holdout.get("heldout_exposures") or []
+        result.holdout["fit_images"] = [p for i, p in enumerate(images) if i not in held]
+        result.holdout["heldout_images"] = [p for i, p in enumerate(images) if i in held]
+        summary["holdout"] = result.holdout
+    if args.output_calib:
+        from ..diagnosis.refine import refine_calibration
+
+        provenance = {"flats": [str(p) for p in args.flats],
+                      "images": (result.holdout or {}).get("fit_images", images),
+                      "command": "bfpsf diagnose"}
+        refined = refine_calibration(observables.meta["calibration"], result,
+                                     provenance=provenance)
+        refined.write(args.output_calib, overwrite=args.overwrite)
+        summary["output_calib"] = {"path": str(args.output_calib),
+                                   **refined.refinement}
+        print(f"refined calibration: {args.output_calib} "
+              f"({', '.join(refined.refinement['applied']) or 'nothing applied'})")
     summary["inputs"] = {key: value for key, value in observables.meta.items()
                          if isinstance(value, (str, float, int, bool)) or value is None}
     star = observables.meta.get("star_residual")
@@ -112,7 +150,16 @@ def run(args):
             "rms_over_peak", "chi2_per_pixel", "n_stars", "model_peak", "radius", "profile")}
     before, after = result.residual_before, result.residual_after
     print(f"selected: {', '.join(result.selected) or 'nothing'}")
-    for label, values in (("before", before), ("after", after)):
+    rows = [("before", before), ("after", after)]
+    if result.residual_after_heldout:
+        rows += [("held-out before", result.residual_before_heldout),
+                 ("held-out after", result.residual_after_heldout)]
+        for name, confirmed in result.confirmed.items():
+            print(f"{name}: {'confirmed' if confirmed else 'NOT CONFIRMED'} on held-out data")
+    for entry in result.unexplained:
+        print(f"unexplained: {entry['observable']} {entry['axis'] or ''} "
+              f"{entry['significance']:.1f} sigma")
+    for label, values in rows:
         if "slope_x_percent" in values:
             print(f"{label}: BF slope residual X {values['slope_x_percent']:+.2f} %, "
                   f"Y {values['slope_y_percent']:+.2f} % of raw; photometry bias "

@@ -106,6 +106,7 @@ def run(args):
     check_outputs([args.output, args.json], args.overwrite)
     refuse_duplicates(args.images, "image")
     calibration = read_calibration(args.calib)
+    refinement = {}
     images, positions, skies, per_image, used = [], [], [], [], []
     for path in args.images:
         amplifiers, _ = read_image(path, args.amp)
@@ -120,6 +121,14 @@ def run(args):
                 raise BFPSFInputError(msg, args.calib)
             gain = float(one.gain)
             image_e = amplifier.data * gain
+            # a calibration refined by `bfpsf diagnose --output-calib`: its linearity
+            # correction on input and its build-up (the shifts are already refined)
+            refinement.update(one.refinement)
+            linearity_c = float(one.refinement.get("linearity_c_per_1e5") or 0.0)
+            if linearity_c:
+                from ..diagnosis.refine import linearise
+
+                image_e = linearise(image_e, linearity_c)
             _, background, _ = sigma_clipped_stats(image_e[np.isfinite(image_e)], sigma=3.0)
             image_e = image_e - background
             saturation_e = (None if args.saturation is None
@@ -138,10 +147,12 @@ def run(args):
                               "n_amp_boundary": int(np.sum(boundary)),
                               "background_e": float(background)})
     shifts, gain, noise, samples = _star_weighted(used)
+    buildup = refinement.get("buildup_steps")
     result = fit_psf(images, positions, shifts, oversampling=args.oversampling,
                      size=args.size, read_noise=noise,
                      sky_e=skies, include_bf=args.include_bf,
-                     max_iterations=args.max_iterations)
+                     max_iterations=args.max_iterations,
+                     **({"mode": "exact", "buildup_steps": int(buildup)} if buildup else {}))
     psf = result.psf
     psf.image_gain = gain
     psf.calibration = Path(args.calib).name
@@ -161,7 +172,8 @@ def run(args):
                "flux_range_e": [float(np.min(result.stars["flux_fit"][used])),
                                 float(np.max(result.stars["flux_fit"][used]))]
                if np.any(used) else None,
-               "images": per_image}
+               "images": per_image,
+               "refinement_applied": sorted(refinement.get("applied", {}))}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "

@@ -91,8 +91,10 @@ class SlopeFit:
 
 
 def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=None,
-                 scale_errors=True, clip_nsigma=5.0):
+                 scale_errors=True, clip_nsigma=5.0, group=None):
     """Weighted linear fit ``size = intercept + slope * peak / 100 ke-``.
+
+    The one slope fitter of bfpsf (``bfpsf slope``, ``bfpsf validate`` and the closed loop).
 
     Parameters
     ----------
@@ -114,6 +116,9 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
         ``clip_nsigma`` robust standard deviations (1.4826 x the median absolute deviation)
         from the line: one unresolved blend must not set the slope. Default 5; None: no
         clipping. The number left out is ``SlopeFit.n_clipped``.
+    group : array_like of int, optional
+        A free intercept per group (an amplifier, a data set, the sub-pixel phase of a spot)
+        and one common slope; ``intercept`` is then the mean of the group intercepts.
 
     Returns
     -------
@@ -140,18 +145,22 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
                f"[{min_peak_e}, {max_peak_e}] e-, got {n_points}")
         raise BFPSFValueError(msg, n_points)
     n_usable = n_points
+    group = None if group is None else np.broadcast_to(np.asarray(group), values.shape).ravel()
     for _ in range(20):
         x = peak[keep] / PEAK_UNIT_E
         y = values[keep]
         weights = np.ones(n_points) if errors is None else 1.0 / errors[keep]**2
-        design = np.stack([np.ones(n_points), x], axis=1)
+        labels = (np.zeros(n_points, int) if group is None
+                  else np.unique(group[keep], return_inverse=True)[1])
+        n_groups = int(labels.max()) + 1
+        design = np.column_stack([x] + [(labels == g).astype(float) for g in range(n_groups)])
         normal = design.T @ (weights[:, None] * design)
         if np.linalg.cond(normal) > 1e12:
             msg = "the peak fluxes span no range: the slope is undetermined"
             raise BFPSFValueError(msg, (x.min(), x.max()))
         covariance = np.linalg.inv(normal)
-        intercept, slope = covariance @ (design.T @ (weights * y))
-        residual = y - (intercept + slope * x)
+        params = covariance @ (design.T @ (weights * y))
+        residual = y - design @ params
         if clip_nsigma is None or n_points <= 3:
             break
         normalised = residual * np.sqrt(weights)
@@ -163,7 +172,10 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
         indices = np.flatnonzero(keep)
         keep[indices[outliers]] = False
         n_points = int(keep.sum())
-    dof = n_points - 2
+    dof = n_points - design.shape[1]
+    if dof < 1:
+        msg = f"{n_points} objects cannot constrain a slope and {n_groups} intercepts"
+        raise BFPSFValueError(msg, n_points)
     chi2 = float(np.sum(weights * residual**2))
     if errors is None:
         error_scale = np.sqrt(chi2 / dof)
@@ -171,14 +183,22 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
     else:
         error_scale = max(1.0, np.sqrt(chi2 / dof)) if scale_errors else 1.0
     covariance = covariance * error_scale**2
-    slope_err = np.sqrt(covariance[1, 1])
-    intercept_err = np.sqrt(covariance[0, 0])
-    relative = 100.0 * slope / intercept
-    # error of slope / intercept with their covariance
-    relative_err = abs(relative) * np.sqrt(
-        (slope_err / slope)**2 + (intercept_err / intercept)**2
-        - 2.0 * covariance[0, 1] / (slope * intercept)) if slope != 0 else \
-        100.0 * slope_err / abs(intercept)
+    # intercept: the mean of the group intercepts (vector v), with its covariance with the slope
+    mean_vector = np.r_[0.0, np.full(n_groups, 1.0 / n_groups)]
+    slope, intercept = float(params[0]), float(mean_vector @ params)
+    slope_err = np.sqrt(covariance[0, 0])
+    intercept_err = np.sqrt(mean_vector @ covariance @ mean_vector)
+    cross = float(covariance[0] @ mean_vector)
+    if intercept == 0:
+        # e.g. a residual size: no relative slope
+        relative = relative_err = np.nan
+    else:
+        relative = 100.0 * slope / intercept
+        # error of slope / intercept with their covariance
+        relative_err = abs(relative) * np.sqrt(
+            (slope_err / slope)**2 + (intercept_err / intercept)**2
+            - 2.0 * cross / (slope * intercept)) if slope != 0 else \
+            100.0 * slope_err / abs(intercept)
     span = (peak[keep].max() - peak[keep].min()) / PEAK_UNIT_E
     return SlopeFit(slope=float(slope), slope_err=float(slope_err), intercept=float(intercept),
                     intercept_err=float(intercept_err), relative_percent=float(relative),

@@ -41,7 +41,7 @@ def _save(figure, path):
     save_figure(figure, path, overwrite=True, dpi=110)
 
 
-def _residual_rows(before, after, physical=None):
+def _residual_rows(before, after, physical=None, heldout=None):
     keys = [("slope_x_percent", "BF slope residual X (% of raw)"),
             ("slope_y_percent", "BF slope residual Y (% of raw)"),
             ("photometry_bias_mmag", "photometry bias implied (mmag, faint - bright)"),
@@ -54,13 +54,18 @@ def _residual_rows(before, after, physical=None):
             ("star_residual_rms_over_peak", "stacked star residual rms / peak (fixed)"),
             ("star_residual_chi2_per_pixel", "stacked star residual chi2 / pixel (fixed)")]
     header = "| quantity | before | after |" + (" physical only |" if physical else "")
-    lines = [header, "|---|---|---|" + ("---|" if physical else "")]
+    if heldout:
+        header += " held-out before | held-out after |"
+    columns = 3 + bool(physical) + 2 * bool(heldout)
+    lines = [header, "|" + "---|" * columns]
     for key, label in keys:
         if key not in before:
             continue
         row = f"| {label} | {format_number(before[key])} | {format_number(after[key])} |"
         if physical:
             row += f" {format_number(physical.get(key))} |"
+        if heldout:
+            row += " " + " | ".join(format_number(part.get(key)) for part in heldout) + " |"
         lines.append(row)
     return lines
 
@@ -90,8 +95,34 @@ def diagnosis_markdown(result, *, title="bfpsf diagnose", figures=(), context=()
     if star_residual is not None:
         lines += _star_residual_lines(star_residual)
     lines += ["## Residuals before and after", ""]
+    heldout = None
+    if data.get("residual_after_heldout"):
+        heldout = (data["residual_before_heldout"], data["residual_after_heldout"])
     lines += _residual_rows(data["residual_before"], data["residual_after"],
-                            data.get("residual_physical"))
+                            data.get("residual_physical"), heldout)
+    if heldout:
+        holdout = data["holdout"]
+        lines += ["", f"Held out: a fraction {holdout['fraction']:g} of the data (sizes split by "
+                  f"{holdout['sizes_split_by']}; flat pairs alternate), never fitted: the "
+                  "effects and the size scale are fixed at their in-sample values. An effect "
+                  "that does not lower the held-out chi2 is not confirmed.", ""]
+        lines += [f"- `{name}`: {'confirmed' if ok else 'NOT CONFIRMED'} on the held-out data"
+                  for name, ok in data["confirmed"].items()]
+    for name, value in data.get("nuisance", {}).items():
+        lines += ["", f"Size-prediction scale (nuisance, prior from the flats' a errors "
+                  f"{format_number(value['prior'])}): {format_number(value['value'])} +- "
+                  f"{format_number(value['error'])}."]
+    lines += ["", "## Unexplained", ""]
+    if not data.get("unexplained"):
+        lines.append("Nothing significant left unexplained.")
+    for entry in data.get("unexplained", []):
+        dependence = entry["flux_dependence"] or {}
+        lines.append(f"- {entry['observable']}"
+                     + (f", axis {entry['axis']}" if entry["axis"] else "")
+                     + f": {format_number(entry['significance'])} sigma"
+                     + (f", stacked star residual {entry['parity']} under reflection"
+                        if entry["parity"] else "")
+                     + (f", grows {dependence.get('kind')} with flux" if dependence else ""))
     if data.get("residual_physical"):
         lines += ["", "'physical only': every effect with a physical value fixed at it, no free "
                   f"parameter ({', '.join(data['residual_physical']['effects'])})."]
@@ -140,7 +171,7 @@ def write_diagnosis_report(result, directory, *, title="bfpsf diagnose", context
     residual_images : dict, optional
         Label -> stacked residual image (e-); drawn with their radial profiles.
     star_residual : dict, optional
-        `bfpsf.validation.diagnose.stacked_star_residual` output: summarised in the text.
+        `bfpsf.diagnosis.star_residual.stacked_star_residual` output: summarised in the text.
     overwrite : bool
 
     Returns

@@ -12,8 +12,11 @@ The areas of step k are evaluated at the middle of the step (the charge so far s
 covariances that build up during the exposure by the fraction 1 / nsteps (5 % for 20 steps),
 the midpoint rule by 1 / nsteps**2 (0.25 %).
 
-The charge image (electrons) is then read out: an optional serial readout correlation, an
-optional quadratic non-linearity, Gaussian read noise, and conversion to ADU with the gain.
+The lamp may flicker: each exposure's level is the nominal one times (1 + lamp_jitter * N(0, 1)),
+as real flat-field lamps scatter by about 0.1 % from exposure to exposure. The charge image
+(electrons) is then read out: an optional serial readout correlation and an optional quadratic
+non-linearity, both applied to the electrons before the read noise, Gaussian read noise, and
+conversion to ADU with the gain.
 """
 
 import logging
@@ -116,7 +119,7 @@ def simulate_flats(sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, pairs=1
                    gain=1.5, read_noise_e=5.0, nsteps=20, seed=0, exptime_per_e=1e-3,
                    nonlinearity=0.0, readout_correlation=0.0, hot_columns=(),
                    hot_column_fraction=0.02, defect_clusters=0, defect_excess_sigma=6.0,
-                   margin=5, progress=False):
+                   margin=5, progress=False, lamp_jitter=0.0):
     """Flat-field pairs in ADU from a GalSim SiliconSensor, with known truth.
 
     Each flat: the charge collected by `simulate_flat`; optional hot columns and defect
@@ -161,6 +164,10 @@ def simulate_flats(sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, pairs=1
         Pixels simulated around each image and cropped. Default 5.
     progress : bool, optional
         Show a tqdm progress bar. Default False.
+    lamp_jitter : float, optional
+        Relative rms of the lamp level from exposure to exposure (0.001: 0.1 %), the same for
+        both flats of a pair only by chance; the header keeps the drawn level (SIMLAMP).
+        Default 0.
 
     Returns
     -------
@@ -173,6 +180,9 @@ def simulate_flats(sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, pairs=1
     sensor_name = sensor if isinstance(sensor, str) else getattr(sensor, "name", repr(sensor))
     levels_e = np.atleast_1d(np.asarray(levels_e, dtype=float))
     _validate(levels_e, pairs, size, gain, read_noise_e, hot_columns)
+    if not (np.isfinite(lamp_jitter) and 0 <= lamp_jitter < 0.5):
+        msg = f"lamp_jitter must be a relative rms in [0, 0.5), got {lamp_jitter!r}"
+        raise BFPSFValueError(msg, lamp_jitter)
     hot_columns = tuple(int(column) for column in hot_columns)
     master = np.random.default_rng(seed)
     # Sensor features are fixed: draw them from their own stream.
@@ -190,8 +200,9 @@ def simulate_flats(sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, pairs=1
         for pair in range(int(pairs)):
             for member in (1, 2):
                 rng = np.random.default_rng(master.integers(2**63))
+                lamp = 1.0 + lamp_jitter * rng.standard_normal() if lamp_jitter else 1.0
                 # one extra column on the left feeds the readout correlation of column 0
-                charge = simulate_flat(sensor_object, level, size=(size, size + 1),
+                charge = simulate_flat(sensor_object, level * lamp, size=(size, size + 1),
                                        nsteps=nsteps, rng=rng, margin=margin)
                 if bar is not None:
                     bar.update(int(nsteps))
@@ -212,6 +223,7 @@ def simulate_flats(sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, pairs=1
                     "SIMNSTEP": int(nsteps),
                     "SIMNONLI": float(nonlinearity),
                     "SIMRCORR": float(readout_correlation),
+                    "SIMLAMP": float(level * lamp),
                     "SIMHOTC": ",".join(str(column) for column in hot_columns),
                     "SIMNDEF": int(defect_clusters),
                     "SIMPAIR": int(pair),

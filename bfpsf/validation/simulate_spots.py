@@ -47,6 +47,9 @@ class SpotSet:
         with its BF switched off. ``stamps - twin`` is the BF change of each spot with almost
         none of its photon noise: a control variate that makes BF slopes about 20 times more
         precise than the stamps alone.
+    phase : ndarray of int or None
+        With ``offsets`` given to `simulate_spots`: the index of each spot's sub-pixel offset
+        (the same offsets at every level), e.g. a free intercept per phase in a slope fit.
     """
 
     stamps: np.ndarray
@@ -57,6 +60,7 @@ class SpotSet:
     level: np.ndarray
     parameters: dict = field(default_factory=dict)
     twin: np.ndarray = None
+    phase: np.ndarray = None
 
     def mosaic(self, n_columns=None, margin=0):
         """Tile the stamps into one image (row by row), e.g. to run ``bfpsf measure`` on them.
@@ -157,7 +161,7 @@ def _check_positive(name, value):
 
 def simulate_spots(*, sensor="lsst_e2v_50_8", fwhm=4.0, beta=3.5, peaks_e=(10e3, 50e3, 100e3),
                    n_per_level=4, stamp_size=32, g1=0.0, g2=0.0, seed=0, read_noise_e=0.0,
-                   sky_e=0.0, bf_free_twin=False):
+                   sky_e=0.0, bf_free_twin=False, offsets=None):
     """Moffat spots at given peak levels, photon-shot through a sensor.
 
     Parameters
@@ -190,6 +194,11 @@ def simulate_spots(*, sensor="lsst_e2v_50_8", fwhm=4.0, beta=3.5, peaks_e=(10e3,
         Also draw every spot through the same SiliconSensor with BF switched off
         (``strength=1e-9``), with identical photons, diffusion steps and noise: `SpotSet.twin`.
         Needs ``sensor`` to be a SiliconSensor name. Doubles the run time. Default False.
+    offsets : array_like, shape (n_per_level, 2), optional
+        Sub-pixel offsets (x, y) in [-0.5, 0.5], pixels, repeated at every level (`SpotSet.phase`
+        indexes them). The measured size of a pixelised spot depends on its phase by a few
+        millipixels, as much as the BF change between levels; the same offsets at every level
+        cancel it in the slopes. Default: random offsets for every spot.
 
     Returns
     -------
@@ -227,7 +236,17 @@ def simulate_spots(*, sensor="lsst_e2v_50_8", fwhm=4.0, beta=3.5, peaks_e=(10e3,
 
     level = np.repeat(np.arange(peaks.size), int(n_per_level))
     n_spots = level.size
-    offsets = rng.uniform(-0.5, 0.5, size=(n_spots, 2))
+    phase = None
+    if offsets is None:
+        offsets = rng.uniform(-0.5, 0.5, size=(n_spots, 2))
+    else:
+        offsets = np.asarray(offsets, dtype=float)
+        if offsets.shape != (int(n_per_level), 2) or np.any(np.abs(offsets) > 0.5):
+            msg = (f"offsets must be {int(n_per_level)} (x, y) pairs within [-0.5, 0.5], got "
+                   f"shape {offsets.shape}")
+            raise BFPSFValueError(msg, offsets.shape)
+        phase = np.tile(np.arange(int(n_per_level)), peaks.size)
+        offsets = offsets[phase]
     stamps = np.empty((n_spots, stamp_size, stamp_size))
     twin = np.empty_like(stamps) if bf_free_twin else None
     draws = [(sensor_object, galsim_rng, stamps)]
@@ -253,10 +272,10 @@ def simulate_spots(*, sensor="lsst_e2v_50_8", fwhm=4.0, beta=3.5, peaks_e=(10e3,
     parameters = dict(sensor=_sensor_label(sensor), fwhm=fwhm, beta=beta,
         peaks_e=tuple(peaks), n_per_level=int(n_per_level), stamp_size=int(stamp_size),
         g1=g1, g2=g2, seed=seed, read_noise_e=read_noise_e, sky_e=sky_e,
-        bf_free_twin=bool(bf_free_twin))
+        bf_free_twin=bool(bf_free_twin), offsets=None if phase is None else offsets.tolist())
     return SpotSet(stamps=stamps, x=centre + offsets[:, 0], y=centre + offsets[:, 1],
                    fluxes=fluxes, peaks=peaks[level], level=level, parameters=parameters,
-                   twin=twin + noise if bf_free_twin else None)
+                   twin=twin + noise if bf_free_twin else None, phase=phase)
 
 
 def simulate_star_field(*, shape=(512, 512), n_stars=100, peak_range_e=(2e3, 1.2e5),

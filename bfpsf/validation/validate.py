@@ -26,7 +26,7 @@ by side:
    flux most), and photutils PSFPhotometry through `bfpsf.measure.photometry.psf_photometry`
    when installed (``photometry_bias_photutils_*``) with the inverse-variance weights of the
    spots seen on a sky of `PHOTOMETRY_SKY_E` (the sky enters the weights, not the noise);
-6. the closed loop (`bfpsf.validation.diagnose`) on the same data: what the residual asks for.
+6. the closed loop (`bfpsf.diagnosis.loop`) on the same data: what the residual asks for.
 
 A stage whose module is not installed reports ``{"available": False, "reason": ...}``.
 SiliconSensor uses OpenMP; run with ``OMP_NUM_THREADS`` at most the free cores.
@@ -132,26 +132,26 @@ def _slope(peak_e, values, group=None):
     ``group`` (e.g. the sub-pixel phase of each spot) gets its own intercept, so that the
     phase dependence of a pixelised size cancels. Points are weighted by the inverse variance
     of the residuals at their peak level (faint spots are noisier), estimated from an
-    unweighted first pass; the error comes from those variances.
+    unweighted first pass; the error comes from those variances. Both passes are
+    `bfpsf.measure.slopes.fit_bf_slope`.
     """
-    x = np.asarray(peak_e, float) / 1e5
+    from ..measure.slopes import PEAK_UNIT_E, fit_bf_slope
+
+    peak = np.asarray(peak_e, float)
     y = np.asarray(values, float)
-    group = np.zeros(x.size, int) if group is None else np.asarray(group)
-    labels = np.unique(group)
-    design = np.column_stack([x] + [(group == g).astype(float) for g in labels])
-    params, *_ = np.linalg.lstsq(design, y, rcond=None)
-    residual = y - design @ params
-    dof_fraction = max(y.size - design.shape[1], 1) / y.size
-    variance = np.empty_like(y)
-    for level in np.unique(x):
-        members = x == level
-        variance[members] = max(np.mean(residual[members] ** 2) / dof_fraction, 1e-30)
-    weights = 1.0 / variance
-    normal = design.T @ (design * weights[:, None])
-    params = np.linalg.pinv(normal) @ (design.T @ (weights * y))
-    chi2 = np.sum(weights * (y - design @ params) ** 2) / max(y.size - design.shape[1], 1)
-    covariance = np.linalg.pinv(normal) * max(chi2, 1.0)
-    return float(params[0]), float(np.sqrt(covariance[0, 0])), float(np.mean(params[1:]))
+    first = fit_bf_slope(peak, y, group=group, clip_nsigma=None)
+    # residuals of the first pass: refit the group intercepts at the common slope
+    detrended = y - first.slope * peak / PEAK_UNIT_E
+    labels = np.zeros(y.size, int) if group is None else np.unique(group, return_inverse=True)[1]
+    offsets = np.array([detrended[labels == g].mean() for g in range(labels.max() + 1)])
+    residual = detrended - offsets[labels]
+    dof_fraction = max(first.dof, 1) / y.size
+    error = np.empty_like(y)
+    for level in np.unique(peak):
+        members = peak == level
+        error[members] = np.sqrt(max(np.mean(residual[members] ** 2) / dof_fraction, 1e-30))
+    fit = fit_bf_slope(peak, y, size_err=error, group=group, clip_nsigma=None)
+    return fit.slope, fit.slope_err, fit.intercept
 
 
 def _moments(stamps):
@@ -244,20 +244,6 @@ def _stage_truth(config, cal):
     return out, truth, shifts
 
 
-@dataclasses.dataclass(frozen=True)
-class _Spots:
-    """Spot stamps (e-), true centres (0-based stamp pixels), requested peaks, level index."""
-
-    stamps: np.ndarray
-    x: np.ndarray
-    y: np.ndarray
-    fluxes: np.ndarray
-    peaks: np.ndarray
-    level: np.ndarray
-    phase: np.ndarray
-    twin: np.ndarray
-
-
 def _phase_grid(n, seed):
     """n sub-pixel offsets in [-0.5, 0.5)^2: a shifted 2-D Halton-like lattice (fixed per run)."""
     golden = (np.sqrt(5.0) - 1.0) / 2.0
@@ -268,60 +254,21 @@ def _phase_grid(n, seed):
 
 
 def _stage_spots(config, progress=False):
-    """Moffat spots photon-shot through SiliconSensor, the SAME sub-pixel phases at every level.
+    """Moffat spots photon-shot through SiliconSensor with their BF-free twins, the SAME
+    sub-pixel phases at every level (`bfpsf.validation.simulate_spots.simulate_spots`)."""
+    from .simulate_spots import simulate_spots
 
-    The measured size of a pixelised spot depends on its phase by a few millipixels, as much
-    as the BF change between levels; repeating one phase set per level cancels it in the
-    slopes (`bfpsf.validation.simulate_spots` draws random phases).
-    """
-    import galsim
-
-    from .simulate_spots import bf_free_sensor
-
-    rng = galsim.BaseDeviate(config.seed + 1)
-    sensor = galsim.SiliconSensor(name=config.sensor, rng=rng)
-    # the BF-free twin replays the same random numbers (photons, diffusion) with BF off
-    twin_rng = galsim.BaseDeviate(config.seed + 1)
-    draws = [(sensor, rng), (bf_free_sensor(config.sensor, twin_rng), twin_rng)]
-    profile = galsim.Moffat(fwhm=config.fwhm, beta=config.beta)
-    size = config.stamp_size
-    phases = _phase_grid(config.n_per_level, config.seed)
-    peaks = np.asarray(config.peaks_e, float)
-    stamps, twins, xs, ys, fluxes, levels = [], [], [], [], [], []
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=peaks.size * len(phases), desc="SiliconSensor spots", unit="spot")
-    centre = (size - 1) / 2.0
-    for level, peak in enumerate(peaks):
-        for phase in phases:
-            offset = galsim.PositionD(*phase)
-            fraction = profile.drawImage(nx=size, ny=size, scale=1.0, offset=offset).array.max()
-            flux = peak / fraction
-            for (sensor_, deviate), out in zip(draws, (stamps, twins)):
-                image = galsim.ImageD(size, size, scale=1.0)
-                profile.withFlux(flux).drawImage(image=image, method="phot", sensor=sensor_,
-                                                 rng=deviate, offset=offset)
-                out.append(image.array.copy())
-            xs.append(centre + phase[0])
-            ys.append(centre + phase[1])
-            fluxes.append(flux)
-            levels.append(level)
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
-    levels = np.array(levels)
-    phase_index = np.tile(np.arange(len(phases)), peaks.size)
-    return _Spots(np.array(stamps), np.array(xs), np.array(ys), np.array(fluxes),
-                  peaks[levels], levels, phase_index, np.array(twins))
+    return simulate_spots(sensor=config.sensor, fwhm=config.fwhm, beta=config.beta,
+                          peaks_e=config.peaks_e, n_per_level=config.n_per_level,
+                          stamp_size=config.stamp_size, seed=config.seed + 1,
+                          bf_free_twin=True,
+                          offsets=_phase_grid(config.n_per_level, config.seed))
 
 
 def _stage_prediction(config, spots, measured, shift_sets, cal=None, n_draws=20):
     import galsim
 
-    from .effects import SpotForwardModel
+    from ..diagnosis.spot_model import SpotForwardModel
 
     from ..interop.silicon_truth import silicon_diffusion_sigma
 
@@ -461,8 +408,8 @@ def _stage_inverse(spots, raw, twin_sizes, shifts):
 
 
 def _stage_diagnose(config, spots, sizes_x, sizes_y, shifts, cal):
-    from .diagnose import diagnose, flat_observables, observables_from_sizes
-    from .effects import SizeTable
+    from ..diagnosis.loop import diagnose
+    from ..diagnosis.observables import SizeTable, flat_observables, observables_from_sizes
 
     sigma_x, err_x = _level_means(spots, sizes_x)
     sigma_y, err_y = _level_means(spots, sizes_y)

@@ -1,0 +1,14 @@
+"""The closed loop: residual -> missing effect -> added -> before / after (on held-out data).
+
+One module per job:
+
+- `bfpsf.diagnosis.observables`: the observable tables and their builders (images, sizes);
+- `bfpsf.diagnosis.spot_model`: the base model of the spot sizes (the model layer's
+  redistribution of a model spot);
+- `bfpsf.diagnosis.catalogue`: the candidate effects and their templates;
+- `bfpsf.diagnosis.loop`: the information-criterion loop, the held-out split and the
+  description of what no candidate explains;
+- `bfpsf.diagnosis.readers`: the published measured tables;
+- `bfpsf.diagnosis.star_residual`: the stacked residual of the stars against P(F);
+- `bfpsf.diagnosis.refine`: the loop's result written as a calibration.
+"""

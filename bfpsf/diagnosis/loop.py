@@ -1,0 +1,838 @@
+"""The closed loop: residual -> missing effect -> added -> before / after.
+
+`diagnose` fits the base model to the observables (`bfpsf.diagnosis.observables`), looks at what
+is left, and tests every candidate of the catalogue: each candidate's template is fitted
+jointly with the base model's nuisance parameters and the effects already selected, by weighted
+least squares with the observables' errors. Its statistic is the chi-square improvement
+Delta chi2 = chi2(before) - chi2(with it), and it is scored by the Bayesian information
+criterion
+
+    Delta BIC = -Delta chi2 + k ln N
+
+(k its parameters, N the data points; negative is better). The best candidate is added if its
+Delta BIC is below ``threshold`` (default -10: "very strong" evidence on the Kass & Raftery
+1995 scale, about a 3.6 sigma improvement for k = 1 and N ~ 100), the model is refitted, and
+the loop repeats until no candidate passes.
+
+Effects whose parameter physics predicts (the exact boundary density, t = 1; the area beyond
+the measured lags, t = 1) are also tested fixed at that value, as ``name@physical`` with k = 0:
+a parameter-free prediction. ``prefer_physical=True`` adds a significant parameter-free
+prediction before any fitted effect. A fit outside an effect's physical bounds (a negative
+diffusion, say) cannot be selected. Candidates of other families within 10 in Delta BIC of
+the winner are reported as indistinguishable (``ambiguous``): on sizes alone, isotropic
+terms (non-linearity, diffusion, more BF) are nearly degenerate, and a linearity observable
+is what separates them.
+
+Base model and its nuisance parameters:
+
+* sizes: measured sigma minus the G15 prediction (model spot scaled to each peak and
+  redistributed, eq. scrambling_model); a free intercept per data-set group and axis.
+* linearity: flat mean = k t + b (both free).
+* correlations: R(dx, dy) = a(dx, dy) mu (eq. covar), a free per lag (no intercept).
+* ptc (images mode): flat-pair variance minus the calibrated PTC model with the sum-rule
+  a(0, 0) (`bfpsf.diagnosis.observables.PTCTable`); a free constant (read noise), a free
+  term linear in the mean (gain), and a term in mean^2 (the sum-rule a(0, 0)) free within
+  its error (a Gaussian prior, one pseudo data point).
+
+Residual summaries: the brighter-fatter slope residual in X and Y (slope of the size residual
+against peak, percent of the raw measured slope), the photometry bias the size residual implies
+(a PSF fit with a template of width sigma on a star of width sigma (1 + eps) is biased by
+-eps in flux, 1.0857 eps mag, for Gaussian profiles), and chi2 / N per observable.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import BFPSFInputError, BFPSFValueError
+from .catalogue import CATALOGUE
+
+__all__ = ["DiagnosisResult", "diagnose", "DEFAULT_THRESHOLD", "slope_residuals", "split_observables",
+           "describe_unexplained", "UNEXPLAINED_NSIGMA"]
+
+#: Families `bfpsf.diagnosis.refine` folds into a calibration (second order: when positive).
+_FOLDABLE = ("calibration_scale", "xy_anisotropy", "gain_nonlinearity")
+
+#: Delta BIC below which a candidate is added (Kass & Raftery 1995: "very strong").
+DEFAULT_THRESHOLD = -10.0
+
+_MAG_PER_FRACTION = 2.5 / np.log(10.0)
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The stacked residual vector of every observable and the base nuisance design."""
+
+    keys: tuple            # observable key of each block
+    slices: dict           # key -> slice into the vector
+    residual: np.ndarray   # data - fixed base prediction
+    sigma: np.ndarray
+    nuisance: np.ndarray   # (N, m)
+    global_columns: tuple = ()  # nuisance columns held fixed on held-out data (size scale)
+
+
+def _size_block(observables):
+    """Size residuals; nuisance: an intercept per group and axis and, when the observables
+    carry the calibration's BF amplitude error (``meta['scale_err']``), a common scale of the
+    shifts within it (a Gaussian prior, one pseudo data point): the prediction is no better
+    than its flats. The scale is a global nuisance: fitted in-sample, fixed on held-out data.
+    """
+    from .catalogue import get_effect
+
+    sizes, model = observables.sizes, observables.spot_model
+    predicted_x, predicted_y = model.sizes(sizes.peak_e)
+    residual = np.concatenate([sizes.sigma_x - predicted_x, sizes.sigma_y - predicted_y])
+    sigma = np.concatenate([sizes.sigma_x_err, sizes.sigma_y_err])
+    n, groups = len(sizes), sizes.n_groups
+    nuisance = np.zeros((2 * n, 2 * groups))
+    for axis in range(2):
+        nuisance[axis * n + np.arange(n), axis * groups + sizes.group] = 1.0
+    scale_err = float(observables.meta.get("scale_err", 0.0) or 0.0)
+    if not scale_err > 0:
+        return residual, sigma, nuisance
+    template = get_effect("calibration_scale").templates(observables)["sizes"]
+    nuisance = np.hstack([nuisance, template])
+    prior_design = np.zeros((1, nuisance.shape[1]))
+    prior_design[0, -1] = 1.0
+    return (residual, sigma, nuisance, (prior_design, np.array([scale_err])),
+            (nuisance.shape[1] - 1,))
+
+
+def _linearity_block(observables):
+    table = observables.linearity
+    nuisance = np.column_stack([table.exptime, np.ones_like(table.exptime)])
+    return table.mean_e.copy(), table.mean_err_e.copy(), nuisance
+
+
+def _correlation_block(observables):
+    table = observables.correlations
+    n, n_lags = table.r.shape
+    nuisance = np.zeros((n * n_lags, n_lags))
+    for lag in range(n_lags):
+        nuisance[lag * n:(lag + 1) * n, lag] = table.mean_e
+    return table.r.T.ravel(), table.r_err.T.ravel(), nuisance
+
+
+def _ptc_block(observables):
+    """PTC residuals; nuisance: read noise, gain and the sum-rule a(0, 0) within its error.
+
+    The error of the sum-rule a(0, 0) is common to every pair (a term delta_a m^2): it is a
+    nuisance column with a Gaussian prior of that width, entered as one extra pseudo data
+    point (zero, with that error) so the weighted least squares stays diagonal.
+    """
+    table = observables.ptc
+    scaled = table.mean_e / 1e5
+    if not table.sum_rule_err > 0:
+        # a(0, 0) taken as exact: no freedom in the m^2 term
+        nuisance = np.column_stack([np.ones_like(scaled), scaled])
+        return table.residual_e, table.var_err_e.copy(), nuisance
+    nuisance = np.column_stack([np.ones_like(scaled), scaled, scaled ** 2])
+    prior_design = np.array([[0.0, 0.0, 1.0]])
+    prior_sigma = np.array([table.sum_rule_err * 1e10])
+    return table.residual_e, table.var_err_e.copy(), nuisance, (prior_design, prior_sigma)
+
+
+_BLOCKS = {"sizes": _size_block, "linearity": _linearity_block,
+           "correlations": _correlation_block, "ptc": _ptc_block}
+
+
+def _build_problem(observables):
+    keys, slices, residuals, sigmas, nuisances, global_columns = [], {}, [], [], [], []
+    start = 0
+    for key, block in _BLOCKS.items():
+        if getattr(observables, key) is None:
+            continue
+        residual, sigma, nuisance, *prior = block(observables)
+        if len(prior) == 2:
+            offset = sum(n.shape[1] for n in nuisances)
+            global_columns += [offset + column for column in prior.pop()]
+        keys.append(key)
+        slices[key] = slice(start, start + residual.size)
+        start += residual.size
+        if prior:
+            # prior rows of the block's nuisance: pseudo data (zero) outside the key's slice,
+            # so no effect template reaches them
+            prior_design, prior_sigma = prior[0]
+            residual = np.concatenate([residual, np.zeros(prior_sigma.size)])
+            sigma = np.concatenate([sigma, prior_sigma])
+            nuisance = np.vstack([nuisance, prior_design])
+            start += prior_sigma.size
+        residuals.append(residual)
+        sigmas.append(sigma)
+        nuisances.append(nuisance)
+    total = sum(n.shape[1] for n in nuisances)
+    design = np.zeros((start, total))
+    column = 0
+    for key, nuisance in zip(keys, nuisances):
+        rows = slice(slices[key].start, slices[key].start + nuisance.shape[0])
+        design[rows, column:column + nuisance.shape[1]] = nuisance
+        column += nuisance.shape[1]
+    return _Problem(tuple(keys), slices, np.concatenate(residuals), np.concatenate(sigmas),
+                    design, tuple(global_columns))
+
+
+def _effect_design(problem, templates):
+    """Full-length (N, k) design of one effect from its per-observable templates."""
+    k = next(iter(templates.values())).shape[1]
+    design = np.zeros((problem.residual.size, k))
+    for key, template in templates.items():
+        if key in problem.slices:
+            design[problem.slices[key]] = template
+    return design
+
+
+def _wls(residual, sigma, design):
+    """Weighted least squares: parameters, covariance, chi2, fitted model."""
+    weights = 1.0 / sigma
+    a = design * weights[:, None]
+    b = residual * weights
+    # scale columns for conditioning
+    norms = np.sqrt((a ** 2).sum(axis=0))
+    norms[norms == 0] = 1.0
+    solution, *_ = np.linalg.lstsq(a / norms, b, rcond=None)
+    params = solution / norms
+    model = design @ params
+    chi2 = float((((residual - model) * weights) ** 2).sum())
+    try:
+        covariance = np.linalg.pinv((a / norms).T @ (a / norms)) / np.outer(norms, norms)
+    except np.linalg.LinAlgError:
+        covariance = np.full((params.size, params.size), np.nan)
+    return params, covariance, chi2, model
+
+
+def slope_residuals(sizes, residual_x, residual_y):
+    """BF slope residual in X and Y, percent of the raw measured slope, and the raw slopes.
+
+    Parameters
+    ----------
+    sizes : SizeTable
+    residual_x, residual_y : ndarray
+        Measured minus model sigma, pixels.
+
+    Returns
+    -------
+    dict
+        ``raw_slope_x``, ``raw_slope_y`` (pixels per 100 ke- of peak), ``slope_x_percent``,
+        ``slope_y_percent`` and their errors (percent).
+    """
+    from ..measure.slopes import fit_bf_slope
+
+    out = {}
+    for axis, measured, error, residual in (("x", sizes.sigma_x, sizes.sigma_x_err, residual_x),
+                                            ("y", sizes.sigma_y, sizes.sigma_y_err, residual_y)):
+        # the given errors, not rescaled by the scatter (the chi2 is reported apart)
+        raw = fit_bf_slope(sizes.peak_e, measured, size_err=error, group=sizes.group,
+                           scale_errors=False, clip_nsigma=None).slope
+        fit = fit_bf_slope(sizes.peak_e, residual, size_err=error, group=sizes.group,
+                           scale_errors=False, clip_nsigma=None)
+        out[f"raw_slope_{axis}"] = raw
+        out[f"slope_{axis}_percent"] = 100.0 * fit.slope / raw
+        out[f"slope_{axis}_percent_err"] = 100.0 * fit.slope_err / abs(raw)
+    return out
+
+
+def _summary(problem, observables, model):
+    """Residual summary of data - (fixed base prediction + fitted model)."""
+    residual = problem.residual - model
+    out = {"chi2": float(((residual / problem.sigma) ** 2).sum()), "n": int(residual.size)}
+    for key in problem.keys:
+        block = problem.slices[key]
+        part = residual[block] / problem.sigma[block]
+        out[f"{key}_chi2_per_point"] = float(np.mean(part ** 2))
+    sizes = observables.sizes
+    if sizes is not None:
+        block = residual[problem.slices["sizes"]]
+        n = len(sizes)
+        residual_x, residual_y = block[:n], block[n:]
+        out.update(slope_residuals(sizes, residual_x, residual_y))
+        # photometry bias implied by the size residual between the faintest and brightest
+        mean_sigma = 0.5 * (sizes.sigma_x.mean() + sizes.sigma_y.mean())
+        span = (sizes.peak_e.max() - sizes.peak_e.min()) / 1e5
+        slopes = [out[f"raw_slope_{a}"] * out[f"slope_{a}_percent"] / 100.0 for a in "xy"]
+        out["photometry_bias_mmag"] = float(1e3 * _MAG_PER_FRACTION * np.mean(slopes) * span
+                                            / mean_sigma)
+        out["size_rms_x_pix"] = float(np.std(residual_x))
+        out["size_rms_y_pix"] = float(np.std(residual_y))
+    if observables.correlations is not None:
+        out["correlation_rms"] = float(np.std(residual[problem.slices["correlations"]]))
+    if observables.linearity is not None:
+        block = residual[problem.slices["linearity"]]
+        out["linearity_max_frac_residual"] = float(
+            np.max(np.abs(block / observables.linearity.mean_e)))
+    if observables.ptc is not None:
+        block = residual[problem.slices["ptc"]]
+        out["ptc_max_frac_residual"] = float(np.max(np.abs(block / observables.ptc.var_e)))
+    star = observables.meta.get("star_residual")
+    if star is not None:
+        # the stars' stacked residual is a fixed diagnostic (no candidate changes it)
+        out["star_residual_rms_over_peak"] = star["rms_over_peak"]
+        out["star_residual_chi2_per_pixel"] = star["chi2_per_pixel"]
+    return out
+
+
+def json_ready(value):
+    """A JSON-serialisable copy: numpy scalars and arrays to Python, NaN and inf to None."""
+    if isinstance(value, dict):
+        return {str(key): json_ready(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [json_ready(item) for item in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+@dataclass(frozen=True)
+class DiagnosisResult:
+    """Outcome of the closed loop.
+
+    Attributes
+    ----------
+    residual_before, residual_after : dict
+        Residual summaries of the base model (the prediction as it stands: only the local
+        nuisances fitted) and of the final model (effects and global nuisances fitted).
+    candidates : list of dict
+        One entry per candidate and round: ``round``, ``name``, ``statistic`` (Delta chi2,
+        positive = better fit; None if not testable), ``delta_bic`` (None if not testable),
+        ``k``, ``parameters`` and ``errors`` of the joint fit, ``testable``, ``allowed``
+        (False: the fit is outside the effect's physical bounds, so it cannot be selected).
+    selected : list of str
+        Names of the added effects, in order (``name@physical``: fixed at its physical value).
+    parameters : dict
+        Final fitted parameters of each selected effect: name -> {value, error, physical}.
+    threshold : float
+    curves : dict
+        Arrays for the plots: ``peak_e``, ``sigma_x``, ``sigma_y``, errors, ``base_x``,
+        ``base_y`` (base model with fitted intercepts), ``final_x``, ``final_y``, ``group``.
+    nuisance : dict
+        Fitted global nuisances: ``calibration_scale`` {value, error, prior} when the size
+        prediction carries the flats' BF amplitude error (``meta['scale_err']``).
+    residual_before_heldout, residual_after_heldout : dict or None
+        With a held-out split: the residual summaries (same keys as ``residual_after``) on the
+        held-out data, the effects and global nuisances fixed at their in-sample values and
+        only the local nuisances (intercepts, linearity zero point and slope, PTC noise and
+        gain) refitted.
+    residual_physical_heldout : dict or None
+        ``residual_physical`` on the held-out data.
+    confirmed : dict
+        Selected effect -> True when adding it lowered the held-out chi2 (in the order
+        selected), False ("not confirmed") otherwise. Empty without a split.
+    holdout : dict or None
+        How the data were split (``fraction``, ``sizes_split_by``, row counts).
+    unexplained : list of dict
+        Significant residuals no confirmed effect explains: {observable, axis, parity,
+        flux_dependence, significance} (`describe_unexplained`).
+    folded : dict
+        The joint fit of the selected effects a calibration can hold (``names``, ``effects``:
+        name -> values, ``scale_nuisance``), for `bfpsf.diagnosis.refine`.
+    ptc_curves : dict
+        PTC residuals for the plot (empty without a PTC observable): ``mean_e``,
+        ``residual_raw`` (data minus the calibrated sum-rule model, nothing refitted),
+        ``residual_before``, ``residual_after`` (data minus base / final model with the
+        nuisance refitted, e-^2), ``error``, ``var_e``.
+    """
+
+    residual_before: dict
+    candidates: list
+    selected: list
+    residual_after: dict
+    parameters: dict
+    threshold: float
+    curves: dict = field(default_factory=dict)
+    ambiguous: dict = field(default_factory=dict)
+    residual_physical: dict = None
+    ptc_curves: dict = field(default_factory=dict)
+    nuisance: dict = field(default_factory=dict)
+    residual_before_heldout: dict = None
+    residual_after_heldout: dict = None
+    residual_physical_heldout: dict = None
+    confirmed: dict = field(default_factory=dict)
+    holdout: dict = None
+    unexplained: list = field(default_factory=list)
+    folded: dict = field(default_factory=dict)
+
+    def to_json_dict(self):
+        """The ``--json`` summary: residual_before, candidates, selected, residual_after (+)."""
+        return json_ready({"residual_before": self.residual_before, "candidates": self.candidates,
+                      "selected": self.selected, "residual_after": self.residual_after,
+                      "parameters": self.parameters, "threshold": self.threshold,
+                      "ambiguous": self.ambiguous,
+                      "residual_physical": self.residual_physical, "nuisance": self.nuisance,
+                      "residual_before_heldout": self.residual_before_heldout,
+                      "residual_after_heldout": self.residual_after_heldout,
+                      "residual_physical_heldout": self.residual_physical_heldout,
+                      "confirmed": self.confirmed, "holdout": self.holdout,
+                      "unexplained": self.unexplained, "folded": self.folded})
+
+
+def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, max_rounds=4,
+             prefer_physical=False, holdout_fraction=None):
+    """Find, by information criterion, the effects the base model is missing.
+
+    Parameters
+    ----------
+    observables : Observables
+    catalogue : sequence of Effect, optional
+        Candidates (default `bfpsf.diagnosis.catalogue.CATALOGUE`).
+    threshold : float, optional
+        Add the best candidate when its Delta BIC is below this (default -10).
+    max_rounds : int, optional
+        At most this many effects are added (default 4).
+    prefer_physical : bool, optional
+        In each round, add the best parameter-free prediction (an effect fixed at its physical
+        value, ``name@physical``) when it passes the threshold, before considering fitted
+        effects (Occam: a prediction beats a fit that explains the same residual). Default
+        False: plain BIC ranking.
+    holdout_fraction : float, optional
+        Fit on part of the data and report the residual on the rest (`split_observables`):
+        ``residual_before_heldout``, ``residual_after_heldout`` and, per selected effect,
+        whether it improves the held-out residual (``confirmed``). Default None: no split.
+
+    Returns
+    -------
+    DiagnosisResult
+    """
+    if holdout_fraction:
+        fit_part, heldout = split_observables(observables, holdout_fraction)
+        result, state = _run_loop(fit_part, catalogue, threshold, max_rounds, prefer_physical)
+        return _with_heldout(result, state, heldout, holdout_fraction)
+    result, state = _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical)
+    return _with_unexplained(result, state, observables)
+
+
+def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
+    """The loop itself: the result and what the held-out evaluation needs."""
+    if not threshold < 0:
+        msg = f"threshold must be a negative Delta BIC, got {threshold!r}"
+        raise BFPSFValueError(msg, threshold)
+    problem = _build_problem(observables)
+    n_points = problem.residual.size
+    if n_points <= problem.nuisance.shape[1] + 1:
+        msg = (f"{n_points} data points cannot constrain {problem.nuisance.shape[1]} base "
+               "parameters and a candidate")
+        raise BFPSFInputError(msg, n_points)
+    if not np.all(np.isfinite(problem.residual)):
+        msg = (f"the base model gives {np.count_nonzero(~np.isfinite(problem.residual))} "
+               "non-finite predictions (size measurement of the model spot failed)")
+        raise BFPSFInputError(msg)
+    designs = {}
+    for effect in catalogue:
+        templates = effect.templates(observables)
+        design = _effect_design(problem, templates) if templates else None
+        if design is not None and not np.all(np.isfinite(design)):
+            design = None     # the template could not be computed: not testable
+        designs[effect.name] = design
+
+    # Effects with a physical value are also tested FIXED at it: a parameter-free prediction
+    # (k = 0, so Delta BIC = -Delta chi2) named "<name>@physical".
+    fixed = {}
+    for effect in catalogue:
+        if effect.physical_value is not None and designs[effect.name] is not None:
+            fixed[f"{effect.name}@physical"] = (designs[effect.name]
+                                               @ np.asarray(effect.physical_value, float))
+
+    def fit(names):
+        free = [name for name in names if name not in fixed]
+        offset = sum((fixed[name] for name in names if name in fixed),
+                     np.zeros_like(problem.residual))
+        blocks = [problem.nuisance] + [designs[name] for name in free]
+        params, covariance, chi2, model = _wls(problem.residual - offset, problem.sigma,
+                                               np.column_stack(blocks))
+        return params, covariance, chi2, model + offset
+
+    def family(name):
+        return name.split("@")[0]
+
+    options = []
+    for effect in catalogue:
+        options.append((effect.name, effect))
+        if f"{effect.name}@physical" in fixed:
+            options.append((f"{effect.name}@physical", effect))
+
+    selected = []
+    _, _, chi2_current, model_before = fit([])
+    if problem.global_columns:
+        # "before": the prediction as it stands, global nuisances (the size scale) at zero
+        local = np.delete(problem.nuisance, list(problem.global_columns), axis=1)
+        model_before = _wls(problem.residual, problem.sigma, local)[3]
+    candidates = []
+    ambiguous = {}
+    for round_index in range(int(max_rounds)):
+        scores = []
+        taken = {family(name) for name in selected}
+        for name, effect in options:
+            if family(name) in taken:
+                continue
+            is_fixed = name in fixed
+            k = 0 if is_fixed else effect.k
+            entry = {"round": round_index + 1, "name": name, "k": k,
+                     "testable": designs[effect.name] is not None}
+            if designs[effect.name] is None:
+                entry.update(statistic=None, delta_bic=None, parameters=None, errors=None,
+                             allowed=None)
+            else:
+                params, covariance, chi2, _ = fit(selected + [name])
+                statistic = chi2_current - chi2
+                delta_bic = -statistic + k * np.log(n_points)
+                if is_fixed:
+                    values, errors = list(effect.physical_value), [0.0] * effect.k
+                else:
+                    own = slice(params.size - k, params.size)
+                    values = params[own].tolist()
+                    errors = np.sqrt(np.abs(np.diag(covariance)[own])).tolist()
+                allowed = effect.bounds is None or all(
+                    low <= value <= high for value, (low, high) in zip(values, effect.bounds))
+                entry.update(statistic=float(statistic), delta_bic=float(delta_bic),
+                             parameters=values, errors=errors, allowed=bool(allowed))
+                if allowed:
+                    scores.append((delta_bic, name, chi2))
+            candidates.append(entry)
+        if not scores:
+            break
+        physical_scores = [score for score in scores if score[1] in fixed]
+        if prefer_physical and physical_scores and min(physical_scores)[0] < threshold:
+            scores = physical_scores
+        best_bic, best_name, best_chi2 = min(scores)
+        if not best_bic < threshold:
+            break
+        # candidates the data cannot tell apart from the winner (Delta BIC within 10 of it)
+        ambiguous[best_name] = sorted(name for bic, name, _ in scores
+                                      if name != best_name and family(name) != family(best_name)
+                                      and bic - best_bic < -DEFAULT_THRESHOLD)
+        selected.append(best_name)
+        chi2_current = best_chi2
+
+    physical_names = sorted(fixed)
+    residual_physical = None
+    if physical_names:
+        # parameter-free: the physical values, global nuisances (the size scale) at zero
+        offset = sum(fixed[name] for name in physical_names)
+        local = np.delete(problem.nuisance, list(problem.global_columns), axis=1)
+        model_physical = _wls(problem.residual - offset, problem.sigma, local)[3] + offset
+        residual_physical = _summary(problem, observables, model_physical)
+        residual_physical["effects"] = physical_names
+    params, covariance, _, model_after = fit(selected)
+    parameters = {}
+    column = problem.nuisance.shape[1]
+    by_name = {effect.name: effect for effect in catalogue}
+    for name in selected:
+        effect = by_name[family(name)]
+        physical = list(effect.physical_value) if effect.physical_value else None
+        if name in fixed:
+            parameters[name] = {"names": list(effect.parameters), "value": physical,
+                                "error": [0.0] * effect.k, "physical": physical}
+            continue
+        own = slice(column, column + effect.k)
+        parameters[name] = {"names": list(effect.parameters), "value": params[own].tolist(),
+                            "error": np.sqrt(np.abs(np.diag(covariance)[own])).tolist(),
+                            "physical": physical}
+        column += effect.k
+
+    curves = {}
+    sizes = observables.sizes
+    if sizes is not None:
+        n = len(sizes)
+        block = problem.slices["sizes"]
+        predicted_x, predicted_y = observables.spot_model.sizes(sizes.peak_e)
+        base = np.concatenate([predicted_x, predicted_y]) + model_before[block]
+        final = np.concatenate([predicted_x, predicted_y]) + model_after[block]
+        curves = {"peak_e": sizes.peak_e, "group": sizes.group,
+                  "sigma_x": sizes.sigma_x, "sigma_y": sizes.sigma_y,
+                  "sigma_x_err": sizes.sigma_x_err, "sigma_y_err": sizes.sigma_y_err,
+                  "base_x": base[:n], "base_y": base[n:], "final_x": final[:n],
+                  "final_y": final[n:]}
+    ptc_curves = {}
+    if observables.ptc is not None:
+        block = problem.slices["ptc"]
+        ptc_curves = {"mean_e": observables.ptc.mean_e, "var_e": observables.ptc.var_e,
+                      "error": observables.ptc.var_err_e,
+                      "residual_raw": observables.ptc.residual_e,
+                      "residual_before": problem.residual[block] - model_before[block],
+                      "residual_after": problem.residual[block] - model_after[block]}
+    nuisance = {}
+    if problem.global_columns:
+        column = problem.global_columns[0]
+        nuisance["calibration_scale"] = {
+            "value": float(params[column]),
+            "error": float(np.sqrt(abs(covariance[column, column]))),
+            "prior": float(observables.meta["scale_err"])}
+    # what a calibration can hold (`bfpsf.diagnosis.refine`), refitted jointly without the
+    # rest: a fitted second order goes into the build-up only when positive (the build-up's
+    # own second order strengthens BF); otherwise the others are refitted without it
+    foldable = [name for name in selected if family(name) in _FOLDABLE
+                or (family(name) == "second_order" and parameters[name]["value"][0] > 0)]
+    values = fit(foldable)[0]
+    folded = {"names": foldable,
+              "effects": {name: np.asarray(value).tolist() for name, value in
+                          _effect_values(values, problem, foldable, fixed, by_name,
+                                         family).items()},
+              "scale_nuisance": (float(values[problem.global_columns[0]])
+                                 if problem.global_columns else None)}
+    result = DiagnosisResult(residual_before=_summary(problem, observables, model_before),
+                             candidates=candidates, selected=selected,
+                             residual_after=_summary(problem, observables, model_after),
+                             parameters=parameters, threshold=float(threshold), curves=curves,
+                             ambiguous=ambiguous, residual_physical=residual_physical,
+                             ptc_curves=ptc_curves, nuisance=nuisance, folded=folded)
+    # for the held-out evaluation: the effect and global-nuisance values of each step, the
+    # first one the bare prediction
+    steps = [{"names": [], "global": np.zeros(len(problem.global_columns)), "effects": {},
+              "model": model_before}] if problem.global_columns else []
+    for k in range(len(selected) + 1):
+        names = selected[:k]
+        values, _, _, model = fit(names)
+        steps.append({"names": names, "global": values[list(problem.global_columns)],
+                      "effects": _effect_values(values, problem, names, fixed, by_name, family),
+                      "model": model})
+    state = {"problem": problem, "steps": steps, "fixed": fixed, "family": family,
+             "by_name": by_name}
+    return result, state
+
+
+def _effect_values(values, problem, names, fixed, by_name, family):
+    """name -> parameter vector of each effect of a joint fit over ``names``."""
+    out = {}
+    column = problem.nuisance.shape[1]
+    for name in names:
+        effect = by_name[family(name)]
+        if name in fixed:
+            out[name] = np.asarray(effect.physical_value, float)
+            continue
+        out[name] = values[column:column + effect.k]
+        column += effect.k
+    return out
+
+
+
+
+# -- held-out split ------------------------------------------------------------------------------
+def _interleaved(n, fraction):
+    """Boolean mask of the held-out members of n ordered items, evenly interleaved."""
+    index = np.arange(n)
+    return np.floor((index + 1) * fraction) > np.floor(index * fraction)
+
+
+def split_observables(observables, fraction=0.5):
+    """Split the observables into a part to fit and a held-out part.
+
+    Sizes: by exposure when the table has it (``SizeTable.exposure``: whole exposures held
+    out, evenly interleaved), otherwise alternate peak bins within each group. Flat tables
+    (linearity, correlations, PTC): alternate flat pairs in order of mean signal. The spot
+    model and ``meta`` are shared.
+
+    Returns
+    -------
+    (Observables, Observables)
+    """
+    from .observables import CorrelationTable, LinearityTable, Observables, PTCTable
+
+    if not 0 < fraction < 1:
+        msg = f"holdout_fraction must be between 0 and 1 (exclusive), got {fraction!r}"
+        raise BFPSFValueError(msg, fraction)
+    parts = {"fit": {}, "heldout": {}}
+    how = None
+    sizes = observables.sizes
+    if sizes is not None:
+        exposures = None if sizes.exposure is None else np.unique(sizes.exposure)
+        if exposures is not None and exposures.size >= 2:
+            held_exposures = exposures[_interleaved(exposures.size, fraction)]
+            held = np.isin(sizes.exposure, held_exposures)
+            how = "exposure"
+        else:
+            held = np.zeros(len(sizes), bool)
+            for group in np.unique(sizes.group):
+                members = np.flatnonzero(sizes.group == group)
+                members = members[np.argsort(sizes.peak_e[members])]
+                held[members[_interleaved(members.size, fraction)]] = True
+            how = "alternate peak bins"
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            if rows.sum() < 3 or len(np.unique(sizes.group[rows])) < sizes.n_groups:
+                msg = (f"the {part} part of a {fraction:g} held-out split holds {rows.sum()} "
+                       "size entries: too few (at least 3 and every group); give more "
+                       "exposures or no held-out split (--holdout-fraction 0)")
+                raise BFPSFInputError(msg, int(rows.sum()))
+            parts[part]["sizes"] = sizes.subset(rows)
+
+    def rows_by_mean(mean):
+        order = np.argsort(mean)
+        held = np.zeros(mean.size, bool)
+        held[order[_interleaved(mean.size, fraction)]] = True
+        return held
+
+    table = observables.linearity
+    if table is not None:
+        held = rows_by_mean(table.mean_e)
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            parts[part]["linearity"] = LinearityTable(table.exptime[rows], table.mean_e[rows],
+                                                      table.mean_err_e[rows],
+                                                      error_floor=table.error_floor)
+    table = observables.correlations
+    if table is not None:
+        held = rows_by_mean(table.mean_e)
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            parts[part]["correlations"] = CorrelationTable(table.mean_e[rows], table.lags,
+                                                           table.r[rows], table.r_err[rows])
+    table = observables.ptc
+    if table is not None:
+        held = rows_by_mean(table.mean_e)
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            parts[part]["ptc"] = PTCTable(table.mean_e[rows], table.var_e[rows],
+                                          table.var_err_e[rows], table.model_e[rows],
+                                          table.model_slope[rows],
+                                          sum_rule_err=table.sum_rule_err)
+    meta = dict(observables.meta)
+    meta["holdout_sizes_split_by"] = how
+    return tuple(Observables(spot_model=observables.spot_model, meta=meta, **parts[part])
+                 for part in ("fit", "heldout"))
+
+
+def _evaluate(state, observables, step):
+    """Residual model on ``observables`` with one step's effects and global nuisances fixed
+    at their in-sample values and the local nuisances refitted: (problem, model)."""
+    problem = _build_problem(observables)
+    by_name = state["by_name"]
+    offset = np.zeros_like(problem.residual)
+    for name, values in step["effects"].items():
+        templates = by_name[state["family"](name)].templates(observables)
+        offset += _effect_design(problem, templates) @ np.asarray(values, float)
+    global_columns = list(problem.global_columns)
+    if global_columns:
+        offset += problem.nuisance[:, global_columns] @ step["global"]
+    local = np.delete(problem.nuisance, global_columns, axis=1)
+    _, _, _, model = _wls(problem.residual - offset, problem.sigma, local)
+    return problem, model + offset
+
+
+def _with_heldout(result, state, heldout, fraction):
+    """The result with the held-out residuals, the confirmation of each selected effect and
+    the unexplained residuals (judged on the held-out data)."""
+    import dataclasses
+
+    chi2 = []
+    evaluations = []
+    for step in state["steps"]:
+        problem, model = _evaluate(state, heldout, step)
+        evaluations.append((problem, model))
+        chi2.append(float((((problem.residual - model) / problem.sigma) ** 2).sum()))
+    names = ["calibration_scale (nuisance)"] * (len(state["steps"]) - 1 - len(result.selected))
+    names += result.selected
+    confirmed = {name: chi2[k + 1] < chi2[k] for k, name in enumerate(names)}
+    before = _summary(evaluations[0][0], heldout, evaluations[0][1])
+    physical = None
+    if result.residual_physical:
+        names = result.residual_physical["effects"]
+        step = {"names": names, "global": np.zeros(len(state["problem"].global_columns)),
+                "effects": {name: np.asarray(state["by_name"][state["family"](name)]
+                                             .physical_value, float) for name in names}}
+        problem, model = _evaluate(state, heldout, step)
+        physical = _summary(problem, heldout, model)
+        physical["effects"] = names
+    after = _summary(evaluations[-1][0], heldout, evaluations[-1][1])
+    sizes = heldout.sizes
+    holdout = {"fraction": float(fraction),
+               "sizes_split_by": heldout.meta.get("holdout_sizes_split_by"),
+               "heldout_exposures": (sorted(np.unique(sizes.exposure).tolist())
+                                     if sizes is not None and sizes.exposure is not None
+                                     else None),
+               "n_fit": int(result.residual_after["n"]), "n_heldout": int(after["n"]),
+               "heldout_size_entries": 0 if sizes is None else len(sizes)}
+    # unexplained: judged on the held-out data with the confirmed effects only
+    kept = [name for name in result.selected if confirmed[name]]
+    step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
+    if not confirmed.get("calibration_scale (nuisance)", True):
+        step = dict(step, **{"global": np.zeros_like(step["global"])})
+    problem, model = _evaluate(state, heldout, step)
+    unexplained = describe_unexplained(problem, heldout, model)
+    return dataclasses.replace(result, residual_before_heldout=before,
+                               residual_after_heldout=after, confirmed=confirmed,
+                               residual_physical_heldout=physical,
+                               holdout=holdout, unexplained=unexplained)
+
+
+def _with_unexplained(result, state, observables):
+    import dataclasses
+
+    model = state["steps"][-1]["model"]
+    return dataclasses.replace(result, unexplained=describe_unexplained(
+        state["problem"], observables, model))
+
+
+#: Significance (sigma) above which a residual is reported as unexplained.
+UNEXPLAINED_NSIGMA = 3.0
+
+
+def _parity(star, axis):
+    """'even' or 'odd': the larger part of the stacked star residual under reflection along
+    ``axis`` (x: columns mirrored, y: rows mirrored); None without a stacked residual."""
+    if not star:
+        return None
+    image = np.asarray(star["image"], float)
+    mirrored = image[:, ::-1] if axis == "x" else image[::-1, :]
+    even = 0.5 * (image + mirrored)
+    odd = 0.5 * (image - mirrored)
+    return "even" if np.sum(even ** 2) >= np.sum(odd ** 2) else "odd"
+
+
+def _flux_dependence(peak, residual, sigma, group):
+    """How a residual grows with peak: 'constant', 'linear' or 'quadratic' (the highest power
+    significant at 3 sigma in a fit with per-group intercepts), with the coefficients."""
+    x = np.asarray(peak, float) / 1e5
+    columns = [x, x ** 2] + [(group == g).astype(float) for g in np.unique(group)]
+    params, covariance, _, _ = _wls(residual, sigma, np.column_stack(columns))
+    errors = np.sqrt(np.abs(np.diag(covariance)[:2]))
+    significant = [abs(p) > UNEXPLAINED_NSIGMA * e for p, e in zip(params[:2], errors)]
+    kind = "quadratic" if significant[1] else "linear" if significant[0] else "constant"
+    return {"kind": kind, "per_1e5": float(params[0]), "per_1e10": float(params[1])}
+
+
+def describe_unexplained(problem, observables, model):
+    """Significant residuals left by a model, with their signature.
+
+    Sizes, per axis: the slope of the size residual against peak (per-group intercepts) at
+    more than `UNEXPLAINED_NSIGMA` of its error; its parity is that of the stacked star
+    residual under reflection along the axis (when the observables hold one); its flux
+    dependence the highest significant power of peak. Other observables: a chi2 per point
+    whose excess over its degrees of freedom is significant, (chi2 - N) / sqrt(2 N).
+
+    Returns
+    -------
+    list of dict
+        {observable, axis, parity, flux_dependence, significance (sigma)}.
+    """
+    residual = problem.residual - model
+    out = []
+    for key in problem.keys:
+        block = problem.slices[key]
+        part, sigma = residual[block], problem.sigma[block]
+        if key == "sizes":
+            from ..measure.slopes import fit_bf_slope
+
+            sizes = observables.sizes
+            n = len(sizes)
+            for index, axis in enumerate("xy"):
+                values, errors = part[index * n:(index + 1) * n], sigma[index * n:(index + 1) * n]
+                fit = fit_bf_slope(sizes.peak_e, values, size_err=errors, group=sizes.group,
+                                   scale_errors=False, clip_nsigma=None)
+                significance = abs(fit.slope) / fit.slope_err
+                if significance > UNEXPLAINED_NSIGMA:
+                    out.append({"observable": "sizes", "axis": axis,
+                                "parity": _parity(observables.meta.get("star_residual"), axis),
+                                "flux_dependence": _flux_dependence(sizes.peak_e, values, errors,
+                                                                    sizes.group),
+                                "significance": float(significance)})
+            continue
+        n_points = part.size
+        chi2 = float(np.sum((part / sigma) ** 2))
+        significance = (chi2 - n_points) / np.sqrt(2.0 * n_points)
+        if significance > UNEXPLAINED_NSIGMA:
+            mean = {"linearity": getattr(observables.linearity, "mean_e", None),
+                    "ptc": getattr(observables.ptc, "mean_e", None)}.get(key)
+            dependence = None
+            if mean is not None and mean.size > 3:
+                dependence = _flux_dependence(mean, part, sigma, np.zeros(mean.size, int))
+            out.append({"observable": key, "axis": None, "parity": None,
+                        "flux_dependence": dependence, "significance": float(significance)})
+    return out

@@ -1,0 +1,575 @@
+"""What the closed loop compares with the model: the observable tables and their builders.
+
+Observables (each optional; a candidate with no template on any observable present is "not
+testable" on that data set and says so):
+
+* `SizeTable`: spot size against peak flux in X and Y (sigma_x, sigma_y, pixels), with errors,
+  a data-set index (``group``: e.g. an amplifier), an optional colour and an optional exposure
+  index (for the held-out split, `bfpsf.diagnosis.loop`).
+* `LinearityTable`: flat mean against exposure time.
+* `CorrelationTable`: flat-field correlation coefficients R(dx, dy) = C(dx, dy) / V against the
+  mean signal (their zero-flux intercepts are the readout pedestal).
+* `PTCTable`: flat-pair variance against mean minus the calibrated PTC model (A+19 eq. 20)
+  evaluated with a(0, 0) from the sum rule (see `PTCTable`).
+
+Builders: `observables_from_sizes` (a size table and boundary shifts), `observables_from_images`
+(flat-field and spot FITS files: calibrate, measure, bin), `flat_observables` and
+`ptc_observable` (the flat tables of a `Calibration`). The measured-table readers are in
+`bfpsf.diagnosis.readers`.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import BFPSFInputError, BFPSFValueError
+from .spot_model import FLUX_SCALE, SpotForwardModel
+
+__all__ = ["SizeTable", "LinearityTable", "CorrelationTable", "PTCTable", "Observables",
+           "matched_profile", "observables_from_sizes", "observables_from_images",
+           "flat_observables", "ptc_observable", "lamp_error_floor", "bf_scale_error",
+           "FLUX_SCALE"]
+
+def _column(values, name, n=None, positive=False):
+    array = np.asarray(values, dtype=float).ravel()
+    if n is not None and array.size != n:
+        msg = f"{name} must have {n} values, got {array.size}"
+        raise BFPSFInputError(msg, array.size)
+    if not np.all(np.isfinite(array)):
+        msg = f"{name} has {np.count_nonzero(~np.isfinite(array))} non-finite values"
+        raise BFPSFInputError(msg, name)
+    if positive and np.any(array <= 0):
+        msg = f"{name} must be positive, got minimum {array.min():g}"
+        raise BFPSFInputError(msg, float(array.min()))
+    return array
+
+
+@dataclass(frozen=True)
+class SizeTable:
+    """Spot size against peak flux (the brighter-fatter observable, G15 section 3).
+
+    Attributes
+    ----------
+    peak_e : ndarray (n,)
+        Peak flux of each entry (a level or a star), e- in the brightest pixel.
+    sigma_x, sigma_y : ndarray (n,)
+        Widths sqrt(Mxx), sqrt(Myy) (or Gaussian-fit sigmas), pixels.
+    sigma_x_err, sigma_y_err : ndarray (n,)
+        1-sigma errors, pixels.
+    group : ndarray of int (n,)
+        Data set of each entry (amplifier, epoch); intercepts are free per group.
+    colour : ndarray (n,) or None
+        Colour of each entry (magnitudes), for the size-colour candidate.
+    label : str
+    exposure : ndarray of int (n,) or None
+        Exposure each entry was measured on, when known: the held-out split
+        (`bfpsf.diagnosis.loop.split_observables`) keeps whole exposures apart.
+    """
+
+    peak_e: np.ndarray
+    sigma_x: np.ndarray
+    sigma_y: np.ndarray
+    sigma_x_err: np.ndarray
+    sigma_y_err: np.ndarray
+    group: np.ndarray = None
+    colour: np.ndarray = None
+    label: str = ""
+    exposure: np.ndarray = None
+
+    def __post_init__(self):
+        n = np.size(self.peak_e)
+        object.__setattr__(self, "peak_e", _column(self.peak_e, "peak_e", positive=True))
+        for name in ("sigma_x", "sigma_y", "sigma_x_err", "sigma_y_err"):
+            object.__setattr__(self, name, _column(getattr(self, name), name, n, positive=True))
+        group = np.zeros(n, int) if self.group is None else np.asarray(self.group).ravel()
+        if group.size != n:
+            msg = f"group must have {n} values, got {group.size}"
+            raise BFPSFInputError(msg, group.size)
+        object.__setattr__(self, "group", np.unique(group, return_inverse=True)[1])
+        if self.colour is not None:
+            object.__setattr__(self, "colour", _column(self.colour, "colour", n))
+        if self.exposure is not None:
+            exposure = np.asarray(self.exposure).ravel()
+            if exposure.size != n:
+                msg = f"exposure must have {n} values, got {exposure.size}"
+                raise BFPSFInputError(msg, exposure.size)
+            object.__setattr__(self, "exposure", exposure.astype(int))
+        if n < 3:
+            msg = f"a size table needs at least 3 entries, got {n}"
+            raise BFPSFInputError(msg, n)
+
+    @property
+    def n_groups(self):
+        return int(self.group.max()) + 1
+
+    def __len__(self):
+        return self.peak_e.size
+
+    def subset(self, rows):
+        """The table restricted to ``rows`` (boolean mask or indices)."""
+        def pick(values):
+            return None if values is None else np.asarray(values)[rows]
+
+        return SizeTable(self.peak_e[rows], self.sigma_x[rows], self.sigma_y[rows],
+                         self.sigma_x_err[rows], self.sigma_y_err[rows], group=self.group[rows],
+                         colour=pick(self.colour), label=self.label,
+                         exposure=pick(self.exposure))
+
+
+@dataclass(frozen=True)
+class LinearityTable:
+    """Flat mean against exposure time (G15 section 4.1; linearity).
+
+    Attributes
+    ----------
+    exptime : ndarray (n,), s
+    mean_e, mean_err_e : ndarray (n,), e-
+        ``mean_err_e`` includes the error floor.
+    error_floor : float
+        Relative error added in quadrature to the shot noise of each mean (lamp flicker,
+        `lamp_error_floor`); reported by the loop. Default 0.
+    """
+
+    exptime: np.ndarray
+    mean_e: np.ndarray
+    mean_err_e: np.ndarray
+    error_floor: float = 0.0
+
+    def __post_init__(self):
+        n = np.size(self.exptime)
+        object.__setattr__(self, "exptime", _column(self.exptime, "exptime"))
+        object.__setattr__(self, "mean_e", _column(self.mean_e, "mean_e", n))
+        object.__setattr__(self, "mean_err_e", _column(self.mean_err_e, "mean_err_e", n,
+                                                       positive=True))
+
+
+@dataclass(frozen=True)
+class CorrelationTable:
+    """Flat-field correlation coefficients R(dx, dy) = C(dx, dy) / V against the mean signal.
+
+    Attributes
+    ----------
+    mean_e : ndarray (n,)
+        Mean signal of each pair, e-.
+    lags : tuple of (dx, dy)
+    r, r_err : ndarray (n, n_lags)
+        R and its error (dimensionless).
+    """
+
+    mean_e: np.ndarray
+    lags: tuple
+    r: np.ndarray
+    r_err: np.ndarray
+
+    def __post_init__(self):
+        n = np.size(self.mean_e)
+        object.__setattr__(self, "mean_e", _column(self.mean_e, "mean_e", positive=True))
+        lags = tuple((int(dx), int(dy)) for dx, dy in self.lags)
+        object.__setattr__(self, "lags", lags)
+        for name in ("r", "r_err"):
+            array = np.asarray(getattr(self, name), dtype=float).reshape(n, len(lags))
+            _column(array, name)
+            object.__setattr__(self, name, array)
+        _column(self.r_err, "r_err", positive=True)
+
+
+@dataclass(frozen=True)
+class PTCTable:
+    """Flat-pair variance against mean and the calibrated PTC model (G15 section 4.1).
+
+    The model is A+19 eq. 20 (`bfpsf.calibration.ptc.full_covariance_model`) with the
+    calibrated gain, read noise and a(dx, dy), except a(0, 0), which is replaced by its sum-rule
+    value -sum a(dx, dy) over the other measured lags (charge conservation, G15 eq. sum rule):
+    a free a(0, 0) absorbs a quadratic gain non-linearity (it adds ~3 c m^2 / 1e5 to the
+    variance, exactly like a(0, 0) m^2), the sum rule does not. The area beyond the measured
+    lags is missing from that sum (a bias of a(0, 0) of a few percent, G15 section 4.2.2).
+
+    Attributes
+    ----------
+    mean_e : ndarray (n,)
+        Mean signal of each pair, e-.
+    var_e, var_err_e : ndarray (n,)
+        Measured single-image variance and its shot-noise error, e-^2.
+    model_e : ndarray (n,)
+        The PTC model at ``mean_e``, e-^2.
+    model_slope : ndarray (n,)
+        dV/dm of the model, dimensionless (for the non-linearity template).
+    sum_rule_err : float
+        Error of the sum-rule a(0, 0), 1/e-: common to every pair (the loop fits a term
+        delta_a m^2 with this prior width). 0: no such freedom.
+    """
+
+    mean_e: np.ndarray
+    var_e: np.ndarray
+    var_err_e: np.ndarray
+    model_e: np.ndarray
+    model_slope: np.ndarray
+    sum_rule_err: float = 0.0
+
+    def __post_init__(self):
+        n = np.size(self.mean_e)
+        object.__setattr__(self, "mean_e", _column(self.mean_e, "mean_e", positive=True))
+        for name in ("var_e", "model_e", "model_slope"):
+            object.__setattr__(self, name, _column(getattr(self, name), name, n))
+        object.__setattr__(self, "var_err_e", _column(self.var_err_e, "var_err_e", n,
+                                                      positive=True))
+        if not (np.isfinite(self.sum_rule_err) and self.sum_rule_err >= 0):
+            msg = f"sum_rule_err must be finite and >= 0, got {self.sum_rule_err!r}"
+            raise BFPSFValueError(msg, self.sum_rule_err)
+
+    @property
+    def residual_e(self):
+        """Measured minus model variance, e-^2."""
+        return self.var_e - self.model_e
+
+
+@dataclass(frozen=True)
+class Observables:
+    """Everything the closed loop compares with the model.
+
+    Attributes
+    ----------
+    sizes : SizeTable or None
+    spot_model : SpotForwardModel or None
+        Base-model predictions of the sizes (required with ``sizes``).
+    linearity : LinearityTable or None
+    correlations : CorrelationTable or None
+    meta : dict
+        Anything else: ``area`` (measured a, for the sum-rule tail), ``residual_images``
+        (label -> stacked residual image, e-, for the report), ``star_residual`` (the stacked
+        residual of the stars, `bfpsf.diagnosis.star_residual.stacked_star_residual`), the inputs.
+    ptc : PTCTable or None
+        PTC residuals (images mode).
+    """
+
+    sizes: SizeTable = None
+    spot_model: "SpotForwardModel" = None
+    linearity: LinearityTable = None
+    correlations: CorrelationTable = None
+    meta: dict = field(default_factory=dict)
+    ptc: PTCTable = None
+
+    def __post_init__(self):
+        if self.sizes is not None and self.spot_model is None:
+            msg = "a size table needs a spot_model to predict the sizes"
+            raise BFPSFInputError(msg)
+        if all(getattr(self, name) is None
+               for name in ("sizes", "linearity", "correlations", "ptc")):
+            msg = "no observable given (sizes, linearity, correlations or ptc)"
+            raise BFPSFInputError(msg)
+
+
+def matched_profile(sigma_x, sigma_y, *, beta=None, measure="moments", pixel=True):
+    """A GalSim profile whose measured size (pixelised, as measured) is (sigma_x, sigma_y).
+
+    Parameters
+    ----------
+    sigma_x, sigma_y : float
+        Target widths, pixels (the zero-flux intercepts of the data).
+    beta : float, optional
+        Moffat index; default a Gaussian.
+    measure : {'moments', 'gaussian_fit'}
+        How the data measured them; a pixel-integrated Gaussian fit returns the Gaussian's own
+        sigma, adaptive moments of pixelised data add the pixel response.
+    pixel : bool
+        Whether the measurement saw pixelised images (default True).
+
+    Returns
+    -------
+    galsim.GSObject of unit flux (pixel response not included)
+    """
+    import galsim
+
+    def build(sx, sy):
+        base = galsim.Gaussian(sigma=1.0) if beta is None else galsim.Moffat(beta=beta,
+                                                                             half_light_radius=1.0)
+        size = galsim.hsm.FindAdaptiveMom(base.drawImage(nx=96, ny=96, scale=0.05,
+                                                         method="no_pixel")).moments_sigma * 0.05
+        return base.transform(sx / size, 0.0, 0.0, sy / size)
+
+    if measure == "gaussian_fit" and beta is None:
+        return build(sigma_x, sigma_y)
+    sx, sy = sigma_x, sigma_y
+    for _ in range(4):
+        profile = build(sx, sy)
+        stamp = profile.drawImage(nx=41, ny=41, scale=1.0, method="auto" if pixel else "no_pixel")
+        # GalSim's HSM as the reference estimator here (same definition as bfpsf's moments,
+        # robust for the small, exactly centred spots of this model-building step)
+        from ..measure.moments import moments_from_hsm
+
+        mxx, myy = moments_from_hsm(galsim.hsm.FindAdaptiveMom(stamp))[:2]
+        sx *= sigma_x / np.sqrt(mxx)
+        sy *= sigma_y / np.sqrt(myy)
+    return build(sx, sy)
+
+
+def _intercepts(table):
+    px = np.polyfit(table.peak_e, table.sigma_x, 1)
+    py = np.polyfit(table.peak_e, table.sigma_y, 1)
+    return px[1], py[1]
+
+
+def observables_from_sizes(sizes, shifts, *, area=None, area_err=None, beta=None,
+                           measure="moments", phases=3, linearity=None, correlations=None,
+                           meta=None, ptc=None):
+    """Observables for a size table and a set of boundary shifts (the G15 prediction).
+
+    The model spot is matched to the zero-flux intercepts of the sizes (`matched_profile`).
+    With ``area`` and ``area_err`` (the calibrated a and their errors), the relative error of
+    the predicted BF amplitude (`bf_scale_error`) is kept in ``meta['scale_err']``.
+    """
+    sigma_x0, sigma_y0 = _intercepts(sizes)
+    profile = matched_profile(sigma_x0, sigma_y0, beta=beta, measure=measure)
+    model = SpotForwardModel(profile, shifts, phases=phases, measure=measure)
+    meta = dict(meta or {})
+    if area is not None:
+        meta["area"] = np.asarray(area, dtype=float)
+        if area_err is not None:
+            meta["scale_err"] = bf_scale_error(model, area, area_err, sizes.peak_e)
+    return Observables(sizes=sizes, spot_model=model, linearity=linearity,
+                       correlations=correlations, meta=meta, ptc=ptc)
+
+
+def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label):
+    """Mean peak and sizes in quantile bins of flux for each exposure (the same bin edges for
+    all), errors from the scatter in each bin; bins with fewer than 3 stars are left out.
+
+    Bins are in total flux, not in measured peak: at one flux the peak of a pixelised star
+    depends on its sub-pixel phase (by 30 % for a 3 px FWHM), and so does its size, so bins
+    of measured peak would select phases and bias the sizes with the peak.
+    """
+    edges = np.quantile(flux, np.linspace(0.0, 1.0, n_bins + 1))
+    index = np.clip(np.searchsorted(edges, flux, side="right") - 1, 0, n_bins - 1)
+    rows = []
+    for image in np.unique(exposure):
+        for k in range(n_bins):
+            members = (index == k) & (exposure == image)
+            if members.sum() < 3:
+                continue
+            root_n = np.sqrt(members.sum())
+            rows.append((peak[members].mean(), sigma_x[members].mean(), sigma_y[members].mean(),
+                         sigma_x[members].std(ddof=1) / root_n,
+                         sigma_y[members].std(ddof=1) / root_n, image))
+    if len(rows) < 3:
+        msg = f"only {len(rows)} peak bins hold 3 or more stars: too few to diagnose"
+        raise BFPSFInputError(msg, len(rows))
+    rows = np.array(rows)
+    return SizeTable(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], label=label,
+                     exposure=rows[:, 5].astype(int))
+
+
+def bf_scale_error(spot_model, area, area_err, peaks_e, *, n_draws=8, seed=0):
+    """Relative error of the predicted BF slope from the errors of the area coefficients.
+
+    The a(dx, dy) are drawn within their errors, solved into shifts
+    (`bfpsf.calibration.coefficients.solve_ei_shifts`) and the model spot's size change
+    between the faintest and brightest peak recomputed; the rms of its ratio to the nominal
+    one, averaged over X and Y. The loop gives the size block a common scale within this
+    error (a nuisance with a Gaussian prior): the prediction is no better than its flats.
+    """
+    from ..calibration.coefficients import solve_ei_shifts
+    from ..errors import BFPSFError
+
+    area, area_err = np.asarray(area, float), np.asarray(area_err, float)
+    if not np.any(area_err > 0):
+        return 0.0
+    peaks = np.array([np.min(peaks_e), np.max(peaks_e)])
+    nominal = np.array([np.diff(v)[0] for v in spot_model.sizes(peaks)])
+    rng = np.random.default_rng(seed)
+    ratios = []
+    for _ in range(int(n_draws)):
+        draw = area + rng.standard_normal(area.shape) * area_err
+        try:
+            shifts = solve_ei_shifts(draw, n_monte_carlo=0).shifts
+        except BFPSFError:
+            continue
+        sizes = spot_model.sizes(peaks, shifts=shifts)
+        ratios.append(np.array([np.diff(v)[0] for v in sizes]) / nominal)
+    if len(ratios) < 3:
+        return 0.0
+    return float(np.mean(np.std(np.array(ratios), axis=0, ddof=1)))
+
+
+def lamp_error_floor(exptime, mean_e, shot_e):
+    """Relative error floor of flat means from their scatter (lamp flicker), dimensionless.
+
+    Real lamps vary by about 0.1 % from exposure to exposure, hundreds of times the shot noise
+    of a large flat's mean. The floor f is the value that makes the scatter of the means about
+    a quadratic in exposure time consistent with sqrt(shot^2 + (f mean)^2) (chi2 / dof = 1);
+    0 when the shot noise already explains it. A quadratic, so that a smooth non-linearity
+    (which the loop tests) does not enter the floor.
+    """
+    from scipy.optimize import brentq
+
+    exptime, mean_e, shot_e = (np.asarray(v, float) for v in (exptime, mean_e, shot_e))
+    dof = exptime.size - 3
+    if dof < 2:
+        return 0.0
+
+    def excess(floor):
+        sigma = np.hypot(shot_e, floor * mean_e)
+        fit = np.polyval(np.polyfit(exptime, mean_e, 2, w=1.0 / sigma), exptime)
+        return float(np.sum(((mean_e - fit) / sigma) ** 2)) / dof - 1.0
+
+    if excess(0.0) <= 0:
+        return 0.0
+    return float(brentq(excess, 0.0, 1.0, xtol=1e-7))
+
+
+def flat_observables(calibration):
+    """Linearity and correlation tables of a `Calibration` (its per-pair PTC table).
+
+    The correlations are R(dx, dy) = C(dx, dy) / C(0, 0) of each pair BEFORE the pedestal
+    subtraction, for lags (1, 0) and (0, 1), with error 1 / sqrt(pixel products). The means'
+    errors are the shot noise plus the lamp-flicker floor (`lamp_error_floor`).
+    """
+    ptc = calibration.ptc
+    used = np.asarray(ptc["used"], bool)
+    mean = np.asarray(ptc["mean_e"], float)[used]
+    exptime = np.asarray(ptc["exptime"], float)[used]
+    shot = np.sqrt(np.asarray(ptc["var_e"], float)[used] / np.asarray(ptc["npix"], float)[used])
+    floor = lamp_error_floor(exptime, mean, shot)
+    linearity = LinearityTable(exptime, mean, np.hypot(shot, floor * mean), error_floor=floor)
+    correlations = None
+    if calibration.covariances_adu is not None:
+        cov = np.asarray(calibration.covariances_adu, float)[used]
+        npix = np.asarray(calibration.npix, float)[used]
+        lags = ((1, 0), (0, 1))
+        r = np.column_stack([cov[:, dy, dx] / cov[:, 0, 0] for dx, dy in lags])
+        r_err = np.column_stack([1.0 / np.sqrt(npix[:, dy, dx]) for dx, dy in lags])
+        correlations = CorrelationTable(mean, lags, r, r_err)
+    return linearity, correlations
+
+
+def ptc_observable(calibration):
+    """PTC residuals of a `Calibration`: variance minus the PTC model with the sum-rule a(0, 0).
+
+    The model is A+19 eq. 20 (`bfpsf.calibration.ptc.full_covariance_model`) with the
+    calibrated gain, noise matrix, a and b, and a(0, 0) = -sum of the other a(dx, dy) over the
+    full plane of measured lags (each off-axis lag counted 4 times, each on-axis lag twice).
+    Errors: shot noise of the variance (`bfpsf.calibration.ptc.covariance_errors`); the error
+    of the sum (from a_err, lags independent) is kept apart (``sum_rule_err``): it is common
+    to all pairs. Pairs not used by the calibration (above the PTC turnoff) are left out.
+
+    Returns
+    -------
+    PTCTable
+    """
+    from ..calibration.ptc import covariance_errors, full_covariance_model
+    if calibration.covariances_adu is None or calibration.npix is None:
+        msg = "the calibration holds no per-pair covariances: cannot form PTC residuals"
+        raise BFPSFInputError(msg)
+    used = np.asarray(calibration.ptc["used"], bool)
+    gain = float(calibration.gain)
+    mean_adu = np.asarray(calibration.ptc["mean_adu"], float)[used]
+    cov = np.asarray(calibration.covariances_adu, float)[used]
+    npix = np.asarray(calibration.npix, float)[used]
+    area = np.array(calibration.a, dtype=float)
+    area_err = np.asarray(calibration.a_err, dtype=float)
+    weights = np.full(area.shape, 4.0)
+    weights[0, :] = 2.0
+    weights[:, 0] = 2.0
+    weights[0, 0] = 0.0
+    area[0, 0] = -np.sum(weights * area)
+    sum_rule_err = float(np.sqrt(np.sum((weights * area_err) ** 2)))
+    c = area * np.asarray(calibration.b, dtype=float)
+    noise = np.asarray(calibration.noise_matrix_e2, dtype=float)
+
+    def variance(mean):
+        return full_covariance_model(mean, area, c, noise, gain)[:, 0, 0] * gain ** 2
+
+    mean_e = mean_adu * gain
+    model = variance(mean_adu)
+    step = 1e-4 * mean_adu
+    slope = (variance(mean_adu + step) - variance(mean_adu - step)) / (2 * step * gain)
+    var_e = cov[:, 0, 0] * gain ** 2
+    shot = covariance_errors(cov, npix)[:, 0, 0] * gain ** 2
+    return PTCTable(mean_e, var_e, shot, model, slope, sum_rule_err=sum_rule_err)
+
+
+def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, gain=None,
+                            calibration=None, fit_b=True, amp=None):
+    """Observables from flat-field FITS and spot / star images (ADU, bias subtracted).
+
+    The flats are calibrated (`bfpsf.calibrate`), the sources of every image measured
+    (`bfpsf.measure.sources.measure_sources`, unflagged sources only) and their sizes averaged
+    in ``n_bins`` quantile bins of flux for each image (rows labelled by exposure, for the
+    held-out split); the spot model is matched to the zero-flux intercept
+    (a Moffat of index ``beta``, or a Gaussian). ``fit_b`` is passed to `bfpsf.calibrate`
+    (False for a few small flats, whose b term is unconstrained). The loop works on one
+    amplifier: ``amp`` names it in multi-amplifier files (flats and images are read by
+    `bfpsf.io.amplifiers`).
+
+    Also formed: the PTC residuals (`ptc_observable`, a fitted observable) and the stacked
+    residual of the stars against P(F) built from the matched profile and the calibrated
+    shifts (`stacked_star_residual`, in ``meta['star_residual']``, with the stacked image in
+    ``meta['residual_images']`` for the report).
+    """
+    from ..calibration import calibrate
+    from ..calibration.product import Calibration
+    from ..io.amplifiers import read_amplifiers
+    from ..measure.sources import measure_sources
+
+    cal = calibration or calibrate(list(flats), maxlag=maxlag, n_monte_carlo=0, fit_b=fit_b,
+                                   amps=amp)
+    if not isinstance(cal, Calibration):
+        msg = (f"the flats hold {len(cal)} amplifiers ({', '.join(cal.names)}); the closed loop "
+               "works on one: choose it with --amp NAME")
+        raise BFPSFInputError(msg, cal.names)
+    if cal.shifts is None:
+        reason = cal.parameters.get("shifts_failure", "not solved")
+        msg = f"the calibration has no boundary shifts ({reason})"
+        raise BFPSFInputError(msg)
+    from astropy.stats import sigma_clipped_stats
+
+    gain = cal.gain if gain is None else gain
+    fluxes, peaks, sigma_x, sigma_y, exposure = [], [], [], [], []
+    pixels, tables, sky_noise = [], [], []
+    for index, path in enumerate(images):
+        amplifiers = read_amplifiers(path, amp)
+        if len(amplifiers) > 1:
+            msg = (f"{path} holds {len(amplifiers)} amplifiers; the closed loop works on one: "
+                   "choose it with --amp NAME")
+            raise BFPSFInputError(msg, str(path))
+        data = np.asarray(amplifiers[0].data, float) * gain
+        table = measure_sources(data)
+        # the sky left in the image (level and noise), for the stacked residual
+        _, sky, noise = sigma_clipped_stats(data, sigma=3.0, maxiters=10)
+        pixels.append(data - sky)
+        sky_noise.append(noise)
+        tables.append(table)
+        good = np.asarray(table["flags"]) == 0
+        fluxes.append(np.asarray(table["flux_e"], float)[good])
+        peaks.append(np.asarray(table["peak_e"], float)[good])
+        sigma_x.append(np.asarray(table["sigma_x"], float)[good])
+        sigma_y.append(np.asarray(table["sigma_y"], float)[good])
+        exposure.append(np.full(good.sum(), index))
+    fluxes, peaks, sigma_x, sigma_y, exposure = (np.concatenate(v) for v in
+                                                 (fluxes, peaks, sigma_x, sigma_y, exposure))
+    sizes = _binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
+                          f"{len(images)} images")
+    linearity, correlations = flat_observables(cal)
+    meta = {"flats": len(list(flats)), "images": len(list(images)), "gain": float(gain),
+            "n_sources": int(peaks.size), "calibration": cal,
+            "image_paths": [str(path) for path in images]}
+    try:
+        ptc = ptc_observable(cal)
+    except (BFPSFInputError, BFPSFValueError) as error:
+        # e.g. a calibration read from a file without per-pair covariances: said, not hidden
+        ptc = None
+        meta["ptc_unavailable"] = str(error)
+    observables = observables_from_sizes(sizes, cal.shifts, area=cal.a, area_err=cal.a_err,
+                                         beta=beta,
+                                         linearity=linearity, correlations=correlations,
+                                         meta=meta, ptc=ptc)
+    from ..model.psf import FluxDependentPSF
+    from .star_residual import stacked_star_residual
+
+    psf = FluxDependentPSF.from_galsim(observables.spot_model.profile, cal.shifts)
+    # sky-subtracted images; the noise per pixel is the sky's (read noise included)
+    star = stacked_star_residual(pixels, tables, psf, half_size=min(psf.half_size, 7),
+                                 noise_e=float(np.median(sky_noise)))
+    if star is not None:
+        observables.meta["star_residual"] = star
+        observables.meta["residual_images"] = {"stars - P(F), stacked / F": star["image"]}
+    return observables

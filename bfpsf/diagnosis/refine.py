@@ -1,0 +1,158 @@
+"""The loop's result as a calibration: what the stars found, folded into what ``psf`` uses.
+
+`refine_calibration` takes the flats' `Calibration` and a `DiagnosisResult` and returns a new
+`Calibration` in which each selected (and, with a held-out split, confirmed) effect goes where
+the PSF model can use it:
+
+* ``calibration_scale`` (the candidate and the size block's scale nuisance): every boundary
+  shift times (1 + s);
+* ``xy_anisotropy``: the area-preserving quadrupole of the nearest boundaries
+  (`bfpsf.diagnosis.catalogue.quadrupole_shifts`) added to the shifts: the flux dependence of
+  star sizes in X and Y constrains what the flats cannot see;
+* ``gain_nonlinearity``: a linearity correction applied to the images on input
+  (`linearise`, inverse of v = q (1 + c q / 1e5));
+* ``second_order``: the PSF integrates the build-up of the shifts during the exposure
+  (``buildup_steps``; the model's own second order, not the fitted amplitude);
+* ``flux_diffusion``, ``boundary_density``, ``sum_rule_tail``, ``chromatic_size`` and
+  ``readout_pedestal`` are recorded but not applied (P(F) has no flux-dependent blur term; P0
+  fitted from the stars holds the flux-independent part; the pedestal is already subtracted by
+  the calibration), and the refinement says so.
+
+The provenance (effects, parameters, errors, whether the held-out data confirmed them, the input
+files) is kept in ``Calibration.refinement`` and written to the file's REFINE extension.
+"""
+
+import dataclasses
+
+import numpy as np
+
+from ..errors import BFPSFValueError
+from .catalogue import add_shifts, quadrupole_shifts
+from .loop import json_ready
+from .spot_model import FLUX_SCALE
+
+__all__ = ["refine_calibration", "linearise", "BUILDUP_STEPS"]
+
+#: Build-up steps the PSF integrates when the loop found a second-order term.
+BUILDUP_STEPS = 16
+
+_NOT_APPLIED = {
+    "flux_diffusion": "P(F) has no flux-dependent blur term; P0 fitted from the stars holds "
+                      "the flux-independent diffusion",
+    "boundary_density": "needs the optical profile (density_profile) of the PSF model",
+    "sum_rule_tail": "a change of a(0, 0) beyond the measured lags: recalibrate with more lags",
+    "chromatic_size": "a colour term of the size, not of the brighter-fatter response",
+    "readout_pedestal": "the calibration already subtracts the readout pedestal",
+    "second_order": "a negative second order is not the build-up's (which strengthens BF); "
+                    "the scale and anisotropy were refitted without it",
+}
+
+
+def linearise(image_e, c_per_1e5):
+    """Undo v = q (1 + c q / 1e5): the linear charge q of measured values v, e-.
+
+    Parameters
+    ----------
+    image_e : ndarray
+        Measured values, e-.
+    c_per_1e5 : float
+        The ``gain_nonlinearity`` parameter c (relative change per 1e5 e-).
+
+    Returns
+    -------
+    ndarray
+        q, e- (the root of c q^2 / 1e5 + q - v = 0 that tends to v as c -> 0).
+    """
+    image = np.asarray(image_e, dtype=float)
+    k = float(c_per_1e5) / FLUX_SCALE
+    if k == 0:
+        return image.copy()
+    discriminant = 1.0 + 4.0 * k * image
+    if np.any(discriminant < 0):
+        msg = (f"the linearity correction c = {c_per_1e5:g} per 1e5 e- has no solution above "
+               f"{-1 / (4 * k):.4g} e-")
+        raise BFPSFValueError(msg, c_per_1e5)
+    # 2 v / (1 + sqrt(1 + 4 k v)): the stable form of (-1 + sqrt(1 + 4 k v)) / (2 k)
+    return 2.0 * image / (1.0 + np.sqrt(discriminant))
+
+
+def refine_calibration(calibration, result, *, provenance=None):
+    """A copy of ``calibration`` with the loop's effects folded in (module docstring).
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The flats' calibration the loop started from (its shifts are the base model's).
+    result : DiagnosisResult
+        With a held-out split, only confirmed effects are folded in.
+    provenance : dict, optional
+        What the effects came from (input files, split), JSON-serialisable.
+
+    Returns
+    -------
+    Calibration
+        ``shifts`` refined, ``refinement`` holding the record.
+    """
+    if calibration.shifts is None:
+        msg = "the calibration has no boundary shifts to refine"
+        raise BFPSFValueError(msg)
+    shifts = calibration.shifts
+    anisotropy = None
+    applied, not_applied, parameters = {}, {}, {}
+    linearity_c, buildup = 0.0, None
+    scale = 0.0
+    folded = result.folded or {"names": [], "effects": {}, "scale_nuisance": None}
+    nuisance = folded.get("scale_nuisance")
+    if nuisance is not None and result.confirmed.get("calibration_scale (nuisance)", True):
+        scale += nuisance
+        applied["calibration_scale (nuisance)"] = "shifts times (1 + s)"
+        parameters["calibration_scale (nuisance)"] = dict(result.nuisance["calibration_scale"],
+                                                          value=nuisance)
+    for name in result.selected:
+        family = name.split("@")[0]
+        parameters[name] = result.parameters[name]
+        if not result.confirmed.get(name, True):
+            not_applied[name] = "not confirmed on the held-out data"
+            continue
+        if name not in folded["names"]:
+            not_applied[name] = _NOT_APPLIED.get(family, "no place in the calibration")
+            continue
+        # the values of the joint fit of what the calibration holds
+        value = folded["effects"][name]
+        parameters[name] = dict(parameters[name], folded_value=value)
+        if family == "calibration_scale":
+            scale += value[0]
+            applied[name] = "shifts times (1 + s)"
+        elif family == "xy_anisotropy":
+            anisotropy = quadrupole_shifts(calibration.shifts, value[0])
+            shifts = add_shifts(shifts, anisotropy)
+            applied[name] = "quadrupole of the nearest boundaries added to the shifts"
+        elif family == "gain_nonlinearity":
+            linearity_c = float(value[0])
+            applied[name] = "linearity correction of the images on input"
+        elif family == "second_order":
+            buildup = BUILDUP_STEPS
+            applied[name] = f"build-up of the shifts integrated in {BUILDUP_STEPS} steps"
+    if scale:
+        shifts = shifts.scaled(1.0 + scale)
+    # the calibration's uncertainty follows the same refinement, sample by sample
+    samples = {}
+    if calibration.shift_samples_north is not None:
+        refined = []
+        for sample in calibration.shift_samples():
+            if anisotropy is not None:
+                sample = add_shifts(sample, anisotropy)
+            refined.append(sample.scaled(1.0 + scale))
+        samples = {"shift_samples_north": np.array([sample.north for sample in refined]),
+                   "shift_samples_east": np.array([sample.east for sample in refined])}
+        if len(refined) >= 2:
+            samples["shifts_north_err"] = samples["shift_samples_north"].std(axis=0, ddof=1)
+            samples["shifts_east_err"] = samples["shift_samples_east"].std(axis=0, ddof=1)
+    refinement = {"effects": list(result.selected), "parameters": parameters,
+                  "applied": applied, "not_applied": not_applied,
+                  "confirmed": dict(result.confirmed), "holdout": result.holdout,
+                  "linearity_c_per_1e5": linearity_c, "buildup_steps": buildup,
+                  "scale": scale, "provenance": dict(provenance or {})}
+    return dataclasses.replace(calibration, shifts=shifts, refinement=json_ready(refinement),
+                               **samples)
+

@@ -1,0 +1,73 @@
+"""The stacked, flux-normalised residual of the stars against P(F) (a fixed diagnostic)."""
+
+import numpy as np
+
+__all__ = ["stacked_star_residual"]
+
+
+def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, min_peak_e=0.0):
+    """Stacked, flux-normalised residual of stars against the flux-dependent PSF P(F).
+
+    For each star (row of a `bfpsf.measure.sources.measure_sources` table, unflagged, peak
+    above ``min_peak_e``): the model ``psf.star_image(F)`` (`FluxDependentPSF.star_image`, the
+    code `bfpsf.validation.validate` stacks) at the star's sub-pixel phase, F refitted once
+    by linear least squares on the stamp; the residual (data - model) / F is averaged over
+    stars. Its expected variance per pixel, sum (model + noise_e^2) / F^2 / N^2 (Poisson and
+    read noise), gives a chi2 per pixel: about 1 when P(F) describes the stars.
+
+    Parameters
+    ----------
+    images : sequence of ndarray [y, x]
+        Images, e- (background subtracted).
+    tables : sequence of astropy Table
+        Source tables of the images (``x``, ``y``, ``flux_e``, ``peak_e``, ``flags``).
+    psf : bfpsf.model.psf.FluxDependentPSF
+        In e- (``gain=1``).
+    half_size : int, optional
+        Stamps are 2 half_size + 1 pixels square; default the PSF's half size.
+    noise_e : float
+        Read noise (and sky), e- rms per pixel.
+    min_peak_e : float
+        Only stars brighter than this enter the stack.
+
+    Returns
+    -------
+    dict or None (no star)
+        ``image`` (stacked residual, fraction of the unit-flux star per pixel), ``sigma``
+        (its expected noise), ``model_peak`` (peak of the unit-flux model), ``rms_over_peak``
+        (rms of the stack / model peak), ``chi2_per_pixel``, ``n_stars``, ``radius`` and
+        ``profile`` (azimuthal mean in rings of 0.5 px, `bfpsf.plotting.diagnose`).
+    """
+    from ..plotting.diagnose import radial_profile
+
+    half = int(psf.half_size if half_size is None else half_size)
+    total, variance, model_sum, count = 0.0, 0.0, 0.0, 0
+    for image, table in zip(images, tables):
+        image = np.asarray(image, float)
+        ny, nx = image.shape
+        good = (np.asarray(table["flags"]) == 0) & (np.asarray(table["peak_e"]) > min_peak_e)
+        for row in np.flatnonzero(good):
+            x, y = float(table["x"][row]), float(table["y"][row])
+            cx, cy = int(np.round(x)), int(np.round(y))
+            if cx - half < 0 or cy - half < 0 or cx + half >= nx or cy + half >= ny:
+                continue        # too close to the edge for a full stamp
+            data = image[cy - half:cy + half + 1, cx - half:cx + half + 1]
+            flux = float(table["flux_e"][row])
+            model = psf.star_image(flux, x_phase=x - cx, y_phase=y - cy, half_size=half)
+            flux *= float(np.sum(data * model) / np.sum(model * model))
+            model = psf.star_image(flux, x_phase=x - cx, y_phase=y - cy, half_size=half)
+            total = total + (data - model) / flux
+            variance = variance + (np.clip(model, 0, None) + noise_e ** 2) / flux ** 2
+            model_sum = model_sum + model / flux
+            count += 1
+    if count == 0:
+        return None
+    stack = total / count
+    sigma = np.sqrt(variance) / count
+    peak = float(np.max(model_sum / count))
+    radius, profile = radial_profile(stack)
+    return {"image": stack, "sigma": sigma, "model_peak": peak,
+            "rms_over_peak": float(np.std(stack) / peak),
+            "chi2_per_pixel": float(np.mean((stack / sigma) ** 2)), "n_stars": count,
+            "radius": radius, "profile": profile}
+
