@@ -83,9 +83,8 @@ def run(args):
     result = fit_psf(images, positions, calibration.shifts, oversampling=args.oversampling,
                      size=args.size, read_noise=float(calibration.noise_e),
                      sky_e=skies, include_bf=args.include_bf,
-                     max_iterations=args.max_iterations)
+                     max_iterations=args.max_iterations, flux_unit="electron", gain=gain)
     psf = result.psf
-    psf.image_gain = gain
     psf.calibration = Path(args.calib).name
     psf.write(args.output, meta={"NSTARS": int(np.sum(result.stars["flags"] == 0)),
                                  "CONVERGD": bool(result.converged),

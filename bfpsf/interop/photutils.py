@@ -104,5 +104,5 @@ def static_image_psf(psf, flux=None):
     if flux is not None:
         table = psf.bf_table if psf.bf_table is not None else bf_response_table(
             psf.data, psf.shifts, psf.oversampling)
-        data = data + psf.gain * flux * table
+        data = data + psf.electrons_per_unit * flux * table
     return ImagePSF(data, origin=tuple(psf.origin), oversampling=tuple(psf.oversampling))

@@ -100,7 +100,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     image_e : array_like [y, x]
         Image in electrons (the BF term needs charge); sky included or not.
     psf : FluxDependentPSF or photutils PSF model
-        PSF model (``gain`` 1: fluxes in e-). A static photutils model can be passed for
+        PSF model in electrons (``flux_unit='electron'``; an ADU model is refused). A static photutils model can be passed for
         comparison.
     positions : astropy.table.Table or (N, 2) array_like, optional
         Initial ``x_init``, ``y_init`` (and optionally ``flux_init``) or (x, y) pairs, pixels;
@@ -153,6 +153,10 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     if read_noise_e < 0 or not np.isfinite(read_noise_e):
         msg = f"read_noise_e must be a finite number >= 0 e-, got {read_noise_e!r}"
         raise BFPSFValueError(msg, read_noise_e)
+    if getattr(psf, "flux_unit", "electron") != "electron":
+        msg = (f"psf_photometry fits images in e- but the PSF is in {psf.flux_unit!r}: pass "
+               "psf.with_flux_unit('electron') and the image times the gain")
+        raise BFPSFValueError(msg, psf.flux_unit)
     if weights not in ("model", "data"):
         msg = f"weights must be 'model' or 'data', got {weights!r}"
         raise BFPSFValueError(msg, weights)
