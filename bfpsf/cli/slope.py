@@ -6,7 +6,9 @@ Parse, read the star table of ``bfpsf measure``, optionally correct the size-col
 
 JSON keys: ``x``, ``y``, ``iq`` (each ``{slope, slope_err, intercept, relative_percent}``,
 slope in pixels per 100 ke- of peak, relative_percent in percent of the intercept per
-100 ke-), ``n_stars``, and ``details`` (full fits, colour fit, peak range).
+100 ke-), ``e1``, ``e2`` (each ``{slope, slope_err, intercept}``, slope per 100 ke- of peak;
+when the table has e1, e2), ``n_stars``, ``details`` (full fits, colour fit, peak range), and
+with ``--psf`` the same keys under ``model_residual``.
 """
 
 from pathlib import Path
@@ -51,10 +53,22 @@ def _model_residual(stars, args, colour_fit):
         raise BFPSFInputError(msg, args.stars)
     increments = model_size_increments(psf, stars["flux_e"])
     residual = stars.copy()
-    for key, column in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "iq")):
-        residual[column] = residual[column] - increments[key]
+    for key, column in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "iq"), ("e1", "e1"),
+                        ("e2", "e2")):
+        if column in residual.colnames:
+            residual[column] = residual[column] - increments[key]
     return bf_slopes(residual, min_peak_e=args.min_peak, max_peak_e=args.max_peak,
                      use_errors=not args.unweighted, colour_fit=colour_fit)
+
+
+def _summary(slopes):
+    """The JSON keys of a set of slope fits (sizes with relative_percent; e1, e2 without)."""
+    summary = {key: slopes[key].as_dict(short=True) for key in ("x", "y", "iq")}
+    for key in ("e1", "e2"):
+        if key in slopes:
+            summary[key] = {name: slopes[key].as_dict()[name]
+                            for name in ("slope", "slope_err", "intercept")}
+    return summary
 
 
 def run(args):
@@ -75,18 +89,18 @@ def run(args):
                                                 max_peak_e=args.colour_max_peak)
     slopes = bf_slopes(stars, min_peak_e=args.min_peak, max_peak_e=args.max_peak,
                        use_errors=not args.unweighted, colour_fit=colour_fit)
-    summary = {key: slopes[key].as_dict(short=True) for key in ("x", "y", "iq")}
+    summary = _summary(slopes)
     summary["n_stars"] = int(slopes["n_stars"])
     residual = None
     if args.psf is not None:
         residual = _model_residual(stars, args, colour_fit)
-        summary["model_residual"] = {key: residual[key].as_dict(short=True)
-                                     for key in ("x", "y", "iq")}
+        summary["model_residual"] = _summary(residual)
     summary["details"] = {
         "units": {"slope": "pixel per 100 ke- of peak", "intercept": "pixel",
                   "relative_percent": "percent of the intercept per 100 ke- of peak",
-                  "range_percent": "percent of the intercept over the fitted peak range"},
-        **{key: slopes[key].as_dict() for key in ("x", "y", "iq")},
+                  "range_percent": "percent of the intercept over the fitted peak range",
+                  "e1, e2 slope": "per 100 ke- of peak"},
+        **{key: slopes[key].as_dict() for key in ("x", "y", "iq", "e1", "e2") if key in slopes},
         "colour_fit": None if colour_fit is None else colour_fit.as_dict(),
         "stars": str(args.stars),
     }
@@ -104,6 +118,12 @@ def run(args):
                   f"{residual[key].slope_err:.5f} pix/100ke-")
         print(f"{label:8s} slope {fit.slope:+.5f} +- {fit.slope_err:.5f} pix/100ke-  "
               f"intercept {fit.intercept:.4f} pix  {fit.relative_percent:+.3f} %/100ke-")
+    for key in ("e1", "e2"):
+        if key in slopes:
+            after = (f"  residual after P(F) {residual[key].slope:+.2e}"
+                     if residual is not None else "")
+            print(f"{key:8s} slope {slopes[key].slope:+.2e} +- {slopes[key].slope_err:.2e} "
+                  f"/100ke-  intercept {slopes[key].intercept:+.5f}{after}")
     print(f"{slopes['n_stars']} stars fitted"
           + (f", colour-corrected with {args.colour} ({colour_fit.n_stars} faint stars)"
              if colour_fit else ""))

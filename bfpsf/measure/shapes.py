@@ -19,7 +19,8 @@ import numpy as np
 from ..errors import BFPSFValueError
 from .moments import adaptive_moments_batch
 
-__all__ = ["PSFShape", "distortion", "fourth_moment", "psf_shape"]
+__all__ = ["PSFShape", "distortion", "fourth_moment", "psf_shape", "model_shapes",
+           "shape_residuals"]
 
 
 @dataclass(frozen=True)
@@ -123,3 +124,63 @@ def psf_shape(psf, flux, *, x=None, y=None):
                     mxx=float(moments.mxx[0]), myy=float(moments.myy[0]),
                     mxy=float(moments.mxy[0]), flux=float(flux),
                     flags=int(moments.flags[0]))
+
+
+def model_shapes(psf, flux, *, n_grid=12):
+    """Size and ellipticity of a PSF model at many fluxes (one per star), interpolated.
+
+    `psf_shape` on ``n_grid`` fluxes spaced logarithmically over the range of ``flux``, then
+    interpolated linearly in flux: the BF changes are linear in F to first order.
+
+    Parameters
+    ----------
+    psf : FluxDependentPSF
+    flux : array_like
+        Fluxes, the model's ``flux_unit``; non-finite or non-positive ones give NaN.
+    n_grid : int, optional
+        Default 12.
+
+    Returns
+    -------
+    dict of ndarray
+        ``sigma``, ``T``, ``e1``, ``e2``, ``rho4``, one value per flux.
+    """
+    flux = np.asarray(flux, dtype=float)
+    good = np.isfinite(flux) & (flux > 0)
+    names = ("sigma", "T", "e1", "e2", "rho4")
+    result = {name: np.full(flux.shape, np.nan) for name in names}
+    if not good.any():
+        return result
+    low, high = flux[good].min(), flux[good].max()
+    grid = np.geomspace(low, max(high, low * 1.001), n_grid)
+    shapes = [psf_shape(psf, value) for value in grid]
+    for name in names:
+        result[name][good] = np.interp(flux[good], grid,
+                                       [getattr(shape, name) for shape in shapes])
+    return result
+
+
+def shape_residuals(stars, psf, *, flux=None):
+    """Star minus model: relative size, e1 and e2 of each star against a PSF model.
+
+    Parameters
+    ----------
+    stars : astropy.table.Table
+        Star table (``flux_e``, ``iq``, ``e1``, ``e2``).
+    psf : FluxDependentPSF
+        In electrons.
+    flux : float, optional
+        Compare every star with the model at this one flux (a static PSF frozen there);
+        default each star's own ``flux_e`` (P(F)).
+
+    Returns
+    -------
+    dict of ndarray
+        ``sigma`` ((star - model) / model), ``e1``, ``e2`` (star - model).
+    """
+    star_flux = np.asarray(stars["flux_e"], dtype=float)
+    at = star_flux if flux is None else np.full(star_flux.shape, float(flux))
+    model = model_shapes(psf, at)
+    return {"sigma": np.asarray(stars["iq"], dtype=float) / model["sigma"] - 1.0,
+            "e1": np.asarray(stars["e1"], dtype=float) - model["e1"],
+            "e2": np.asarray(stars["e2"], dtype=float) - model["e2"]}
