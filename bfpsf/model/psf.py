@@ -502,11 +502,7 @@ class FluxDependentPSF(Fittable2DModel):
     def _stamp_delta(self, stamp, flux, x_phase, y_phase):
         """BF term (image unit) of a star of flux F on its pixelised unit stamp (star at
         ``(x_phase, y_phase)`` from the central pixel), as mode='exact' computes it."""
-        density = None
-        if self.density_profile is not None:
-            half = stamp.shape[0] // 2
-            density = _phase_density(self.density_profile, x_phase, y_phase, half,
-                                     self.density_oversampling)
+        density = self.boundary_density(x_phase, y_phase, stamp.shape[0] // 2)
         if self.buildup_steps is not None:
             return self._buildup_delta(stamp, flux, density)
         return self.electrons_per_unit * flux * abs(flux) * redistribution_delta(stamp, self.shifts,
@@ -518,9 +514,45 @@ class FluxDependentPSF(Fittable2DModel):
         charge = to_electrons * abs(flux) * stamp
         if density is not None:  # per unit flux -> e- of this star
             density = tuple(to_electrons * abs(flux) * part for part in density)
-        collected = redistribute_buildup(charge, self.shifts, nsteps=self.buildup_steps,
-                                         density=density)
-        return np.sign(flux) * (collected - charge) / to_electrons
+        return np.sign(flux) * self.charge_delta(charge, density) / to_electrons
+
+    def charge_delta(self, charge_e, density=None):
+        """The charge each pixel gains under this model's operator, e-.
+
+        One step of G15 eq. scrambling_model, or ``buildup_steps`` steps of the build-up;
+        ``density`` is the boundary density of the charge (`boundary_density`), default G15's
+        mean. Applied to the summed charge of several stars it gives their BF including the
+        cross terms between them, with the same physics as each star's own term.
+
+        Parameters
+        ----------
+        charge_e : ndarray [y, x]
+            Charge without BF, e-.
+        density : (ndarray, ndarray), optional
+
+        Returns
+        -------
+        ndarray [y, x]
+        """
+        if self.buildup_steps is not None:
+            collected = redistribute_buildup(charge_e, self.shifts, nsteps=self.buildup_steps,
+                                             density=density)
+            return collected - charge_e
+        return redistribution_delta(charge_e, self.shifts, density=density)
+
+    def boundary_density(self, x_phase=0.0, y_phase=0.0, half_size=None):
+        """Exact boundary density of the unit-flux star on its stamp, or None (G15's mean).
+
+        The density of ``density_profile`` (`bfpsf.model.redistribution.exact_boundary_density`)
+        for the stamp of `star_image` (``2 * half_size + 1`` pixels, star at the phase): north
+        boundaries ``(2h, 2h + 1)``, east ``(2h + 1, 2h)``, per unit flux. None without a
+        ``density_profile``.
+        """
+        if self.density_profile is None:
+            return None
+        half = self.half_size if half_size is None else int(half_size)
+        return _phase_density(self.density_profile, x_phase, y_phase, half,
+                              self.density_oversampling)
 
     def evaluate(self, x, y, flux, x_0, y_0):
         """Model value at (x, y) for the given parameters (image unit per pixel).
