@@ -56,11 +56,15 @@ def main(argv=None):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from bfpsf.plotting.calibration import plot_correlation_map, plot_ptc
+    from bfpsf.plotting.calibration import plot_area_matrix, plot_ptc
 
-    figure, (left, right) = plt.subplots(1, 2, figsize=(9, 3.8))
+    figure, (left, middle, right) = plt.subplots(1, 3, figsize=(13, 3.8))
     plot_ptc(calibration, ax=left)
-    plot_correlation_map(calibration, ax=right, maxlag=maxlag)
+    top = float(max(truth[1:, :].max(), truth[0, 1:].max()))  # one colour scale
+    plot_area_matrix(calibration.a, ax=middle, vmin=-0.2 * top, vmax=top,
+                     title=f"measured a(dx, dy), a(0,0) = {calibration.a[0, 0] * 1e7:.1f}e-7")
+    plot_area_matrix(truth, ax=right, vmin=-0.2 * top, vmax=top,
+                     title=f"SiliconSensor truth, a(0,0) = {truth[0, 0] * 1e7:.1f}e-7")
     figure.tight_layout()
     figure.savefig(output / "calibrate_from_flats.png", dpi=70)
     print(f"wrote {output / 'calib.fits'} and {output / 'calibrate_from_flats.png'}")

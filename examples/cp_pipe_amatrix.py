@@ -73,14 +73,10 @@ def main(argv=None):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from bfpsf.plotting.calibration import plot_area_matrix
+
     figure, (left, right) = plt.subplots(1, 2, figsize=(9, 3.6))
-    shown = np.where(np.arange(area.size).reshape(area.shape) == 0, np.nan, area * 1e7)
-    image = left.imshow(shown, origin="lower", cmap="viridis")
-    figure.colorbar(image, ax=left, label="a(dx, dy) (1e-7 / e-)")
-    left.set_xlabel("dx (serial)")
-    left.set_ylabel("dy (parallel)")
-    left.set_title(f"measured a-matrix, a(0,0) = {area[0, 0] * 1e7:.1f}e-7 (not shown)",
-                   fontsize=9)
+    plot_area_matrix(area, ax=left)
     right.plot(widths, [slopes[w]["x"] for w in widths], "o-", label="sigma_x (serial)")
     right.plot(widths, [slopes[w]["y"] for w in widths], "s-", label="sigma_y (parallel)")
     right.set_xlabel("Moffat FWHM (pixels)")

@@ -32,6 +32,7 @@ from bfpsf.model.psf_fit import fit_psf
 SHIFTS = bfpsf.BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
 PROFILE = galsim.Moffat(beta=4.0, fwhm=3.5)
 SKY_E, READ_NOISE_E = 200.0, 5.0
+ZERO_POINT = 25.0  # magnitude of 1 e-
 
 
 def simulate_field(n_stars, size, seed):
@@ -75,7 +76,7 @@ def main(argv=None):
     print(f"P0 of P(F) from {alone.sum()} stars: converged {fit.converged} in "
           f"{fit.iterations} iterations")
     models = {"static ePSF (bright stars)": static_image_psf(static), "P(F)": dependent}
-    magnitude = -2.5 * np.log10(fluxes)
+    magnitude = ZERO_POINT - 2.5 * np.log10(fluxes)
     results = {}
     for name, model in models.items():
         table = psf_photometry(image, model, positions=positions, background_e=SKY_E,
@@ -105,17 +106,21 @@ def main(argv=None):
     left.set_yticks([])
     edges = np.quantile(magnitude, np.linspace(0, 1, 7))
     for colour, (name, result) in zip(("C3", "C0"), results.items()):
-        mmag = -2.5e3 * np.log10(result["ratio"])
+        usable = result["good"] & (result["ratio"] > 0)
+        mmag = -2.5e3 * np.log10(np.where(usable, result["ratio"], 1.0))
         centres, medians, errors = [], [], []
         for low, high in zip(edges[:-1], edges[1:]):
-            members = result["good"] & (magnitude >= low) & (magnitude <= high)
+            members = usable & (magnitude >= low) & (magnitude <= high)
+            median = np.median(mmag[members])
             centres.append(np.mean(magnitude[members]))
-            medians.append(np.median(mmag[members]))
-            errors.append(1.25 * np.std(mmag[members]) / np.sqrt(members.sum()))
+            medians.append(median)
+            # error of the median from the median absolute deviation (blends are outliers)
+            spread = 1.4826 * np.median(np.abs(mmag[members] - median))
+            errors.append(1.2533 * spread / np.sqrt(members.sum()))
         right.errorbar(centres, medians, errors, fmt="o-", color=colour,
                        label=f"{name}: {result['bias_mmag']:+.1f} mmag faint - bright")
     right.axhline(0.0, color="k", lw=0.8)
-    right.set_xlabel("-2.5 log10(true flux / e-)")
+    right.set_xlabel(f"magnitude ({ZERO_POINT:g} - 2.5 log10 true flux / e-)")
     right.set_ylabel("measured - true (mmag)")
     right.legend(fontsize=8)
     right.set_title("PSF photometry, median per magnitude bin", fontsize=9)

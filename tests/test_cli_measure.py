@@ -116,7 +116,9 @@ def test_slope_psf_model_residual_removes_the_bf_slope(tmp_path):
     FluxDependentPSF.from_galsim(galsim.Moffat(beta=3.5, fwhm=3.5), shifts).write(psf_path)
     stars, summary = tmp_path / "stars.ecsv", tmp_path / "slope.json"
     assert main(["measure", str(image), "-o", str(stars), "--gain", "1"]) == 0
-    assert main(["slope", str(stars), "--psf", str(psf_path), "--json", str(summary)]) == 0
+    assert main(["slope", str(stars), "--psf", str(psf_path), "--json", str(summary),
+                 "--psf-plot", str(tmp_path / "diagnostics.png")]) == 0
+    assert (tmp_path / "diagnostics.png").stat().st_size > 10_000
     result = json.loads(summary.read_text())
     for key in ("x", "y"):
         raw, residual = result[key], result["model_residual"][key]

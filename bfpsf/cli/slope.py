@@ -38,16 +38,17 @@ def add_parser(subparsers):
                         help="ignore the *_err columns (errors from the scatter)")
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--plot", metavar="FILE", help="write size against peak (PNG, PDF)")
+    parser.add_argument("--psf-plot", metavar="FILE",
+                        help="with --psf: star-minus-model size, e1, e2 against magnitude, "
+                             "static PSF beside P(F) (PNG, PDF)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     return parser
 
 
-def _model_residual(stars, args, colour_fit):
+def _model_residual(stars, psf, args, colour_fit):
     """Slopes of the sizes measured minus the sizes the flux-dependent PSF predicts."""
     from ..measure.slopes import bf_slopes, model_size_increments
-    from ..model.psf import FluxDependentPSF
 
-    psf = FluxDependentPSF.read(args.psf)
     if "flux_e" not in stars.colnames:
         msg = f"{args.stars} has no flux_e column: --psf needs each star's flux"
         raise BFPSFInputError(msg, args.stars)
@@ -79,6 +80,10 @@ def run(args):
 
     check_free(args.json, args.overwrite)
     check_free(args.plot, args.overwrite)
+    check_free(args.psf_plot, args.overwrite)
+    if args.psf_plot and not args.psf:
+        msg = "--psf-plot needs --psf PSF.fits"
+        raise BFPSFInputError(msg, args.psf_plot)
     if not Path(args.stars).exists():
         msg = f"star table {args.stars} does not exist"
         raise BFPSFInputError(msg, args.stars)
@@ -92,8 +97,12 @@ def run(args):
     summary = _summary(slopes)
     summary["n_stars"] = int(slopes["n_stars"])
     residual = None
+    psf = None
     if args.psf is not None:
-        residual = _model_residual(stars, args, colour_fit)
+        from ..model.psf import FluxDependentPSF
+
+        psf = FluxDependentPSF.read(args.psf)
+        residual = _model_residual(stars, psf, args, colour_fit)
         summary["model_residual"] = _summary(residual)
     summary["details"] = {
         "units": {"slope": "pixel per 100 ke- of peak", "intercept": "pixel",
@@ -111,6 +120,10 @@ def run(args):
 
         figure = plot_size_vs_peak(stars, slopes, max_peak_e=args.max_peak)
         figure.savefig(args.plot, dpi=120)
+    if args.psf_plot:
+        from ..plotting.psf_diagnostics import plot_psf_diagnostics
+
+        plot_psf_diagnostics(stars, psf).savefig(args.psf_plot, dpi=100)
     for key, label in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "IQ")):
         fit = slopes[key]
         if residual is not None:
