@@ -91,10 +91,12 @@ def main(argv=None):
               f"{slopes['x'].slope_err:.4f}, sigma_y {slopes['y'].slope:.4f} +- "
               f"{slopes['y'].slope_err:.4f} pix / 100 ke- of peak")
     # The model's size growth at each star's flux, against the star's measured peak (which
-    # depends on its sub-pixel phase as much as on its flux): the slope to expect.
+    # depends on its sub-pixel phase as much as on its flux): the slope to expect
     stars = results["draw_with_bf"][0]
     increments = model_size_increments(psf, stars["flux_true"])
-    predicted = {axis: fit_bf_slope(stars["peak_e"], increments[axis]).slope
+    # (same weights as the measured fit: stars at different phases scatter about the line)
+    predicted = {axis: fit_bf_slope(stars["peak_e"], increments[axis],
+                                    size_err=stars[f"sigma_{axis}_err"]).slope
                  for axis in ("x", "y")}
     print(f"{'predicted from the shifts':28s} sigma_x slope {predicted['x']:.4f}, sigma_y "
           f"{predicted['y']:.4f} pix / 100 ke- of peak")
