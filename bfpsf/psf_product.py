@@ -8,14 +8,16 @@ unknown), ``MODE``, ``BUILDUP`` (build-up steps, 0 for G15's one step), ``FILLVA
 ``DENSOVER``, ``FLUX``/``X_0``/``Y_0``, plus ``CALIB`` and ``PIXRESP``; HDUs ``SHIFT_N`` and
 ``SHIFT_E`` = a^N and a^E (1/e-, [dy+m, dx+m]); ``BFTABLE``, the table-mode R (1/e-), whatever
 made it (G15's mean density, the exact density of a GalSim profile, or a table of the caller's).
-Schema 2 files (no FLUXUNIT, BUILDUP, ...) read as models in electrons with their GAIN recorded.
-The calibration file is not needed to read the product back.
+Optional ``SHIFT_N_SAMP`` / ``SHIFT_E_SAMP`` [sample, dy+m, dx+m] hold the shift samples of the
+calibration (its uncertainty, propagated by ``bfpsf slope --psf``). Schema 2 files (no
+FLUXUNIT, BUILDUP, ...) read as models in electrons with their GAIN recorded. The calibration
+file is not needed to read the product back.
 """
 
 import numpy as np
 
 from .errors import BFPSFValueError
-from .files import open_product, refuse_overwrite
+from .files import open_product, refuse_overwrite, write_fits
 
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 
@@ -74,11 +76,18 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     north.header["BUNIT"] = "1/electron"
     east.header["BUNIT"] = "1/electron"
     hdus = [primary, north, east]
+    if psf.shift_samples:
+        # the calibration's uncertainty, for predictions with errors (optional HDUs)
+        for name, attribute in (("SHIFT_N_SAMP", "north"), ("SHIFT_E_SAMP", "east")):
+            samples = fits.ImageHDU(np.array([getattr(sample, attribute)
+                                              for sample in psf.shift_samples]), name=name)
+            samples.header["BUNIT"] = "1/electron"
+            hdus.append(samples)
     if options["mode"] == "table":
         table = fits.ImageHDU(np.asarray(options["bf_table"], dtype=np.float64), name="BFTABLE")
         table.header["BUNIT"] = ("1/(pixel electron)", "R[P0] per unit flux squared")
         hdus.append(table)
-    fits.HDUList(hdus).writeto(path, overwrite=overwrite)
+    write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
 
 
 def read_psf(path, *, cls=None, **kwargs):
@@ -121,9 +130,15 @@ def read_psf(path, *, cls=None, **kwargs):
         if "BFTABLE" in hdul:
             options["bf_table"] = np.array(hdul["BFTABLE"].data, dtype=float)
         calibration = str(header["CALIB"])
+        samples = ()
+        if "SHIFT_N_SAMP" in hdul:
+            samples = tuple(BoundaryShifts(north, east, check=False) for north, east in
+                            zip(np.array(hdul["SHIFT_N_SAMP"].data, dtype=float),
+                                np.array(hdul["SHIFT_E_SAMP"].data, dtype=float)))
     options.update(kwargs)
     if options.get("mode") != "table":
         options.pop("bf_table", None)  # an exact-mode override recomputes R
     psf = cls(data, shifts, **options)
     psf.calibration = calibration
+    psf.shift_samples = samples
     return psf

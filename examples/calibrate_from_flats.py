@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 import bfpsf
-from bfpsf.interop.galsim import silicon_area_coefficients
+from bfpsf.interop.silicon_truth import silicon_area_coefficients
 from bfpsf.validation.simulate_flats import write_flats
 
 GAIN = 1.5  # e-/ADU of the simulated camera

@@ -92,7 +92,7 @@ def test_psf_diagnostics_figure_shows_the_static_trend(tmp_path):
     from bfpsf.measure.slopes import fit_bf_slope
     from bfpsf.measure.sources import measure_sources
     from bfpsf.plotting.psf_diagnostics import plot_psf_diagnostics
-    from bfpsf.interop.galsim import BFSensor
+    from bfpsf.interop.galsim_sensor import BFSensor
     from bfpsf.validation.simulate_spots import simulate_star_field
 
     profile = galsim.Moffat(beta=3.5, fwhm=3.5)

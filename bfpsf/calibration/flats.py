@@ -12,11 +12,11 @@ Images are ``data[y, x]`` in ADU, bias-subtracted (DESIGN.md conventions).
 import logging
 import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from ..files import check_input, reading
 
 __all__ = ["Flat", "FlatPair", "MaskReport", "read_flats", "pair_flats", "pair_mask"]
 
@@ -126,24 +126,17 @@ class MaskReport:
 def _read_fits(path):
     from astropy.io import fits
 
-    path = Path(path)
-    if not path.exists():
-        msg = f"flat file not found: {path}"
-        raise BFPSFInputError(msg, str(path))
-    try:
-        with fits.open(path, memmap=False) as hdus:
-            primary_header = hdus[0].header.copy()
-            for hdu in hdus:
-                if hdu.is_image and hdu.data is not None and np.ndim(hdu.data) == 2:
-                    data = np.array(hdu.data, dtype=np.float64)
-                    header = hdu.header.copy()
-                    break
-            else:
-                msg = f"{path}: no 2-D image HDU with data"
-                raise BFPSFInputError(msg, str(path))
-    except OSError as error:
-        msg = f"{path}: cannot read as FITS ({error})"
-        raise BFPSFInputError(msg, str(path)) from error
+    path = check_input(path, "flat file")
+    with reading(path, "flat FITS file"), fits.open(path, memmap=False) as hdus:
+        primary_header = hdus[0].header.copy()
+        for hdu in hdus:
+            if hdu.is_image and hdu.data is not None and np.ndim(hdu.data) == 2:
+                data = np.array(hdu.data, dtype=np.float64)
+                header = hdu.header.copy()
+                break
+        else:
+            msg = f"{path}: no 2-D image HDU with data"
+            raise BFPSFInputError(msg, str(path))
     if "EXPTIME" not in header and "EXPTIME" in primary_header:
         header["EXPTIME"] = primary_header["EXPTIME"]
     return data, header

@@ -15,9 +15,12 @@ File layout (schema version `SCHEMA_VERSION`)::
     NOISE        zero-flux covariances n(dx, dy), [dy, dx], electron^2
     PEDESTAL, PEDESTAL_ERR   zero-flux correlations R0(dx, dy), [dy, dx], dimensionless
     SHIFT_N, SHIFT_E, SHIFT_S, SHIFT_W        a^X(dx, dy), [dy + m, dx + m], 1/electron
-    SHIFT_N_ERR, SHIFT_E_ERR                  their Monte Carlo errors (when solved)
+    SHIFT_N_ERR, SHIFT_E_ERR                  their errors (when solved)
+    SHIFT_N_SAMP, SHIFT_E_SAMP                samples of a^N, a^E drawn from the calibration
+                                              error, [sample, dy + m, dx + m] (schema 2)
+    WARNINGS     one string per warning (schema 2)
     COV, NPIX    per-pair covariances [pair, dy, dx] (adu^2, before pedestal subtraction), counts
-    SHIFTFIT     key / value table of the smoothing-model fit (p0, p1, p1_err, sensitivity)
+    SHIFTFIT     key / value table of the shift solvers' scalars (chi2 of each, parameters)
     PTC          per-pair table (`bfpsf.calibration.ptc.ptc_table` columns and more)
     LINEARITY    exptime, mean_adu, frac_residual, used
     INPUTS       input file names;  PARAMS  key / JSON value of the calibrate() parameters
@@ -30,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..files import open_product, refuse_overwrite
+from ..files import open_product, refuse_overwrite, write_fits
 from ..shifts import BoundaryShifts
 from .linearity import Linearity
 from .pedestal import Pedestal
@@ -38,7 +41,8 @@ from .pedestal import Pedestal
 __all__ = ["Calibration", "SCHEMA_VERSION"]
 
 #: Version of the FITS layout written by `Calibration.write`; `Calibration.read` refuses newer.
-SCHEMA_VERSION = 1
+#: 2: the shift solver (header SHIFTMTH), samples of the shifts and the warnings.
+SCHEMA_VERSION = 2
 
 _SUMMARY_FLOATS = ("gain", "gain_err", "noise_e", "noise_e_err", "turnoff_e", "chi2")
 _SUMMARY_INTS = ("maxlag", "n_pairs", "ndof")
@@ -71,13 +75,21 @@ class Calibration:
     shifts : BoundaryShifts or None
         Boundary shifts a^X(dx, dy), 1/e- (None if they were not solved).
     shifts_north_err, shifts_east_err : ndarray or None
-        Monte Carlo errors of ``shifts.north`` and ``shifts.east``, 1/e-.
+        Errors of ``shifts.north`` and ``shifts.east``, 1/e-.
+    shift_samples_north, shift_samples_east : ndarray (S, 2m + 1, 2m + 1) or None
+        Shifts drawn from the calibration's uncertainty (1/e-): every prediction made from
+        the shifts propagates them (`shift_samples`).
+    shift_method : str or None
+        The solver of the shifts (`bfpsf.calibration.boundary_shifts.SHIFT_METHODS`).
+    warnings : tuple of str
+        What the calibration could not determine well, in words (``--json`` ``warnings``).
     covariances_adu, npix : ndarray (n_pairs, L, L) or None
         Measured single-image covariances of every pair (ADU^2, before pedestal subtraction)
         and the pixel products behind them, [pair, dy, dx] in PTC-table order.
     shift_fit : dict
-        Scalars of the G15 smoothing model f(r) = p0 Ei(p1 r): ``p0``, ``p1``, ``p1_err``,
-        ``sensitivity`` (relative change of the shifts for p1 +- 5 sigma), when solved.
+        Scalars of the shift solvers, when solved: the chi2 and dof of each solver on the
+        measured a (``electrostatic_chi2``, ``ei_chi2``, ...), the electrostatic geometry, and
+        the G15 smoothing model f(r) = p0 Ei(p1 r) (``ei_p1``, ``ei_sensitivity_...``).
     ptc : astropy.table.Table
         Per-pair table (see `bfpsf.calibration.ptc.ptc_table`).
     linearity : Linearity
@@ -118,6 +130,10 @@ class Calibration:
     shifts_north_err: np.ndarray = None
     shifts_east_err: np.ndarray = None
     shift_fit: dict = field(default_factory=dict)
+    shift_samples_north: np.ndarray = None
+    shift_samples_east: np.ndarray = None
+    shift_method: str = None
+    warnings: tuple = ()
     covariances_adu: np.ndarray = None
     npix: np.ndarray = None
     inputs: tuple = ()
@@ -127,9 +143,11 @@ class Calibration:
 
     def __post_init__(self):
         for name in ("a", "a_err", "b", "b_err", "noise_matrix_e2", "shifts_north_err",
-                     "shifts_east_err", "covariances_adu", "npix"):
+                     "shifts_east_err", "shift_samples_north", "shift_samples_east",
+                     "covariances_adu", "npix"):
             object.__setattr__(self, name, _frozen(getattr(self, name)))
         object.__setattr__(self, "inputs", tuple(str(name) for name in self.inputs))
+        object.__setattr__(self, "warnings", tuple(str(text) for text in self.warnings))
         object.__setattr__(self, "shift_fit", {key: float(value)
                                                for key, value in dict(self.shift_fit).items()})
 
@@ -143,6 +161,14 @@ class Calibration:
     def n_pairs(self):
         """Number of flat pairs in the PTC table."""
         return len(self.ptc)
+
+    def shift_samples(self, limit=None):
+        """The shift samples as `BoundaryShifts` (at most ``limit``; empty without samples)."""
+        if self.shift_samples_north is None:
+            return []
+        count = len(self.shift_samples_north) if limit is None else int(limit)
+        return [BoundaryShifts(north, east, check=False) for north, east in
+                zip(self.shift_samples_north[:count], self.shift_samples_east[:count])]
 
     def __repr__(self):
         return (f"Calibration(model={self.model!r}, gain={self.gain:.5g}+-{self.gain_err:.2g} "
@@ -188,6 +214,8 @@ class Calibration:
             "units": {"gain": "electron/adu", "noise_e": "electron", "a": "1/electron",
                       "turnoff_e": "electron", "pedestal": "dimensionless"},
             "shifts_solved": self.shifts is not None,
+            "shift_method": self.shift_method,
+            "warnings": list(self.warnings),
             "parameters": dict(self.parameters),
             "inputs": list(self.inputs), "bfpsf_version": self.bfpsf_version,
             "schema_version": self.schema_version,
@@ -223,6 +251,7 @@ class Calibration:
         header["GAIN"] = (round(self.gain, 6), "[e-/ADU] (exact value in SUMMARY)")
         header["NOISE"] = (round(self.noise_e, 4), "[e-] read noise (exact in SUMMARY)")
         header["MAXLAG"] = (self.maxlag, "largest lag of A")
+        header["SHIFTMTH"] = (str(self.shift_method or ""), "solver of the boundary shifts")
         hdus = [primary]
 
         summary = Table()
@@ -253,6 +282,9 @@ class Calibration:
                 images.append(("SHIFT_N_ERR", self.shifts_north_err, "1/electron"))
             if self.shifts_east_err is not None:
                 images.append(("SHIFT_E_ERR", self.shifts_east_err, "1/electron"))
+            if self.shift_samples_north is not None:
+                images += [("SHIFT_N_SAMP", self.shift_samples_north, "1/electron"),
+                           ("SHIFT_E_SAMP", self.shift_samples_east, "1/electron")]
         if self.covariances_adu is not None:
             images.append(("COV", self.covariances_adu, "adu2"))
         if self.npix is not None:
@@ -260,7 +292,8 @@ class Calibration:
         for name, array, unit in images:
             hdu = fits.ImageHDU(np.asarray(array, dtype=np.float64), name=name)
             hdu.header["BUNIT"] = unit  # a comment string: FITS knows no electron unit
-            hdu.header["INDEXING"] = ("[dy+m, dx+m]" if name.startswith("SHIFT") else
+            hdu.header["INDEXING"] = ("[sample, dy+m, dx+m]" if name.endswith("SAMP") else
+                                      "[dy+m, dx+m]" if name.startswith("SHIFT") else
                                       "[pair, dy, dx]" if name in ("COV", "NPIX") else "[dy, dx]")
             hdus.append(hdu)
 
@@ -269,6 +302,9 @@ class Calibration:
         if not self.shift_fit:
             shift_fit = shift_fit[:0]
         hdus.append(_table_hdu(shift_fit, "SHIFTFIT"))
+        hdus.append(_table_hdu(Table({"text": np.array(self.warnings, dtype=str)})
+                               if self.warnings else Table({"text": np.array([], dtype="U1")}),
+                               "WARNINGS"))
         hdus.append(_table_hdu(Table(self.ptc, copy=True), "PTC"))
         linearity = Table()
         linearity["exptime"] = np.asarray(self.linearity.exptime, dtype=float)
@@ -287,7 +323,7 @@ class Calibration:
         if not self.parameters:
             params = Table({"key": np.array([], dtype="U1"), "value": np.array([], dtype="U1")})
         hdus.append(_table_hdu(params, "PARAMS"))
-        fits.HDUList(hdus).writeto(path, overwrite=overwrite)
+        write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
 
     @classmethod
     def read(cls, path):
@@ -342,7 +378,13 @@ class Calibration:
                 turnoff_detected=bool(summary["turnoff_detected"]),
                 chi2=float(summary["chi2"]), ndof=int(summary["ndof"]), shifts=shifts,
                 shifts_north_err=image("SHIFT_N_ERR"), shifts_east_err=image("SHIFT_E_ERR"),
-                shift_fit=shift_fit, covariances_adu=image("COV"), npix=image("NPIX"),
+                shift_fit=shift_fit, shift_samples_north=image("SHIFT_N_SAMP"),
+                shift_samples_east=image("SHIFT_E_SAMP"),
+                shift_method=str(header.get("SHIFTMTH", "ei" if shifts is not None else ""))
+                or None,
+                warnings=(tuple(str(text) for text in Table.read(hdul["WARNINGS"])["text"])
+                          if "WARNINGS" in names else ()),
+                covariances_adu=image("COV"), npix=image("NPIX"),
                 inputs=inputs, parameters=parameters,
                 bfpsf_version=str(header["BFVERSIO"]),
                 schema_version=int(header["BFSCHEMA"]))

@@ -1,46 +1,9 @@
-"""Files of the commands: FITS images in, outputs never overwritten without ``--overwrite``,
-JSON summaries."""
-
-import json
-import math
-from pathlib import Path
+"""Input files of the commands: FITS images (outputs: `bfpsf.files`)."""
 
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import refuse_overwrite
-
-
-def check_free(path, overwrite):
-    """Raise `BFPSFFileExistsError` if ``path`` exists and ``overwrite`` is false.
-
-    Called for every output before any work is done, so a refused run writes nothing.
-    ``path=None`` (an output not requested) is accepted.
-    """
-    if path is not None:
-        refuse_overwrite(path, overwrite, how="--overwrite")
-
-
-def _strict(value):
-    """Plain JSON types; NaN and infinities (not JSON) become null."""
-    if isinstance(value, dict):
-        return {str(key): _strict(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_strict(item) for item in value]
-    if isinstance(value, np.ndarray):
-        return _strict(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
-def write_json(path, summary):
-    """Write a command's machine-readable summary as strict JSON (NaN written as null)."""
-    with open(path, "w") as stream:
-        json.dump(_strict(summary), stream, indent=1, allow_nan=False)
-        stream.write("\n")
+from ..files import check_input, reading
 
 
 def read_image(path):
@@ -55,10 +18,8 @@ def read_image(path):
     """
     from astropy.io import fits
 
-    if not Path(path).exists():
-        msg = f"image {path} does not exist"
-        raise BFPSFInputError(msg, str(path))
-    with fits.open(path) as hdus:
+    check_input(path, "image")
+    with reading(path, "FITS image"), fits.open(path, memmap=False) as hdus:
         for hdu in hdus:
             if hdu.is_image and hdu.data is not None and hdu.data.ndim == 2:
                 data = np.asarray(hdu.data, dtype=float)

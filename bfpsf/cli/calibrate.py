@@ -1,11 +1,12 @@
-"""``bfpsf calibrate FLAT.fits... -o CALIB.fits``: flat-field calibration (issue 2).
+"""``bfpsf calibrate FLAT.fits... -o CALIB.fits``: flat-field calibration.
 
 Parse, call `bfpsf.calibrate`, write the calibration file, the plots and the JSON summary.
 """
 
+import sys
 from pathlib import Path
 
-from ._files import check_free, write_json
+from ..files import check_outputs, write_json
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 
@@ -27,15 +28,22 @@ def add_parser(subparsers):
                              "'exponential', or G15's 'quadratic'")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
                         help="mask pixels at or above this level (ADU)")
-    parser.add_argument("--n-monte-carlo", type=int, default=200,
-                        help="Monte Carlo draws for the boundary-shift errors (default 200)")
-    parser.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
+    parser.add_argument("--shift-method", choices=("electrostatic", "ei"),
+                        default="electrostatic",
+                        help="solver of the boundary shifts: the electrostatic sensor model of "
+                             "Astier & Regnault 2023 (default) or G15's Ei smoothing model")
+    parser.add_argument("--thickness", type=float, default=10.0, metavar="PIXELS",
+                        help="sensor thickness in pixels for the electrostatic model "
+                             "(default 10: 100 um with 10 um pixels)")
+    parser.add_argument("--n-monte-carlo", type=int, default=100,
+                        help="samples of the boundary shifts drawn from the calibration error, "
+                             "kept for error propagation (default 100)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the samples (default 0)")
     parser.add_argument("--plots", metavar="DIR",
                         help="write PTC, correlation-map and a(r) plots (PNG) into DIR")
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace existing output files")
-    parser.add_argument("--progress", action="store_true", help="show a progress bar")
     return parser
 
 
@@ -43,14 +51,12 @@ def run(args):
     from ..calibration import calibrate
 
     # Refuse before the (long) computation rather than after it.
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
-    if args.plots:
-        for name in PLOT_NAMES:
-            check_free(Path(args.plots) / name, args.overwrite)
+    plots = [Path(args.plots) / name for name in PLOT_NAMES] if args.plots else []
+    check_outputs([args.output, args.json, *plots], args.overwrite, directories=[args.plots])
 
     calibration = calibrate(args.flats, maxlag=args.maxlag, ptc_model=args.model,
-                            saturation=args.saturation, n_monte_carlo=args.n_monte_carlo,
+                            saturation=args.saturation, shift_method=args.shift_method,
+                            thickness=args.thickness, n_monte_carlo=args.n_monte_carlo,
                             seed=args.seed, progress=args.progress)
     calibration.write(args.output, overwrite=args.overwrite)
     if args.plots:
@@ -58,7 +64,7 @@ def run(args):
 
         save_calibration_plots(calibration, args.plots, overwrite=args.overwrite)
     if args.json:
-        write_json(args.json, calibration.to_json_dict())
+        write_json(args.json, calibration.to_json_dict(), overwrite=args.overwrite)
 
     a = calibration.a
     print(f"gain {calibration.gain:.5f} +- {calibration.gain_err:.5f} e-/ADU, "
@@ -72,5 +78,14 @@ def run(args):
               f"per mil peak to peak > {1e3 * calibration.linearity.threshold:.3g}")
     if calibration.pedestal.any_detected:
         print(f"readout pedestal subtracted at {int(calibration.pedestal.detected.sum())} lag(s)")
+    if calibration.shifts is not None:
+        m = calibration.shifts.radius
+        north, east = calibration.shifts.north[m, m], calibration.shifts.east[m, m]
+        print(f"boundary shifts ({calibration.shift_method}): a^N(0,0) {north:.3e} +- "
+              f"{calibration.shifts_north_err[m, m]:.1e}, a^E(0,0) {east:.3e} +- "
+              f"{calibration.shifts_east_err[m, m]:.1e} 1/e-")
+    for warning in calibration.warnings:
+        print(f"WARNING: {warning}", file=sys.stderr)
     print(f"wrote {args.output}")
     return 0
+

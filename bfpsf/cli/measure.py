@@ -1,4 +1,4 @@
-"""``bfpsf measure IMAGE... -o STARS.ecsv``: detect and measure stars (issue 4).
+"""``bfpsf measure IMAGE... -o STARS.ecsv``: detect and measure stars.
 
 Parse, read the images (ADU, converted to electrons with the gain), call
 `bfpsf.measure.sources.measure_sources`, write the star table (ECSV) and the JSON summary.
@@ -8,7 +8,9 @@ Parse, read the images (ADU, converted to electrons with the gain), call
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ._files import check_free, read_image, write_json
+from ..files import check_outputs, read_table, refuse_duplicates, write_json, write_table
+from ..measure.sources import DETECTION_THRESHOLD
+from ._files import read_image
 
 
 def add_parser(subparsers):
@@ -31,8 +33,9 @@ def add_parser(subparsers):
                              "image's CATALOG extension (x, y in 0-based pixels); repeatable")
     parser.add_argument("--catalog", metavar="FILE",
                         help="table with x, y and colour columns (default: CATALOG HDU)")
-    parser.add_argument("--threshold", type=float, default=5.0,
-                        help="detection threshold, RMS of the smoothed image (default 5)")
+    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+                        help=f"detection threshold, RMS of the smoothed image (default "
+                             f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--stamp-size", type=int, default=32,
                         help="measurement stamp side, pixels (default 32)")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
@@ -71,9 +74,9 @@ def run(args):
 
     from ..measure.sources import measure_sources
 
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
-    external = Table.read(args.catalog) if args.catalog else None
+    check_outputs([args.output, args.json], args.overwrite)
+    refuse_duplicates(args.images, "image")
+    external = read_table(args.catalog, "catalog") if args.catalog else None
     tables, summary_images = [], []
     calibration_gain = _calibration_gain(args.calib) if args.calib else None
     for path in args.images:
@@ -95,12 +98,12 @@ def run(args):
     stars = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     stars.meta["gains"] = [entry["gain"] for entry in summary_images]
     stars.meta["images"] = [entry["image"] for entry in summary_images]
-    stars.write(args.output, format="ascii.ecsv", overwrite=args.overwrite)
+    write_table(stars, args.output, overwrite=args.overwrite)
     summary = {"output": str(args.output), "n_stars": len(stars),
                "n_clean": int(np.sum(stars["flags"] == 0)),
                "n_flagged": int(np.sum(stars["flags"] != 0)), "images": summary_images}
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     print(f"{len(stars)} sources ({summary['n_clean']} clean) in {len(args.images)} image(s); "
           f"wrote {args.output}")
     return 0

@@ -1,4 +1,4 @@
-"""``bfpsf photometry IMAGE... --psf PSF.fits -o PHOT.ecsv``: PSF photometry with P(F) (issue 5).
+"""``bfpsf photometry IMAGE... --psf PSF.fits -o PHOT.ecsv``: PSF photometry with P(F).
 
 Parse, read the PSF product and the images (ADU -> e- with the product's gain), call
 `bfpsf.measure.photometry.psf_photometry` (photutils PSFPhotometry with the flux-dependent
@@ -8,7 +8,9 @@ PSF), write the table (fluxes in e-) and the JSON summary.
 
 import numpy as np
 
-from ._files import check_free, read_image, write_json
+from ..files import check_outputs, write_json, write_table
+from ..measure.sources import DETECTION_THRESHOLD
+from ._files import read_image
 
 
 def add_parser(subparsers):
@@ -27,8 +29,9 @@ def add_parser(subparsers):
                         help="e-/ADU (default: the gain stored in the PSF product)")
     parser.add_argument("--read-noise", type=float, default=0.0, metavar="E",
                         help="read noise, e- rms, for the pixel errors (default 0)")
-    parser.add_argument("--threshold", type=float, default=5.0,
-                        help="detection threshold, RMS of the smoothed image (default 5)")
+    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+                        help=f"detection threshold, RMS of the smoothed image (default "
+                             f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--fit-shape", type=int, default=None,
                         help="fit box, pixels, odd (default about 3 FWHM)")
     parser.add_argument("--static", action="store_true",
@@ -49,8 +52,7 @@ def run(args):
     from ..measure.photometry import psf_photometry
     from ..model.psf import FluxDependentPSF
 
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite)
     psf = FluxDependentPSF.read(args.psf)
     if psf.flux_unit != "electron":
         psf = psf.with_flux_unit("electron")  # the images are converted to e- below
@@ -80,12 +82,12 @@ def run(args):
                         "static_psf": bool(args.static)})
     result["flux_fit"].unit = "electron"
     result["flux_err"].unit = "electron"
-    result.write(args.output, format="ascii.ecsv", overwrite=args.overwrite)
+    write_table(result, args.output, overwrite=args.overwrite)
     summary = {"output": str(args.output), "psf": str(args.psf), "gain": gain,
                "static_psf": bool(args.static), "n_stars": len(result),
                "n_flagged": int(np.sum(result["flags"] != 0)), "images": per_image}
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "
           f"({summary['n_flagged']} flagged); wrote {args.output}")
     return 0

@@ -1,4 +1,4 @@
-"""``bfpsf psf IMAGE... --calib CALIB.fits -o PSF.fits``: fit the flux-dependent PSF (issue 5).
+"""``bfpsf psf IMAGE... --calib CALIB.fits -o PSF.fits``: fit the flux-dependent PSF.
 
 Parse, read the images (ADU -> e- with the calibration gain), detect isolated stars
 (`bfpsf.measure.sources.measure_sources`), fit P0 from stars of all fluxes with the
@@ -11,7 +11,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ._files import check_free, read_image, write_json
+from ..files import check_outputs, refuse_duplicates, write_json
+from ..measure.sources import DETECTION_THRESHOLD
+from ._files import read_image
+
+
+#: Shift samples of the calibration kept in the PSF product for predictions with errors.
+PREDICTION_SAMPLES = 30
 
 
 def add_parser(subparsers):
@@ -30,8 +36,9 @@ def add_parser(subparsers):
                         help="oversampling of P0 (default 2; 4 needs several hundred stars)")
     parser.add_argument("--size", type=int, default=25,
                         help="support of P0 and star cutouts, pixels, odd (default 25)")
-    parser.add_argument("--threshold", type=float, default=10.0,
-                        help="detection threshold, RMS of the smoothed image (default 10)")
+    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+                        help=f"detection threshold, RMS of the smoothed image (default "
+                             f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
                         help="saturation level, ADU: saturated stars are not used")
     parser.add_argument("--max-iterations", type=int, default=40,
@@ -61,8 +68,8 @@ def run(args):
     from ..calibration.product import Calibration
     from ..model.psf_fit import fit_psf
 
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite)
+    refuse_duplicates(args.images, "image")
     calibration = Calibration.read(args.calib)
     if calibration.shifts is None:
         msg = f"{args.calib} has no boundary shifts (calibration solved without them)"
@@ -86,6 +93,7 @@ def run(args):
                      max_iterations=args.max_iterations, flux_unit="electron", gain=gain)
     psf = result.psf
     psf.calibration = Path(args.calib).name
+    psf.shift_samples = tuple(calibration.shift_samples(limit=PREDICTION_SAMPLES))
     psf.write(args.output, meta={"NSTARS": int(np.sum(result.stars["flags"] == 0)),
                                  "CONVERGD": bool(result.converged),
                                  "BFTERM": bool(args.include_bf)},
@@ -103,7 +111,7 @@ def run(args):
                if np.any(used) else None,
                "images": per_image}
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "
           f"{len(args.images)} image(s), {result.iterations} iterations "
           f"({'converged' if result.converged else 'NOT converged'}); wrote {args.output}")

@@ -36,6 +36,27 @@ def default_fit_shape(psf):
     return size + 1 - size % 2
 
 
+def _forget_grouped_models(psf):
+    """Drop photutils' cached group models of ``psf``'s class.
+
+    photutils (3.0) fits a group of N stars with a model class it builds around a copy of the
+    first PSF model it saw, cached by (N, model class): a later fit with another model of the
+    same class (another P0, other shifts, static and P(F) as two FluxDependentPSF) would
+    silently evaluate the first one for its groups. Called for every photometry object made
+    here; the cache is private photutils state, so nothing happens if it is not there.
+    """
+    try:
+        from photutils.psf import _components
+    except ImportError:  # pragma: no cover - a photutils without the module
+        return
+    cache = getattr(_components, "_FLAT_MODEL_CACHE", None)
+    if cache is None:
+        return
+    model_type = f"{type(psf).__module__}.{type(psf).__name__}"
+    for key in [key for key in list(cache.keys()) if key[1:] == (model_type,)]:
+        cache.pop(key, None)
+
+
 def make_psf_photometry(psf, *, fit_shape=None, group_separation=None, iterative=False,
                         **kwargs):
     """A photutils PSF photometry object using the flux-dependent PSF.
@@ -64,6 +85,11 @@ def make_psf_photometry(psf, *, fit_shape=None, group_separation=None, iterative
 
     if fit_shape is None:
         fit_shape = default_fit_shape(psf)
+    sides = np.atleast_1d(fit_shape)
+    if sides.size > 2 or np.any(sides != np.round(sides)) or np.any(sides < 3) or np.any(
+            sides % 2 == 0):
+        msg = f"fit shape must be an odd number of pixels >= 3 (e.g. 5, 7), got {fit_shape!r}"
+        raise BFPSFValueError(msg, fit_shape)
     if group_separation is None:
         group_separation = float(np.max(np.atleast_1d(fit_shape)))
     if group_separation < 0:
@@ -72,6 +98,7 @@ def make_psf_photometry(psf, *, fit_shape=None, group_separation=None, iterative
     if group_separation > 0:
         kwargs.setdefault("grouper", SourceGrouper(min_separation=group_separation))
     kwargs.setdefault("aperture_radius", 1.5 * psf_fwhm(psf))
+    _forget_grouped_models(psf)
     if iterative:
         if kwargs.get("finder") is None:
             msg = "iterative photometry needs a finder (e.g. photutils.detection.DAOStarFinder)"

@@ -32,7 +32,7 @@ from astropy.table import Table
 
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
 from .psf import FluxDependentPSF
-from .redistribution import _as_shifts
+from ..shifts import as_shifts
 
 __all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS"]
 
@@ -125,7 +125,7 @@ class _Star:
 
 
 def _node_indices(psf, star):
-    xi, yi, outside = psf._data_coordinates(star.x - star.x_0, star.y - star.y_0)
+    xi, yi, outside = psf.data_coordinates(star.x - star.x_0, star.y - star.y_0)
     col = np.rint(xi).astype(int)
     row = np.rint(yi).astype(int)
     return row, col, ~outside
@@ -265,7 +265,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
     -------
     PSFFitResult
     """
-    shifts = _as_shifts(shifts)
+    shifts = as_shifts(shifts)
     if psf_kwargs.get("flux_unit", "electron") != "electron":
         msg = (f"fit_psf works on images in e-: flux_unit must be 'electron', got "
                f"{psf_kwargs['flux_unit']!r} (convert the fitted model with with_flux_unit)")

@@ -670,11 +670,11 @@ def observables_from_tables(correlations, sizes, *, kind=None, gain=None, measur
     Observables
         With ``meta`` holding ``area``, ``area_err``, ``shift_solution`` and the inputs.
     """
-    from ..calibration.coefficients import solve_boundary_shifts
+    from ..calibration.coefficients import solve_ei_shifts
     from ..calibration.measured import read_measured_area
 
     measured = read_measured_area(correlations)
-    solution = solve_boundary_shifts(measured.area, measured.area_err, n_monte_carlo=0)
+    solution = solve_ei_shifts(measured.area, measured.area_err, n_monte_carlo=0)
     with open(sizes) as handle:
         text = handle.read(4096)
     if kind is None:
