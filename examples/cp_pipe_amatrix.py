@@ -3,9 +3,9 @@
 For the camera team that already has a PTC. Reads the empirical a-matrix of the LSSTCam
 detector R22_S11 (E2V-CCD250-382) shipped with bfpsf (LSST cp_pipe, DM-51897; or any table in
 the cp_pipe CSV layout ``i,j,a_mean_per_e,a_sigma_per_e``, ``i`` the serial lag), solves it
-into boundary shifts (`bfpsf.solve_boundary_shifts`, G15 section 6.1) and predicts the
-growth of star sizes with peak flux (pixels per 100 ke- of peak) for Moffat PSFs of several
-FWHM, with the flux-dependent PSF P(F).
+into boundary shifts (`bfpsf.solve_boundary_shifts`, the electrostatic model by default) and
+predicts the growth of star sizes with peak flux (pixels per 100 ke- of peak) for Moffat PSFs
+of several FWHM, with the flux-dependent PSF P(F).
 
 Usage::
 
@@ -38,7 +38,7 @@ def predicted_slopes(shifts, fwhm, beta=3.5):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="one FWHM, few Monte Carlo draws")
+    parser.add_argument("--quick", action="store_true", help="one FWHM")
     parser.add_argument("--amatrix", help="a-matrix table (default: the shipped R22_S11 one)")
     parser.add_argument("--output", default="amatrix_output", help="output directory")
     args = parser.parse_args(argv)
@@ -54,14 +54,16 @@ def main(argv=None):
     area = measured.area  # [dy, dx], 1/e-
     print(f"{Path(path).name}: a(0,0) = {area[0, 0]:.3g} /e-, serial a(1,0) = {area[0, 1]:.3g}, "
           f"parallel a(0,1) = {area[1, 0]:.3g}")
-    solution = bfpsf.solve_boundary_shifts(area, measured.area_err,
-                                           n_monte_carlo=20 if args.quick else 200, seed=0)
-    print(f"boundary shifts to radius {solution.shifts.radius}: smoothing p1 = "
-          f"{solution.p1:.3f} +- {solution.p1_err:.3f} / px")
+    # the default solver: the electrostatic model of the sensor fitted to every lag
+    solution = bfpsf.solve_boundary_shifts(area, measured.area_err, n_samples=0)
+    shifts = solution.shifts
+    m = shifts.radius
+    print(f"boundary shifts to radius {m}: a^N(0,0) = {shifts.north[m, m]:.3g}, "
+          f"a^E(0,0) = {shifts.east[m, m]:.3g} / e-")
     widths = [4.0] if args.quick else [2.5, 3.0, 3.5, 4.0, 5.0, 6.0]
     slopes = {}
     for fwhm in widths:
-        slopes[fwhm], psf = predicted_slopes(solution.shifts, fwhm)
+        slopes[fwhm], psf = predicted_slopes(shifts, fwhm)
         sigma = psf.shape(1.0).sigma
         print(f"FWHM {fwhm:.1f} px (sigma {sigma:.3f}): predicted slope sigma_x "
               f"{slopes[fwhm]['x']:.4f}, sigma_y {slopes[fwhm]['y']:.4f} pix / 100 ke- "

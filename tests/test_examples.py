@@ -54,7 +54,6 @@ def test_simulate_with_bf(tmp_path):
 
 
 def test_cp_pipe_amatrix(tmp_path):
-    pytest.importorskip("bfpsf.data", reason="the measured tables ship with bfpsf.data")
     slopes = run_example("cp_pipe_amatrix", tmp_path)
     for value in slopes.values():
         # E2V: the parallel neighbour a(0,1) is larger, so sigma_y grows faster
