@@ -31,8 +31,8 @@ on all four sides.
 The five geometric parameters (``thickness`` is held fixed) and ``alpha`` are fitted to every
 measured lag by weighted least squares with the full covariance of a (`scipy.optimize`), each
 bounded to a physical range. The shifts' uncertainty is a parametric bootstrap: the measured a
-are redrawn from their covariance (scaled by chi2/dof when that exceeds one, so that a model
-that does not describe the data carries that into its errors) and refitted from every distinct
+are redrawn from their covariance (scaled by chi2/dof when chi2 exceeds its 99th percentile,
+so that a model that does not describe the data carries that into its errors) and refitted from every distinct
 local minimum, which follows parameters stopped on a bound and solutions that move between
 minima of nearly equal chi2. The refitted shifts are returned as samples, which every
 downstream prediction propagates.
@@ -41,7 +41,7 @@ downstream prediction propagates.
 import dataclasses
 
 import numpy as np
-from scipy import optimize
+from scipy import optimize, stats
 
 from ..errors import BFPSFValueError
 from ..shifts import BoundaryShifts
@@ -271,8 +271,8 @@ class ElectrostaticFit:
     north_err, east_err : ndarray
         Standard deviations of ``shifts.north`` and ``shifts.east`` over the samples (1/e-).
     samples_north, samples_east : ndarray, shape (S, 2m + 1, 2m + 1)
-        The shifts of refits of a drawn from its covariance (scaled by chi2/dof when that
-        exceeds one): the calibration error that every prediction propagates.
+        The shifts of refits of a drawn from its covariance (scaled by chi2/dof when the
+        model does not describe the data): the calibration error every prediction propagates.
     geometry : ElectrostaticGeometry
         Best-fit geometry (pixels).
     alpha : float
@@ -287,7 +287,8 @@ class ElectrostaticFit:
     dof : int
         Measured lags minus 6.
     error_scale : float
-        sqrt(max(1, chi2 / dof)): the factor applied to the parameter errors.
+        The factor applied to the errors of a in the refits: sqrt(chi2 / dof) without given
+        errors or when chi2 exceeds its 99th percentile, else 1.
     area, area_err : ndarray
         The measured a [dy, dx] and its 1-sigma errors (1/e-).
     area_model : ndarray
@@ -431,7 +432,13 @@ def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
     chi2 = float(residual @ residual)
     dof = max(area.size - 6, 1)
 
-    scale = chi2 / dof if not given_errors else max(1.0, chi2 / dof)
+    # Errors are scaled by chi2/dof when the model does not describe the data: always without
+    # given errors, and when chi2 exceeds its 99th percentile with them (a normal fluctuation
+    # of chi2 above dof is not a model failure).
+    if not given_errors:
+        scale = chi2 / dof
+    else:
+        scale = chi2 / dof if chi2 > stats.chi2.ppf(0.99, dof) else 1.0
     at_bound = tuple(name for name, value, low, high in zip(_NAMES, vector, _LOWER, _UPPER)
                      if min(value - low, high - value) < 1e-6 * (high - low))
     geometry = _geometry(vector, thickness)
@@ -477,5 +484,5 @@ def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
         shifts=shifts, north_err=north_err, east_err=east_err, samples_north=samples_north,
         samples_east=samples_east, geometry=geometry, alpha=alpha, parameters=full,
         parameter_cov=parameter_cov, at_bound=at_bound, chi2=chi2, dof=dof,
-        error_scale=float(np.sqrt(max(1.0, chi2 / dof))), area=area, area_err=area_err,
+        error_scale=float(np.sqrt(scale)), area=area, area_err=area_err,
         area_model=shifts.area_quadrant(n))

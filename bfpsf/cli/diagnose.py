@@ -33,6 +33,8 @@ def add_parser(subparsers):
     data.add_argument("--flats", nargs="+", metavar="FLAT.fits", help="flat-field FITS (ADU)")
     data.add_argument("--images", nargs="+", metavar="IMAGE.fits",
                       help="spot / star images (ADU, bias subtracted)")
+    data.add_argument("--amp", metavar="NAME",
+                      help="the amplifier (EXTNAME) of multi-extension flats and images")
     data.add_argument("--beta", type=float, default=None,
                       help="Moffat index of the spot model (default: Gaussian)")
     data.add_argument("--maxlag", type=int, default=4, help="calibration lags (default 4)")
@@ -79,7 +81,7 @@ def _observables(args):
     if args.flats and args.images:
         return loop.observables_from_images(args.flats, args.images, beta=args.beta,
                                             maxlag=args.maxlag, n_bins=args.bins,
-                                            fit_b=args.fit_b)
+                                            fit_b=args.fit_b, amp=args.amp)
     msg = ("give --flats and --images, or --correlations and --sizes, or --measured NAME")
     raise BFPSFInputError(msg)
 

@@ -27,7 +27,10 @@ def add_parser(subparsers):
                     "stars of all fluxes, each modelled as F P0 + F^2 R[P0] with R the G15 "
                     "charge redistribution of the calibration, and write the PSF product.")
     parser.add_argument("images", nargs="+", metavar="IMAGE.fits",
-                        help="bias-subtracted images in ADU (first 2-D image HDU)")
+                        help="images in ADU: bias-subtracted single-HDU, or one HDU per "
+                             "amplifier (EXTNAME, optional BIASSEC/DATASEC/DETSEC)")
+    parser.add_argument("--amp", action="append", metavar="NAME",
+                        help="use only this amplifier (EXTNAME); repeatable")
     parser.add_argument("--calib", required=True, metavar="CALIB.fits",
                         help="calibration (boundary shifts, gain, read noise)")
     parser.add_argument("-o", "--output", required=True, metavar="PSF.fits",
@@ -62,38 +65,86 @@ def _isolated_stars(image_e, threshold, saturation_e, size):
     return xy, len(sources)
 
 
+def _star_weighted(used):
+    """Shifts, gain, read noise and shift samples (`PREDICTION_SAMPLES` at most) of the
+    amplifiers the stars came from: those of the one calibration, or for several amplifiers
+    their averages weighted by the number of stars (the P0 fit takes one set of shifts;
+    photometry with --calib applies each amplifier's). Sample i of the average is the
+    weighted average of the amplifiers' samples i (none unless every amplifier has some)."""
+    from ..shifts import BoundaryShifts
+
+    calibrations = {id(one): one for one, _ in used}
+    if len(calibrations) == 1:
+        one = used[0][0]
+        return (one.shifts, float(one.gain), float(one.noise_e),
+                tuple(one.shift_samples(limit=PREDICTION_SAMPLES)))
+    weights = np.array([count for _, count in used], dtype=float)
+    if weights.sum() == 0:
+        weights[:] = 1.0
+    weights /= weights.sum()
+    north = sum(weight * one.shifts.north for (one, _), weight in zip(used, weights))
+    east = sum(weight * one.shifts.east for (one, _), weight in zip(used, weights))
+    gain = float(sum(weight * one.gain for (one, _), weight in zip(used, weights)))
+    noise = float(sum(weight * one.noise_e for (one, _), weight in zip(used, weights)))
+    per_entry = [one.shift_samples(limit=PREDICTION_SAMPLES) for one, _ in used]
+    count = min(len(samples) for samples in per_entry)
+    samples = tuple(
+        BoundaryShifts(sum(weight * entry[i].north for entry, weight in zip(per_entry, weights)),
+                       sum(weight * entry[i].east for entry, weight in zip(per_entry, weights)),
+                       check=False)
+        for i in range(count))
+    return BoundaryShifts(north, east, check=False), gain, noise, samples
+
+
 def run(args):
     from astropy.stats import sigma_clipped_stats
 
-    from ..calibration.product import Calibration
+    from ..calibration.product import calibration_of_amplifier, read_calibration
+    from ..io.amplifiers import near_shared_side, shared_sides
     from ..model.psf_fit import fit_psf
 
     check_outputs([args.output, args.json], args.overwrite)
     refuse_duplicates(args.images, "image")
-    calibration = Calibration.read(args.calib)
-    if calibration.shifts is None:
-        msg = f"{args.calib} has no boundary shifts (calibration solved without them)"
-        raise BFPSFInputError(msg, args.calib)
-    gain = float(calibration.gain)
-    images, positions, skies, per_image = [], [], [], []
+    calibration = read_calibration(args.calib)
+    images, positions, skies, per_image, used = [], [], [], [], []
     for path in args.images:
-        image_e = read_image(path)[0] * gain
-        _, background, _ = sigma_clipped_stats(image_e[np.isfinite(image_e)], sigma=3.0)
-        image_e = image_e - background
-        saturation_e = None if args.saturation is None else args.saturation * gain - background
-        xy, n_detected = _isolated_stars(image_e, args.threshold, saturation_e, args.size)
-        images.append(image_e)
-        skies.append(max(float(background), 0.0))
-        positions.append(xy)
-        per_image.append({"image": str(path), "n_detected": int(n_detected),
-                          "n_isolated": int(len(xy)), "background_e": float(background)})
-    result = fit_psf(images, positions, calibration.shifts, oversampling=args.oversampling,
-                     size=args.size, read_noise=float(calibration.noise_e),
+        amplifiers, _ = read_image(path, args.amp)
+        sides = shared_sides([amplifier.layout for amplifier in amplifiers])
+        for amplifier in amplifiers:
+            # each amplifier in electrons with its own gain
+            one = calibration_of_amplifier(calibration, amplifier.name, str(path))
+            if one.shifts is None:
+                msg = (f"{args.calib} has no boundary shifts"
+                       f"{f' for amplifier {one.amplifier}' if one.amplifier else ''} "
+                       "(calibration solved without them)")
+                raise BFPSFInputError(msg, args.calib)
+            gain = float(one.gain)
+            image_e = amplifier.data * gain
+            _, background, _ = sigma_clipped_stats(image_e[np.isfinite(image_e)], sigma=3.0)
+            image_e = image_e - background
+            saturation_e = (None if args.saturation is None
+                            else args.saturation * gain - background)
+            xy, n_detected = _isolated_stars(image_e, args.threshold, saturation_e, args.size)
+            # a star whose light falls on two amplifiers (two gains) is left out, and counted
+            boundary = near_shared_side(xy[:, 0], xy[:, 1], image_e.shape,
+                                        sides[amplifier.name], args.size / 2)
+            xy = xy[~boundary]
+            images.append(image_e)
+            skies.append(max(float(background), 0.0))
+            positions.append(xy)
+            used.append((one, len(xy)))
+            per_image.append({"image": str(path), "amplifier": amplifier.name, "gain": gain,
+                              "n_detected": int(n_detected), "n_isolated": int(len(xy)),
+                              "n_amp_boundary": int(np.sum(boundary)),
+                              "background_e": float(background)})
+    shifts, gain, noise, samples = _star_weighted(used)
+    result = fit_psf(images, positions, shifts, oversampling=args.oversampling,
+                     size=args.size, read_noise=noise,
                      sky_e=skies, include_bf=args.include_bf,
                      max_iterations=args.max_iterations, flux_unit="electron", gain=gain)
     psf = result.psf
     psf.calibration = Path(args.calib).name
-    psf.shift_samples = tuple(calibration.shift_samples(limit=PREDICTION_SAMPLES))
+    psf.shift_samples = samples
     psf.write(args.output, meta={"NSTARS": int(np.sum(result.stars["flags"] == 0)),
                                  "CONVERGD": bool(result.converged),
                                  "BFTERM": bool(args.include_bf)},

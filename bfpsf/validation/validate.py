@@ -218,7 +218,7 @@ def _stage_flats(config):
     try:
         cal = calibration.calibrate([flat[0] for flat in flats],
                                     exptimes=[flat[1] for flat in flats], maxlag=config.maxlag,
-                                    fit_b=config.fit_b, n_monte_carlo=50, seed=config.seed)
+                                    fit_b=config.fit_b, n_monte_carlo=20, seed=config.seed)
     except BFPSFError as error:
         # reported in the table; the spot stages still run with the truth shifts
         return _unavailable(f"calibration failed: {error}"), None
