@@ -141,3 +141,19 @@ def test_a_second_model_of_the_same_class_fits_its_own_groups():
         gc.enable()
     assert np.abs(wrong / first - 1).max() > 1e-3
     np.testing.assert_array_equal(again, first)
+
+
+def test_a_read_back_exact_density_table_gets_no_spurious_term(tmp_path):
+    """The product keeps the exact-density table but not its GalSim profile: the cross term
+    falls back to the mean density for the sum and for each star alike."""
+    psf = FluxDependentPSF.from_galsim(PROFILE, SHIFTS, oversampling=4, size=15,
+                                       density="exact")
+    psf.write(tmp_path / "psf.fits")
+    back = FluxDependentPSF.read(tmp_path / "psf.fits")
+    assert back.density_profile is None
+    half = back.half_size
+    y, x = np.mgrid[:2 * half + 1, :2 * half + 1]
+    own = (back.evaluate(x, y, FLUX, half + 0.25, half - 0.5)
+           - FLUX * back.evaluate_base(x - half - 0.25, y - half + 0.5))
+    cross = _cross_term_image(back, _stars((20.25, 17.5, FLUX)), SHAPE)
+    assert np.abs(cross).max() < 1e-6 * np.abs(own).max()
