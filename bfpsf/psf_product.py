@@ -1,13 +1,17 @@
 """The PSF product: a `FluxDependentPSF` as a FITS file (``bfpsf psf -o PSF.fits``).
 
 Layout (schema `PSF_SCHEMA_VERSION`): primary HDU = P0 data (unit flux, oversampled, pixel
-response included) with ``BFPSFVER`` (schema), ``OVERSAMX``/``OVERSAMY``, ``ORIGINX``/``ORIGINY``,
-``GAIN`` (e-/ADU of the images the PSF is meant for; the model itself works in e-), ``MODE``,
-``CALIB``, ``PIXRESP``; HDUs ``SHIFT_N`` and ``SHIFT_E`` = a^N and a^E (1/e-, [dy+m, dx+m]);
-schema 2 adds an optional ``BFTABLE`` HDU, the table-mode R when it is not the default (e.g.
-built with the exact boundary density, ``density_profile``), since the profile it came from is
-not stored; optional ``SHIFT_N_SAMP`` / ``SHIFT_E_SAMP`` [sample, dy+m, dx+m] hold the shift
-samples of the calibration (its uncertainty, propagated by ``bfpsf slope --psf``). The calibration file is not needed to read the product back.
+response included) with ``BFPSFVER`` (schema) and one card per constructor option of
+`~bfpsf.model.psf.FluxDependentPSF` (``FluxDependentPSF.options``): ``OVERSAMX``/``OVERSAMY``,
+``ORIGINX``/``ORIGINY``, ``FLUXUNIT`` ('electron' or 'adu') and ``GAIN`` (e-/ADU; absent when
+unknown), ``MODE``, ``BUILDUP`` (build-up steps, 0 for G15's one step), ``FILLVAL``,
+``DENSOVER``, ``FLUX``/``X_0``/``Y_0``, plus ``CALIB`` and ``PIXRESP``; HDUs ``SHIFT_N`` and
+``SHIFT_E`` = a^N and a^E (1/e-, [dy+m, dx+m]); ``BFTABLE``, the table-mode R (1/e-), whatever
+made it (G15's mean density, the exact density of a GalSim profile, or a table of the caller's).
+Optional ``SHIFT_N_SAMP`` / ``SHIFT_E_SAMP`` [sample, dy+m, dx+m] hold the shift samples of the
+calibration (its uncertainty, propagated by ``bfpsf slope --psf``). Schema 2 files (no
+FLUXUNIT, BUILDUP, ...) read as models in electrons with their GAIN recorded. The calibration
+file is not needed to read the product back.
 """
 
 import numpy as np
@@ -17,8 +21,9 @@ from .files import open_product, refuse_overwrite, write_fits
 
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 
-#: Version of the PSF product layout written by `write_psf` (2: optional BFTABLE HDU).
-PSF_SCHEMA_VERSION = 2
+#: Version of the PSF product layout written by `write_psf` (2: optional BFTABLE HDU;
+#: 3: every constructor option, FLUXUNIT replacing the ADU meaning of GAIN).
+PSF_SCHEMA_VERSION = 3
 
 
 def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
@@ -44,16 +49,24 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
                "GalSim profile and would read back with G15's mean density; write the same "
                "model in mode='table' (its exact-density table is stored)")
         raise BFPSFValueError(msg, psf.mode)
+    options = psf.options
     primary = fits.PrimaryHDU(np.asarray(psf.data, dtype=np.float64))
     header = primary.header
     header["BFPSFVER"] = (PSF_SCHEMA_VERSION, "bfpsf PSF product schema")
     header["BUNIT"] = ("1/pixel", "unit-flux P0 per image pixel, oversampled")
-    header["OVERSAMX"] = (int(psf.oversampling[1]), "oversampling along x")
-    header["OVERSAMY"] = (int(psf.oversampling[0]), "oversampling along y")
-    header["ORIGINX"] = (float(psf.origin[0]), "x of the star centre in the data")
-    header["ORIGINY"] = (float(psf.origin[1]), "y of the star centre in the data")
-    header["GAIN"] = (float(psf.image_gain), "e-/ADU of the images")
-    header["MODE"] = (psf.mode, "BF term: table of phases or exact")
+    header["OVERSAMX"] = (options["oversampling"][1], "oversampling along x")
+    header["OVERSAMY"] = (options["oversampling"][0], "oversampling along y")
+    header["ORIGINX"] = (options["origin"][0], "x of the star centre in the data")
+    header["ORIGINY"] = (options["origin"][1], "y of the star centre in the data")
+    header["FLUXUNIT"] = (options["flux_unit"], "unit of fluxes and model values")
+    if options["gain"] is not None:
+        header["GAIN"] = (options["gain"], "e-/ADU of the images")
+    header["MODE"] = (options["mode"], "BF term: table of phases or exact")
+    header["BUILDUP"] = (options["buildup_steps"] or 0, "build-up steps (0: one-step G15)")
+    header["FILLVAL"] = (options["fill_value"], "model value outside the P0 data")
+    header["DENSOVER"] = (options["density_oversampling"], "sub-pixels of the exact density")
+    for key in ("flux", "x_0", "y_0"):
+        header[key.upper()] = (options[key], f"default {key} parameter")
     header["CALIB"] = (str(calibration or psf.calibration), "calibration of the shifts")
     header["PIXRESP"] = (True, "pixel response included in P0")
     for key, value in (meta or {}).items():
@@ -70,15 +83,15 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
                                               for sample in psf.shift_samples]), name=name)
             samples.header["BUNIT"] = "1/electron"
             hdus.append(samples)
-    if psf.mode == "table" and psf.density_profile is not None:
-        table = fits.ImageHDU(np.asarray(psf.bf_table, dtype=np.float64), name="BFTABLE")
+    if options["mode"] == "table":
+        table = fits.ImageHDU(np.asarray(options["bf_table"], dtype=np.float64), name="BFTABLE")
         table.header["BUNIT"] = ("1/(pixel electron)", "R[P0] per unit flux squared")
         hdus.append(table)
     write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
 
 
 def read_psf(path, *, cls=None, **kwargs):
-    """Read a PSF product written by `write_psf` (model in e-; ``image_gain`` from GAIN).
+    """Read a PSF product written by `write_psf`, with every option it was built with.
 
     Parameters
     ----------
@@ -86,7 +99,7 @@ def read_psf(path, *, cls=None, **kwargs):
     cls : type, optional
         `FluxDependentPSF` or a subclass (default `FluxDependentPSF`).
     **kwargs
-        Override the stored options (e.g. ``mode='exact'``).
+        Override the stored options (e.g. ``mode='exact'``, which drops the stored table).
 
     Raises
     ------
@@ -105,10 +118,17 @@ def read_psf(path, *, cls=None, **kwargs):
                                 np.array(hdul["SHIFT_E"].data, dtype=float), check=False)
         options = {"oversampling": (int(header["OVERSAMY"]), int(header["OVERSAMX"])),
                    "origin": (float(header["ORIGINX"]), float(header["ORIGINY"])),
-                   "mode": str(header["MODE"])}
-        if "BFTABLE" in hdul and options["mode"] == "table":
+                   "mode": str(header["MODE"]),
+                   "flux_unit": str(header.get("FLUXUNIT", "electron")),
+                   "gain": float(header["GAIN"]) if "GAIN" in header else None,
+                   "buildup_steps": int(header.get("BUILDUP", 0)) or None,
+                   "fill_value": float(header.get("FILLVAL", 0.0)),
+                   "density_oversampling": int(header.get("DENSOVER", 8))}
+        for key in ("flux", "x_0", "y_0"):
+            if key.upper() in header:
+                options[key] = float(header[key.upper()])
+        if "BFTABLE" in hdul:
             options["bf_table"] = np.array(hdul["BFTABLE"].data, dtype=float)
-        image_gain = float(header["GAIN"])
         calibration = str(header["CALIB"])
         samples = ()
         if "SHIFT_N_SAMP" in hdul:
@@ -116,8 +136,9 @@ def read_psf(path, *, cls=None, **kwargs):
                             zip(np.array(hdul["SHIFT_N_SAMP"].data, dtype=float),
                                 np.array(hdul["SHIFT_E_SAMP"].data, dtype=float)))
     options.update(kwargs)
+    if options.get("mode") != "table":
+        options.pop("bf_table", None)  # an exact-mode override recomputes R
     psf = cls(data, shifts, **options)
-    psf.image_gain = image_gain
     psf.calibration = calibration
     psf.shift_samples = samples
     return psf

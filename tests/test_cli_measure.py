@@ -35,7 +35,7 @@ def test_measure_converts_adu_with_the_header_gain(star_image, tmp_path, capsys)
                  "--json", str(summary)]) == 0
     stars = Table.read(output, format="ascii.ecsv")
     for name in ("x", "y", "flux_e", "peak_e", "mxx", "myy", "mxy", "sigma_x", "sigma_y", "iq",
-                 "flags", "g_i"):
+                 "e1", "e2", "e1_err", "e2_err", "flags", "g_i"):
         assert name in stars.colnames
     assert len(stars) == len(field.truth)
     distance, index = cKDTree(np.stack([field.truth["x"], field.truth["y"]], 1)).query(
@@ -45,6 +45,9 @@ def test_measure_converts_adu_with_the_header_gain(star_image, tmp_path, capsys)
         field.truth["peak_e"][index] + 100.0)
     assert np.max(np.abs(pull)) < 4.0
     np.testing.assert_allclose(stars["g_i"], field.truth["g_i"][index])
+    trace = stars["mxx"] + stars["myy"]
+    np.testing.assert_allclose(stars["e1"], (stars["mxx"] - stars["myy"]) / trace)
+    np.testing.assert_allclose(stars["e2"], 2 * stars["mxy"] / trace)
     result = json.loads(summary.read_text())
     assert result["n_stars"] == len(stars) and result["images"][0]["gain"] == GAIN
     assert "wrote" in capsys.readouterr().out
@@ -99,8 +102,11 @@ def test_slope_psf_model_residual_removes_the_bf_slope(tmp_path):
     from bfpsf.model.psf import FluxDependentPSF
     from bfpsf.shifts import BoundaryShifts
 
-    # E2V-like strength: a(0,0) ~ -2e-6 per e-, a few percent growth at 100 ke- peak.
-    shifts = BoundaryShifts.from_radial_profile(lambda r: 1.2e-6 * np.exp(-r / 0.8), 5)
+    # E2V-like strength: a(0,0) ~ -2e-6 per e-, a few percent growth at 100 ke- peak; the
+    # serial (east) boundaries move 1.6 times more than the parallel ones, so the stars grow
+    # more along x than y and e1 changes with flux.
+    radial = BoundaryShifts.from_radial_profile(lambda r: 1.2e-6 * np.exp(-r / 0.8), 5)
+    shifts = BoundaryShifts(radial.north * 0.8, radial.east * 1.3, check=False)
     field = simulate_star_field(shape=(320, 320), n_stars=64, spacing=40, fwhm=3.5, beta=3.5,
                                 peak_range_e=(3e3, 1.2e5), sensor=BFSensor(shifts),
                                 sky_e=0.0, read_noise_e=5.0, seed=5)
@@ -113,7 +119,9 @@ def test_slope_psf_model_residual_removes_the_bf_slope(tmp_path):
     psf.write(psf_path)
     stars, summary = tmp_path / "stars.ecsv", tmp_path / "slope.json"
     assert main(["measure", str(image), "-o", str(stars), "--gain", "1"]) == 0
-    assert main(["slope", str(stars), "--psf", str(psf_path), "--json", str(summary)]) == 0
+    assert main(["slope", str(stars), "--psf", str(psf_path), "--json", str(summary),
+                 "--psf-plot", str(tmp_path / "diagnostics.png")]) == 0
+    assert (tmp_path / "diagnostics.png").stat().st_size > 10_000
     result = json.loads(summary.read_text())
     assert result["prediction"]["n_samples"] == 3
     for key in ("x", "y"):
@@ -131,6 +139,15 @@ def test_slope_psf_model_residual_removes_the_bf_slope(tmp_path):
         assert 0.03 < predicted["slope_err"] / predicted["slope"] < 0.07
         assert residual["slope_err_total"] > residual["slope_err"]
         assert residual["pull"] == pytest.approx(residual["slope"] / residual["slope_err_total"])
+    for key in ("e1", "e2"):
+        assert set(result[key]) == set(result["model_residual"][key]) == {
+            "slope", "slope_err", "intercept"}
+    # e1 grows with flux (x broadens more), which the model explains; e2 does not move.
+    raw, residual = result["e1"], result["model_residual"]["e1"]
+    assert raw["slope"] > 5 * raw["slope_err"]
+    assert abs(residual["slope"]) < 4 * residual["slope_err"]
+    assert abs(residual["slope"]) < 0.25 * raw["slope"]
+    assert abs(result["e2"]["slope"]) < 4 * result["e2"]["slope_err"]
 
 
 def _slopes_against_hsm(tmp_path, peaks, n_per_level, seed):

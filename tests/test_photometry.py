@@ -233,7 +233,7 @@ def test_cli_psf_and_photometry(cli_files):
     assert summary["n_used"] >= 60 and summary["converged"]
     assert summary["fwhm_pixels"] == pytest.approx(3.6, abs=0.1)
     psf = FluxDependentPSF.read(psf_path)
-    assert psf.image_gain == 1.5 and psf.calibration == "calib.fits"
+    assert psf.gain == 1.5 and psf.flux_unit == "electron" and psf.calibration == "calib.fits"
     assert psf.shifts == SHIFTS
     assert main(["photometry", image, "--psf", psf_path, "-o", phot_path, "--read-noise", "5",
                  "--json", str(directory / "phot.json")]) == 0

@@ -147,13 +147,13 @@ def test_psf_product_round_trip_and_schema_checks(tmp_path):
 
     shifts = BoundaryShifts.from_radial_profile(lambda r: 5e-7 * np.exp(-r), 2)
     psf = FluxDependentPSF.from_galsim(galsim.Moffat(beta=3.0, fwhm=3.0), shifts,
-                                       oversampling=2, size=11)
-    psf.image_gain = 1.7
+                                       oversampling=2, size=11, flux_unit="electron",
+                                       gain=1.7)
     path = tmp_path / "psf.fits"
     psf.write(path, calibration="calib.fits")
     back = FluxDependentPSF.read(path)
     np.testing.assert_array_equal(back.data, psf.data)
-    assert back.shifts == shifts and back.image_gain == 1.7 and back.calibration == "calib.fits"
+    assert back.shifts == shifts and back.gain == 1.7 and back.calibration == "calib.fits"
     assert back.evaluate(3.2, 4.1, 2e5, 3.0, 4.0) == psf.evaluate(3.2, 4.1, 2e5, 3.0, 4.0)
     with pytest.raises(BFPSFFileExistsError, match="overwrite=True"):
         psf.write(path)

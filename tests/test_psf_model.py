@@ -138,9 +138,20 @@ def test_bounding_box_covers_the_data(psf):
     assert y_low == pytest.approx(20 - 12.625) and y_high == pytest.approx(20 + 12.625)
 
 
-def test_gain_scales_the_bf_term(psf):
-    adu = FluxDependentPSF(psf.data, SHIFTS, oversampling=4, gain=2.0)
+def test_gain_scales_the_bf_term_of_an_adu_model_only(psf):
+    adu = FluxDependentPSF(psf.data, SHIFTS, oversampling=4, flux_unit="adu", gain=2.0)
+    assert adu.electrons_per_unit == 2.0
+    # A gain recorded on a model in electrons leaves the BF term alone.
+    recorded = FluxDependentPSF(psf.data, SHIFTS, oversampling=4, flux_unit="electron",
+                                gain=2.0)
     y, x = np.mgrid[:31, :31]
+    np.testing.assert_array_equal(recorded.evaluate(x, y, 2e5, 15.1, 15.3),
+                                  psf.evaluate(x, y, 2e5, 15.1, 15.3))
+    # with_flux_unit converts both ways.
+    np.testing.assert_array_equal(recorded.with_flux_unit("adu").evaluate(x, y, 2e5, 15.1, 15.3),
+                                  adu.evaluate(x, y, 2e5, 15.1, 15.3))
+    back = adu.with_flux_unit("electron")
+    assert back.gain == 2.0 and back.electrons_per_unit == 1.0
     flux_adu = 2e5
     # A star of 2e5 ADU at 2 e-/ADU is 4e5 e-; the ADU model is the e- model / gain.
     np.testing.assert_allclose(adu.evaluate(x, y, flux_adu, 15.1, 15.3),
@@ -163,7 +174,10 @@ def test_from_image_psf_matches_image_psf_without_bf(psf):
     ({"mode": "fast"}, "mode must be one of"),
     ({"oversampling": 0}, "oversampling must be"),
     ({"oversampling": 2.5}, "oversampling must be"),
-    ({"gain": -1.0}, "gain must be a positive"),
+    ({"gain": -1.0, "flux_unit": "adu"}, "gain must be a positive"),
+    ({"gain": 1.5}, "gain given without flux_unit"),
+    ({"flux_unit": "adu"}, "flux_unit='adu' needs the gain"),
+    ({"flux_unit": "ADU", "gain": 1.5}, "flux_unit must be one of"),
     ({"buildup_steps": 8}, "requires mode='exact'"),
     ({"buildup_steps": 0, "mode": "exact"}, "buildup_steps must be a positive integer"),
     ({"bf_table": np.zeros((3, 3))}, "bf_table must have the shape"),

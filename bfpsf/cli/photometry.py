@@ -81,7 +81,12 @@ def run(args):
 
     check_outputs([args.output, args.json], args.overwrite)
     psf = FluxDependentPSF.read(args.psf)
-    gain = psf.image_gain if args.gain is None else float(args.gain)
+    if psf.flux_unit != "electron":
+        psf = psf.with_flux_unit("electron")  # the images are converted to e- below
+    gain = psf.gain if args.gain is None else float(args.gain)
+    if gain is None:
+        msg = f"{args.psf} records no gain: give --gain G (e-/ADU of the images)"
+        raise BFPSFInputError(msg, args.psf)
     if not (np.isfinite(gain) and gain > 0):
         msg = f"the gain must be positive e-/ADU, got {gain!r}"
         raise BFPSFInputError(msg, gain)

@@ -151,10 +151,9 @@ def run(args):
     result = fit_psf(images, positions, shifts, oversampling=args.oversampling,
                      size=args.size, read_noise=noise,
                      sky_e=skies, include_bf=args.include_bf,
-                     max_iterations=args.max_iterations,
+                     max_iterations=args.max_iterations, flux_unit="electron", gain=gain,
                      **({"mode": "exact", "buildup_steps": int(buildup)} if buildup else {}))
     psf = result.psf
-    psf.image_gain = gain
     psf.calibration = Path(args.calib).name
     psf.shift_samples = samples
     psf.write(args.output, meta={"NSTARS": int(np.sum(result.stars["flags"] == 0)),

@@ -6,11 +6,12 @@ Parse, read the star table of ``bfpsf measure``, optionally correct the size-col
 
 JSON keys: ``x``, ``y``, ``iq`` (each ``{slope, slope_err, intercept, relative_percent}``,
 slope in pixels per 100 ke- of peak, relative_percent in percent of the intercept per
-100 ke-), ``n_stars``, and ``details`` (full fits, colour fit, peak range). With ``--psf``:
-``prediction`` (``{x, y, iq: {slope, slope_err}}``, the slopes P(F) predicts for these stars,
-slope_err the calibration error from the shift samples in the PSF product) and
-``model_residual`` (slopes of measured minus predicted sizes, with ``slope_err_total``, the
-statistical and calibration errors combined, and ``pull``).
+100 ke-), ``e1``, ``e2`` (each ``{slope, slope_err, intercept}``, slope per 100 ke- of peak;
+when the table has e1, e2), ``n_stars``, and ``details`` (full fits, colour fit, peak range).
+With ``--psf``: ``prediction`` (``{x, y, iq: {slope, slope_err}}``, the slopes P(F) predicts
+for these stars, slope_err the calibration error from the shift samples in the PSF product)
+and ``model_residual`` (slopes of measured minus predicted sizes and ellipticities, the sizes'
+with ``slope_err_total``, the statistical and calibration errors combined, and ``pull``).
 """
 
 import numpy as np
@@ -40,6 +41,9 @@ def add_parser(subparsers):
                         help="ignore the *_err columns (errors from the scatter)")
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--plot", metavar="FILE", help="write size against peak (PNG, PDF)")
+    parser.add_argument("--psf-plot", metavar="FILE",
+                        help="with --psf: star-minus-model size, e1, e2 against magnitude, "
+                             "static PSF beside P(F) (PNG, PDF)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     return parser
 
@@ -53,17 +57,32 @@ def _model_residual(stars, args, colour_fit, psf):
         raise BFPSFInputError(msg, args.stars)
     increments = model_size_increments(psf, stars["flux_e"])
     residual = stars.copy()
-    for key, column in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "iq")):
-        residual[column] = residual[column] - increments[key]
+    for key, column in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "iq"), ("e1", "e1"),
+                        ("e2", "e2")):
+        if column in residual.colnames:
+            residual[column] = residual[column] - increments[key]
     return bf_slopes(residual, min_peak_e=args.min_peak, max_peak_e=args.max_peak,
                      use_errors=not args.unweighted, colour_fit=colour_fit)
+
+
+def _summary(slopes):
+    """The JSON keys of a set of slope fits (sizes with relative_percent; e1, e2 without)."""
+    summary = {key: slopes[key].as_dict(short=True) for key in ("x", "y", "iq")}
+    for key in ("e1", "e2"):
+        if key in slopes:
+            summary[key] = {name: slopes[key].as_dict()[name]
+                            for name in ("slope", "slope_err", "intercept")}
+    return summary
 
 
 def run(args):
     from ..measure.colour import correct_size_colour
     from ..measure.slopes import bf_slopes
 
-    check_outputs([args.json, args.plot], args.overwrite)
+    check_outputs([args.json, args.plot, args.psf_plot], args.overwrite)
+    if args.psf_plot and not args.psf:
+        msg = "--psf-plot needs --psf PSF.fits"
+        raise BFPSFInputError(msg, args.psf_plot)
     stars = read_table(args.stars, "star table", format="ascii.ecsv")
     colour_fit = None
     if args.colour:
@@ -71,9 +90,9 @@ def run(args):
                                                 max_peak_e=args.colour_max_peak)
     slopes = bf_slopes(stars, min_peak_e=args.min_peak, max_peak_e=args.max_peak,
                        use_errors=not args.unweighted, colour_fit=colour_fit)
-    summary = {key: slopes[key].as_dict(short=True) for key in ("x", "y", "iq")}
+    summary = _summary(slopes)
     summary["n_stars"] = int(slopes["n_stars"])
-    residual = prediction = None
+    residual = prediction = psf = None
     if args.psf is not None:
         from ..measure.slopes import predicted_slopes
         from ..model.psf import FluxDependentPSF
@@ -82,20 +101,20 @@ def run(args):
         residual = _model_residual(stars, args, colour_fit, psf)
         prediction = predicted_slopes(psf, stars, min_peak_e=args.min_peak,
                                       max_peak_e=args.max_peak, use_errors=not args.unweighted)
-        summary["model_residual"] = {}
+        summary["model_residual"] = _summary(residual)
         for key in ("x", "y", "iq"):
-            entry = residual[key].as_dict(short=True)
+            entry = summary["model_residual"][key]
             # the residual's error with the calibration's: what a pull should divide by
             entry["slope_err_total"] = float(np.hypot(entry["slope_err"],
                                                       prediction[key]["slope_err"]))
             entry["pull"] = entry["slope"] / entry["slope_err_total"]
-            summary["model_residual"][key] = entry
         summary["prediction"] = prediction
     summary["details"] = {
         "units": {"slope": "pixel per 100 ke- of peak", "intercept": "pixel",
                   "relative_percent": "percent of the intercept per 100 ke- of peak",
-                  "range_percent": "percent of the intercept over the fitted peak range"},
-        **{key: slopes[key].as_dict() for key in ("x", "y", "iq")},
+                  "range_percent": "percent of the intercept over the fitted peak range",
+                  "e1, e2 slope": "per 100 ke- of peak"},
+        **{key: slopes[key].as_dict() for key in ("x", "y", "iq", "e1", "e2") if key in slopes},
         "colour_fit": None if colour_fit is None else colour_fit.as_dict(),
         "stars": str(args.stars),
     }
@@ -106,6 +125,11 @@ def run(args):
 
         figure = plot_size_vs_peak(stars, slopes, max_peak_e=args.max_peak)
         save_figure(figure, args.plot, overwrite=args.overwrite, dpi=120)
+    if args.psf_plot:
+        from ..plotting.psf_diagnostics import plot_psf_diagnostics
+
+        save_figure(plot_psf_diagnostics(stars, psf), args.psf_plot, overwrite=args.overwrite,
+                    dpi=100)
     for key, label in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "IQ")):
         fit = slopes[key]
         if residual is not None:
@@ -116,6 +140,12 @@ def run(args):
                   f"(pull {entry['pull']:+.1f})")
         print(f"{label:8s} slope {fit.slope:+.5f} +- {fit.slope_err:.5f} pix/100ke-  "
               f"intercept {fit.intercept:.4f} pix  {fit.relative_percent:+.3f} %/100ke-")
+    for key in ("e1", "e2"):
+        if key in slopes:
+            after = (f"  residual after P(F) {residual[key].slope:+.2e}"
+                     if residual is not None else "")
+            print(f"{key:8s} slope {slopes[key].slope:+.2e} +- {slopes[key].slope_err:.2e} "
+                  f"/100ke-  intercept {slopes[key].intercept:+.5f}{after}")
     print(f"{slopes['n_stars']} stars fitted"
           + (f", colour-corrected with {args.colour} ({colour_fit.n_stars} faint stars)"
              if colour_fit else ""))

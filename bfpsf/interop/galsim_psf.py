@@ -25,7 +25,7 @@ def to_galsim(psf, flux, *, x_phase=0.0, y_phase=0.0, normalise=True):
     ----------
     psf : FluxDependentPSF
     flux : float
-        Flux of the star, in the PSF's image unit (e- unless ``psf.gain`` says otherwise).
+        Flux of the star, in the PSF's ``flux_unit``.
     x_phase, y_phase : float, optional
         Star centre minus the centre of its pixel, pixels: R depends on it.
     normalise : bool, optional

@@ -36,6 +36,27 @@ def default_fit_shape(psf):
     return size + 1 - size % 2
 
 
+def _forget_grouped_models(psf):
+    """Drop photutils' cached group models of ``psf``'s class.
+
+    photutils (3.0) fits a group of N stars with a model class it builds around a copy of the
+    first PSF model it saw, cached by (N, model class): a later fit with another model of the
+    same class (another P0, other shifts, static and P(F) as two FluxDependentPSF) would
+    silently evaluate the first one for its groups. Called for every photometry object made
+    here; the cache is private photutils state, so nothing happens if it is not there.
+    """
+    try:
+        from photutils.psf import _components
+    except ImportError:  # pragma: no cover - a photutils without the module
+        return
+    cache = getattr(_components, "_FLAT_MODEL_CACHE", None)
+    if cache is None:
+        return
+    model_type = f"{type(psf).__module__}.{type(psf).__name__}"
+    for key in [key for key in list(cache.keys()) if key[1:] == (model_type,)]:
+        cache.pop(key, None)
+
+
 def make_psf_photometry(psf, *, fit_shape=None, group_separation=None, iterative=False,
                         **kwargs):
     """A photutils PSF photometry object using the flux-dependent PSF.
@@ -77,6 +98,7 @@ def make_psf_photometry(psf, *, fit_shape=None, group_separation=None, iterative
     if group_separation > 0:
         kwargs.setdefault("grouper", SourceGrouper(min_separation=group_separation))
     kwargs.setdefault("aperture_radius", 1.5 * psf_fwhm(psf))
+    _forget_grouped_models(psf)
     if iterative:
         if kwargs.get("finder") is None:
             msg = "iterative photometry needs a finder (e.g. photutils.detection.DAOStarFinder)"
@@ -109,5 +131,5 @@ def static_image_psf(psf, flux=None):
     if flux is not None:
         table = psf.bf_table if psf.bf_table is not None else bf_response_table(
             psf.data, psf.shifts, psf.oversampling)
-        data = data + psf.gain * flux * table
+        data = data + psf.electrons_per_unit * flux * table
     return ImagePSF(data, origin=tuple(psf.origin), oversampling=tuple(psf.oversampling))

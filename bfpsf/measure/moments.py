@@ -673,7 +673,8 @@ def moment_errors(stamps, moments, *, background_variance=0.0, source_variance=T
     -------
     dict of ndarray
         ``mxx_err, myy_err, mxy_err`` (pixel^2), ``sigma_x_err, sigma_y_err, sigma_err``
-        (pixels); NaN where the moments are NaN.
+        (pixels), ``e1_err, e2_err`` (of the distortion, `bfpsf.measure.shapes.distortion`);
+        NaN where the moments are NaN.
     """
     stack = np.asarray(stamps, dtype=float)
     stack = _validate_stack(stack[None] if stack.ndim == 2 else stack)
@@ -686,7 +687,8 @@ def moment_errors(stamps, moments, *, background_variance=0.0, source_variance=T
     background = np.broadcast_to(np.asarray(background_variance, dtype=float), (n_stamps,))
     good = np.all(np.isfinite(fields), axis=0)
     errors = {name: np.full(n_stamps, np.nan) for name in
-              ("mxx_err", "myy_err", "mxy_err", "sigma_x_err", "sigma_y_err", "sigma_err")}
+              ("mxx_err", "myy_err", "mxy_err", "sigma_x_err", "sigma_y_err", "sigma_err",
+               "e1_err", "e2_err")}
     if not np.any(good):
         return errors
     x0, y0, mxx, myy, mxy = (value[good] for value in fields)
@@ -738,4 +740,10 @@ def moment_errors(stamps, moments, *, background_variance=0.0, source_variance=T
     errors["sigma_x_err"][good] = np.sqrt(var_xx) / (2.0 * np.sqrt(mxx))
     errors["sigma_y_err"][good] = np.sqrt(var_yy) / (2.0 * np.sqrt(myy))
     errors["sigma_err"][good] = np.sqrt(var_sigma)
+    trace = mxx + myy
+    for name, gradient in (("e1_err", np.stack([2 * myy, -2 * mxx, 0 * mxy], axis=1)),
+                           ("e2_err", np.stack([-2 * mxy, -2 * mxy, 2 * trace], axis=1))):
+        gradient = gradient / trace[:, None]**2
+        errors[name][good] = np.sqrt(np.einsum("ni,nij,nj->n", gradient,
+                                               covariance[:, 2:, 2:], gradient))
     return errors

@@ -51,30 +51,53 @@ def _refit_init(init, result):
     return refit
 
 
+def _add_stamp(image, stamp, row, column):
+    """Add ``stamp`` to ``image`` with its [0, 0] at (row, column), clipped at the edges."""
+    rows = slice(max(row, 0), min(row + stamp.shape[0], image.shape[0]))
+    columns = slice(max(column, 0), min(column + stamp.shape[1], image.shape[1]))
+    if rows.start < rows.stop and columns.start < columns.stop:
+        image[rows, columns] += stamp[rows.start - row:rows.stop - row,
+                                      columns.start - column:columns.stop - column]
+
+
 def _cross_term_image(psf, table, shape):
-    """BF of the fitted stars' charge on each other, e-: R of their summed charge minus each
-    star's own BF term.
+    """BF of the fitted stars' charge on each other, e-: the model's own operator
+    (`FluxDependentPSF.charge_delta`: one step or build-up, mean or exact boundary density)
+    on their summed charge, minus each star's own BF term.
 
     G15 eq. scrambling_model is quadratic in the charge, so a blend's BF holds cross terms
-    between the stars that no single-star model carries.
+    between the stars that no single-star model carries. With another operator for the sum
+    than for each star, an isolated star would get a spurious term (6-8 % of its own BF for
+    exact-density or build-up models with the one-step mean-density operator). Each star's
+    own term is computed here with the same operator on its stamp. A table-mode model read
+    back from its product has lost its density profile: its cross terms then use G15's mean
+    density (the cross term itself a few percent off, no spurious term).
     """
-    from ..model.redistribution import redistribution_delta
-
     static, own = np.zeros(shape), np.zeros(shape)
+    exact_density = psf.density_profile is not None
+    if exact_density:
+        north, east = np.zeros((shape[0] - 1, shape[1])), np.zeros((shape[0], shape[1] - 1))
     half = psf.half_size + 1
     for x_0, y_0, flux in zip(table["x_fit"], table["y_fit"], table["flux_fit"]):
         if not np.all(np.isfinite((x_0, y_0, flux))):
             continue
         column, row = int(np.rint(x_0)), int(np.rint(y_0))
-        box = (slice(max(row - half, 0), min(row + half + 1, shape[0])),
-               slice(max(column - half, 0), min(column + half + 1, shape[1])))
-        y, x = np.mgrid[box]
-        if x.size == 0:
-            continue
+        x_phase, y_phase = x_0 - column, y_0 - row
+        y, x = np.mgrid[row - half:row + half + 1, column - half:column + half + 1]
         star = flux * psf.evaluate_base(x - x_0, y - y_0)  # F P0, no BF
-        static[box] += star
-        own[box] += psf.evaluate(x, y, flux, x_0, y_0) - star
-    return redistribution_delta(static, psf.shifts) - own
+        _add_stamp(static, star, row - half, column - half)
+        density = None
+        if exact_density:
+            density = tuple(abs(flux) * part
+                            for part in psf.boundary_density(x_phase, y_phase, half))
+            _add_stamp(north, density[0], row - half, column - half)
+            _add_stamp(east, density[1], row - half, column - half)
+        # the star's own term with the same operator as the sum: an isolated star gets no
+        # cross term even when the model's own term comes from a stored table whose density
+        # profile is gone (a table-mode exact-density model read back from its product)
+        _add_stamp(own, psf.charge_delta(star, density), row - half, column - half)
+    density = (north, east) if exact_density else None
+    return psf.charge_delta(static, density) - own
 
 
 #: Largest group of stars fitted together that `psf_photometry` accepts: photutils fits a
@@ -119,7 +142,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     image_e : array_like [y, x]
         Image in electrons (the BF term needs charge); sky included or not.
     psf : FluxDependentPSF or photutils PSF model
-        PSF model (``gain`` 1: fluxes in e-). A static photutils model can be passed for
+        PSF model in electrons (``flux_unit='electron'``; an ADU model is refused). A static photutils model can be passed for
         comparison.
     positions : astropy.table.Table or (N, 2) array_like, optional
         Initial ``x_init``, ``y_init`` (and optionally ``flux_init``) or (x, y) pairs, pixels;
@@ -175,6 +198,10 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     if read_noise_e < 0 or not np.isfinite(read_noise_e):
         msg = f"read_noise_e must be a finite number >= 0 e-, got {read_noise_e!r}"
         raise BFPSFValueError(msg, read_noise_e)
+    if getattr(psf, "flux_unit", "electron") != "electron":
+        msg = (f"psf_photometry fits images in e- but the PSF is in {psf.flux_unit!r}: pass "
+               "psf.with_flux_unit('electron') and the image times the gain")
+        raise BFPSFValueError(msg, psf.flux_unit)
     if weights not in ("model", "data"):
         msg = f"weights must be 'model' or 'data', got {weights!r}"
         raise BFPSFValueError(msg, weights)

@@ -211,6 +211,8 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
 
 #: (result key, size column, error column) fitted by `bf_slopes`
 _AXES = (("x", "sigma_x", "sigma_x_err"), ("y", "sigma_y", "sigma_y_err"), ("iq", "iq", "iq_err"))
+#: (result key, column, error column) of the ellipticity fits, when the table has them
+_SHAPE_AXES = (("e1", "e1", "e1_err"), ("e2", "e2", "e2_err"))
 
 
 def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_mask=None,
@@ -238,7 +240,9 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
     Returns
     -------
     dict
-        ``{'x': SlopeFit, 'y': SlopeFit, 'iq': SlopeFit, 'n_stars': int}``.
+        ``{'x': SlopeFit, 'y': SlopeFit, 'iq': SlopeFit, 'n_stars': int}``, plus ``'e1'``
+        and ``'e2'`` (the same straight line fitted to the distortion against peak: slope per
+        100 ke- of peak, intercept dimensionless) when the table has those columns.
     """
     from .moments import MomentsFlag
 
@@ -255,7 +259,8 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
         clean = np.ones(len(table), dtype=bool)
     peak = np.asarray(table["peak_e"], dtype=float)
     result = {}
-    for key, column, error_column in _AXES:
+    shape_axes = tuple(axis for axis in _SHAPE_AXES if axis[1] in table.colnames)
+    for key, column, error_column in _AXES + shape_axes:
         errors = None
         if use_errors and error_column in table.colnames:
             errors = np.asarray(table[error_column], dtype=float)[clean]
@@ -315,7 +320,7 @@ def _add_colour_errors(result, table, clean, colour_fit, min_peak_e, max_peak_e,
 
 
 def model_size_increments(psf, flux_e, *, n_grid=24):
-    """Growth of sigma_x, sigma_y and IQ that a flux-dependent PSF predicts at each flux, pixels.
+    """Growth of sigma_x, sigma_y, IQ (and change of e1, e2) that a flux-dependent PSF predicts at each flux, pixels.
 
     The PSF's star image at flux F (`bfpsf.model.psf.FluxDependentPSF.star_image`, phase 0) is
     measured with `~bfpsf.measure.moments.adaptive_moments_batch` on a grid of fluxes spanning
@@ -335,9 +340,12 @@ def model_size_increments(psf, flux_e, *, n_grid=24):
     Returns
     -------
     dict of ndarray
-        ``{'x': d sigma_x, 'y': d sigma_y, 'iq': d IQ}``, one value per star, pixels.
+        ``{'x': d sigma_x, 'y': d sigma_y, 'iq': d IQ}``, one value per star, pixels, and
+        ``'e1'``, ``'e2'``: the change of the distortion.
     """
     from .moments import adaptive_moments_batch
+
+    from .shapes import distortion
 
     flux_e = np.asarray(flux_e, dtype=float)
     finite = np.isfinite(flux_e)
@@ -347,6 +355,7 @@ def model_size_increments(psf, flux_e, *, n_grid=24):
     stamps = np.array([psf.star_image(max(flux, 1.0)) / max(flux, 1.0) for flux in grid])
     moments = adaptive_moments_batch(stamps)
     sizes = {"x": np.sqrt(moments.mxx), "y": np.sqrt(moments.myy), "iq": moments.sigma}
+    sizes["e1"], sizes["e2"] = distortion(moments.mxx, moments.myy, moments.mxy)
     return {key: np.interp(flux_e, grid, value - value[0], left=np.nan, right=np.nan)
             for key, value in sizes.items()}
 

@@ -13,12 +13,13 @@ import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from .moments import MomentsFlag, adaptive_moments_batch, moment_errors
+from .shapes import distortion
 
 __all__ = ["SourceFlag", "measure_sources", "source_flag_string", "STAR_COLUMNS"]
 
 #: columns every star table holds (the ``bfpsf measure`` contract)
 STAR_COLUMNS = ["x", "y", "flux_e", "peak_e", "mxx", "myy", "mxy", "sigma_x", "sigma_y", "iq",
-                "flags"]
+                "e1", "e2", "flags"]
 
 
 class SourceFlag(MomentsFlag):
@@ -105,7 +106,7 @@ def _empty_table(colour_columns):
 
     names = ["id", *STAR_COLUMNS[:-1], "gauss_flux_e", "background_e", "background_rms_e",
              "mxx_err", "myy_err", "mxy_err", "sigma_x_err", "sigma_y_err", "iq_err",
-             "n_iter", "flags", "flag_string", *colour_columns]
+             "e1_err", "e2_err", "n_iter", "flags", "flag_string", *colour_columns]
     dtypes = [int] + [float] * (len(names) - 4 - len(colour_columns)) + [int, int, str] \
         + [float] * len(colour_columns)
     return Table(names=names, dtype=dtypes)
@@ -169,7 +170,8 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
         (aperture), ``peak_e`` (brightest background-subtracted pixel within 2 pixels of the
         centroid), ``gauss_flux_e`` (matched Gaussian), ``background_e``,
         ``background_rms_e`` (per pixel), ``mxx``, ``myy``, ``mxy`` (pixel^2), ``sigma_x``,
-        ``sigma_y``, ``iq`` (pixels) and their ``*_err``, ``n_iter``, ``flags``
+        ``sigma_y``, ``iq`` (pixels), ``e1``, ``e2`` (distortion,
+        `bfpsf.measure.shapes.distortion`) and their ``*_err``, ``n_iter``, ``flags``
         (`SourceFlag`), ``flag_string`` and the colour columns.
     """
     from astropy.convolution import convolve
@@ -284,12 +286,15 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     table["sigma_x"] = moments.sigma_x
     table["sigma_y"] = moments.sigma_y
     table["iq"] = moments.sigma
+    table["e1"], table["e2"] = distortion(moments.mxx, moments.myy, moments.mxy)
     table["mxx_err"] = errors["mxx_err"]
     table["myy_err"] = errors["myy_err"]
     table["mxy_err"] = errors["mxy_err"]
     table["sigma_x_err"] = errors["sigma_x_err"]
     table["sigma_y_err"] = errors["sigma_y_err"]
     table["iq_err"] = errors["sigma_err"]
+    table["e1_err"] = errors["e1_err"]
+    table["e2_err"] = errors["e2_err"]
     table["n_iter"] = np.asarray(moments.n_iter, dtype=int)
     if colour is not None:
         flags |= _match_colours(table, colour, colour_columns, match_radius)

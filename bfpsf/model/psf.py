@@ -34,6 +34,7 @@ from .redistribution import redistribution_delta
 __all__ = ["FluxDependentPSF", "bf_response_table", "pixelised_stamp"]
 
 _MODES = ("table", "exact")
+_FLUX_UNITS = ("electron", "adu")
 
 
 def _validate_oversampling(oversampling):
@@ -45,6 +46,28 @@ def _validate_oversampling(oversampling):
         msg = f"oversampling must be one or two (y, x) integers >= 1, got {oversampling!r}"
         raise BFPSFValueError(msg, oversampling)
     return values.astype(int)
+
+
+def _validate_units(flux_unit, gain):
+    """(flux_unit, gain) of a model; a gain without a stated flux unit is refused."""
+    if gain is not None:
+        if not (np.isfinite(gain) and gain > 0):
+            msg = f"gain must be a positive number of e-/ADU, got {gain!r}"
+            raise BFPSFValueError(msg, gain)
+        gain = float(gain)
+        if flux_unit is None:
+            msg = ("gain given without flux_unit: say flux_unit='adu' (fluxes and images in "
+                   "ADU, the BF term scaled by the gain) or flux_unit='electron' (the gain "
+                   "only recorded for converting images)")
+            raise BFPSFValueError(msg, gain)
+    flux_unit = "electron" if flux_unit is None else flux_unit
+    if flux_unit not in _FLUX_UNITS:
+        msg = f"flux_unit must be one of {_FLUX_UNITS}, got {flux_unit!r}"
+        raise BFPSFValueError(msg, flux_unit)
+    if flux_unit == "adu" and gain is None:
+        msg = "flux_unit='adu' needs the gain (e-/ADU) that turns the fluxes into charge"
+        raise BFPSFValueError(msg, flux_unit)
+    return flux_unit, gain
 
 
 def _validate_data(data):
@@ -150,7 +173,8 @@ class FluxDependentPSF(Fittable2DModel):
     .. math:: M(x, y) = F\,p(x - x_0, y - y_0) + g\,F\,|F|\,R[p](x - x_0, y - y_0)
 
     where p is the base PSF P0 (pixel response included), R[p] the redistribution of the unit
-    PSF pixelised at the phase of the evaluation grid, and g the gain when the image is in ADU.
+    PSF pixelised at the phase of the evaluation grid, and g = `electrons_per_unit` (1 for a
+    model in electrons, the gain for one in ADU: ``flux_unit``).
     The normalised PSF at flux F is P(F) = p + g F R[p].
 
     Parameters
@@ -162,16 +186,23 @@ class FluxDependentPSF(Fittable2DModel):
     shifts : BoundaryShifts or Calibration
         Boundary shifts a^X, 1/e- (G15 eq. def-a).
     flux : float, optional
-        Total flux of the star, in the unit of the image (e- unless ``gain`` is given).
+        Total flux of the star, in ``flux_unit``.
     x_0, y_0 : float, optional
         Centre of the star, pixels (pixel centres at integers).
     origin : (float, float), optional
         (x, y) of the star centre in ``data``; default its centre.
     oversampling : int or (int, int), optional
         Oversampling of ``data`` (y, x). Default 1.
+    flux_unit : {'electron', 'adu'}, optional
+        Unit of ``flux`` and of the model values. ``'electron'`` (the default when no ``gain``
+        is given): the BF term is F |F| R. ``'adu'``: the model describes an image in ADU and
+        the BF term is g F |F| R with g = ``gain`` (the charge is what pushes the boundaries).
+        Required whenever ``gain`` is given, so that a gain can never change the BF term
+        without the caller saying so.
     gain : float, optional
-        e- per image unit: 1 (default) when images and fluxes are in electrons. The BF term of
-        an ADU image is g F |F| R.
+        e-/ADU of the images the PSF describes (the detector gain, never its inverse). With
+        ``flux_unit='adu'`` it scales the BF term; with ``flux_unit='electron'`` it is only
+        recorded (the PSF product keeps it, ``bfpsf photometry`` converts ADU images with it).
     mode : {'table', 'exact'}, optional
         ``'table'`` (default): R is precomputed at each of the oversampling phases (exact there)
         and interpolated between phases with the same cubic spline as P0; cost about that of a
@@ -216,7 +247,7 @@ class FluxDependentPSF(Fittable2DModel):
     y_0 = Parameter(default=0, description="y position of the star centre (pixels)")
 
     def __init__(self, data, shifts, *, flux=flux.default, x_0=x_0.default, y_0=y_0.default,
-                 origin=None, oversampling=1, gain=1.0, mode="table",
+                 origin=None, oversampling=1, flux_unit=None, gain=None, mode="table",
                  buildup_steps=None, bf_table=None, fill_value=0.0, density_profile=None,
                  density_oversampling=8, **kwargs):
         self.data = _validate_data(data)
@@ -230,10 +261,7 @@ class FluxDependentPSF(Fittable2DModel):
             msg = f"origin must be two finite numbers (x, y), got {origin!r}"
             raise BFPSFValueError(msg, origin)
         self.origin = origin
-        if not (np.isfinite(gain) and gain > 0):
-            msg = f"gain must be a positive number of e- per image unit, got {gain!r}"
-            raise BFPSFValueError(msg, gain)
-        self.gain = float(gain)
+        self.flux_unit, self.gain = _validate_units(flux_unit, gain)
         if mode not in _MODES:
             msg = f"mode must be one of {_MODES}, got {mode!r}"
             raise BFPSFValueError(msg, mode)
@@ -260,17 +288,11 @@ class FluxDependentPSF(Fittable2DModel):
         self.density_oversampling = int(density_oversampling)
         self.mode = mode
         self.fill_value = float(fill_value)
-        #: e-/ADU of the images this PSF describes (product metadata).
-        self.image_gain = 1.0
         #: Name of the calibration file the shifts come from (product metadata).
         self.calibration = ""
         #: Shifts drawn from the calibration's uncertainty (`Calibration.shift_samples`):
         #: predictions made with this model propagate them (``bfpsf slope --psf``).
         self.shift_samples = tuple(shifts.shift_samples()) if hasattr(shifts, "shift_samples") else ()
-        self._options = dict(origin=tuple(origin), oversampling=tuple(self.oversampling.tolist()),
-                             gain=self.gain, mode=mode, buildup_steps=buildup_steps,
-                             fill_value=float(fill_value), density_profile=density_profile,
-                             density_oversampling=self.density_oversampling)
         x = np.arange(self.data.shape[1])
         y = np.arange(self.data.shape[0])
         self._base_spline = RectBivariateSpline(x, y, self.data.T, kx=3, ky=3, s=0)
@@ -345,6 +367,79 @@ class FluxDependentPSF(Fittable2DModel):
             kwargs.update(density_profile=unit, density_oversampling=density_oversampling)
         return cls(data, shifts, oversampling=over, **kwargs)
 
+    # -- units and options ---------------------------------------------------------------------
+    @property
+    def electrons_per_unit(self):
+        """e- per flux unit: 1 in electrons, the gain in ADU (the factor g of the BF term)."""
+        return self.gain if self.flux_unit == "adu" else 1.0
+
+    @property
+    def options(self):
+        """The keyword arguments that rebuild this model from ``data`` and ``shifts``.
+
+        Everything but the GalSim ``density_profile``: in mode 'table' its effect is in
+        ``bf_table``, which is included (the PSF product stores each of these).
+        """
+        options = {"origin": tuple(float(value) for value in self.origin),
+                   "oversampling": tuple(int(value) for value in self.oversampling),
+                   "flux_unit": self.flux_unit, "gain": self.gain, "mode": self.mode,
+                   "buildup_steps": self.buildup_steps, "fill_value": self.fill_value,
+                   "density_oversampling": self.density_oversampling,
+                   "flux": float(self.flux.value), "x_0": float(self.x_0.value),
+                   "y_0": float(self.y_0.value)}
+        if self.mode == "table":
+            options["bf_table"] = self.bf_table
+        return options
+
+    def with_flux_unit(self, flux_unit, gain=None):
+        """The same PSF for images in another unit (``'electron'`` or ``'adu'``).
+
+        Parameters
+        ----------
+        flux_unit : {'electron', 'adu'}
+        gain : float, optional
+            e-/ADU; default the model's own.
+
+        Returns
+        -------
+        FluxDependentPSF
+            Shares P0 and the BF table; its BF term is scaled for the new unit, so a star of
+            F ADU gets the redistribution of g F electrons.
+        """
+        options = self.options
+        options.update(flux_unit=flux_unit, gain=self.gain if gain is None else gain,
+                       density_profile=self.density_profile)
+        new = self.__class__(self.data, self.shifts, **options)
+        new.calibration = self.calibration
+        new.shift_samples = self.shift_samples
+        return new
+
+    # -- shapes ----------------------------------------------------------------------------
+    def shape(self, flux, x=None, y=None):
+        """Adaptive moments of the pixelised model at a flux (and position).
+
+        The model of a star of flux F (`evaluate` on the pixels around it: BF and pixel
+        response included, exactly what a fitter sees) is measured with the estimator of the star measurements
+        (`bfpsf.measure.moments.adaptive_moments`), so the model can be compared with the
+        stars, or handed to a shear pipeline at a galaxy's flux (about P0).
+
+        Parameters
+        ----------
+        flux : float
+            Flux, ``flux_unit``; > 0.
+        x, y : float, optional
+            Position in the image, pixels: its sub-pixel phase sets the pixelisation (R
+            depends on it). Default: a star centred on a pixel.
+
+        Returns
+        -------
+        bfpsf.measure.shapes.PSFShape
+            ``sigma`` (IQ), ``T = Mxx + Myy``, ``e1``, ``e2``, ``rho4``, the moments and flags.
+        """
+        from ..measure.shapes import psf_shape
+
+        return psf_shape(self, flux, x=x, y=y)
+
     # -- astropy model interface -------------------------------------------------------------
     def copy(self):
         """Copy with the parameter values copied and the arrays and splines shared."""
@@ -360,9 +455,9 @@ class FluxDependentPSF(Fittable2DModel):
     def with_shifts(self, shifts):
         """The same P0 and options with other boundary shifts (a new model; the BF table, if
         any, is recomputed from the new shifts, a custom ``bf_table`` is not carried over)."""
-        new = self.__class__(self.data, shifts, flux=self.flux.value, x_0=self.x_0.value,
-                             y_0=self.y_0.value, **self._options)
-        new.image_gain = self.image_gain
+        options = self.options
+        options.pop("bf_table", None)
+        new = self.__class__(self.data, shifts, density_profile=self.density_profile, **options)
         new.calibration = self.calibration
         return new
 
@@ -426,24 +521,57 @@ class FluxDependentPSF(Fittable2DModel):
     def _stamp_delta(self, stamp, flux, x_phase, y_phase):
         """BF term (image unit) of a star of flux F on its pixelised unit stamp (star at
         ``(x_phase, y_phase)`` from the central pixel), as mode='exact' computes it."""
-        density = None
-        if self.density_profile is not None:
-            half = stamp.shape[0] // 2
-            density = _phase_density(self.density_profile, x_phase, y_phase, half,
-                                     self.density_oversampling)
+        density = self.boundary_density(x_phase, y_phase, stamp.shape[0] // 2)
         if self.buildup_steps is not None:
             return self._buildup_delta(stamp, flux, density)
-        return self.gain * flux * abs(flux) * redistribution_delta(stamp, self.shifts,
+        return self.electrons_per_unit * flux * abs(flux) * redistribution_delta(stamp, self.shifts,
                                                                    density=density)
 
     def _buildup_delta(self, stamp, flux, density=None):
         """BF term of the star (image unit) with the build-up integrated, odd in F."""
-        charge = self.gain * abs(flux) * stamp
+        to_electrons = self.electrons_per_unit
+        charge = to_electrons * abs(flux) * stamp
         if density is not None:  # per unit flux -> e- of this star
-            density = tuple(self.gain * abs(flux) * part for part in density)
-        collected = redistribute_buildup(charge, self.shifts, nsteps=self.buildup_steps,
-                                         density=density)
-        return np.sign(flux) * (collected - charge) / self.gain
+            density = tuple(to_electrons * abs(flux) * part for part in density)
+        return np.sign(flux) * self.charge_delta(charge, density) / to_electrons
+
+    def charge_delta(self, charge_e, density=None):
+        """The charge each pixel gains under this model's operator, e-.
+
+        One step of G15 eq. scrambling_model, or ``buildup_steps`` steps of the build-up;
+        ``density`` is the boundary density of the charge (`boundary_density`), default G15's
+        mean. Applied to the summed charge of several stars it gives their BF including the
+        cross terms between them, with the same physics as each star's own term.
+
+        Parameters
+        ----------
+        charge_e : ndarray [y, x]
+            Charge without BF, e-.
+        density : (ndarray, ndarray), optional
+
+        Returns
+        -------
+        ndarray [y, x]
+        """
+        if self.buildup_steps is not None:
+            collected = redistribute_buildup(charge_e, self.shifts, nsteps=self.buildup_steps,
+                                             density=density)
+            return collected - charge_e
+        return redistribution_delta(charge_e, self.shifts, density=density)
+
+    def boundary_density(self, x_phase=0.0, y_phase=0.0, half_size=None):
+        """Exact boundary density of the unit-flux star on its stamp, or None (G15's mean).
+
+        The density of ``density_profile`` (`bfpsf.model.redistribution.exact_boundary_density`)
+        for the stamp of `star_image` (``2 * half_size + 1`` pixels, star at the phase): north
+        boundaries ``(2h, 2h + 1)``, east ``(2h + 1, 2h)``, per unit flux. None without a
+        ``density_profile``.
+        """
+        if self.density_profile is None:
+            return None
+        half = self.half_size if half_size is None else int(half_size)
+        return _phase_density(self.density_profile, x_phase, y_phase, half,
+                              self.density_oversampling)
 
     def evaluate(self, x, y, flux, x_0, y_0):
         """Model value at (x, y) for the given parameters (image unit per pixel).
@@ -461,7 +589,8 @@ class FluxDependentPSF(Fittable2DModel):
         Returns
         -------
         ndarray
-            F p + g F |F| R[p] (G15 eq. scrambling_model), shaped like ``x``.
+            F p + g F |F| R[p] (G15 eq. scrambling_model), shaped like ``x``; g is
+            `electrons_per_unit`.
         """
         flux = float(np.ravel(flux)[0]) if np.size(flux) == 1 else np.asarray(flux)
         x_0 = float(np.ravel(x_0)[0]) if np.size(x_0) == 1 else np.asarray(x_0)
@@ -480,7 +609,7 @@ class FluxDependentPSF(Fittable2DModel):
             return np.full(shape, np.nan)
         result = flux * self._base_spline(xi, yi, grid=False)
         if self.mode == "table":
-            bf_term = self.gain * flux * abs(flux) * self._bf_spline(xi, yi, grid=False)
+            bf_term = self.electrons_per_unit * flux * abs(flux) * self._bf_spline(xi, yi, grid=False)
             bf_term[outside] = 0.0
         else:
             # Charge may cross the edge of the P0 support: keep it (conservation).
@@ -535,4 +664,4 @@ class FluxDependentPSF(Fittable2DModel):
         return (f"<FluxDependentPSF(flux={float(self.flux.value):g}, "
                 f"x_0={float(self.x_0.value):g}, y_0={float(self.y_0.value):g}, "
                 f"shape={self.data.shape}, oversampling={tuple(self.oversampling.tolist())}, "
-                f"mode={self.mode!r}, gain={self.gain:g})>")
+                f"mode={self.mode!r}, flux_unit={self.flux_unit!r}, gain={self.gain!r})>")

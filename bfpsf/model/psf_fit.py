@@ -258,13 +258,18 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         Raise `~bfpsf.errors.BFPSFConvergenceError` if not converged; otherwise report it in
         ``converged``. Default False.
     **psf_kwargs
-        Passed to `FluxDependentPSF` (``gain`` must stay 1: the images are in e-).
+        Passed to `FluxDependentPSF`; the images are in e-, so ``flux_unit`` must be
+        'electron' (``gain`` is then only recorded).
 
     Returns
     -------
     PSFFitResult
     """
     shifts = as_shifts(shifts)
+    if psf_kwargs.get("flux_unit", "electron") != "electron":
+        msg = (f"fit_psf works on images in e-: flux_unit must be 'electron', got "
+               f"{psf_kwargs['flux_unit']!r} (convert the fitted model with with_flux_unit)")
+        raise BFPSFValueError(msg, psf_kwargs["flux_unit"])
     size = int(size)
     if size < 5 or size % 2 == 0:
         msg = f"size must be an odd number of pixels >= 5, got {size}"

@@ -11,7 +11,8 @@ import numpy as np
 from ..errors import BFPSFValueError
 from ..files import refuse_overwrite, save_figure
 
-__all__ = ["plot_ptc", "plot_correlation_map", "plot_area_profile", "save_calibration_plots"]
+__all__ = ["plot_ptc", "plot_correlation_map", "plot_area_profile", "plot_area_matrix",
+           "save_calibration_plots"]
 
 
 def _axes(ax, **figure_kwargs):
@@ -187,3 +188,37 @@ def save_calibration_plots(calibration, directory, *, overwrite=False):
         save_figure(maker(calibration), path, overwrite=overwrite, dpi=110, bbox_inches="tight")
         paths.append(path)
     return paths
+
+
+def plot_area_matrix(area, ax=None, *, title=None, vmin=None, vmax=None):
+    """The a-matrix a(dx, dy) as an image, dx, dy >= 0 (a(0, 0) < 0 left blank).
+
+    Parameters
+    ----------
+    area : array_like [dy, dx]
+        Area coefficients, 1/e- (``Calibration.a``, a measured or true table).
+    ax : matplotlib.axes.Axes, optional
+    title : str, optional
+        Default: the value of a(0, 0).
+    vmin, vmax : float, optional
+        Colour scale, 1/e- (to share it between panels); default from 0 (or the smallest
+        off-origin value if negative) to the largest.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    figure, ax = _axes(ax, figsize=(4.6, 3.8))
+    area = np.asarray(area, dtype=float)
+    shown = area.copy()
+    shown[0, 0] = np.nan
+    vmin = min(0.0, np.nanmin(shown)) if vmin is None else vmin
+    vmax = np.nanmax(shown) if vmax is None else vmax
+    image = ax.imshow(shown * 1e7, origin="lower", cmap="viridis", vmin=vmin * 1e7,
+                      vmax=vmax * 1e7)
+    figure.colorbar(image, ax=ax, label="a(dx, dy) (1e-7 / e-)")
+    ax.set_xlabel("dx (serial)")
+    ax.set_ylabel("dy (parallel)")
+    ax.set_title(title or f"a-matrix, a(0,0) = {area[0, 0] * 1e7:.1f}e-7 / e- (blank)",
+                 fontsize=9)
+    return figure

@@ -1,0 +1,186 @@
+"""Shapes from adaptive moments: size, ellipticity and the fourth-order moment.
+
+The ellipticity is the distortion of HSM (``galsim.hsm.ShapeData.observed_shape``, a
+`galsim.Shear` whose ``e1``, ``e2`` are)::
+
+    e1 = (Mxx - Myy) / T,   e2 = 2 Mxy / T,   T = Mxx + Myy
+
+and ``rho4`` is HSM's weighted fourth moment, ``sum w I rho^4 / sum w I`` with
+``rho^2 = (r - x0)^T M^-1 (r - x0)`` and the matched weight ``w = exp(-rho^2 / 2)``: 2 for a
+Gaussian, larger for profiles with wings. Stars (`bfpsf.measure.sources.measure_sources`) and
+the PSF model (`psf_shape`, ``FluxDependentPSF.shape``) use the same estimator
+(`bfpsf.measure.moments.adaptive_moments_batch`), so model and stars compare directly.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import BFPSFValueError
+from .moments import adaptive_moments_batch
+
+__all__ = ["PSFShape", "distortion", "fourth_moment", "psf_shape", "model_shapes",
+           "shape_residuals"]
+
+
+@dataclass(frozen=True)
+class PSFShape:
+    """Adaptive-moment shape of a PSF at one flux and position.
+
+    Attributes
+    ----------
+    sigma : float
+        ``(Mxx Myy - Mxy^2)^(1/4)``, pixels: G15's IQ, HSM's ``moments_sigma``.
+    T : float
+        ``Mxx + Myy``, pixel^2.
+    e1, e2 : float
+        Distortion (module docstring).
+    rho4 : float
+        Weighted fourth moment (module docstring); 2 for a Gaussian.
+    mxx, myy, mxy : float
+        Second moments of the matched elliptical Gaussian, pixel^2.
+    flux : float
+        The flux the model was rendered at, in its ``flux_unit``.
+    flags : int
+        `bfpsf.measure.moments.MomentsFlag` bits; 0 is a clean measurement.
+    """
+
+    sigma: float
+    T: float
+    e1: float
+    e2: float
+    rho4: float
+    mxx: float
+    myy: float
+    mxy: float
+    flux: float
+    flags: int
+
+
+def distortion(mxx, myy, mxy):
+    """``(e1, e2)`` of second moments, HSM's distortion convention (module docstring)."""
+    trace = np.asarray(mxx) + np.asarray(myy)
+    return (np.asarray(mxx) - np.asarray(myy)) / trace, 2.0 * np.asarray(mxy) / trace
+
+
+def fourth_moment(stamps, moments):
+    """HSM's ``rho4`` of stamps at their adaptive moments (module docstring).
+
+    Parameters
+    ----------
+    stamps : ndarray (n, ny, nx)
+    moments : bfpsf.measure.moments.Moments
+        Their batch result.
+
+    Returns
+    -------
+    ndarray (n,)
+    """
+    stack = np.asarray(stamps, dtype=float)
+    _, ny, nx = stack.shape
+    x0, y0, mxx, myy, mxy = (np.asarray(getattr(moments, name), dtype=float)[:, None, None]
+                             for name in ("x", "y", "mxx", "myy", "mxy"))
+    det = mxx * myy - mxy**2
+    dx = np.arange(nx)[None, None, :] - x0
+    dy = np.arange(ny)[None, :, None] - y0
+    rho2 = (myy * dx**2 - 2 * mxy * dx * dy + mxx * dy**2) / det
+    weighted = np.where(np.isfinite(stack), stack, 0.0) * np.exp(-0.5 * rho2)
+    return np.sum(weighted * rho2**2, axis=(1, 2)) / np.sum(weighted, axis=(1, 2))
+
+
+def psf_shape(psf, flux, *, x=None, y=None):
+    """Adaptive moments of a flux-dependent PSF's pixelised model at a flux.
+
+    The model is evaluated (``psf.evaluate``) on the pixels of a stamp around a star at the
+    phase of ``(x, y)``, normalised to unit flux, and measured. See `bfpsf.model.psf.FluxDependentPSF.shape` (this is its implementation).
+
+    Parameters
+    ----------
+    psf : FluxDependentPSF
+    flux : float
+        Flux, the model's ``flux_unit``; > 0.
+    x, y : float, optional
+        Image position, pixels: the star is rendered at its sub-pixel phase
+        (``x - round(x)``); default phase 0.
+
+    Returns
+    -------
+    PSFShape
+    """
+    if not (np.isfinite(flux) and flux > 0):
+        msg = f"flux must be a positive finite number, got {flux!r}"
+        raise BFPSFValueError(msg, flux)
+    x_phase = 0.0 if x is None else float(x - np.floor(x + 0.5))
+    y_phase = 0.0 if y is None else float(y - np.floor(y + 0.5))
+    half = psf.half_size
+    rows, columns = np.mgrid[:2 * half + 1, :2 * half + 1]
+    # The model as a fitter sees it (mode 'table': the stored table; 'exact': R at the phase).
+    stamp = psf.evaluate(columns, rows, flux, half + x_phase, half + y_phase) / flux
+    moments = adaptive_moments_batch(stamp[None])
+    e1, e2 = distortion(moments.mxx, moments.myy, moments.mxy)
+    rho4 = fourth_moment(stamp[None], moments)
+    return PSFShape(sigma=float(moments.sigma[0]), T=float(moments.mxx[0] + moments.myy[0]),
+                    e1=float(e1[0]), e2=float(e2[0]), rho4=float(rho4[0]),
+                    mxx=float(moments.mxx[0]), myy=float(moments.myy[0]),
+                    mxy=float(moments.mxy[0]), flux=float(flux),
+                    flags=int(moments.flags[0]))
+
+
+def model_shapes(psf, flux, *, n_grid=12):
+    """Size and ellipticity of a PSF model at many fluxes (one per star), interpolated.
+
+    `psf_shape` on ``n_grid`` fluxes spaced logarithmically over the range of ``flux``, then
+    interpolated linearly in flux: the BF changes are linear in F to first order.
+
+    Parameters
+    ----------
+    psf : FluxDependentPSF
+    flux : array_like
+        Fluxes, the model's ``flux_unit``; non-finite or non-positive ones give NaN.
+    n_grid : int, optional
+        Default 12.
+
+    Returns
+    -------
+    dict of ndarray
+        ``sigma``, ``T``, ``e1``, ``e2``, ``rho4``, one value per flux.
+    """
+    flux = np.asarray(flux, dtype=float)
+    good = np.isfinite(flux) & (flux > 0)
+    names = ("sigma", "T", "e1", "e2", "rho4")
+    result = {name: np.full(flux.shape, np.nan) for name in names}
+    if not good.any():
+        return result
+    low, high = flux[good].min(), flux[good].max()
+    grid = np.geomspace(low, max(high, low * 1.001), n_grid)
+    shapes = [psf_shape(psf, value) for value in grid]
+    for name in names:
+        result[name][good] = np.interp(flux[good], grid,
+                                       [getattr(shape, name) for shape in shapes])
+    return result
+
+
+def shape_residuals(stars, psf, *, flux=None):
+    """Star minus model: relative size, e1 and e2 of each star against a PSF model.
+
+    Parameters
+    ----------
+    stars : astropy.table.Table
+        Star table (``flux_e``, ``iq``, ``e1``, ``e2``).
+    psf : FluxDependentPSF
+        In electrons.
+    flux : float, optional
+        Compare every star with the model at this one flux (a static PSF frozen there);
+        default each star's own ``flux_e`` (P(F)).
+
+    Returns
+    -------
+    dict of ndarray
+        ``sigma`` ((star - model) / model), ``e1``, ``e2`` (star - model).
+    """
+    star_flux = np.asarray(stars["flux_e"], dtype=float)
+    at = star_flux if flux is None else np.full(star_flux.shape, float(flux))
+    model = model_shapes(psf, at)
+    return {"sigma": np.asarray(stars["iq"], dtype=float) / model["sigma"] - 1.0,
+            "e1": np.asarray(stars["e1"], dtype=float) - model["e1"],
+            "e2": np.asarray(stars["e2"], dtype=float) - model["e2"]}
