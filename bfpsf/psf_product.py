@@ -6,7 +6,11 @@ response included) with ``BFPSFVER`` (schema), ``OVERSAMX``/``OVERSAMY``, ``ORIG
 ``CALIB``, ``PIXRESP``; HDUs ``SHIFT_N`` and ``SHIFT_E`` = a^N and a^E (1/e-, [dy+m, dx+m]);
 schema 2 adds an optional ``BFTABLE`` HDU, the table-mode R when it is not the default (e.g.
 built with the exact boundary density, ``density_profile``), since the profile it came from is
-not stored. The calibration file is not needed to read the product back.
+not stored. The calibration file is not needed to read the product back. Schema 3 adds the
+grid of a `~bfpsf.model.gridded.GriddedFluxDependentPSF`: HDU ``GRID`` = the node P0s
+(ny_nodes, nx_nodes, n, n) with ``NODESX``/``NODESY``, and HDUs ``GRIDX``/``GRIDY`` = the node
+coordinates (pixels); the primary HDU then holds the node nearest the image centre (readers of
+schema 2 see one P0), and ``GRIDBFT`` the nodes' BF tables when they are not the default.
 """
 
 import numpy as np
@@ -16,8 +20,9 @@ from .files import open_product, refuse_overwrite
 
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 
-#: Version of the PSF product layout written by `write_psf` (2: optional BFTABLE HDU).
-PSF_SCHEMA_VERSION = 2
+#: Version of the PSF product layout written by `write_psf` (2: optional BFTABLE HDU;
+#: 3: optional GRID, GRIDX, GRIDY, GRIDBFT HDUs of a gridded PSF).
+PSF_SCHEMA_VERSION = 3
 
 
 def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
@@ -25,7 +30,7 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
 
     Parameters
     ----------
-    psf : FluxDependentPSF
+    psf : FluxDependentPSF or GriddedFluxDependentPSF
     path : str or path-like
     calibration : str, optional
         Name of the calibration file the shifts come from (kept in ``CALIB``); default
@@ -38,12 +43,15 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     from astropy.io import fits
 
     refuse_overwrite(path, overwrite)
-    if psf.mode == "exact" and psf.density_profile is not None:
+    if psf.mode == "exact" and any(node.density_profile is not None
+                                   for node in getattr(psf, "nodes", [psf])):
         msg = ("a mode='exact' model with a density_profile cannot be stored: the file keeps no "
                "GalSim profile and would read back with G15's mean density; write the same "
                "model in mode='table' (its exact-density table is stored)")
         raise BFPSFValueError(msg, psf.mode)
-    primary = fits.PrimaryHDU(np.asarray(psf.data, dtype=np.float64))
+    nodes = getattr(psf, "nodes", None)
+    single = psf if nodes is None else nodes[len(nodes) // 2]
+    primary = fits.PrimaryHDU(np.asarray(single.data, dtype=np.float64))
     header = primary.header
     header["BFPSFVER"] = (PSF_SCHEMA_VERSION, "bfpsf PSF product schema")
     header["BUNIT"] = ("1/pixel", "unit-flux P0 per image pixel, oversampled")
@@ -62,11 +70,31 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     north.header["BUNIT"] = "1/electron"
     east.header["BUNIT"] = "1/electron"
     hdus = [primary, north, east]
-    if psf.mode == "table" and psf.density_profile is not None:
-        table = fits.ImageHDU(np.asarray(psf.bf_table, dtype=np.float64), name="BFTABLE")
+    if psf.mode == "table" and single.density_profile is not None:
+        table = fits.ImageHDU(np.asarray(single.bf_table, dtype=np.float64), name="BFTABLE")
         table.header["BUNIT"] = ("1/(pixel electron)", "R[P0] per unit flux squared")
         hdus.append(table)
+    if nodes is not None:
+        hdus.extend(_grid_hdus(psf))
     fits.HDUList(hdus).writeto(path, overwrite=overwrite)
+
+
+def _grid_hdus(psf):
+    """HDUs of the grid of a `GriddedFluxDependentPSF` (schema 3)."""
+    from astropy.io import fits
+
+    grid = fits.ImageHDU(np.asarray(psf.data, dtype=np.float64), name="GRID")
+    grid.header["NODESX"] = (int(psf.grid_shape[1]), "grid nodes along x")
+    grid.header["NODESY"] = (int(psf.grid_shape[0]), "grid nodes along y")
+    grid.header["BUNIT"] = ("1/pixel", "unit-flux P0 of each node [y, x, ...]")
+    hdus = [grid, fits.ImageHDU(np.asarray(psf.x_nodes), name="GRIDX"),
+            fits.ImageHDU(np.asarray(psf.y_nodes), name="GRIDY")]
+    for hdu in hdus[1:]:
+        hdu.header["BUNIT"] = ("pixel", "node coordinates on the image")
+    if psf.mode == "table" and any(node.density_profile is not None for node in psf.nodes):
+        tables = np.array([node.bf_table for node in psf.nodes]).reshape(psf.data.shape)
+        hdus.append(fits.ImageHDU(tables, name="GRIDBFT"))
+    return hdus
 
 
 def read_psf(path, *, cls=None, **kwargs):
@@ -102,7 +130,24 @@ def read_psf(path, *, cls=None, **kwargs):
             options["bf_table"] = np.array(hdul["BFTABLE"].data, dtype=float)
         image_gain = float(header["GAIN"])
         calibration = str(header["CALIB"])
+        grid = None
+        if "GRID" in hdul:
+            grid = (np.array(hdul["GRID"].data, dtype=float),
+                    np.array(hdul["GRIDX"].data, dtype=float),
+                    np.array(hdul["GRIDY"].data, dtype=float),
+                    np.array(hdul["GRIDBFT"].data, dtype=float) if "GRIDBFT" in hdul
+                    and options["mode"] == "table" else None)
     options.update(kwargs)
+    if grid is not None:
+        from .model.gridded import GriddedFluxDependentPSF
+
+        options.pop("bf_table", None)
+        if grid[3] is not None:
+            options["bf_table"] = grid[3]
+        psf = GriddedFluxDependentPSF.from_data(grid[0], grid[1], grid[2], shifts, **options)
+        psf.image_gain = image_gain
+        psf.calibration = calibration
+        return psf
     psf = cls(data, shifts, **options)
     psf.image_gain = image_gain
     psf.calibration = calibration

@@ -28,13 +28,19 @@ __all__ = ["GriddedFluxDependentPSF", "bilinear_weights", "grid_node_positions"]
 
 
 def grid_node_positions(n_nodes, length):
-    """Node coordinates of ``n_nodes`` equal cells over ``[-0.5, length - 0.5]``: cell centres,
-    pixels (pixel centres at integers)."""
+    """``n_nodes`` node coordinates spanning an axis of ``length`` pixels, pixels.
+
+    Two or more nodes sit from the first to the last pixel centre (0 and ``length - 1``), so
+    that every star is interpolated, never extrapolated, and a PSF varying linearly over the
+    image is followed exactly; a single node sits at the centre.
+    """
     n_nodes = int(n_nodes)
     if n_nodes < 1:
         msg = f"a grid needs at least one node per axis, got {n_nodes}"
         raise BFPSFValueError(msg, n_nodes)
-    return (np.arange(n_nodes) + 0.5) * (length / n_nodes) - 0.5
+    if n_nodes == 1:
+        return np.array([(length - 1) / 2.0])
+    return np.linspace(0.0, length - 1.0, n_nodes)
 
 
 def _axis_weights(values, nodes):

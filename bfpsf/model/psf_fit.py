@@ -326,6 +326,15 @@ def _binned(values, sample_weights, node_weights, indices, xs, ys, n_nodes, n_da
     return total.reshape(shape), weight.reshape(shape)
 
 
+def _without_translation(update, data):
+    """The update minus its least-squares projection on a shift of P0 (its x and y
+    gradients): a shift of P0 with every star moved alike fits the data as well, so that
+    direction is left to the star positions instead of letting P0 drift."""
+    gradients = np.array(np.gradient(data)).reshape(2, -1)
+    amplitudes = np.linalg.lstsq(gradients.T, update.ravel(), rcond=None)[0]
+    return update - (amplitudes @ gradients).reshape(update.shape)
+
+
 def _average(binned):
     """Normalised-residual or stack average per node, empty nodes filled from neighbours."""
     total, weight = binned
@@ -364,7 +373,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         Subtract each star's BF term F_i**2 R[p_i] (default). False gives the static ePSF of
         the same stars, for comparison.
     grid : (int, int), optional
-        (nx, ny) nodes over the image, at the centres of equal cells
+        (nx, ny) nodes over the image, from edge to edge
         (`~bfpsf.model.gridded.grid_node_positions`): every node's P0 is fitted jointly from
         all stars, each star weighted by its bilinear weights; returns a
         `GriddedFluxDependentPSF`. Default None: one P0 (the 1 x 1 case), a
@@ -480,8 +489,9 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         weight = np.where((stars.flags & 8)[:, None, None] == 0, flux**2 / variance, 0.0)
         update = _average(_binned(residual / flux, weight, node_weights, node_indices, xs, ys,
                                   n_nodes, npix))
-        new_data = np.array([_normalise(node, (over, over))
-                             for node in fitted.data + damping * update])
+        new_data = np.array([_normalise(node + damping * _without_translation(step, node),
+                                        (over, over))
+                             for node, step in zip(fitted.data, update)])
         change = float(max(np.abs(new - old).max() / np.abs(old).max()
                            for new, old in zip(new_data, fitted.data)))
         changes.append(change)
