@@ -310,20 +310,49 @@ def _gauss_newton(stars, model, jacobian, variance, usable):
     return (residual - np.einsum("ip,ipq->iq", step, jac)).reshape(stars.data.shape)
 
 
-def _binned(values, sample_weights, node_weights, indices, xs, ys, n_nodes, n_data):
-    """Sum over stars of node weight x sample weight x value, and of node weight x sample
-    weight, in the nearest node of each pixel, per grid node: two (K, M, M) arrays."""
+def _node_solution(values, sample_weights, node_weights, indices, xs, ys, n_nodes, n_data):
+    """Least-squares node values that best give ``values`` at every star pixel.
+
+    In the nearest-node approximation the model of pixel j of star i is
+    sum_k w_ik v_k[c_ij], with c_ij the oversampled node of the pixel and w_ik the star's
+    bilinear weight of grid node k: for each oversampled node c, the grid nodes' values
+    v_k[c] solve a small K x K weighted normal system (one value per c for one node: the
+    weighted average). Nodes without samples are filled from their neighbours.
+
+    Returns
+    -------
+    ndarray (K, M, M)
+    """
     inside = ~(ys.outside[:, :, None] | xs.outside[:, None, :])
-    cell = ys.node[:, :, None] * n_data + xs.node[:, None, :]
-    total = np.zeros(n_nodes * n_data * n_data)
-    weight = np.zeros_like(total)
-    for corner in range(indices.shape[1]):
-        flat = (indices[:, corner, None, None] * n_data * n_data + cell)[inside]
-        share = (node_weights[:, corner, None, None] * sample_weights)[inside]
-        total += np.bincount(flat, weights=share * values[inside], minlength=total.size)
-        weight += np.bincount(flat, weights=share, minlength=total.size)
+    cell = (ys.node[:, :, None] * n_data + xs.node[:, None, :])[inside]
+    n_cells = n_data * n_data
+    values, sample_weights = values[inside], sample_weights[inside]
+    star = np.broadcast_to(np.arange(len(indices))[:, None, None], inside.shape)[inside]
+    normal = np.zeros(n_nodes * n_nodes * n_cells)
+    right = np.zeros(n_nodes * n_cells)
+    corners = range(indices.shape[1]) if n_nodes > 1 else range(1)
+    for first in corners:
+        node_first = indices[star, first]
+        share = node_weights[star, first] * sample_weights
+        right += np.bincount(node_first * n_cells + cell, weights=share * values,
+                             minlength=right.size)
+        for second in corners:
+            flat = (node_first * n_nodes + indices[star, second]) * n_cells + cell
+            normal += np.bincount(flat, weights=share * node_weights[star, second],
+                                  minlength=normal.size)
+    normal = np.moveaxis(normal.reshape(n_nodes, n_nodes, n_cells), 2, 0)
+    right = right.reshape(n_nodes, n_cells).T
+    diagonal = np.einsum("ckk->ck", normal).copy()
+    empty = diagonal <= 0
+    # Unsampled grid nodes of a cell get an identity row (value 0, filled below); a tiny
+    # ridge keeps cells where two grid nodes are seen only together solvable.
+    normal[empty[:, :, None] & np.eye(n_nodes, dtype=bool)[None]] = 1.0
+    normal += 1e-9 * np.einsum("ck,kl->ckl", np.where(empty, 1.0, diagonal), np.eye(n_nodes))
+    solution = np.linalg.solve(normal, right[..., None])[..., 0]
+    solution[empty] = 0.0
     shape = (n_nodes, n_data, n_data)
-    return total.reshape(shape), weight.reshape(shape)
+    solution, diagonal = solution.T.reshape(shape), diagonal.T.reshape(shape)
+    return np.array([_fill_empty(node, weight) for node, weight in zip(solution, diagonal)])
 
 
 def _without_translation(update, data):
@@ -335,11 +364,22 @@ def _without_translation(update, data):
     return update - (amplitudes @ gradients).reshape(update.shape)
 
 
-def _average(binned):
-    """Normalised-residual or stack average per node, empty nodes filled from neighbours."""
-    total, weight = binned
-    mean = np.divide(total, weight, out=np.zeros_like(total), where=weight > 0)
-    return np.array([_fill_empty(node, node_weight) for node, node_weight in zip(mean, weight)])
+def _recentred(data, oversampling):
+    """P0 shifted so that its centroid is the origin (the centre of the grid), normalised.
+
+    A shift of P0 with every star moved alike fits the data as well; the iteration leaves that
+    direction alone (`_without_translation`) and the converged P0 is recentred once, so the
+    fitted star positions are centroids of the PSF (photutils' `~photutils.psf.EPSFBuilder`
+    recentres its ePSF too).
+    """
+    weights = np.clip(data, 0.0, None)
+    centre = (np.asarray(data.shape) - 1) / 2.0
+    offsets = [(weights * np.arange(n).reshape(shape)).sum() / weights.sum() - c
+               for n, shape, c in ((data.shape[0], (-1, 1), centre[0]),
+                                   (data.shape[1], (1, -1), centre[1]))]
+    shifted = scipy.ndimage.shift(data, [-offset for offset in offsets], order=3,
+                                  mode="constant")
+    return _normalise(shifted, (oversampling, oversampling))
 
 
 def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=0.0,
@@ -456,8 +496,8 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         ys = _Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
         flux = stars.flux[:, None, None]
         variance = np.clip(stars.data, 0.0, None) + stars.floor[:, None, None]
-        data = _average(_binned(stars.data / flux, flux**2 / variance, node_weights,
-                                node_indices, xs, ys, n_nodes, npix))
+        data = _node_solution(stars.data / flux, flux**2 / variance, node_weights,
+                              node_indices, xs, ys, n_nodes, npix)
     else:
         data = np.asarray(initial, dtype=float)
         if data.shape[-2:] != shape or data.size != n_nodes * npix * npix:
@@ -470,6 +510,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
     fitted.cardinal = cardinal
     changes = []
     converged = False
+    positions_settled, free_iterations, settle_factor = False, 0, 5.0
     bar = tqdm(range(1, max_iterations + 1), disable=(False if progress else
                                                       None if progress is None else True),
                desc="P0 fit", unit="it", leave=False)
@@ -477,7 +518,11 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         # Hold the centroids while P0 is far from converged: free positions would absorb a
         # phase-dependent distortion of the first stack (bright stars at different phases
         # carry different BF), a near-degeneracy the iteration would not leave.
-        free_positions = iteration > hold_positions
+        # Then free them until P0 has nearly settled, and finish with them fixed: P0 and the
+        # positions share a weakly constrained direction (the odd part of P0 against each
+        # star's centre) along which alternating updates creep; with the positions fixed the
+        # remaining problem is linear in P0 and the fluxes and converges in a few steps.
+        free_positions = iteration > hold_positions and not positions_settled
         stars.flags[:] = 0
         model, jacobian, xs, ys = _star_models(fitted, dense_weights, stars, free_positions)
         variance = np.clip(model, 0.0, None) + stars.floor[:, None, None]
@@ -487,8 +532,8 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         ys = _Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
         flux = stars.flux[:, None, None]
         weight = np.where((stars.flags & 8)[:, None, None] == 0, flux**2 / variance, 0.0)
-        update = _average(_binned(residual / flux, weight, node_weights, node_indices, xs, ys,
-                                  n_nodes, npix))
+        update = _node_solution(residual / flux, weight, node_weights, node_indices, xs, ys,
+                                n_nodes, npix)
         new_data = np.array([_normalise(node + damping * _without_translation(step, node),
                                         (over, over))
                              for node, step in zip(fitted.data, update)])
@@ -498,7 +543,10 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         bar.set_postfix(change=f"{change:.2e}")
         fitted = _Grid(new_data, x_nodes, y_nodes, shifts, over, psf_kwargs)
         fitted.cardinal = cardinal
-        if change < tolerance and iteration > hold_positions:
+        if free_positions:
+            free_iterations += 1
+            positions_settled = change < settle_factor * tolerance or free_iterations >= 15
+        elif change < tolerance and iteration > hold_positions:
             converged = True
             break
     bar.close()
@@ -506,6 +554,9 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         msg = (f"P0 did not converge in {max_iterations} iterations (last change "
                f"{changes[-1]:.3g} of the peak, tolerance {tolerance:.3g})")
         raise BFPSFConvergenceError(msg)
+    fitted = _Grid(np.array([_recentred(node, over) for node in fitted.data]), x_nodes,
+                   y_nodes, shifts, over, psf_kwargs)
+    fitted.cardinal = cardinal
     for _ in range(3):  # final positions and fluxes with the final P0
         stars.flags[:] = 0
         model, jacobian, _, _ = _star_models(fitted, dense_weights, stars, True)
