@@ -221,7 +221,7 @@ class _Grid:
         """Each star's bilinear mix of a node cube: (1, M, M) for one node, else (N, M, M)."""
         if len(cube) == 1:
             return cube
-        return np.einsum("ik,kab->iab", weights, cube)
+        return (weights @ cube.reshape(len(cube), -1)).reshape((-1,) + cube.shape[1:])
 
 
 
@@ -310,7 +310,7 @@ def _gauss_newton(stars, model, jacobian, variance, usable):
     return (residual - np.einsum("ip,ipq->iq", step, jac)).reshape(stars.data.shape)
 
 
-def _node_solution(values, sample_weights, node_weights, indices, xs, ys, n_nodes, n_data):
+def _node_solution(values, sample_weights, dense_weights, xs, ys, n_data):
     """Least-squares node values that best give ``values`` at every star pixel.
 
     In the nearest-node approximation the model of pixel j of star i is
@@ -319,29 +319,32 @@ def _node_solution(values, sample_weights, node_weights, indices, xs, ys, n_node
     v_k[c] solve a small K x K weighted normal system (one value per c for one node: the
     weighted average). Nodes without samples are filled from their neighbours.
 
+    Parameters
+    ----------
+    values, sample_weights : ndarray (N, n, n)
+    dense_weights : ndarray (N, K)
+        Bilinear weight of every grid node for every star.
+    xs, ys : _Sampling
+    n_data : int
+        M, the side of the oversampled grid.
+
     Returns
     -------
     ndarray (K, M, M)
     """
-    inside = ~(ys.outside[:, :, None] | xs.outside[:, None, :])
-    cell = (ys.node[:, :, None] * n_data + xs.node[:, None, :])[inside]
+    n_stars, n_nodes = dense_weights.shape
     n_cells = n_data * n_data
-    values, sample_weights = values[inside], sample_weights[inside]
-    star = np.broadcast_to(np.arange(len(indices))[:, None, None], inside.shape)[inside]
-    normal = np.zeros(n_nodes * n_nodes * n_cells)
-    right = np.zeros(n_nodes * n_cells)
-    corners = range(indices.shape[1]) if n_nodes > 1 else range(1)
-    for first in corners:
-        node_first = indices[star, first]
-        share = node_weights[star, first] * sample_weights
-        right += np.bincount(node_first * n_cells + cell, weights=share * values,
-                             minlength=right.size)
-        for second in corners:
-            flat = (node_first * n_nodes + indices[star, second]) * n_cells + cell
-            normal += np.bincount(flat, weights=share * node_weights[star, second],
-                                  minlength=normal.size)
-    normal = np.moveaxis(normal.reshape(n_nodes, n_nodes, n_cells), 2, 0)
-    right = right.reshape(n_nodes, n_cells).T
+    inside = ~(ys.outside[:, :, None] | xs.outside[:, None, :])
+    cell = ys.node[:, :, None] * n_data + xs.node[:, None, :]
+    flat = (np.arange(n_stars)[:, None, None] * n_cells + cell)[inside]
+    # Per star and oversampled node: sum of weight x value, and of weight.
+    weighted = np.bincount(flat, weights=(sample_weights * values)[inside],
+                           minlength=n_stars * n_cells).reshape(n_stars, n_cells)
+    weight = np.bincount(flat, weights=sample_weights[inside],
+                         minlength=n_stars * n_cells).reshape(n_stars, n_cells)
+    right = (dense_weights.T @ weighted).T                              # (M*M, K)
+    pairs = (dense_weights[:, :, None] * dense_weights[:, None, :]).reshape(n_stars, -1)
+    normal = (pairs.T @ weight).T.reshape(n_cells, n_nodes, n_nodes)   # (M*M, K, K)
     diagonal = np.einsum("ckk->ck", normal).copy()
     empty = diagonal <= 0
     # Unsampled grid nodes of a cell get an identity row (value 0, filled below); a tiny
@@ -352,7 +355,8 @@ def _node_solution(values, sample_weights, node_weights, indices, xs, ys, n_node
     solution[empty] = 0.0
     shape = (n_nodes, n_data, n_data)
     solution, diagonal = solution.T.reshape(shape), diagonal.T.reshape(shape)
-    return np.array([_fill_empty(node, weight) for node, weight in zip(solution, diagonal)])
+    return np.array([_fill_empty(node, node_weight)
+                     for node, node_weight in zip(solution, diagonal)])
 
 
 def _without_translation(update, data):
@@ -496,8 +500,8 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         ys = _Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
         flux = stars.flux[:, None, None]
         variance = np.clip(stars.data, 0.0, None) + stars.floor[:, None, None]
-        data = _node_solution(stars.data / flux, flux**2 / variance, node_weights,
-                              node_indices, xs, ys, n_nodes, npix)
+        data = _node_solution(stars.data / flux, flux**2 / variance, dense_weights, xs, ys,
+                              npix)
     else:
         data = np.asarray(initial, dtype=float)
         if data.shape[-2:] != shape or data.size != n_nodes * npix * npix:
@@ -532,8 +536,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         ys = _Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
         flux = stars.flux[:, None, None]
         weight = np.where((stars.flags & 8)[:, None, None] == 0, flux**2 / variance, 0.0)
-        update = _node_solution(residual / flux, weight, node_weights, node_indices, xs, ys,
-                                n_nodes, npix)
+        update = _node_solution(residual / flux, weight, dense_weights, xs, ys, npix)
         new_data = np.array([_normalise(node + damping * _without_translation(step, node),
                                         (over, over))
                              for node, step in zip(fitted.data, update)])
