@@ -347,10 +347,13 @@ def _node_solution(values, sample_weights, dense_weights, xs, ys, n_data):
     normal = (pairs.T @ weight).T.reshape(n_cells, n_nodes, n_nodes)   # (M*M, K, K)
     diagonal = np.einsum("ckk->ck", normal).copy()
     empty = diagonal <= 0
-    # Unsampled grid nodes of a cell get an identity row (value 0, filled below); a tiny
-    # ridge keeps cells where two grid nodes are seen only together solvable.
+    # Unsampled grid nodes of a cell get an identity row (value 0, filled below). A ridge of
+    # 1 % of the diagonal damps cells where grid nodes are seen only in nearly the same
+    # mixture (few stars); it shrinks each update, not the converged P0 (update 0).
     normal[empty[:, :, None] & np.eye(n_nodes, dtype=bool)[None]] = 1.0
-    normal += 1e-9 * np.einsum("ck,kl->ckl", np.where(empty, 1.0, diagonal), np.eye(n_nodes))
+    if n_nodes > 1:
+        normal += 1e-2 * np.einsum("ck,kl->ckl", np.where(empty, 0.0, diagonal),
+                                   np.eye(n_nodes))
     solution = np.linalg.solve(normal, right[..., None])[..., 0]
     solution[empty] = 0.0
     shape = (n_nodes, n_data, n_data)
