@@ -22,6 +22,7 @@ _EXPORTS = {
     "adaptive_moments": "bfpsf.measure.moments",
     "Moments": "bfpsf.measure.moments",
     "FluxDependentPSF": "bfpsf.model.psf",
+    "GriddedFluxDependentPSF": "bfpsf.model.gridded",
     "solve_boundary_shifts": "bfpsf.calibration.coefficients",
     "adaptive_moments_batch": "bfpsf.measure.moments",
     "measure_sources": "bfpsf.measure.sources",

@@ -1,26 +1,34 @@
-"""Fitting the base PSF P0 from stars of all fluxes at once.
+"""Fitting the base PSF P0 from stars of all fluxes at once, on one node or a grid of nodes.
 
 Every star i is modelled as (G15 eq. scrambling_model folded into the PSF)
 
-    d_i = F_i p_i + F_i**2 R[p_i] + noise,       p_i = P0 pixelised at the phase of star i,
+    d_i = F_i p_i + F_i**2 R[p_i] + noise,       p_i = sum_k w_ik P0_k at the phase of star i,
 
-so that, once each star's predicted brighter-fatter term is removed, the bright stars (which
-give the signal-to-noise) no longer bias P0 towards a broader profile. The fit is a fixed-point
-iteration, as in the ePSF construction of Anderson & King (2000) and photutils'
-`~photutils.psf.EPSFBuilder`:
+with w_ik the bilinear weights of the grid nodes k around the star (one node: w = 1; the model
+is `~bfpsf.model.gridded.GriddedFluxDependentPSF`), so that, once each star's predicted
+brighter-fatter term is removed, the bright stars (which give the signal-to-noise) no longer
+bias P0 towards a broader profile. The fit is a fixed-point iteration, as in the ePSF
+construction of Anderson & King (2000) and photutils' `~photutils.psf.EPSFBuilder`:
 
-1. start from a stack of d_i / F_i on the oversampled grid (nearest node, inverse-variance
-   weights, empty nodes filled from their neighbours);
-2. for each star, fit F_i (and, after ``hold_positions`` iterations at the flux-weighted
-   centroids, x_i and y_i) with the current `FluxDependentPSF`, with pixel variances from the
-   model (sky and read noise included), not from the noisy data;
-3. add to P0 the inverse-variance weighted average, in each node, of the normalised residuals
-   (d_i - model_i) / F_i at the samples that fall in the node, then renormalise each phase to
-   unit flux;
-4. repeat until the largest change of P0 is below ``tolerance`` times its peak.
+1. start from the stack of d_i / F_i on the oversampled grid (nearest node, inverse-variance
+   weights, grid nodes solved jointly, empty nodes filled from their neighbours);
+2. one weighted Gauss-Newton step of every star's F_i (and, after ``hold_positions``
+   iterations at the flux-weighted centroids, x_i and y_i), with pixel variances from the model
+   (sky and read noise included), not from the noisy data;
+3. add to each P0_k the least-squares solution, in each oversampled pixel, for the normalised
+   residuals (d_i - model_i) / F_i predicted after the star step (a K x K system per pixel
+   couples the grid nodes), without its translation, then renormalise;
+4. once P0 has nearly settled, fix the positions (P0's odd part and the positions share a
+   weakly constrained direction along which alternating updates creep); stop when the largest
+   change of P0 is below ``tolerance`` times its peak; recentre P0 on its centroid and refit
+   the stars.
 
 Binning the residuals rather than the data removes the broadening that nearest-node binning
-would otherwise cause: at the fixed point the binned residuals vanish.
+would otherwise cause: at the fixed point the binned residuals vanish. Every star's model is a
+product of small matrices, ``Ly @ P0_i @ Lx.T``, with rows of the cubic interpolating spline
+that `FluxDependentPSF` evaluates (so the fit and the model agree to rounding), evaluated for
+all stars at once: 3600 stars and a 3 x 3 grid take about a minute on one core
+(``benchmarks/bench_psf_fit.py``).
 """
 
 from dataclasses import dataclass
@@ -52,8 +60,9 @@ class PSFFitResult:
 
     Attributes
     ----------
-    psf : FluxDependentPSF
-        The model with the fitted P0 (``psf.data``), unit flux.
+    psf : FluxDependentPSF or GriddedFluxDependentPSF
+        The model with the fitted P0 (``psf.data``), unit flux; gridded when ``grid`` is
+        given.
     stars : astropy.table.Table
         One row per input star: ``image``, ``x_init``, ``y_init``, ``x_fit``, ``y_fit``
         (pixels), ``flux_fit`` (e-), ``weight`` (share of the stack), ``flags`` (`STAR_FLAGS`).
