@@ -230,3 +230,31 @@ def test_gridded_psf_on_silicon_stars_full(request):
     assert abs(shapes["e1"]["P(F)"][0]) <= 0.2 * abs(shapes["e1"]["static"][0])
     assert abs(shapes["e2"]["P(F)"][0]) <= 2e-4
     assert abs(photometry["P(F)"][0]) <= 1.0 + 2 * photometry["P(F)"][1]
+
+
+@pytest.mark.slow
+def test_gridded_psf_flats_limit_with_buildup(request):
+    """The same stars with the flats-limit shifts (GalSim's pixel-area response solved into
+    shifts, as tests/test_silicon_psf.py) and the build-up integrated (16 steps): P0 fitted
+    with the one-step table of those shifts, the model evaluated with the build-up."""
+    from bfpsf.calibration.coefficients import solve_boundary_shifts
+    from bfpsf.interop.galsim import silicon_area_coefficients
+    from bfpsf.model.gridded import GriddedFluxDependentPSF
+    from bfpsf.model.psf_fit import fit_psf
+
+    images, twins, truth = varying_exposures(request, [(4, 100), (4, 101), (4, 102)])
+    shifts = solve_boundary_shifts(silicon_area_coefficients(SENSOR, maxlag=4),
+                                   n_monte_carlo=0).shifts
+    index = np.asarray(truth["image"], dtype=int)
+    positions = [np.column_stack([truth["x"][index == i], truth["y"][index == i]])
+                 for i in range(8)]
+    fit = fit_psf(list(images[:8]), positions, shifts, oversampling=2, size=25, grid=(3, 3))
+    psf = GriddedFluxDependentPSF.from_data(fit.psf.data, fit.psf.x_nodes, fit.psf.y_nodes,
+                                            shifts, oversampling=2, mode="exact",
+                                            buildup_steps=16)
+    cells, shapes = size_slopes(psf, images, twins, truth[index < 8])
+    report({"P(F) flats limit, build-up": fit}, cells, shapes, {})
+    for row in cells:
+        for axis in ("x", "y"):
+            assert abs(row[axis][0]) <= 0.02 + 2 * row[axis][1]
+    assert abs(shapes["e1"]["P(F)"][0]) <= 2e-4 + 2 * shapes["e1"]["P(F)"][1]
