@@ -5,7 +5,7 @@
    double and single precision, on one core (workers=1) and on all cores (the default), against
    a plain implementation with two `scipy.signal.fftconvolve` calls, timed in the same run.
    Target: 0.5 s or less.
-2. One bright star (2.7e6 e-, Moffat FWHM 4 px) through `bfpsf.interop.galsim.BFSensor` and
+2. One bright star (2.7e6 e-, Moffat FWHM 4 px) through `bfpsf.interop.galsim_sensor.BFSensor` and
    through `galsim.SiliconSensor`: the sensor's accumulate alone on the same photons (target
    100x), the photon-shooting drawImage as a whole (bounded by the photon shooting, timed
    without a sensor), and two FFT-drawn alternatives with BFSensor physics.
@@ -25,7 +25,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import scipy.signal  # noqa: E402
 
-from bfpsf.model import redistribution  # noqa: E402
+from bfpsf.model import tiles  # noqa: E402
 from bfpsf.model.redistribution import redistribute  # noqa: E402
 from bfpsf.shifts import BoundaryShifts  # noqa: E402
 
@@ -60,7 +60,7 @@ def bench_forward(size, repeat):
     shifts = BoundaryShifts.from_radial_profile(lambda r: 8e-7 * np.exp(-r / 1.2), 4)
     rng = np.random.default_rng(0)
     image = rng.poisson(5e3, (size, size)).astype(float)
-    cores = redistribution._default_workers()
+    cores = tiles.default_workers()
     print(f"forward redistribution, {size} x {size}, radius {shifts.radius}, best of {repeat}; "
           f"x: speed-up over plain fftconvolve (one core); target 0.5 s")
     plain = "plain fftconvolve"
@@ -88,25 +88,26 @@ def bench_forward(size, repeat):
 def bench_tiles(size, repeat):
     shifts = BoundaryShifts.from_radial_profile(lambda r: 8e-7 * np.exp(-r / 1.2), 4)
     image = np.random.default_rng(0).poisson(5e3, (size, size)).astype(float)
-    saved = dict(redistribution._TILE)
+    saved = dict(tiles.TILE)
     print(f"\nFFT tile size, {size} x {size}, one core, best of {repeat} (cpu s)")
     try:
         for dtype in (np.float64, np.float32):
             line = f"  {np.dtype(dtype).name}:"
             for tile in (128, 160, 192, 216, 256, 320, 384):
-                redistribution._TILE[dtype] = tile
+                tiles.TILE[dtype] = tile
                 _, cpu, _ = best_times(
                     lambda: redistribute(image, shifts, dtype=dtype, workers=1), repeat)
                 line += f"  {tile}: {cpu:.3f}"
             print(line + f"   (in use: {saved[dtype]})")
     finally:
-        redistribution._TILE.update(saved)
+        tiles.TILE.update(saved)
 
 
 def bench_star(flux, repeat, name):
     import galsim
 
-    from bfpsf.interop.galsim import BFSensor, _bin_photons, draw_with_bf, silicon_boundary_shifts
+    from bfpsf.interop.galsim_sensor import BFSensor, _bin_photons, draw_with_bf
+    from bfpsf.interop.silicon_truth import silicon_boundary_shifts
 
     start = time.perf_counter()
     shifts = silicon_boundary_shifts(name)
@@ -170,7 +171,7 @@ def bench_star(flux, repeat, name):
     rng = galsim.BaseDeviate(3)
 
     def fft_poisson_then_bf():
-        # bfpsf.interop.galsim.draw_with_bf: independent Poisson counts with the
+        # bfpsf.interop.galsim_sensor.draw_with_bf: independent Poisson counts with the
         # pixel-integrated profile as mean, the distribution of photon shooting's counts
         # (GalSim's poisson_flux: N ~ Poisson(F) photons of 1 e-, thinned over the pixels);
         # then BFSensor's redistribution (tests/test_galsim_sensor.py checks the equivalence)
@@ -210,7 +211,7 @@ def main():
     parser.add_argument("--tiles", action="store_true", help="also scan the FFT tile size")
     args = parser.parse_args()
     print(f"OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}, "
-          f"{redistribution._default_workers()} CPUs available")
+          f"{tiles.default_workers()} CPUs available")
     if not args.skip_forward:
         bench_forward(args.size, args.repeat)
     if args.tiles:

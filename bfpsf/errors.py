@@ -11,6 +11,8 @@ __all__ = [
     "BFPSFInputError",
     "BFPSFFileExistsError",
     "BFPSFConvergenceError",
+    "BFPSFCovarianceError",
+    "BFPSFWarning",
 ]
 
 
@@ -40,8 +42,33 @@ class BFPSFInputError(BFPSFValueError):
 
 
 class BFPSFFileExistsError(BFPSFError, FileExistsError):
-    """An output file exists and ``overwrite`` was not requested."""
+    """An output file exists and ``overwrite`` was not requested.
+
+    Parameters
+    ----------
+    message : str
+        The whole message (``str(error)`` is exactly it, without an ``[Errno]`` prefix).
+    path : str, optional
+        The output, kept in ``.filename``.
+    """
+
+    def __init__(self, message, path=None):
+        super().__init__(message)
+        self.filename = path
+
+    def __str__(self):
+        return self.args[0]
 
 
 class BFPSFConvergenceError(BFPSFError, RuntimeError):
     """An iterative computation did not converge (raised only where ``strict=True``)."""
+
+
+class BFPSFCovarianceError(BFPSFValueError):
+    """A covariance matrix given as input is not a usable covariance (wrong shape, not finite,
+    not symmetric or not positive semi-definite)."""
+
+
+class BFPSFWarning(UserWarning):
+    """A result was computed but may be wrong: the user should look (e.g. fluxes beyond the
+    first-order brighter-fatter model)."""

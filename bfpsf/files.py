@@ -1,16 +1,31 @@
-"""What every bfpsf product file shares: no overwrite without asking, a schema check on reading.
+"""What every bfpsf output file shares: no overwrite without asking, atomic writes, one JSON
+writer, and a schema check on reading products.
 
 Products (`bfpsf.Calibration`, the PSF product of `bfpsf.psf_product`) are FITS files whose
 primary header carries a schema keyword; a file written by a newer bfpsf is refused rather than
 misread.
+
+Every file is written to a temporary file in the destination's directory and renamed over the
+destination only once complete (`atomic_path`): a write that fails (a full disk, an error
+half-way) leaves the previous file byte for byte and no partial file.
 """
 
+import json
+import math
+import os
+import tempfile
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
-from .errors import BFPSFFileExistsError, BFPSFInputError
+import numpy as np
 
-__all__ = ["refuse_overwrite", "open_product"]
+from .errors import BFPSFError, BFPSFFileExistsError, BFPSFInputError
+
+__all__ = ["refuse_overwrite", "check_outputs", "check_input", "reading", "refuse_duplicates",
+           "read_table",
+           "open_product", "atomic_path", "write_json",
+           "write_text", "write_fits", "write_table", "save_figure", "json_safe"]
 
 
 def refuse_overwrite(path, overwrite, *, how="overwrite=True (--overwrite)"):
@@ -26,6 +41,147 @@ def refuse_overwrite(path, overwrite, *, how="overwrite=True (--overwrite)"):
     if Path(path).exists() and not overwrite:
         msg = f"{path} exists; pass {how} to replace it"
         raise BFPSFFileExistsError(msg, str(path))
+
+
+def check_outputs(paths, overwrite, *, how="--overwrite", directories=()):
+    """Check every output before any work: distinct, in a writable directory, free.
+
+    Parameters
+    ----------
+    paths : iterable of str, path-like or None
+        Output files (None: an output not requested).
+    overwrite : bool
+        Whether existing files may be replaced.
+    how : str, optional
+        How the caller asks for an overwrite, quoted in the message.
+    directories : iterable of str, path-like or None, optional
+        Output directories the command creates (e.g. a report folder): they must not be
+        files, and their nearest existing parent must be writable. Files inside them are
+        checked as if the directory existed.
+
+    Raises
+    ------
+    BFPSFInputError
+        Two outputs with the same path, a missing or unwritable directory, or an output that
+        is a directory.
+    BFPSFFileExistsError
+        An output exists and ``overwrite`` is false.
+    """
+    created = []
+    for directory in directories:
+        if directory is None:
+            continue
+        directory = Path(directory)
+        if directory.exists() and not directory.is_dir():
+            msg = f"output directory {directory} is a file"
+            raise BFPSFInputError(msg, str(directory))
+        parent = directory
+        while not parent.exists():
+            parent = parent.parent
+        if not os.access(parent, os.W_OK | os.X_OK):
+            msg = f"cannot create output directory {directory}: {parent} is not writable"
+            raise BFPSFInputError(msg, str(directory))
+        created.append(directory.resolve())
+    seen = {}
+    for path in paths:
+        if path is None:
+            continue
+        path = Path(path)
+        resolved = path.resolve()
+        if resolved in seen:
+            msg = f"{seen[resolved]} and {path} are the same file: give each output its own path"
+            raise BFPSFInputError(msg, str(path))
+        seen[resolved] = path
+        if path.is_dir():
+            msg = f"output {path} is a directory"
+            raise BFPSFInputError(msg, str(path))
+        parent = resolved.parent
+        if any(parent == directory or directory in parent.parents for directory in created):
+            continue
+        if not parent.is_dir():
+            msg = f"cannot write {path}: directory {path.parent} does not exist"
+            raise BFPSFInputError(msg, str(path))
+        if not os.access(parent, os.W_OK | os.X_OK):
+            msg = f"cannot write {path}: directory {path.parent} is not writable"
+            raise BFPSFInputError(msg, str(path))
+        refuse_overwrite(path, overwrite, how=how)
+
+
+def check_input(path, what):
+    """Raise a one-line `BFPSFInputError` if the input ``path`` is missing or a directory.
+
+    ``what`` names the input in the message (e.g. ``'image'``, ``'star table'``).
+    """
+    path = Path(path)
+    if path.is_dir():
+        msg = f"{what} {path} is a directory, not a file"
+        raise BFPSFInputError(msg, str(path))
+    if not path.exists():
+        msg = f"{what} {path} does not exist"
+        raise BFPSFInputError(msg, str(path))
+    return path
+
+
+@contextmanager
+def reading(path, what):
+    """Turn the low-level errors of reading ``path`` into one-line `BFPSFInputError` s.
+
+    A file that is truncated, damaged or of another format makes astropy and numpy raise
+    OSError, ValueError, TypeError or UnicodeDecodeError (or astropy only warn that the file
+    is shorter than its header says), and a missing extension or column a KeyError; inside
+    this block each becomes a message naming the file. bfpsf's own errors pass through, and
+    other warnings are passed on.
+    """
+    from astropy.utils.exceptions import AstropyUserWarning
+
+    unreadable = f"{path} is not a readable {what} (truncated, damaged or another format)"
+    caught = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            yield
+    except BFPSFError:
+        raise
+    except KeyError as error:
+        detail = error.args[0] if error.args else error
+        if not str(detail).endswith("not found."):  # astropy's missing extension says so
+            detail = f"no column or extension {detail!r}"
+        msg = f"{path} is an incomplete {what} ({str(detail).rstrip('.')})"
+        raise BFPSFInputError(msg, str(path)) from None
+    except (OSError, ValueError, TypeError, EOFError) as error:  # UnicodeDecodeError included
+        raise BFPSFInputError(unreadable, str(path)) from error
+    finally:
+        truncated = False
+        for warning in caught:
+            if issubclass(warning.category, AstropyUserWarning) and "truncated" in str(
+                    warning.message):
+                truncated = True
+            else:
+                warnings.warn_explicit(warning.message, warning.category, warning.filename,
+                                       warning.lineno)
+    if truncated:
+        raise BFPSFInputError(unreadable, str(path))
+
+
+def read_table(path, what, *, format=None):  # noqa: A002
+    """An `astropy.table.Table` read from ``path``, with one-line errors naming the file."""
+    from astropy.table import Table
+
+    path = check_input(path, what)
+    with reading(path, what):
+        return Table.read(path, format=format)
+
+
+def refuse_duplicates(paths, what):
+    """Raise `BFPSFInputError` if a file is given twice (it would be counted twice)."""
+    seen = {}
+    for path in paths:
+        key = Path(path).resolve() if isinstance(path, (str, os.PathLike)) else id(path)
+        if key in seen:
+            same = "" if str(seen[key]) == str(path) else f" ({seen[key]} is the same file)"
+            msg = f"{what} {path} is given twice{same}: each file may be used once"
+            raise BFPSFInputError(msg, str(path))
+        seen[key] = path
 
 
 @contextmanager
@@ -56,11 +212,13 @@ def open_product(path, *, keyword, version, kind):
 
     from . import __version__
 
-    path = Path(path)
-    if not path.exists():
-        msg = f"{kind} file {path} does not exist"
-        raise BFPSFInputError(msg, str(path))
-    with fits.open(path, memmap=False) as hdul:
+    path = check_input(path, f"{kind} file")
+    try:
+        hdul = fits.open(path, memmap=False)
+    except (OSError, ValueError) as error:
+        msg = f"{path} is not a bfpsf {kind} file (not FITS)"
+        raise BFPSFInputError(msg, str(path)) from error
+    with hdul, reading(path, f"bfpsf {kind} file"):
         header = hdul[0].header
         if keyword not in header:
             msg = f"{path} is not a bfpsf {kind} file (no {keyword} keyword)"
@@ -71,3 +229,150 @@ def open_product(path, *, keyword, version, kind):
                    f"bfpsf {__version__} reads; upgrade bfpsf")
             raise BFPSFInputError(msg, schema)
         yield hdul
+
+
+@contextmanager
+def atomic_path(path):
+    """A temporary path beside ``path`` to write to; renamed onto ``path`` on success.
+
+    The temporary file is created in the same directory (so `os.replace` is an atomic rename
+    on the same file system) with the same suffix (writers that choose a format by suffix,
+    e.g. astropy and matplotlib, still do). If the block raises, the temporary file is removed
+    and ``path`` is left as it was.
+
+    Yields
+    ------
+    pathlib.Path
+        Where to write.
+    """
+    path = Path(path)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}",
+                                         dir=path.parent if str(path.parent) else ".")
+    os.close(handle)
+    temporary = Path(temporary)
+    try:
+        temporary.unlink()  # writers that refuse an existing file (astropy) see none
+        yield temporary
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+def json_safe(value):
+    """Plain JSON types: arrays to lists, numpy scalars to Python ones, NaN and infinities
+    (not JSON) to null; dataclass instances are left out of dicts, other objects become str."""
+    if isinstance(value, dict):
+        return {str(key): json_safe(item) for key, item in value.items()
+                if not hasattr(item, "__dataclass_fields__")}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [json_safe(item) for item in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if value is None or isinstance(value, str):
+        return value
+    return str(value)
+
+
+def write_text(path, text, *, overwrite=False):
+    """Write a text file atomically (refused if it exists unless ``overwrite``)."""
+    path = Path(path)
+    refuse_overwrite(path, overwrite)
+    with atomic_path(path) as temporary:
+        temporary.write_text(text)
+    return path
+
+
+def write_fits(hdus, path, *, overwrite=False):
+    """Write an `astropy.io.fits.HDUList` atomically (refused if it exists unless
+    ``overwrite``)."""
+    path = Path(path)
+    refuse_overwrite(path, overwrite)
+    with atomic_path(path) as temporary:
+        hdus.writeto(temporary)
+    return path
+
+
+#: Version of the layout of the tables bfpsf writes (ECSV meta ``bfpsf_schema``).
+TABLE_SCHEMA_VERSION = 1
+
+
+def _plain(value):
+    """Plain YAML-able copy of a meta value; objects that are not data are left out (None)."""
+    if isinstance(value, dict):
+        items = {str(key): _plain(item) for key, item in value.items()}
+        return {key: item for key, item in items.items() if item is not None
+                or value.get(key) is None}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_plain(item) for item in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value)
+    if value is None or isinstance(value, str):
+        return value
+    return None
+
+
+def product_table(table):
+    """A copy of ``table`` as bfpsf writes it: each ``X_err`` column without a unit takes the
+    unit of ``X``, the meta holds only plain values (no object reprs), plus ``bfpsf_schema``
+    and ``bfpsf_version``."""
+    from . import __version__
+
+    table = table.copy(copy_data=False)
+    for name in table.colnames:
+        base = name[:-len("_err")] if name.endswith("_err") else None
+        if base in table.colnames and table[name].unit is None:
+            table[name].unit = table[base].unit
+    meta = {str(key): _plain(value) for key, value in table.meta.items()
+            if value is None or _plain(value) is not None}
+    table.meta.clear()
+    table.meta.update(meta)
+    table.meta["bfpsf_schema"] = TABLE_SCHEMA_VERSION
+    table.meta["bfpsf_version"] = __version__
+    return table
+
+
+def write_table(table, path, *, overwrite=False, format="ascii.ecsv"):  # noqa: A002
+    """Write an `astropy.table.Table` (`product_table`) atomically (refused if it exists unless
+    ``overwrite``)."""
+    path = Path(path)
+    refuse_overwrite(path, overwrite)
+    table = product_table(table)
+    with atomic_path(path) as temporary:
+        table.write(temporary, format=format)
+    return path
+
+
+def save_figure(figure, path, *, overwrite=False, close=True, **savefig_kwargs):
+    """Save a matplotlib figure atomically (refused if it exists unless ``overwrite``)."""
+    path = Path(path)
+    refuse_overwrite(path, overwrite)
+    try:
+        with atomic_path(path) as temporary:
+            figure.savefig(temporary, **savefig_kwargs)
+    finally:
+        if close:
+            import matplotlib.pyplot as plt
+
+            plt.close(figure)
+    return path
+
+
+def write_json(path, summary, *, overwrite=False):
+    """Write a machine-readable summary as strict JSON (NaN as null), atomically.
+
+    Refuses to replace an existing file unless ``overwrite``. Returns the path.
+    """
+    path = Path(path)
+    refuse_overwrite(path, overwrite)
+    with atomic_path(path) as temporary:
+        temporary.write_text(json.dumps(json_safe(summary), indent=1, allow_nan=False) + "\n")
+    return path

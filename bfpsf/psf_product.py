@@ -6,17 +6,18 @@ response included) with ``BFPSFVER`` (schema), ``OVERSAMX``/``OVERSAMY``, ``ORIG
 ``CALIB``, ``PIXRESP``; HDUs ``SHIFT_N`` and ``SHIFT_E`` = a^N and a^E (1/e-, [dy+m, dx+m]);
 schema 2 adds an optional ``BFTABLE`` HDU, the table-mode R when it is not the default (e.g.
 built with the exact boundary density, ``density_profile``), since the profile it came from is
-not stored. The calibration file is not needed to read the product back. Schema 3 adds the
-grid of a `~bfpsf.model.gridded.GriddedFluxDependentPSF`: HDU ``GRID`` = the node P0s
-(ny_nodes, nx_nodes, n, n) with ``NODESX``/``NODESY``, and HDUs ``GRIDX``/``GRIDY`` = the node
-coordinates (pixels); the primary HDU then holds the node nearest the image centre (readers of
+not stored; optional ``SHIFT_N_SAMP`` / ``SHIFT_E_SAMP`` [sample, dy+m, dx+m] hold the shift
+samples of the calibration (its uncertainty, propagated by ``bfpsf slope --psf``). The calibration file is not needed to read the product back.
+Schema 3 adds the grid of a `~bfpsf.model.gridded.GriddedFluxDependentPSF`: HDU ``GRID`` = the
+node P0s (ny_nodes, nx_nodes, n, n) with ``NODESX``/``NODESY``, and HDUs ``GRIDX``/``GRIDY`` =
+the node coordinates (pixels); the primary HDU then holds the central node (readers of
 schema 2 see one P0), and ``GRIDBFT`` the nodes' BF tables when they are not the default.
 """
 
 import numpy as np
 
 from .errors import BFPSFValueError
-from .files import open_product, refuse_overwrite
+from .files import open_product, refuse_overwrite, write_fits
 
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 
@@ -70,13 +71,20 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     north.header["BUNIT"] = "1/electron"
     east.header["BUNIT"] = "1/electron"
     hdus = [primary, north, east]
+    if psf.shift_samples:
+        # the calibration's uncertainty, for predictions with errors (optional HDUs)
+        for name, attribute in (("SHIFT_N_SAMP", "north"), ("SHIFT_E_SAMP", "east")):
+            samples = fits.ImageHDU(np.array([getattr(sample, attribute)
+                                              for sample in psf.shift_samples]), name=name)
+            samples.header["BUNIT"] = "1/electron"
+            hdus.append(samples)
     if psf.mode == "table" and single.density_profile is not None:
         table = fits.ImageHDU(np.asarray(single.bf_table, dtype=np.float64), name="BFTABLE")
         table.header["BUNIT"] = ("1/(pixel electron)", "R[P0] per unit flux squared")
         hdus.append(table)
     if nodes is not None:
         hdus.extend(_grid_hdus(psf))
-    fits.HDUList(hdus).writeto(path, overwrite=overwrite)
+    write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
 
 
 def _grid_hdus(psf):
@@ -130,6 +138,11 @@ def read_psf(path, *, cls=None, **kwargs):
             options["bf_table"] = np.array(hdul["BFTABLE"].data, dtype=float)
         image_gain = float(header["GAIN"])
         calibration = str(header["CALIB"])
+        samples = ()
+        if "SHIFT_N_SAMP" in hdul:
+            samples = tuple(BoundaryShifts(north, east, check=False) for north, east in
+                            zip(np.array(hdul["SHIFT_N_SAMP"].data, dtype=float),
+                                np.array(hdul["SHIFT_E_SAMP"].data, dtype=float)))
         grid = None
         if "GRID" in hdul:
             grid = (np.array(hdul["GRID"].data, dtype=float),
@@ -147,8 +160,11 @@ def read_psf(path, *, cls=None, **kwargs):
         psf = GriddedFluxDependentPSF.from_data(grid[0], grid[1], grid[2], shifts, **options)
         psf.image_gain = image_gain
         psf.calibration = calibration
+        for node in psf.nodes:
+            node.shift_samples = samples
         return psf
     psf = cls(data, shifts, **options)
     psf.image_gain = image_gain
     psf.calibration = calibration
+    psf.shift_samples = samples
     return psf

@@ -1,6 +1,6 @@
 """Pixel-boundary shift coefficients a^X(dx, dy): the contract between calibration and model.
 
-Conventions (``../shared/DESIGN.md``, G15 section 5.2, eq. def-a):
+Conventions (G15 section 5.2, eq. def-a):
 
 * Source offsets are ``(dx, dy)`` relative to the pixel (0, 0) whose boundaries move; arrays are
   indexed ``[dy + m, dx + m]`` on a square grid of offsets ``-m..m``.
@@ -22,7 +22,7 @@ import numpy as np
 
 from .errors import BFPSFValueError
 
-__all__ = ["BoundaryShifts", "BOUNDARIES"]
+__all__ = ["BoundaryShifts", "BOUNDARIES", "as_shifts"]
 
 #: Boundary labels and the (dx, dy) of the neighbour that shares each boundary with (0, 0).
 BOUNDARIES = {"N": (0, 1), "S": (0, -1), "E": (1, 0), "W": (-1, 0)}
@@ -226,3 +226,14 @@ class BoundaryShifts:
         m = self.radius
         return (f"BoundaryShifts(radius={m}, a00={self.area[m, m]:.4g}, "
                 f"aN(0,0)={self._north[m, m]:.4g}, aE(0,0)={self._east[m, m]:.4g})")
+
+
+def as_shifts(shifts):
+    """Accept a BoundaryShifts or anything carrying one in ``.shifts`` (a Calibration)."""
+    if isinstance(shifts, BoundaryShifts):
+        return shifts
+    inner = getattr(shifts, "shifts", None)
+    if isinstance(inner, BoundaryShifts):
+        return inner
+    msg = f"expected BoundaryShifts or an object with a .shifts attribute, got {type(shifts).__name__}"
+    raise BFPSFValueError(msg, shifts)

@@ -2,9 +2,10 @@
 
 Usage::
 
-    python examples/measured_shifts.py [DATA_DIR] [--plots DIR]
+    python examples/measured_shifts.py [--plots DIR]
 
-DATA_DIR defaults to ../shared/data/measured relative to the repository. For each table it
+The tables ship with bfpsf (`bfpsf.data`, short names as in ``bfpsf diagnose --list-measured``).
+For each table it
 prints the smoothing model, the truncated sum rule of the input, the solved a^N and a^E near the
 source with their Monte Carlo errors, the symmetry / sum-rule residuals of the solution, how
 well it sums back to the input, and the sensitivity to p1 +- 5 sigma.
@@ -18,16 +19,15 @@ import numpy as np
 
 from bfpsf.calibration.coefficients import solve_boundary_shifts
 from bfpsf.calibration.measured import read_measured_area
+from bfpsf.data import measured_path
 
 SETS = {
     "ITL-3800C-002 corr_meas (Lage, C at 80 ke-)":
-        "lage_BF_Kernel_ITL3800C002/corr_meas_VBB60_7_2_3500flats.txt",
-    "E2V CCD250 (Lage 2019, Poisson_CCD)":
-        "lage_Poisson_CCD_measurements/e2v_covariances_21oct19.txt",
-    "ITL STA3800C (Lage 2019, Poisson_CCD)":
-        "lage_Poisson_CCD_measurements/itl_covariances_21oct19.txt",
+        ("itl3800c002", "corr_meas_VBB60_7_2_3500flats.txt"),
+    "E2V CCD250 (Lage 2019, Poisson_CCD)": ("poisson_ccd", "e2v_covariances_21oct19.txt"),
+    "ITL STA3800C (Lage 2019, Poisson_CCD)": ("poisson_ccd", "itl_covariances_21oct19.txt"),
     "LSSTCam R22_S11 E2V (cp_pipe DM-51897)":
-        "lsst_cp_pipe_LSSTCam_R22_S11_amatrix/amatrix_LSSTCam_R22_S11_E2V-CCD250-382.csv",
+        ("cp_pipe_r22_s11", "amatrix_LSSTCam_R22_S11_E2V-CCD250-382.csv"),
 }
 
 
@@ -96,12 +96,10 @@ def report(name, path, plots):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    default = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured"
-    parser.add_argument("data_dir", nargs="?", type=Path, default=default)
     parser.add_argument("--plots", type=Path, default=None, help="write the figures here")
     args = parser.parse_args()
-    for name, relative in SETS.items():
-        report(name, args.data_dir / relative, args.plots)
+    for name, (short_name, filename) in SETS.items():
+        report(name, measured_path(short_name, filename), args.plots)
 
 
 if __name__ == "__main__":

@@ -71,6 +71,6 @@ def test_refuses_to_overwrite(flat_files, calibrated, capsys):
 def test_missing_exptime_is_named(tmp_path, capsys):
     path = tmp_path / "no_exptime.fits"
     fits.PrimaryHDU(np.ones((16, 16), dtype=np.float32)).writeto(path)
-    code = main(["calibrate", str(path), str(path), "-o", str(tmp_path / "c.fits")])
+    code = main(["calibrate", str(path), "-o", str(tmp_path / "c.fits")])
     assert code == 1
     assert "no_exptime.fits: header keyword EXPTIME is missing" in capsys.readouterr().err

@@ -95,7 +95,7 @@ def test_slope_psf_model_residual_removes_the_bf_slope(tmp_path):
     slope left after subtracting the sizes P(F) predicts is zero within errors."""
     import galsim
 
-    from bfpsf.interop.galsim import BFSensor
+    from bfpsf.interop.galsim_sensor import BFSensor
     from bfpsf.model.psf import FluxDependentPSF
     from bfpsf.shifts import BoundaryShifts
 
@@ -107,18 +107,30 @@ def test_slope_psf_model_residual_removes_the_bf_slope(tmp_path):
     image = tmp_path / "field.fits"
     write_image_adu(image, field.image, gain=1.0, exptime=30.0)
     psf_path = tmp_path / "psf.fits"
-    FluxDependentPSF.from_galsim(galsim.Moffat(beta=3.5, fwhm=3.5), shifts).write(psf_path)
+    psf = FluxDependentPSF.from_galsim(galsim.Moffat(beta=3.5, fwhm=3.5), shifts)
+    # a calibration uncertainty of 5 % on the amplitude of the shifts
+    psf.shift_samples = tuple(shifts.scaled(factor) for factor in (0.95, 1.0, 1.05))
+    psf.write(psf_path)
     stars, summary = tmp_path / "stars.ecsv", tmp_path / "slope.json"
     assert main(["measure", str(image), "-o", str(stars), "--gain", "1"]) == 0
     assert main(["slope", str(stars), "--psf", str(psf_path), "--json", str(summary)]) == 0
     result = json.loads(summary.read_text())
+    assert result["prediction"]["n_samples"] == 3
     for key in ("x", "y"):
         raw, residual = result[key], result["model_residual"][key]
-        assert set(residual) == {"slope", "slope_err", "intercept", "relative_percent"}
+        predicted = result["prediction"][key]
+        assert set(residual) == {"slope", "slope_err", "intercept", "relative_percent",
+                                 "slope_err_total", "pull"}
         assert raw["slope"] > 5 * raw["slope_err"]
         # the residual is consistent with zero (4 sigma) and far below the raw slope
         assert abs(residual["slope"]) < 4 * residual["slope_err"]
         assert abs(residual["slope"]) < 0.25 * raw["slope"]
+        # the prediction carries the calibration error: 5 % of the slope (samples 0.95-1.05)
+        assert abs(predicted["slope"] - raw["slope"]) < 4 * np.hypot(raw["slope_err"],
+                                                                     predicted["slope_err"])
+        assert 0.03 < predicted["slope_err"] / predicted["slope"] < 0.07
+        assert residual["slope_err_total"] > residual["slope_err"]
+        assert residual["pull"] == pytest.approx(residual["slope"] / residual["slope_err_total"])
 
 
 def _slopes_against_hsm(tmp_path, peaks, n_per_level, seed):

@@ -1,6 +1,5 @@
 """Boundary shifts from area coefficients (G15 section 6.1): closure, symmetries, errors, data."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,22 +8,19 @@ from hypothesis import strategies as st
 from scipy.special import expi
 
 from bfpsf.calibration.coefficients import (_layout, _unit_east, _unit_north, fit_smoothing_model,
-                                            non_nearest_mask, solve_boundary_shifts)
+                                            non_nearest_mask, solve_ei_shifts)
 from bfpsf.calibration.measured import read_measured_area
+from bfpsf.data import measured_path
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
 from bfpsf.shifts import BoundaryShifts
 
-# The measured data sets live in shared/ beside the checkout (as in CI).
-MEASURED = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured"
-needs_measured = pytest.mark.skipif(not MEASURED.is_dir(),
-                                    reason=f"measured data folder {MEASURED} not found")
+# The measured data sets ship with the package (bfpsf/data/measured).
 MEASURED_SETS = {
-    "itl3800c002_corr_meas": MEASURED / "lage_BF_Kernel_ITL3800C002"
-                             / "corr_meas_VBB60_7_2_3500flats.txt",
-    "lage_e2v": MEASURED / "lage_Poisson_CCD_measurements" / "e2v_covariances_21oct19.txt",
-    "lage_itl": MEASURED / "lage_Poisson_CCD_measurements" / "itl_covariances_21oct19.txt",
-    "cp_pipe_r22_s11": MEASURED / "lsst_cp_pipe_LSSTCam_R22_S11_amatrix"
-                       / "amatrix_LSSTCam_R22_S11_E2V-CCD250-382.csv",
+    "itl3800c002_corr_meas": measured_path("itl3800c002", "corr_meas_VBB60_7_2_3500flats.txt"),
+    "lage_e2v": measured_path("poisson_ccd", "e2v_covariances_21oct19.txt"),
+    "lage_itl": measured_path("poisson_ccd", "itl_covariances_21oct19.txt"),
+    "cp_pipe_r22_s11": measured_path("cp_pipe_r22_s11",
+                                     "amatrix_LSSTCam_R22_S11_E2V-CCD250-382.csv"),
 }
 
 P0, P1 = -2e-7, -0.8   # f(r) = P0 Ei(P1 r) > 0: repulsion decaying over ~1.3 pixels
@@ -65,7 +61,7 @@ def test_smooth_field_with_anisotropic_nearest_boundaries_is_recovered(maxlag):
     truth = perturb_nearest(ei_shifts(), north_delta=4e-8, east_delta=-3e-8)
     area = truth.area_quadrant(maxlag)
     area_err = 0.02 * np.abs(area) + 1e-10
-    solution = solve_boundary_shifts(area, area_err, n_monte_carlo=0)
+    solution = solve_ei_shifts(area, area_err, n_monte_carlo=0)
     m = maxlag + 1
     assert solution.shifts.radius == m
     scale = np.abs(truth.north).max()
@@ -93,7 +89,7 @@ def test_truncation_residual_is_carried_by_the_farthest_boundaries():
     """A field that does not follow Ei: a(0, 0) is still reproduced; far_scale != 1 says so."""
     truth = BoundaryShifts.from_radial_profile(lambda r: 1e-7 * np.exp(-r / 1.2), 12)
     area = truth.area_quadrant(4)
-    solution = solve_boundary_shifts(area, 0.02 * np.abs(area) + 1e-10, n_monte_carlo=0)
+    solution = solve_ei_shifts(area, 0.02 * np.abs(area) + 1e-10, n_monte_carlo=0)
     np.testing.assert_allclose(solution.area_model, area, rtol=0, atol=1e-12 * np.abs(area).max())
     signs = np.ones_like(area)
     signs[1:] *= 2
@@ -147,7 +143,7 @@ def test_symmetries_sum_rule_and_closure_on_random_inputs(maxlag, seed, a00, tai
     area = abs(a00) * tail * rng.uniform(-0.3, 1.0, (maxlag + 1, maxlag + 1))
     area[0, 0] = a00
     area_err = abs(a00) * rng.uniform(0.005, 0.05, area.shape)
-    solution = solve_boundary_shifts(area, area_err, n_monte_carlo=3, seed=seed)
+    solution = solve_ei_shifts(area, area_err, n_monte_carlo=3, seed=seed)
     shifts = solution.shifts
     largest = max(np.abs(shifts.north).max(), np.abs(shifts.east).max())
     for key, value in shifts.symmetry_residuals().items():
@@ -164,7 +160,7 @@ def test_monte_carlo_errors_scale_linearly_with_input_errors():
     area = truth.area_quadrant(4)
     # small errors: p1 moves little per draw, so the propagation is in its linear regime
     base_err = 1e-3 * np.abs(area) + 1e-12
-    errors = [solve_boundary_shifts(area, k * base_err, n_monte_carlo=100, seed=1)
+    errors = [solve_ei_shifts(area, k * base_err, n_monte_carlo=100, seed=1)
               for k in (1.0, 2.0)]
     m = errors[0].shifts.radius
     for kind in ("north_err", "east_err"):
@@ -180,8 +176,8 @@ def test_monte_carlo_error_matches_linear_propagation_at_fixed_p1_in_the_small_e
     truth = ei_shifts()
     area = truth.area_quadrant(3)
     area_err = 0.01 * np.abs(area) + 1e-10
-    independent = solve_boundary_shifts(area, area_err, n_monte_carlo=50, seed=3)
-    with_cov = solve_boundary_shifts(area, area_cov=np.diag(area_err.ravel() ** 2),
+    independent = solve_ei_shifts(area, area_err, n_monte_carlo=50, seed=3)
+    with_cov = solve_ei_shifts(area, area_cov=np.diag(area_err.ravel() ** 2),
                                      n_monte_carlo=50, seed=3)
     np.testing.assert_allclose(with_cov.north_err, independent.north_err, rtol=1e-9)
     np.testing.assert_allclose(with_cov.area_err, area_err, rtol=1e-12)
@@ -191,7 +187,7 @@ def test_semi_definite_covariance_gives_fully_correlated_draws():
     """A rank-one covariance (every a moves together) is accepted and propagated."""
     area = ei_shifts().area_quadrant(3)
     direction = 0.01 * np.abs(area).ravel()
-    solution = solve_boundary_shifts(area, area_cov=np.outer(direction, direction),
+    solution = solve_ei_shifts(area, area_cov=np.outer(direction, direction),
                                      n_monte_carlo=20, seed=0)
     np.testing.assert_allclose(solution.area_err.ravel(), direction, rtol=1e-12)
     assert np.all(np.isfinite(solution.north_err))
@@ -200,7 +196,7 @@ def test_semi_definite_covariance_gives_fully_correlated_draws():
 def test_p1_sensitivity_is_at_the_percent_level_for_a_well_measured_profile():
     truth = ei_shifts()
     area = truth.area_quadrant(4)
-    solution = solve_boundary_shifts(area, 0.01 * np.abs(area) + 1e-11, n_monte_carlo=0)
+    solution = solve_ei_shifts(area, 0.01 * np.abs(area) + 1e-11, n_monte_carlo=0)
     sensitivity = solution.sensitivity
     assert sensitivity["nsigma"] == 5.0
     low, high = sensitivity["p1_values"]
@@ -230,31 +226,30 @@ def test_smoothing_fit_recovers_ei_parameters_and_uses_non_nearest_lags():
 ])
 def test_bad_input_is_refused(area, area_err, match):
     with pytest.raises(BFPSFValueError, match=match):
-        solve_boundary_shifts(area, area_err)
+        solve_ei_shifts(area, area_err)
 
 
 def test_bad_monte_carlo_settings_are_refused():
     area = ei_shifts().area_quadrant(2)
     with pytest.raises(BFPSFValueError, match="n_monte_carlo must be 0 or at least 2"):
-        solve_boundary_shifts(area, np.abs(area), n_monte_carlo=1)
+        solve_ei_shifts(area, np.abs(area), n_monte_carlo=1)
     with pytest.raises(BFPSFValueError, match=r"area_cov \(covariance of area.ravel\(\)"):
-        solve_boundary_shifts(area, area_cov=np.eye(4))
+        solve_ei_shifts(area, area_cov=np.eye(4))
     with pytest.raises(BFPSFValueError, match="not a positive semi-definite covariance"):
-        solve_boundary_shifts(area, area_cov=-np.eye(9))
+        solve_ei_shifts(area, area_cov=-np.eye(9))
     with pytest.raises(BFPSFValueError, match="finite symmetric covariance"):
-        solve_boundary_shifts(area, area_cov=np.triu(np.ones((9, 9))))
+        solve_ei_shifts(area, area_cov=np.triu(np.ones((9, 9))))
 
 
 def test_without_errors_no_monte_carlo_is_run():
     area = ei_shifts().area_quadrant(3)
-    solution = solve_boundary_shifts(area)
+    solution = solve_ei_shifts(area)
     assert solution.n_monte_carlo == 0
     assert np.all(np.isnan(solution.north_err))
     assert solution.area_err is None
 
 
 # -- measured data ---------------------------------------------------------------------------
-@needs_measured
 def test_readers_follow_the_package_axis_convention():
     corr = read_measured_area(MEASURED_SETS["itl3800c002_corr_meas"])
     assert corr.table_format == "corr_meas" and corr.area.shape == (6, 6)
@@ -282,11 +277,10 @@ def test_reader_refuses_unknown_tables(tmp_path):
         read_measured_area(path)
 
 
-@needs_measured
 @pytest.mark.parametrize("name", sorted(MEASURED_SETS))
 def test_measured_area_solves_with_symmetries_and_sums_back(name):
     measured = read_measured_area(MEASURED_SETS[name])
-    solution = solve_boundary_shifts(measured.area, measured.area_err, n_monte_carlo=60)
+    solution = solve_ei_shifts(measured.area, measured.area_err, n_monte_carlo=60)
     shifts = solution.shifts
     largest = max(np.abs(shifts.north).max(), np.abs(shifts.east).max())
     for key, value in shifts.symmetry_residuals().items():
@@ -301,12 +295,11 @@ def test_measured_area_solves_with_symmetries_and_sums_back(name):
     assert np.all(np.isfinite(solution.north_err)) and solution.north_err[m, m] > 0
 
 
-@needs_measured
 def test_corr_meas_is_normalised_to_a_zero_truncated_sum():
     """Lage's C00 = Cov00 / V_tot - 1 with V_tot the sum over lags -5..5: the truncated sum rule
     is zero by construction, so the farthest boundaries carry no flux."""
     measured = read_measured_area(MEASURED_SETS["itl3800c002_corr_meas"])
-    solution = solve_boundary_shifts(measured.area, measured.area_err, n_monte_carlo=0)
+    solution = solve_ei_shifts(measured.area, measured.area_err, n_monte_carlo=0)
     assert abs(solution.truncation_residual) < 1e-12 * abs(measured.area[0, 0])
     assert abs(solution.far_scale) < 0.05
     # p1 is well measured on 3500 flats; a 5-sigma change moves the a^X by ~1 % rms (G15: ~1 %)
@@ -322,7 +315,7 @@ def test_plot_radial_profile_draws_both_panels():
     from bfpsf.plotting.shifts import plot_radial_profile
 
     measured = read_measured_area(MEASURED_SETS["cp_pipe_r22_s11"])
-    solution = solve_boundary_shifts(measured.area, measured.area_err, n_monte_carlo=10)
+    solution = solve_ei_shifts(measured.area, measured.area_err, n_monte_carlo=10)
     fig = plot_radial_profile(solution)
     assert len(fig.axes) == 2
     area_axis, shift_axis = fig.axes
@@ -336,10 +329,10 @@ def test_plot_radial_profile_draws_both_panels():
 @pytest.mark.parametrize("sensor", ["lsst_itl_50_8", "lsst_e2v_50_8"])
 def test_galsim_silicon_sensor_area_gives_physical_boundary_shifts(sensor):
     """GalSim's SiliconSensor a(dx, dy) (independent physics, DESIGN.md) solved for a^X."""
-    from bfpsf.interop.galsim import silicon_area_coefficients
+    from bfpsf.interop.silicon_truth import silicon_area_coefficients
 
     area = silicon_area_coefficients(sensor, maxlag=4)
-    solution = solve_boundary_shifts(area, n_monte_carlo=0)
+    solution = solve_ei_shifts(area, n_monte_carlo=0)
     shifts = solution.shifts
     m = shifts.radius
     np.testing.assert_allclose(solution.area_model, area, rtol=0, atol=1e-12 * abs(area[0, 0]))

@@ -14,10 +14,11 @@ rms for the pedestal); a null data set selects nothing.
 import numpy as np
 import pytest
 
-from bfpsf.calibration.coefficients import solve_boundary_shifts
+from bfpsf.calibration.coefficients import solve_ei_shifts
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
 from bfpsf.measure.moments import adaptive_moments_batch
-from bfpsf.model.redistribution import exact_boundary_density, redistribute
+from bfpsf.model.density import exact_boundary_density
+from bfpsf.model.redistribution import redistribute
 from bfpsf.validation.diagnose import diagnose, observables_from_sizes
 from bfpsf.validation.effects import (CorrelationTable, LinearityTable, SizeTable,
                                       quadrupole_shifts, _add_shifts)
@@ -36,7 +37,7 @@ def shifts():
     area[0, 2], area[2, 0], area[1, 2], area[2, 1] = 1.8e-8, 2.4e-8, 1.26e-8, 1.45e-8
     area[2, 2], area[0, 3], area[3, 0] = 8.9e-9, 5e-9, 1.06e-8
     area[1, 3], area[3, 1], area[2, 3], area[3, 2], area[3, 3] = 5e-9, 6e-9, 4e-9, 4e-9, 3e-9
-    return solve_boundary_shifts(area, n_monte_carlo=0).shifts
+    return solve_ei_shifts(area, n_monte_carlo=0).shifts
 
 
 def _phases(n, seed=0):
@@ -233,7 +234,7 @@ def test_loop_on_silicon_sensor_null_and_injected_nonlinearity():
     the null selects nothing; the same spots with an injected non-linearity select it."""
     import galsim
 
-    from bfpsf.interop.galsim import silicon_boundary_shifts
+    from bfpsf.interop.silicon_truth import silicon_boundary_shifts
 
     sensor_name = "lsst_itl_50_8"
     truth = silicon_boundary_shifts(sensor_name)

@@ -7,7 +7,8 @@ import pytest
 from scipy.special import exp1
 
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
-from bfpsf.model.redistribution import exact_boundary_density, redistribute, redistribution_delta
+from bfpsf.model.density import exact_boundary_density
+from bfpsf.model.redistribution import redistribute, redistribution_delta
 from bfpsf.shifts import BoundaryShifts
 from bfpsf.validation.effects import (CATALOGUE, CorrelationTable, LinearityTable, Observables,
                                       SizeTable, SpotForwardModel, effect_names,

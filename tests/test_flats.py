@@ -69,7 +69,7 @@ def test_arrays_need_exptimes_and_counts_must_match():
 
 
 def test_missing_file_is_named(tmp_path):
-    with pytest.raises(BFPSFInputError, match="flat file not found: .*nothere.fits"):
+    with pytest.raises(BFPSFInputError, match="flat file .*nothere.fits does not exist"):
         read_flats([tmp_path / "nothere.fits"])
 
 

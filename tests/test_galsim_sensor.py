@@ -10,15 +10,13 @@ import pytest
 galsim = pytest.importorskip("galsim")
 
 from bfpsf.errors import BFPSFValueError  # noqa: E402
-from bfpsf.interop.galsim import (  # noqa: E402
-    BFSensor,
-    draw_with_bf,
-    moffat_charge,
-    shifts_from_cdmodel,
-    shifts_to_cdmodel,
+from bfpsf.interop.cdmodel import shifts_from_cdmodel, shifts_to_cdmodel  # noqa: E402
+from bfpsf.interop.galsim_sensor import BFSensor, draw_with_bf  # noqa: E402
+from bfpsf.interop.silicon_truth import (  # noqa: E402
     silicon_area_coefficients,
     silicon_boundary_shifts,
 )
+from bfpsf.validation.approximations import moffat_charge  # noqa: E402
 from bfpsf.model.redistribution import redistribute  # noqa: E402
 from bfpsf.shifts import BoundaryShifts  # noqa: E402
 
@@ -113,7 +111,7 @@ def test_bfsensor_accumulate_is_landing_plus_redistribution():
 @pytest.mark.parametrize("origin", [(1, 1), (0, -7), (-30, 12), (5, 0)])
 @pytest.mark.parametrize("chunk", [7, 131072])
 def test_photon_binning_matches_addto(origin, chunk, monkeypatch):
-    import bfpsf.interop.galsim as interop
+    import bfpsf.interop.galsim_sensor as interop
 
     # Small chunks mix the chunk bookkeeping into a few hundred photons.
     monkeypatch.setattr(interop, "_PHOTON_CHUNK", chunk)
@@ -143,7 +141,8 @@ def test_photon_binning_matches_addto(origin, chunk, monkeypatch):
 
 
 def test_bfsensor_existing_charge_and_buildup():
-    from bfpsf.model.redistribution import redistribute_buildup, redistribution_delta
+    from bfpsf.model.buildup import redistribute_buildup
+    from bfpsf.model.redistribution import redistribution_delta
 
     shifts = radial_shifts()
     shot = photons(1e6, 100000, 6, centre=(12.0, 9.0))
@@ -352,7 +351,7 @@ def e2v_like_radial_shifts():
 def test_density_approximation_underestimates_small_spots():
     import matplotlib.pyplot as plt
 
-    from bfpsf.interop.galsim import density_approximation_error
+    from bfpsf.validation.approximations import density_approximation_error
     from bfpsf.plotting.redistribution import plot_density_approximation
 
     table = density_approximation_error(e2v_like_radial_shifts(), iq=(1.0, 1.6, 3.0))
@@ -373,7 +372,7 @@ def test_density_approximation_underestimates_small_spots():
 def test_buildup_difference_grows_with_flux():
     import matplotlib.pyplot as plt
 
-    from bfpsf.interop.galsim import buildup_error
+    from bfpsf.validation.approximations import buildup_error
     from bfpsf.plotting.redistribution import plot_buildup
 
     table = buildup_error(e2v_like_radial_shifts(), peaks=(2e4, 1e5), nsteps=16)

@@ -1,4 +1,4 @@
-"""The closed loop on real laboratory data (../shared/data/measured).
+"""The closed loop on real laboratory data (shipped in bfpsf/data/measured).
 
 ITL-3800C-002 (Lage, UC Davis): flat correlations at 80 ke- and spot sizes of the same CCD,
 undersampled spots (Gaussian sigma ~ 1.03 px). The G15 prediction from the correlations gives
@@ -12,16 +12,13 @@ import os
 import numpy as np
 import pytest
 
+from bfpsf.data import measured_path
 from bfpsf.errors import BFPSFInputError
 from bfpsf.validation.diagnose import (MEASURED_SETS, diagnose, observables_from_measured,
                                        read_lage_spot_table)
 
-MEASURED = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "measured")
-LAGE = os.path.join(MEASURED, "lage_BF_Kernel_ITL3800C002")
-BOT = os.path.join(MEASURED, "lage_LSSTCam_BOT_spots_2019")
-
-pytestmark = pytest.mark.skipif(not os.path.isdir(LAGE),
-                                reason="measured data folder ../shared/data/measured not found")
+LAGE = str(measured_path("itl3800c002"))
+BOT = str(measured_path("bot_r22_s11"))
 
 
 def test_lage_table_reader():

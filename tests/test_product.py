@@ -179,3 +179,55 @@ def test_psf_product_round_trip_and_schema_checks(tmp_path):
         FluxDependentPSF.read(tmp_path / "image.fits")
     with pytest.raises(BFPSFInputError, match="PSF product file .* does not exist"):
         FluxDependentPSF.read(tmp_path / "missing.fits")
+
+
+def _with_samples(calibration, amplifier="", warnings=("a warning",), method="electrostatic"):
+    from dataclasses import replace
+
+    rng = np.random.default_rng(1)
+    north = calibration.shifts.north * (1 + 0.1 * rng.standard_normal((5, 1, 1)))
+    east = calibration.shifts.east * (1 + 0.1 * rng.standard_normal((5, 1, 1)))
+    return replace(calibration, shift_samples_north=north, shift_samples_east=east,
+                   shift_method=method, warnings=tuple(warnings), amplifier=amplifier)
+
+
+def test_per_amplifier_groups_carry_samples_method_and_warnings(calibration, tmp_path):
+    from bfpsf.calibration.product import DetectorCalibration, read_calibration
+
+    left = _with_samples(calibration, "C00", ("no measurable brighter-fatter",))
+    right = _with_samples(calibration, "C01", (), method="ei")
+    detector = DetectorCalibration({"C00": left, "C01": right}, detector="R22_S11")
+    path = tmp_path / "detector.fits"
+    detector.write(path)
+    back = read_calibration(path)
+    assert back.names == ["C00", "C01"]
+    assert back["C00"].shift_method == "electrostatic" and back["C01"].shift_method == "ei"
+    assert back["C00"].warnings == ("no measurable brighter-fatter",)
+    assert back["C01"].warnings == ()
+    np.testing.assert_array_equal(back["C00"].shift_samples_north, left.shift_samples_north)
+    np.testing.assert_array_equal(back["C01"].shift_samples_east, right.shift_samples_east)
+    summary = back.to_json_dict()
+    assert summary["warnings"] == ["C00: no measurable brighter-fatter"]
+    assert [entry["shift_method"] for entry in summary["amplifiers"]] == ["electrostatic", "ei"]
+    assert summary["amplifiers"][0]["warnings"] == ["no measurable brighter-fatter"]
+    assert summary["schema_version"] == SCHEMA_VERSION == 3
+
+
+def test_schema_two_single_amplifier_file_reads(calibration, tmp_path):
+    """A file of main's schema 2 (issue 10: samples, SHIFTMTH in the primary header, WARNINGS;
+    no HDU groups) reads with its samples, solver and warnings."""
+    one = _with_samples(calibration)
+    path = tmp_path / "schema2.fits"
+    one.write(path)
+    with fits.open(path, mode="update") as hdul:
+        hdul[0].header["BFSCHEMA"] = 2
+        del hdul[0].header["NAMP"]
+        for hdu in hdul[1:]:
+            del hdu.header["AMPNAME"]
+            del hdu.header["EXTVER"]
+        del hdul["SUMMARY"].header["SHIFTMTH"]
+    back = Calibration.read(path)
+    assert back.schema_version == 2 and back.amplifier == ""
+    assert back.shift_method == "electrostatic" and back.warnings == ("a warning",)
+    np.testing.assert_array_equal(back.shift_samples_north, one.shift_samples_north)
+    assert len(back.shift_samples(limit=3)) == 3

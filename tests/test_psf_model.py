@@ -84,8 +84,8 @@ def test_charge_conservation_and_quadratic_scaling(psf):
         # The BF term moves charge, it creates none (G15 eq. scrambling_model conserves Q);
         # the spline between table phases conserves it to 1.2e-9 of the flux (measured).
         assert model.sum() == pytest.approx(flux * one.sum(), rel=1e-8)
-        bf = model - flux * psf._evaluate_base(x - 20.2, y - 19.7)
-        bf_unit = one - psf._evaluate_base(x - 20.2, y - 19.7)
+        bf = model - flux * psf.evaluate_base(x - 20.2, y - 19.7)
+        bf_unit = one - psf.evaluate_base(x - 20.2, y - 19.7)
         # F |F| scaling: odd in F, quadratic in |F|.
         np.testing.assert_allclose(bf, flux * abs(flux) * bf_unit, atol=1e-12 * abs(flux))
 
@@ -205,7 +205,7 @@ def test_plots(psf):
 def test_exact_boundary_density_table():
     """density='exact' tabulates the engine's exact boundary density (G15 eq. density-approx
     replaced by the density integrated along each boundary)."""
-    from bfpsf.model.redistribution import exact_boundary_density
+    from bfpsf.model.density import exact_boundary_density
 
     model = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=4, size=25,
                                          density="exact")
@@ -222,7 +222,7 @@ def test_exact_boundary_density_table():
     y, x = np.mgrid[:size, :size]
     half = size // 2
     bf = (model.evaluate(x, y, flux, half + x_phase, half + y_phase)
-          - flux * model._evaluate_base(x - half - x_phase, y - half - y_phase))
+          - flux * model.evaluate_base(x - half - x_phase, y - half - y_phase))
     inner = slice(2, -2)
     # Phase interpolation of the table: 4e-5 of the largest BF pixel measured.
     assert np.abs(bf - truth)[inner, inner].max() < 2e-4 * np.abs(truth).max()
@@ -231,7 +231,8 @@ def test_exact_boundary_density_table():
 def test_exact_density_in_exact_mode_with_and_without_buildup():
     """density='exact' in mode='exact': the density at every evaluation phase, also inside the
     build-up integration."""
-    from bfpsf.model.redistribution import exact_boundary_density, redistribute_buildup
+    from bfpsf.model.buildup import redistribute_buildup
+    from bfpsf.model.density import exact_boundary_density
 
     table = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=4, size=25,
                                          density="exact")
@@ -271,7 +272,7 @@ def test_exact_density_in_exact_mode_with_and_without_buildup():
 
 
 def test_buildup_mode_is_the_engine(psf):
-    from bfpsf.model.redistribution import redistribute_buildup
+    from bfpsf.model.buildup import redistribute_buildup
 
     model = FluxDependentPSF(psf.data, SHIFTS, oversampling=4, mode="exact", buildup_steps=8)
     stamp = pixelised_stamp(psf, x_phase=0.2, y_phase=0.1, half_size=13)

@@ -8,7 +8,7 @@ import pytest
 
 from bfpsf.calibration import ptc
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
-from bfpsf.interop.galsim import silicon_area_coefficients
+from bfpsf.interop.silicon_truth import silicon_area_coefficients
 
 GAIN = 1.5          # e-/ADU
 READ_NOISE = 5.0    # e-

@@ -8,12 +8,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bfpsf.errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
+from bfpsf.model.buildup import redistribute_buildup
+from bfpsf.model.density import exact_boundary_density
+from bfpsf.model.inverse import correct
 from bfpsf.model.redistribution import (
     boundary_fluxes,
-    correct,
-    exact_boundary_density,
     redistribute,
-    redistribute_buildup,
     redistribution_delta,
     single_pixel_delta,
 )
@@ -350,7 +350,7 @@ def test_non_convergence_is_reported():
 
 @pytest.mark.slow
 def test_iterative_inverse_round_trip_with_silicon_e2v_shifts():
-    from bfpsf.interop.galsim import silicon_boundary_shifts
+    from bfpsf.interop.silicon_truth import silicon_boundary_shifts
 
     shifts = silicon_boundary_shifts("lsst_e2v_50_8")
     truth = moffat((61, 61), 1.5e5, fwhm=2.0)
@@ -385,7 +385,7 @@ def test_exact_density_is_exact_for_cubic_profiles():
 
 
 def test_exact_density_converges_and_exceeds_mean_for_undersampled_spots():
-    from bfpsf.interop.galsim import moffat_charge
+    from bfpsf.validation.approximations import moffat_charge
 
     shifts = e2v_like_shifts()
     results = {}

@@ -66,11 +66,11 @@ def residual_fractions(spots, psf):
 
 @pytest.fixture(scope="module")
 def flats_limit_shifts():
-    from bfpsf.calibration.coefficients import solve_boundary_shifts
-    from bfpsf.interop.galsim import silicon_area_coefficients
+    from bfpsf.calibration.coefficients import solve_ei_shifts
+    from bfpsf.interop.silicon_truth import silicon_area_coefficients
 
     area = silicon_area_coefficients(SENSOR, maxlag=4)
-    return solve_boundary_shifts(area, n_monte_carlo=0).shifts
+    return solve_ei_shifts(area, n_monte_carlo=0).shifts
 
 
 def twin_spots(fwhm, peaks, n_per_level, seed):
@@ -85,7 +85,7 @@ def test_residual_slope_quick(flats_limit_shifts):
     """CI variant: 24 paired spots, P0 = the Moffat convolved with SiliconSensor's diffusion."""
     import galsim
 
-    from bfpsf.interop.galsim import silicon_diffusion_sigma
+    from bfpsf.interop.silicon_truth import silicon_diffusion_sigma
 
     spots = twin_spots(3.5, (1e4, 6e4, 1.2e5), 8, seed=3)
     profile = galsim.Convolve(galsim.Moffat(beta=3.0, fwhm=3.5),
@@ -133,8 +133,8 @@ def test_residual_slope_through_simulated_flats():
     import galsim
 
     from bfpsf.calibration import calibrate
-    from bfpsf.calibration.coefficients import solve_boundary_shifts
-    from bfpsf.interop.galsim import silicon_diffusion_sigma
+    from bfpsf.calibration.coefficients import solve_ei_shifts
+    from bfpsf.interop.silicon_truth import silicon_diffusion_sigma
     from bfpsf.validation.simulate_flats import simulate_flats
 
     levels = [100.0, *np.linspace(1.5e5 / 20, 1.5e5, 20)]
@@ -154,7 +154,7 @@ def test_residual_slope_through_simulated_flats():
     central = residuals(cal.shifts)
     rng = np.random.default_rng(1)
     a, a_err = np.asarray(cal.a), np.asarray(cal.a_err)
-    draws = [residuals(solve_boundary_shifts(a + rng.standard_normal(a.shape) * a_err,
+    draws = [residuals(solve_ei_shifts(a + rng.standard_normal(a.shape) * a_err,
                                              n_monte_carlo=0).shifts) for _ in range(12)]
     error = np.std(draws, axis=0, ddof=1)
     print(f"through flats: residual / raw {central} +- {error}")

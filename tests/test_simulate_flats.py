@@ -9,7 +9,7 @@ from bfpsf.calibration.covariance import pair_covariance
 from bfpsf.calibration.flats import pair_flats, pair_mask, read_flats
 from bfpsf.cli import main
 from bfpsf.errors import BFPSFFileExistsError
-from bfpsf.interop.galsim import silicon_area_coefficients
+from bfpsf.interop.silicon_truth import silicon_area_coefficients
 from bfpsf.validation.simulate_flats import simulate_flats, write_flats
 
 SENSOR = "lsst_itl_50_8"
@@ -154,7 +154,7 @@ def test_write_flats_headers_pairing_and_overwrite(tmp_path):
 def test_command_line_writes_flats(tmp_path, capsys):
     argv = ["simulate", "flats", "--sensor", SENSOR, "--levels", "1000", "2000", "--pairs", "1",
             "--size", "32", "--gain", "1.2", "--read-noise", "3", "--nsteps", "1", "--seed", "2",
-            "--out", str(tmp_path), "--quiet"]
+            "-o", str(tmp_path), "--no-progress"]
     assert main(argv) == 0
     files = sorted(tmp_path.glob("*.fits"))
     assert len(files) == 4

@@ -2,16 +2,13 @@
 
 import dataclasses
 import json
-import os
 
 import numpy as np
 import pytest
 
 from bfpsf.cli import main
-from bfpsf.validation.validate import FULL, QUICK, validate
+from bfpsf.validation.validate import FULL, QUICK, TRUTH_LABEL, validate
 
-MEASURED = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "measured")
-BOT = os.path.join(MEASURED, "lage_LSSTCam_BOT_spots_2019")
 
 #: A very small run for the quick test: 4 levels x 9 phases of FWHM 3 px spots, tiny flats.
 TINY = dataclasses.replace(QUICK, peaks_e=(1e4, 5e4, 9e4, 1.2e5), n_per_level=9,
@@ -20,7 +17,9 @@ TINY = dataclasses.replace(QUICK, peaks_e=(1e4, 5e4, 9e4, 1.2e5), n_per_level=9,
 
 @pytest.fixture(scope="module")
 def tiny_run():
-    return validate(TINY)
+    # SiliconSensor landing shifts: a diagnostic of the PSF model alone (the flats path is
+    # tested in test_flats_to_psf.py)
+    return validate(TINY, shifts_for_model="truth")
 
 
 def test_validate_runs_every_stage(tiny_run):
@@ -36,7 +35,7 @@ def test_validate_physics(tiny_run):
     # SiliconSensor spots broaden with flux, faster in Y (parallel) on ITL (G15 table 1)
     assert slopes["slope_x"] > 0 and slopes["slope_y"] > 0
     truth_row = [row for row in tiny_run["prediction"]["rows"]
-                 if row["shifts"] == "SiliconSensor truth"][0]
+                 if row["shifts"] == TRUTH_LABEL][0]
     # the G15 prediction from SiliconSensor's own shifts matches the measured slope; 36 spots
     # measure it to ~10 %, so allow 30 %
     assert 0.7 < truth_row["predicted_over_measured_x"] < 1.3
@@ -102,14 +101,29 @@ def test_cli_validate_json_and_report(tmp_path):
     assert main(args) == 1
 
 
-@pytest.mark.skipif(not os.path.isdir(BOT), reason="measured data not found")
-def test_cli_diagnose_measured(tmp_path):
+def test_cli_diagnose_measured(tmp_path, capsys):
     out = tmp_path / "d.json"
-    assert main(["diagnose", "--measured", BOT, "--json", str(out)]) == 0
+    assert main(["diagnose", "--measured", "bot_r22_s11", "--json", str(out)]) == 0
     summary = json.loads(out.read_text())
     assert list(summary)[:4] == ["residual_before", "candidates", "selected", "residual_after"]
     assert np.isfinite(summary["residual_before"]["slope_x_percent"])
-    assert main(["diagnose", "--measured", BOT, "--json", str(out)]) == 1   # no overwrite
+    capsys.readouterr()
+    assert main(["diagnose", "--measured", "bot_r22_s11", "--json", str(out)]) == 1
+    assert capsys.readouterr().err == (f"bfpsf diagnose: error: {out} exists; pass --overwrite "
+                                       "to replace it\n")
+
+
+def test_cli_diagnose_lists_and_refuses_unknown_measured_sets(capsys):
+    from bfpsf.data import measured_sets
+
+    assert main(["diagnose", "--list-measured"]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    assert [line.split(":")[0] for line in listed] == list(measured_sets())
+    assert main(["diagnose", "--measured", "nosuch"]) == 1
+    assert capsys.readouterr().err == (
+        "bfpsf diagnose: error: unknown measured data set 'nosuch'; known: itl3800c002, "
+        "bot_r22_s11, poisson_ccd, cp_pipe_r22_s11, sitcomtn148 (bfpsf diagnose "
+        "--list-measured)\n")
 
 
 def test_cli_diagnose_needs_inputs(capsys):
@@ -122,7 +136,8 @@ def test_cli_diagnose_images_mode(tmp_path):
     carry BF from bfpsf's BFSensor with SiliconSensor's shifts; 128^2 flats give a noisy
     calibration (without the b term), so only the chain and its outputs are checked here (the physics of the loop
     is in test_diagnose.py)."""
-    from bfpsf.interop.galsim import BFSensor, silicon_boundary_shifts
+    from bfpsf.interop.galsim_sensor import BFSensor
+    from bfpsf.interop.silicon_truth import silicon_boundary_shifts
     from bfpsf.validation.simulate_flats import write_flats
     from bfpsf.validation.simulate_spots import simulate_star_field, write_image_adu
 

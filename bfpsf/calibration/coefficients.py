@@ -65,10 +65,10 @@ import functools
 import numpy as np
 from scipy.special import expi
 
-from ..errors import BFPSFValueError
+from ..errors import BFPSFCovarianceError, BFPSFValueError
 from ..shifts import BoundaryShifts
 
-__all__ = ["ShiftSolution", "solve_boundary_shifts", "fit_smoothing_model",
+__all__ = ["ShiftSolution", "solve_ei_shifts", "fit_smoothing_model",
            "smoothing_model_area", "non_nearest_mask"]
 
 # Search range of |p1| (1/pixel) for the smoothing fit: decay lengths 1/|p1| from 1000 pixels
@@ -120,6 +120,9 @@ class ShiftSolution:
         The input, [dy, dx], 1/e- (area_err None when not given).
     n_monte_carlo : int
         Draws used for the errors.
+    samples_north, samples_east : ndarray, shape (n_monte_carlo, 2m + 1, 2m + 1)
+        The Monte Carlo solutions themselves (empty without input errors): the calibration
+        error that downstream predictions propagate.
     """
 
     shifts: BoundaryShifts
@@ -138,6 +141,10 @@ class ShiftSolution:
     area: np.ndarray
     area_err: np.ndarray | None
     n_monte_carlo: int
+    samples_north: np.ndarray
+    samples_east: np.ndarray
+
+    method = "ei"
 
     @property
     def maxlag(self):
@@ -534,11 +541,11 @@ def _validate_covariance(area_cov, area):
     if area_cov.shape != (size, size):
         msg = (f"area_cov (covariance of area.ravel(), [dy, dx] order) must have shape "
                f"({size}, {size}), got {area_cov.shape}")
-        raise BFPSFValueError(msg, area_cov.shape)
+        raise BFPSFCovarianceError(msg, area_cov.shape)
     if not np.all(np.isfinite(area_cov)) or not np.allclose(area_cov, area_cov.T, rtol=1e-8,
                                                             atol=0.0):
         msg = "area_cov must be a finite symmetric covariance matrix"
-        raise BFPSFValueError(msg)
+        raise BFPSFCovarianceError(msg)
     try:
         return np.linalg.cholesky(area_cov)
     except np.linalg.LinAlgError:
@@ -548,7 +555,7 @@ def _validate_covariance(area_cov, area):
     if eigenvalues.min() < -1e-10 * max(eigenvalues.max(), 0.0) or eigenvalues.max() <= 0:
         msg = (f"area_cov is not a positive semi-definite covariance "
                f"(smallest eigenvalue {eigenvalues.min():.3g})")
-        raise BFPSFValueError(msg, float(eigenvalues.min()))
+        raise BFPSFCovarianceError(msg, float(eigenvalues.min()))
     return eigenvectors * np.sqrt(np.clip(eigenvalues, 0.0, None))
 
 
@@ -571,7 +578,7 @@ def _sensitivity(layout, area, p1, p1_err, nsigma, north, east):
             "rms_relative": rms_relative, "p1_values": tuple(float(v) for v in p1_values)}
 
 
-def solve_boundary_shifts(area, area_err=None, *, area_cov=None, n_monte_carlo=200, seed=0,
+def solve_ei_shifts(area, area_err=None, *, area_cov=None, n_monte_carlo=200, seed=0,
                           p1_sensitivity_nsigma=5.0):
     """Boundary shifts a^N, a^E from measured area coefficients (G15 section 6.1).
 
@@ -632,7 +639,10 @@ def solve_boundary_shifts(area, area_err=None, *, area_cov=None, n_monte_carlo=2
 
     # solved far boundaries = amplitude * unit / max|unit|; the Ei extrapolation = p0 * unit
     far_unit = layout.far_model(np.array([p1]))[0]
-    far_scale = (float(amplitude[0] / np.max(np.abs(far_unit)) / p0) if p0 != 0 else np.nan)
+    # nan when p0 is 0 or so small (a denormal far tail) that the ratio is not a number
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        far_scale = float(amplitude[0] / np.max(np.abs(far_unit)) / p0) if p0 != 0 else np.nan
+    far_scale = far_scale if np.isfinite(far_scale) else np.nan
     signs = np.ones_like(area)
     signs[1:, :] *= 2.0
     signs[:, 1:] *= 2.0
@@ -640,6 +650,8 @@ def solve_boundary_shifts(area, area_err=None, *, area_cov=None, n_monte_carlo=2
 
     north_err = np.full_like(north, np.nan)
     east_err = np.full_like(east, np.nan)
+    north_draws = np.empty((0,) + north.shape)
+    east_draws = np.empty((0,) + east.shape)
     if area_err is not None and n_monte_carlo >= 2:
         rng = np.random.default_rng(seed)
         normal = rng.standard_normal((n_monte_carlo, area.size))
@@ -666,4 +678,5 @@ def solve_boundary_shifts(area, area_err=None, *, area_cov=None, n_monte_carlo=2
                          p0_err=p0_err, p1_err=p1_err, chi2=chi2, dof=dof, far_scale=far_scale,
                          truncation_residual=truncation_residual, sensitivity=sensitivity,
                          area_model=area_model, area=area, area_err=area_err,
-                         n_monte_carlo=n_monte_carlo if area_err is not None else 0)
+                         n_monte_carlo=n_monte_carlo if area_err is not None else 0,
+                         samples_north=north_draws, samples_east=east_draws)

@@ -11,47 +11,64 @@ Images are ``data[y, x]`` in ADU, bias-subtracted (DESIGN.md conventions).
 
 import logging
 import os
-from dataclasses import dataclass
-from pathlib import Path
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 
-__all__ = ["Flat", "FlatPair", "MaskReport", "read_flats", "pair_flats", "pair_mask"]
+__all__ = ["Flat", "FlatPair", "MaskReport", "read_flats", "group_amplifiers", "pair_flats",
+           "check_pair", "pair_mask"]
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, eq=False)
 class Flat:
-    """One flat-field image.
+    """One flat-field image (one amplifier of one exposure).
 
     Attributes
     ----------
-    data : ndarray, shape (ny, nx)
-        Pixel values in ADU, bias-subtracted, indexed ``[y, x]`` (float64).
+    data : ndarray, shape (ny, nx), or None
+        Pixel values in ADU, bias- (overscan-) subtracted and trimmed, indexed ``[y, x]``
+        (float64); None for a flat not read yet (``layout`` says where it is; `load`).
     exptime : float
         Exposure time in seconds (header EXPTIME).
     name : str
-        Where the image came from (file name, or ``'array[i]'``); used in error messages.
+        Where the image came from (file name, ``file[AMP]`` for an amplifier of a
+        multi-extension file, or ``'array[i]'``); used in error messages.
     header : dict-like or None
-        The FITS header of the image HDU, or None for an array input.
+        The FITS header of the image HDU, or None for an array input or a flat not read yet.
+    amplifier : str
+        Amplifier name (EXTNAME), ``''`` for a single-image file or an array.
+    layout : bfpsf.io.amplifiers.AmplifierLayout or None
+        Where the pixels are in their file (None for an array input).
     """
 
     data: np.ndarray
     exptime: float
     name: str
     header: object = None
+    amplifier: str = ""
+    layout: object = None
 
     @property
     def shape(self):
         """Image shape (ny, nx)."""
-        return self.data.shape
+        return self.data.shape if self.data is not None else tuple(self.layout.shape)
 
     def mean(self):
         """Mean of the finite pixels, ADU."""
         return float(np.mean(self.data[np.isfinite(self.data)])) if self.data.size else np.nan
+
+    def load(self, *, overscan="median"):
+        """This flat with its pixels read (itself if they are already in memory)."""
+        if self.data is not None:
+            return self
+        from ..io.amplifiers import read_amplifier
+
+        amplifier = read_amplifier(self.layout, overscan=overscan)
+        return replace(self, data=amplifier.data, header=amplifier.header)
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,32 +140,6 @@ class MaskReport:
 # Ingest
 
 
-def _read_fits(path):
-    from astropy.io import fits
-
-    path = Path(path)
-    if not path.exists():
-        msg = f"flat file not found: {path}"
-        raise BFPSFInputError(msg, str(path))
-    try:
-        with fits.open(path, memmap=False) as hdus:
-            primary_header = hdus[0].header.copy()
-            for hdu in hdus:
-                if hdu.is_image and hdu.data is not None and np.ndim(hdu.data) == 2:
-                    data = np.array(hdu.data, dtype=np.float64)
-                    header = hdu.header.copy()
-                    break
-            else:
-                msg = f"{path}: no 2-D image HDU with data"
-                raise BFPSFInputError(msg, str(path))
-    except OSError as error:
-        msg = f"{path}: cannot read as FITS ({error})"
-        raise BFPSFInputError(msg, str(path)) from error
-    if "EXPTIME" not in header and "EXPTIME" in primary_header:
-        header["EXPTIME"] = primary_header["EXPTIME"]
-    return data, header
-
-
 def _as_exptime(value, name):
     try:
         exptime = float(value)
@@ -161,29 +152,41 @@ def _as_exptime(value, name):
     return exptime
 
 
-def read_flats(sources, exptimes=None):
-    """Read flat-field images from FITS files or arrays.
+def read_flats(sources, exptimes=None, *, amps=None, lazy=False, overscan="median"):
+    """Read flat-field images (every amplifier of every file) from FITS files or arrays.
 
     Parameters
     ----------
     sources : str, path, ndarray, Flat, or a sequence of them
-        FITS files (the first image HDU holding 2-D data is read; its header, or the primary
-        header, must have EXPTIME), 2-D arrays in ADU (then ``exptimes`` is required), or
-        `Flat` objects (passed through).
+        FITS files (single-HDU bias-subtracted images, or one image HDU per amplifier with
+        EXTNAME and optional BIASSEC / DATASEC / DETSEC: `bfpsf.io.amplifiers`; the HDU
+        header, or the primary header, must have EXPTIME), 2-D arrays in ADU (then
+        ``exptimes`` is required), or `Flat` objects (passed through).
     exptimes : sequence of float, optional
         Exposure times in seconds, one per source. Required for arrays; when given for files
         it overrides the header EXPTIME.
+    amps : str or sequence of str, optional
+        Amplifiers (EXTNAME) to read from every file. Default: all.
+    lazy : bool, optional
+        Read only the headers: the flats of files come back with ``data=None`` and are read
+        by `Flat.load` (as a worker of `bfpsf.parallel` does). Default False.
+    overscan : {'median', 'clipped_mean'}, optional
+        Row-by-row overscan estimator where a BIASSEC is given. Default ``'median'``.
 
     Returns
     -------
     list of Flat
+        One per amplifier of each file, in file order.
 
     Raises
     ------
     BFPSFInputError
-        A file is missing or unreadable, has no EXPTIME, an array is not 2-D, or the number of
-        ``exptimes`` does not match the number of sources.
+        A file is missing or unreadable, holds HDUs bfpsf cannot interpret
+        (`bfpsf.io.amplifiers.amplifier_layout`), has no EXPTIME, an array is not 2-D, or the
+        number of ``exptimes`` does not match the number of sources.
     """
+    from ..io.amplifiers import amplifier_layout
+
     if isinstance(sources, (str, os.PathLike, np.ndarray, Flat)):
         sources = [sources]
     sources = list(sources)
@@ -200,31 +203,38 @@ def read_flats(sources, exptimes=None):
         override = None if exptimes is None else exptimes[index]
         if isinstance(source, Flat):
             if override is not None:
-                source = Flat(source.data, _as_exptime(override, source.name), source.name,
-                              source.header)
-            flats.append(source)
-            continue
-        if isinstance(source, (str, os.PathLike)):
-            name = str(source)
-            data, header = _read_fits(source)
-            if override is None:
-                if "EXPTIME" not in header:
-                    msg = f"{name}: header keyword EXPTIME is missing (exposure time in seconds)"
-                    raise BFPSFInputError(msg, name)
-                override = header["EXPTIME"]
+                source = replace(source, exptime=_as_exptime(override, source.name))
+            flats.append(source if lazy else source.load(overscan=overscan))
+        elif isinstance(source, (str, os.PathLike)):
+            for layout in amplifier_layout(source, amps, what="flat file"):
+                exptime = override if override is not None else layout.exptime
+                if exptime is None:
+                    msg = (f"{layout.label}: header keyword EXPTIME is missing (exposure time "
+                           "in seconds)")
+                    raise BFPSFInputError(msg, layout.label)
+                flat = Flat(None, _as_exptime(exptime, layout.label), layout.label,
+                            amplifier=layout.name, layout=layout)
+                flats.append(flat if lazy else flat.load(overscan=overscan))
         else:
             name = f"array[{index}]"
             data = np.array(source, dtype=np.float64)
-            header = None
             if override is None:
                 msg = (f"{name}: flats given as arrays need exptimes (seconds), "
                        "e.g. read_flats(arrays, exptimes=[...])")
                 raise BFPSFInputError(msg, name)
-        if data.ndim != 2:
-            msg = f"{name}: a flat must be a 2-D image, got shape {data.shape}"
-            raise BFPSFInputError(msg, data.shape)
-        flats.append(Flat(data, _as_exptime(override, name), name, header))
+            if data.ndim != 2:
+                msg = f"{name}: a flat must be a 2-D image, got shape {data.shape}"
+                raise BFPSFInputError(msg, data.shape)
+            flats.append(Flat(data, _as_exptime(override, name), name))
     return flats
+
+
+def group_amplifiers(flats):
+    """The flats of each amplifier, ``{name: [Flat, ...]}`` in order of first appearance."""
+    groups = {}
+    for flat in flats:
+        groups.setdefault(flat.amplifier, []).append(flat)
+    return groups
 
 
 # ---------------------------------------------------------------------------------------------
@@ -234,7 +244,9 @@ def read_flats(sources, exptimes=None):
 def pair_flats(flats, *, mean_tolerance=0.05):
     """Pair flats by equal exposure time.
 
-    Flats of one EXPTIME are paired in the order given: (1st, 2nd), (3rd, 4th), ...
+    Flats of one amplifier and one EXPTIME are paired in the order given: (1st, 2nd),
+    (3rd, 4th), ... The means are compared here for flats in memory, and by `check_pair`
+    once they are read for flats read lazily.
 
     Parameters
     ----------
@@ -262,6 +274,13 @@ def pair_flats(flats, *, mean_tolerance=0.05):
     if mean_tolerance <= 0:
         msg = f"mean_tolerance must be positive, got {mean_tolerance}"
         raise BFPSFValueError(msg, mean_tolerance)
+    pairs = []
+    for amplifier_flats in group_amplifiers(flats).values():
+        pairs += _pair_by_exptime(amplifier_flats, mean_tolerance)
+    return sorted(pairs, key=lambda pair: pair.exptime)
+
+
+def _pair_by_exptime(flats, mean_tolerance):
     groups = {}
     for flat in flats:
         for exptime in groups:
@@ -279,17 +298,19 @@ def pair_flats(flats, *, mean_tolerance=0.05):
                    "by equal EXPTIME" + (f" and {others} already pair up" if others else ""))
             raise BFPSFInputError(msg, group[-1].name)
         for first, second in zip(group[0::2], group[1::2]):
-            _check_pair(first, second, mean_tolerance)
+            check_pair(first, second, mean_tolerance)
             pairs.append(FlatPair(first, second))
     return pairs
 
 
-def _check_pair(first, second, mean_tolerance):
+def check_pair(first, second, mean_tolerance):
+    """Raise `BFPSFInputError` if two flats of one EXPTIME cannot be a pair: different shapes,
+    or (once their pixels are read) means that differ by more than ``mean_tolerance``."""
     if first.shape != second.shape:
         msg = (f"flats {first.name} {first.shape} and {second.name} {second.shape} have the "
                "same EXPTIME but different shapes")
         raise BFPSFInputError(msg, (first.shape, second.shape))
-    if first.exptime <= 0:
+    if first.exptime <= 0 or first.data is None or second.data is None:
         return
     mean1, mean2 = first.mean(), second.mean()
     mean = 0.5 * (mean1 + mean2)

@@ -1,6 +1,6 @@
 """Readers for published tables of measured area coefficients a(dx, dy).
 
-Three formats are recognised from their header line (``../shared/data/measured``):
+Three formats are recognised from their header line (the tables shipped in `bfpsf.data`):
 
 * Lage ``corr_meas*.txt`` (UC Davis BF_Kernel): columns ``ii jj C sig N`` with ``ii`` the ROW
   (parallel, dy) offset and ``jj`` the COLUMN (serial, dx) offset; ``C`` is the correlation

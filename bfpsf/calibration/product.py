@@ -8,16 +8,23 @@ tables and float64 images, never header keywords, hold the values).
 
 File layout (schema version `SCHEMA_VERSION`)::
 
-    PRIMARY      header only: BFSCHEMA, BFVERSIO, MODEL, readable GAIN / NOISE / MAXLAG
+    PRIMARY      header only: BFSCHEMA, BFVERSIO, MODEL, NAMP, readable GAIN / NOISE / MAXLAG
+
+then, per amplifier, one HDU group (every HDU has EXTVER = 1, 2, ... and AMPNAME; the SUMMARY
+header holds the amplifier's MODEL and SHIFTMTH, the solver of its shifts):
+
     SUMMARY      one-row table of the scalars (gain, errors, turnoff, linearity, ...)
     A, A_ERR     a(dx, dy) and error, [dy, dx], 1/electron
     B, B_ERR     A+19 b(dx, dy), [dy, dx], 1/electron
     NOISE        zero-flux covariances n(dx, dy), [dy, dx], electron^2
     PEDESTAL, PEDESTAL_ERR   zero-flux correlations R0(dx, dy), [dy, dx], dimensionless
     SHIFT_N, SHIFT_E, SHIFT_S, SHIFT_W        a^X(dx, dy), [dy + m, dx + m], 1/electron
-    SHIFT_N_ERR, SHIFT_E_ERR                  their Monte Carlo errors (when solved)
+    SHIFT_N_ERR, SHIFT_E_ERR                  their errors (when solved)
+    SHIFT_N_SAMP, SHIFT_E_SAMP                samples of a^N, a^E drawn from the calibration
+                                              error, [sample, dy + m, dx + m] (schema >= 2)
+    WARNINGS     one string per warning of this amplifier (schema >= 2)
     COV, NPIX    per-pair covariances [pair, dy, dx] (adu^2, before pedestal subtraction), counts
-    SHIFTFIT     key / value table of the smoothing-model fit (p0, p1, p1_err, sensitivity)
+    SHIFTFIT     key / value table of the shift solvers' scalars (chi2 of each, parameters)
     PTC          per-pair table (`bfpsf.calibration.ptc.ptc_table` columns and more)
     LINEARITY    exptime, mean_adu, frac_residual, used
     INPUTS       input file names;  PARAMS  key / JSON value of the calibrate() parameters
@@ -30,15 +37,22 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..files import open_product, refuse_overwrite
+from ..errors import BFPSFInputError
+from ..files import open_product, refuse_overwrite, write_fits
 from ..shifts import BoundaryShifts
 from .linearity import Linearity
 from .pedestal import Pedestal
 
-__all__ = ["Calibration", "SCHEMA_VERSION"]
+__all__ = ["Calibration", "DetectorCalibration", "read_calibration", "amplifiers_of",
+           "calibration_of_amplifier",
+           "SCHEMA_VERSION"]
 
 #: Version of the FITS layout written by `Calibration.write`; `Calibration.read` refuses newer.
-SCHEMA_VERSION = 1
+#: 2: the shift solver (header SHIFTMTH), samples of the shifts and the warnings (single
+#:    amplifier; issue 10) -- or per-amplifier HDU groups (EXTVER, AMPNAME; issue 12).
+#: 3: both: per-amplifier HDU groups, each with its solver (SUMMARY header SHIFTMTH), shift
+#:    samples (SHIFT_N_SAMP, SHIFT_E_SAMP) and WARNINGS. Schema 1 and 2 files read.
+SCHEMA_VERSION = 3
 
 _SUMMARY_FLOATS = ("gain", "gain_err", "noise_e", "noise_e_err", "turnoff_e", "chi2")
 _SUMMARY_INTS = ("maxlag", "n_pairs", "ndof")
@@ -71,13 +85,21 @@ class Calibration:
     shifts : BoundaryShifts or None
         Boundary shifts a^X(dx, dy), 1/e- (None if they were not solved).
     shifts_north_err, shifts_east_err : ndarray or None
-        Monte Carlo errors of ``shifts.north`` and ``shifts.east``, 1/e-.
+        Errors of ``shifts.north`` and ``shifts.east``, 1/e-.
+    shift_samples_north, shift_samples_east : ndarray (S, 2m + 1, 2m + 1) or None
+        Shifts drawn from the calibration's uncertainty (1/e-): every prediction made from
+        the shifts propagates them (`shift_samples`).
+    shift_method : str or None
+        The solver of the shifts (`bfpsf.calibration.boundary_shifts.SHIFT_METHODS`).
+    warnings : tuple of str
+        What the calibration could not determine well, in words (``--json`` ``warnings``).
     covariances_adu, npix : ndarray (n_pairs, L, L) or None
         Measured single-image covariances of every pair (ADU^2, before pedestal subtraction)
         and the pixel products behind them, [pair, dy, dx] in PTC-table order.
     shift_fit : dict
-        Scalars of the G15 smoothing model f(r) = p0 Ei(p1 r): ``p0``, ``p1``, ``p1_err``,
-        ``sensitivity`` (relative change of the shifts for p1 +- 5 sigma), when solved.
+        Scalars of the shift solvers, when solved: the chi2 and dof of each solver on the
+        measured a (``electrostatic_chi2``, ``ei_chi2``, ...), the electrostatic geometry, and
+        the G15 smoothing model f(r) = p0 Ei(p1 r) (``ei_p1``, ``ei_sensitivity_...``).
     ptc : astropy.table.Table
         Per-pair table (see `bfpsf.calibration.ptc.ptc_table`).
     linearity : Linearity
@@ -95,6 +117,8 @@ class Calibration:
         Parameters of `bfpsf.calibrate` (JSON-serialisable).
     bfpsf_version : str
     schema_version : int
+    amplifier : str
+        Amplifier name (EXTNAME of the flats), ``''`` for a single-image sensor.
     """
 
     gain: float
@@ -118,18 +142,25 @@ class Calibration:
     shifts_north_err: np.ndarray = None
     shifts_east_err: np.ndarray = None
     shift_fit: dict = field(default_factory=dict)
+    shift_samples_north: np.ndarray = None
+    shift_samples_east: np.ndarray = None
+    shift_method: str = None
+    warnings: tuple = ()
     covariances_adu: np.ndarray = None
     npix: np.ndarray = None
     inputs: tuple = ()
     parameters: dict = field(default_factory=dict)
     bfpsf_version: str = __version__
     schema_version: int = SCHEMA_VERSION
+    amplifier: str = ""
 
     def __post_init__(self):
         for name in ("a", "a_err", "b", "b_err", "noise_matrix_e2", "shifts_north_err",
-                     "shifts_east_err", "covariances_adu", "npix"):
+                     "shifts_east_err", "shift_samples_north", "shift_samples_east",
+                     "covariances_adu", "npix"):
             object.__setattr__(self, name, _frozen(getattr(self, name)))
         object.__setattr__(self, "inputs", tuple(str(name) for name in self.inputs))
+        object.__setattr__(self, "warnings", tuple(str(text) for text in self.warnings))
         object.__setattr__(self, "shift_fit", {key: float(value)
                                                for key, value in dict(self.shift_fit).items()})
 
@@ -143,6 +174,14 @@ class Calibration:
     def n_pairs(self):
         """Number of flat pairs in the PTC table."""
         return len(self.ptc)
+
+    def shift_samples(self, limit=None):
+        """The shift samples as `BoundaryShifts` (at most ``limit``; empty without samples)."""
+        if self.shift_samples_north is None:
+            return []
+        count = len(self.shift_samples_north) if limit is None else int(limit)
+        return [BoundaryShifts(north, east, check=False) for north, east in
+                zip(self.shift_samples_north[:count], self.shift_samples_east[:count])]
 
     def __repr__(self):
         return (f"Calibration(model={self.model!r}, gain={self.gain:.5g}+-{self.gain_err:.2g} "
@@ -188,6 +227,8 @@ class Calibration:
             "units": {"gain": "electron/adu", "noise_e": "electron", "a": "1/electron",
                       "turnoff_e": "electron", "pedestal": "dimensionless"},
             "shifts_solved": self.shifts is not None,
+            "shift_method": self.shift_method,
+            "warnings": list(self.warnings),
             "parameters": dict(self.parameters),
             "inputs": list(self.inputs), "bfpsf_version": self.bfpsf_version,
             "schema_version": self.schema_version,
@@ -211,19 +252,30 @@ class Calibration:
             Replace an existing file. Default False: raise `BFPSFFileExistsError`.
         """
         from astropy.io import fits
-        from astropy.table import Table
 
         path = Path(path)
         refuse_overwrite(path, overwrite)
         primary = fits.PrimaryHDU()
         header = primary.header
-        header["BFSCHEMA"] = (self.schema_version, "bfpsf calibration schema version")
+        header["BFSCHEMA"] = (SCHEMA_VERSION, "bfpsf calibration schema version")
         header["BFVERSIO"] = (self.bfpsf_version, "bfpsf version that wrote the file")
         header["MODEL"] = (self.model, "PTC model")
         header["GAIN"] = (round(self.gain, 6), "[e-/ADU] (exact value in SUMMARY)")
         header["NOISE"] = (round(self.noise_e, 4), "[e-] read noise (exact in SUMMARY)")
         header["MAXLAG"] = (self.maxlag, "largest lag of A")
-        hdus = [primary]
+        header["NAMP"] = (1, "amplifiers (HDU groups) in the file")
+        header["SHIFTMTH"] = (str(self.shift_method or ""), "solver of the boundary shifts")
+        write_fits(fits.HDUList([primary, *self.group_hdus()]), path, overwrite=overwrite)
+
+    def group_hdus(self, extver=1):
+        """The HDUs of this calibration, one group of a (per-amplifier) calibration file.
+
+        Every HDU carries EXTVER = ``extver`` (the group) and AMPNAME = `amplifier`.
+        """
+        from astropy.io import fits
+        from astropy.table import Table
+
+        hdus = []
 
         summary = Table()
         for name in _SUMMARY_FLOATS:
@@ -253,6 +305,9 @@ class Calibration:
                 images.append(("SHIFT_N_ERR", self.shifts_north_err, "1/electron"))
             if self.shifts_east_err is not None:
                 images.append(("SHIFT_E_ERR", self.shifts_east_err, "1/electron"))
+            if self.shift_samples_north is not None:
+                images += [("SHIFT_N_SAMP", self.shift_samples_north, "1/electron"),
+                           ("SHIFT_E_SAMP", self.shift_samples_east, "1/electron")]
         if self.covariances_adu is not None:
             images.append(("COV", self.covariances_adu, "adu2"))
         if self.npix is not None:
@@ -260,7 +315,8 @@ class Calibration:
         for name, array, unit in images:
             hdu = fits.ImageHDU(np.asarray(array, dtype=np.float64), name=name)
             hdu.header["BUNIT"] = unit  # a comment string: FITS knows no electron unit
-            hdu.header["INDEXING"] = ("[dy+m, dx+m]" if name.startswith("SHIFT") else
+            hdu.header["INDEXING"] = ("[sample, dy+m, dx+m]" if name.endswith("SAMP") else
+                                      "[dy+m, dx+m]" if name.startswith("SHIFT") else
                                       "[pair, dy, dx]" if name in ("COV", "NPIX") else "[dy, dx]")
             hdus.append(hdu)
 
@@ -269,6 +325,9 @@ class Calibration:
         if not self.shift_fit:
             shift_fit = shift_fit[:0]
         hdus.append(_table_hdu(shift_fit, "SHIFTFIT"))
+        hdus.append(_table_hdu(Table({"text": np.array(self.warnings, dtype=str)})
+                               if self.warnings else Table({"text": np.array([], dtype="U1")}),
+                               "WARNINGS"))
         hdus.append(_table_hdu(Table(self.ptc, copy=True), "PTC"))
         linearity = Table()
         linearity["exptime"] = np.asarray(self.linearity.exptime, dtype=float)
@@ -287,65 +346,222 @@ class Calibration:
         if not self.parameters:
             params = Table({"key": np.array([], dtype="U1"), "value": np.array([], dtype="U1")})
         hdus.append(_table_hdu(params, "PARAMS"))
-        fits.HDUList(hdus).writeto(path, overwrite=overwrite)
+        for hdu in hdus:
+            hdu.ver = int(extver)
+            hdu.header["AMPNAME"] = (self.amplifier, "amplifier of this HDU group")
+        hdus[0].header["MODEL"] = (self.model, "PTC model")
+        hdus[0].header["SHIFTMTH"] = (str(self.shift_method or ""),
+                                      "solver of the boundary shifts")
+        return hdus
 
     @classmethod
-    def read(cls, path):
-        """Read a file written by `write`.
+    def read(cls, path, *, amp=None):
+        """Read a file written by `write` (or one amplifier of a `DetectorCalibration` file).
+
+        Parameters
+        ----------
+        path : str or path
+        amp : str, optional
+            Amplifier to read from a file of several (required there).
 
         Raises
         ------
         BFPSFInputError
-            The file is missing, is not a bfpsf calibration, or was written with a newer
-            schema than this bfpsf understands.
+            The file is missing, is not a bfpsf calibration, was written with a newer schema
+            than this bfpsf understands, or holds several amplifiers and ``amp`` names none.
         """
-        from astropy.table import Table
-
         with open_product(path, keyword="BFSCHEMA", version=SCHEMA_VERSION,
                           kind="calibration") as hdul:
-            header = hdul[0].header
-            names = {hdu.name for hdu in hdul}
+            groups = _group_names(hdul)
+            if amp is None and len(groups) > 1:
+                msg = (f"{path} holds {len(groups)} amplifiers ({', '.join(groups)}); choose "
+                       "one with amp=NAME, or read them all with DetectorCalibration.read")
+                raise BFPSFInputError(msg, str(path))
+            if amp is not None and amp not in groups:
+                msg = f"{path} has no amplifier {amp!r}; it has {', '.join(map(repr, groups))}"
+                raise BFPSFInputError(msg, amp)
+            return cls.from_group(hdul, groups[amp] if amp is not None else 1)
 
-            def image(name):
-                return np.array(hdul[name].data, dtype=np.float64) if name in names else None
+    @classmethod
+    def from_group(cls, hdul, extver=1):
+        """The calibration held by HDU group ``extver`` of an open calibration file."""
+        from astropy.table import Table
 
+        header = hdul[0].header
+        names = {hdu.name for hdu in hdul if hdu.ver == extver}
+
+        def image(name):
+            return np.array(hdul[name, extver].data, dtype=np.float64) if name in names else None
+
+        def table(name):
+            if name not in names:  # `bfpsf.files.reading` turns this into a one-line error
+                raise KeyError(f"Extension {name!r} not found.")
             # mask_invalid=False: NaN (e.g. a turnoff not reached) reads back as NaN, not masked
-            summary = Table.read(hdul["SUMMARY"], mask_invalid=False)[0]
-            ptc = Table.read(hdul["PTC"], mask_invalid=False)
-            lin = Table.read(hdul["LINEARITY"], mask_invalid=False)
-            input_table = Table.read(hdul["INPUTS"], mask_invalid=False)
-            inputs = tuple(str(name) for name in input_table["name"])
-            params_table = Table.read(hdul["PARAMS"], mask_invalid=False)
-            parameters = {str(row["key"]): json.loads(str(row["value"])) for row in params_table}
-            shift_table = Table.read(hdul["SHIFTFIT"], mask_invalid=False)
-            shift_fit = {str(row["key"]): float(row["value"]) for row in shift_table}
-            shifts = None
-            if "SHIFT_N" in names:
-                shifts = BoundaryShifts(image("SHIFT_N"), image("SHIFT_E"), check=False)
-            pedestal = Pedestal(value=_frozen(image("PEDESTAL")),
-                                error=_frozen(image("PEDESTAL_ERR")),
-                                nsigma=float(summary["ped_nsigma"]),
-                                degree=int(summary["ped_degree"]))
-            linearity = Linearity(
-                exptime=np.array(lin["exptime"], dtype=float),
-                mean_adu=np.array(lin["mean_adu"], dtype=float),
-                slope=float(summary["lin_slope"]), intercept=float(summary["lin_intercept"]),
-                frac_residual=np.array(lin["frac_residual"], dtype=float),
-                used=np.array(lin["used"], dtype=bool),
-                threshold=float(summary["lin_threshold"]), measured=bool(summary["lin_measured"]))
-            return cls(
-                gain=float(summary["gain"]), gain_err=float(summary["gain_err"]),
-                noise_e=float(summary["noise_e"]), noise_e_err=float(summary["noise_e_err"]),
-                a=image("A"), a_err=image("A_ERR"), b=image("B"), b_err=image("B_ERR"),
-                noise_matrix_e2=image("NOISE"), ptc=ptc, linearity=linearity, pedestal=pedestal,
-                model=str(header["MODEL"]), turnoff_e=float(summary["turnoff_e"]),
-                turnoff_detected=bool(summary["turnoff_detected"]),
-                chi2=float(summary["chi2"]), ndof=int(summary["ndof"]), shifts=shifts,
-                shifts_north_err=image("SHIFT_N_ERR"), shifts_east_err=image("SHIFT_E_ERR"),
-                shift_fit=shift_fit, covariances_adu=image("COV"), npix=image("NPIX"),
-                inputs=inputs, parameters=parameters,
-                bfpsf_version=str(header["BFVERSIO"]),
-                schema_version=int(header["BFSCHEMA"]))
+            return Table.read(hdul[name, extver], mask_invalid=False)
+
+        summary = table("SUMMARY")[0]
+        ptc = table("PTC")
+        lin = table("LINEARITY")
+        inputs = tuple(str(name) for name in table("INPUTS")["name"])
+        parameters = {str(row["key"]): json.loads(str(row["value"])) for row in table("PARAMS")}
+        shift_table = table("SHIFTFIT")
+        shift_fit = {str(row["key"]): float(row["value"]) for row in shift_table}
+        shifts = None
+        if "SHIFT_N" in names:
+            shifts = BoundaryShifts(image("SHIFT_N"), image("SHIFT_E"), check=False)
+        group = hdul["SUMMARY", extver].header
+        # schema 1 files had only the Ei solver and no SHIFTMTH
+        default_method = "ei" if shifts is not None else ""
+        pedestal = Pedestal(value=_frozen(image("PEDESTAL")),
+                            error=_frozen(image("PEDESTAL_ERR")),
+                            nsigma=float(summary["ped_nsigma"]),
+                            degree=int(summary["ped_degree"]))
+        linearity = Linearity(
+            exptime=np.array(lin["exptime"], dtype=float),
+            mean_adu=np.array(lin["mean_adu"], dtype=float),
+            slope=float(summary["lin_slope"]), intercept=float(summary["lin_intercept"]),
+            frac_residual=np.array(lin["frac_residual"], dtype=float),
+            used=np.array(lin["used"], dtype=bool),
+            threshold=float(summary["lin_threshold"]), measured=bool(summary["lin_measured"]))
+        return cls(
+            gain=float(summary["gain"]), gain_err=float(summary["gain_err"]),
+            noise_e=float(summary["noise_e"]), noise_e_err=float(summary["noise_e_err"]),
+            a=image("A"), a_err=image("A_ERR"), b=image("B"), b_err=image("B_ERR"),
+            noise_matrix_e2=image("NOISE"), ptc=ptc, linearity=linearity, pedestal=pedestal,
+            model=str(group.get("MODEL", header["MODEL"])),
+            turnoff_e=float(summary["turnoff_e"]),
+            turnoff_detected=bool(summary["turnoff_detected"]),
+            chi2=float(summary["chi2"]), ndof=int(summary["ndof"]), shifts=shifts,
+            shifts_north_err=image("SHIFT_N_ERR"), shifts_east_err=image("SHIFT_E_ERR"),
+            shift_fit=shift_fit, shift_samples_north=image("SHIFT_N_SAMP"),
+            shift_samples_east=image("SHIFT_E_SAMP"),
+            shift_method=str(group.get("SHIFTMTH", header.get("SHIFTMTH", default_method)))
+            or None,
+            warnings=(tuple(str(text) for text in table("WARNINGS")["text"])
+                      if "WARNINGS" in names else ()),
+            covariances_adu=image("COV"), npix=image("NPIX"),
+            inputs=inputs, parameters=parameters,
+            bfpsf_version=str(header["BFVERSIO"]),
+            schema_version=int(header["BFSCHEMA"]),
+            amplifier=str(group.get("AMPNAME", "")))
+
+
+@dataclass(frozen=True, eq=False)
+class DetectorCalibration:
+    """The calibrations of the amplifiers of one detector: one file, one HDU group each.
+
+    Attributes
+    ----------
+    amplifiers : dict of str to Calibration
+        In readout (file) order.
+    detector : str
+        Detector name ('' when not known).
+    """
+
+    amplifiers: dict
+    detector: str = ""
+
+    def __post_init__(self):
+        object.__setattr__(self, "amplifiers", dict(self.amplifiers))
+        if not self.amplifiers:
+            msg = "a DetectorCalibration needs at least one amplifier"
+            raise BFPSFInputError(msg)
+
+    @property
+    def names(self):
+        """Amplifier names, in order."""
+        return list(self.amplifiers)
+
+    def __getitem__(self, name):
+        return self.amplifiers[name]
+
+    def __len__(self):
+        return len(self.amplifiers)
+
+    def __repr__(self):
+        return (f"DetectorCalibration(detector={self.detector!r}, amplifiers="
+                f"{', '.join(f'{name}: gain {cal.gain:.4g}' for name, cal in self.amplifiers.items())})")
+
+    @property
+    def warnings(self):
+        """The warnings of every amplifier, each prefixed by its amplifier's name."""
+        return tuple(f"{name}: {text}" for name, calibration in self.amplifiers.items()
+                     for text in calibration.warnings)
+
+    def to_json_dict(self):
+        """``{'detector', 'warnings', 'amplifiers': [{'name', <the keys of
+        Calibration.to_json_dict>}]}`` (each amplifier with its own ``warnings`` and
+        ``shift_method``; the detector's ``warnings`` are all of them, prefixed by amplifier)."""
+        return {"detector": self.detector, "n_amplifiers": len(self),
+                "schema_version": SCHEMA_VERSION, "bfpsf_version": __version__,
+                "warnings": list(self.warnings),
+                "amplifiers": [{"name": name, **calibration.to_json_dict()}
+                               for name, calibration in self.amplifiers.items()]}
+
+    def write(self, path, *, overwrite=False):
+        """Write one file: the primary header, then the HDU group of each amplifier
+        (`Calibration.group_hdus`, EXTVER 1, 2, ...)."""
+        from astropy.io import fits
+
+        refuse_overwrite(path, overwrite)
+        primary = fits.PrimaryHDU()
+        primary.header["BFSCHEMA"] = (SCHEMA_VERSION, "bfpsf calibration schema version")
+        primary.header["BFVERSIO"] = (__version__, "bfpsf version that wrote the file")
+        primary.header["NAMP"] = (len(self), "amplifiers (HDU groups) in the file")
+        primary.header["DETECTOR"] = (self.detector, "detector name")
+        first = next(iter(self.amplifiers.values()))
+        primary.header["MODEL"] = (first.model, "PTC model of the first amplifier")
+        hdus = [primary]
+        for extver, calibration in enumerate(self.amplifiers.values(), start=1):
+            hdus += calibration.group_hdus(extver)
+        write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
+
+    @classmethod
+    def read(cls, path):
+        """Read a calibration file of any number of amplifiers (schema 1 files: one)."""
+        with open_product(path, keyword="BFSCHEMA", version=SCHEMA_VERSION,
+                          kind="calibration") as hdul:
+            groups = _group_names(hdul)
+            return cls({name: Calibration.from_group(hdul, extver)
+                        for name, extver in groups.items()},
+                       detector=str(hdul[0].header.get("DETECTOR", "")))
+
+
+def amplifiers_of(calibration):
+    """``{amplifier name: Calibration}`` of a `Calibration` (one) or a `DetectorCalibration`."""
+    if isinstance(calibration, DetectorCalibration):
+        return dict(calibration.amplifiers)
+    return {calibration.amplifier: calibration}
+
+
+def calibration_of_amplifier(calibration, name, where=""):
+    """The `Calibration` that applies to amplifier ``name``: the one of that name in a
+    `DetectorCalibration`, or a one-amplifier calibration for any amplifier.
+
+    Raises
+    ------
+    BFPSFInputError
+        A calibration of several amplifiers has none named ``name``.
+    """
+    amplifiers = amplifiers_of(calibration)
+    if len(amplifiers) == 1:
+        return next(iter(amplifiers.values()))
+    if name not in amplifiers:
+        msg = (f"{where}{': ' if where else ''}amplifier {name!r} is not in the calibration "
+               f"(it has {', '.join(map(repr, amplifiers))})")
+        raise BFPSFInputError(msg, name)
+    return amplifiers[name]
+
+
+def read_calibration(path):
+    """A `Calibration` for a one-amplifier file, a `DetectorCalibration` for several."""
+    detector = DetectorCalibration.read(path)
+    return detector if len(detector) > 1 else next(iter(detector.amplifiers.values()))
+
+
+def _group_names(hdul):
+    """``{amplifier name: EXTVER}`` of the HDU groups of a calibration file (schema 1: one)."""
+    return {str(hdu.header.get("AMPNAME", "")): hdu.ver for hdu in hdul if hdu.name == "SUMMARY"}
 
 
 def _table_hdu(table, name):

@@ -339,17 +339,6 @@ def _first_order_slopes(mean_e, cov_adu, npix):
 # ---------------------------------------------------------------------------------------------
 # A+19 full covariance model (eq. 20)
 # ---------------------------------------------------------------------------------------------
-def _full_plane(quadrant):
-    """Mirror a [dy, dx] quadrant 0..L-1 onto the full plane of lags -(L-1)..(L-1)."""
-    n = quadrant.shape[-1]
-    plane = np.zeros(quadrant.shape[:-2] + (2 * n - 1, 2 * n - 1))
-    plane[..., n - 1:, n - 1:] = quadrant
-    plane[..., n - 1:, :n] = quadrant[..., :, ::-1]
-    plane[..., :n, n - 1:] = quadrant[..., ::-1, :]
-    plane[..., :n, :n] = quadrant[..., ::-1, ::-1]
-    return plane
-
-
 @functools.lru_cache(maxsize=8)
 def _convolution_tensor(nlag):
     """W[q, r, s] such that quadrant(full(x) * full(y))[q] = sum_rs W[q, r, s] x[s] y[r].
@@ -375,11 +364,6 @@ def _convolution_matrix(x):
     """Matrix of y -> quadrant(full(x) * full(y)) on flattened quadrants."""
     nlag = x.shape[0]
     return _convolution_tensor(nlag) @ x.ravel()
-
-
-def _convolve_quadrant(first, second):
-    """(first * second) over the full plane, returned on the [dy, dx] >= 0 quadrant."""
-    return (_convolution_matrix(first) @ second.ravel()).reshape(first.shape)
 
 
 #: Powers of a summed in the full model. A+19 eq. 20 stops at a*a*a (mu^4); the b = 0 build-up

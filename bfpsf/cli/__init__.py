@@ -2,27 +2,76 @@
 
 Each sub-command lives in its own module ``bfpsf.cli.<name>`` that defines
 ``add_parser(subparsers)`` (returning the sub-parser) and ``run(args)`` (returning an exit code).
+
+Every command also takes the common options (`add_common_options`): ``--progress`` /
+``--no-progress`` (default: on only when stderr is a terminal, so a log file never gets escape
+codes), ``-v`` / ``-q`` (logging to stderr: warnings by default, ``-v`` info, ``-vv`` debug,
+``-q`` errors only) and ``--threads N`` (default ``OMP_NUM_THREADS`` when set, else every CPU).
 """
 
 import argparse
 import importlib
+import logging
+import os
 import sys
 
 from .. import __version__
-from ..errors import BFPSFError
+from ..errors import BFPSFError, BFPSFValueError
 
 #: Sub-commands in data-flow order; each name is a module of this package.
 COMMANDS = ["simulate", "calibrate", "measure", "slope", "psf", "photometry", "validate",
             "diagnose"]
 
 
-def _available_commands():
-    for name in COMMANDS:
-        try:
-            yield name, importlib.import_module(f"{__name__}.{name}")
-        except ModuleNotFoundError as error:
-            if error.name != f"{__name__}.{name}":
-                raise
+
+
+def add_common_options(parser):
+    """Add the options every command shares (module docstring)."""
+    common = parser.add_argument_group("common options")
+    common.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                        help="progress bars on stderr (default: only when stderr is a terminal)")
+    common.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more messages on stderr (-v: info, -vv: debug)")
+    common.add_argument("-q", "--quiet", action="count", default=0,
+                        help="fewer messages on stderr (errors only)")
+    common.add_argument("--threads", type=int, metavar="N",
+                        help="threads for the FFTs and GalSim (default: OMP_NUM_THREADS if "
+                             "set, else every CPU)")
+    return parser
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Log records to the current ``sys.stderr`` (which may be replaced after set-up)."""
+
+    def emit(self, record):
+        self.stream = sys.stderr
+        super().emit(record)
+
+
+def _apply_common_options(args):
+    """Resolve the common options: logging, threads, and ``args.progress`` as a bool."""
+    if not hasattr(args, "verbose"):  # e.g. ``bfpsf simulate`` without a target: only help
+        return
+    logger = logging.getLogger("bfpsf")
+    level = logging.WARNING + 10 * (args.quiet - args.verbose)
+    logger.setLevel(min(max(level, logging.DEBUG), logging.CRITICAL))
+    if not any(isinstance(handler, _StderrHandler) for handler in logger.handlers):
+        handler = _StderrHandler()
+        handler.setFormatter(logging.Formatter("bfpsf: %(message)s"))
+        logger.addHandler(handler)
+    if args.progress is None:
+        args.progress = sys.stderr.isatty()
+    threads = args.threads
+    if threads is None and os.environ.get("OMP_NUM_THREADS", "").strip().isdigit():
+        threads = int(os.environ["OMP_NUM_THREADS"])
+    if threads is not None:
+        if threads < 1:
+            msg = f"--threads must be at least 1, got {threads}"
+            raise BFPSFValueError(msg, threads)
+        from ..model.tiles import set_default_workers
+
+        os.environ["OMP_NUM_THREADS"] = str(threads)
+        set_default_workers(threads)
 
 
 def build_parser():
@@ -30,8 +79,11 @@ def build_parser():
         prog="bfpsf", description="Brighter-fatter aware PSF models (Guyonnet et al. 2015).")
     parser.add_argument("--version", action="version", version=f"bfpsf {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, module in _available_commands():
+    for name in COMMANDS:
+        module = importlib.import_module(f"{__name__}.{name}")
         sub = module.add_parser(subparsers)
+        if getattr(module, "TARGETS", None) is None:  # simulate adds them to each target
+            add_common_options(sub)
         sub.set_defaults(_run=module.run)
     return parser
 
@@ -43,6 +95,7 @@ def main(argv=None):
         parser.print_help()
         return 2
     try:
+        _apply_common_options(args)
         return args._run(args) or 0
     except BFPSFError as error:
         print(f"bfpsf {args.command}: error: {error}", file=sys.stderr)

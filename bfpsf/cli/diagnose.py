@@ -7,7 +7,8 @@ Two modes (a thin layer over `bfpsf.validation.diagnose`):
   predict their sizes from the shifts, and test the catalogue on the sizes, the flat linearity
   and the flat correlations.
 * tables: ``bfpsf diagnose --correlations A.txt --sizes SIZES.csv [--gain G]`` or
-  ``bfpsf diagnose --measured DIR`` for the published data sets in ``shared/data/measured``.
+  ``bfpsf diagnose --measured NAME`` for a published data set shipped with bfpsf
+  (``bfpsf diagnose --list-measured`` lists them; `bfpsf.data`).
 
 JSON keys: ``residual_before``, ``candidates``, ``selected``, ``residual_after`` (plus
 ``parameters``, ``ambiguous``, ``residual_physical``, ``threshold``, ``inputs``, and in images
@@ -19,7 +20,6 @@ import sys
 from pathlib import Path
 
 from ..errors import BFPSFInputError
-from ._files import check_free
 
 __all__ = ["add_parser", "run"]
 
@@ -33,6 +33,8 @@ def add_parser(subparsers):
     data.add_argument("--flats", nargs="+", metavar="FLAT.fits", help="flat-field FITS (ADU)")
     data.add_argument("--images", nargs="+", metavar="IMAGE.fits",
                       help="spot / star images (ADU, bias subtracted)")
+    data.add_argument("--amp", metavar="NAME",
+                      help="the amplifier (EXTNAME) of multi-extension flats and images")
     data.add_argument("--beta", type=float, default=None,
                       help="Moffat index of the spot model (default: Gaussian)")
     data.add_argument("--maxlag", type=int, default=4, help="calibration lags (default 4)")
@@ -45,9 +47,11 @@ def add_parser(subparsers):
                         help="measured a / correlation table (corr_meas, Poisson_CCD, cp_pipe)")
     tables.add_argument("--sizes", metavar="FILE", help="size-vs-flux table (Lage ITL or BOT)")
     tables.add_argument("--gain", type=float, help="e-/ADU of a size table in ADU")
-    tables.add_argument("--measured", metavar="DIR",
-                        help="a measured data-set folder (e.g. "
-                             "shared/data/measured/lage_BF_Kernel_ITL3800C002)")
+    tables.add_argument("--measured", metavar="NAME",
+                        help="a measured data set shipped with bfpsf, by short name (e.g. "
+                             "itl3800c002; see --list-measured)")
+    tables.add_argument("--list-measured", action="store_true",
+                        help="list the shipped measured data sets and exit")
     tables.add_argument("--corrected", action="store_true",
                         help="use the sizes after the published kernel correction")
     parser.add_argument("--threshold", type=float, default=-10.0,
@@ -64,7 +68,10 @@ def _observables(args):
     from ..validation import diagnose as loop
 
     if args.measured:
-        return loop.observables_from_measured(args.measured, corrected=args.corrected)
+        from ..data import measured_path
+
+        return loop.observables_from_measured(measured_path(args.measured),
+                                              corrected=args.corrected)
     if args.correlations or args.sizes:
         if not (args.correlations and args.sizes):
             msg = "table mode needs both --correlations and --sizes"
@@ -74,18 +81,25 @@ def _observables(args):
     if args.flats and args.images:
         return loop.observables_from_images(args.flats, args.images, beta=args.beta,
                                             maxlag=args.maxlag, n_bins=args.bins,
-                                            fit_b=args.fit_b)
-    msg = ("give --flats and --images, or --correlations and --sizes, or --measured DIR")
+                                            fit_b=args.fit_b, amp=args.amp)
+    msg = ("give --flats and --images, or --correlations and --sizes, or --measured NAME")
     raise BFPSFInputError(msg)
 
 
 def run(args):
     from ..validation.diagnose import diagnose
-    from ..validation.report import write_diagnosis_report, write_json
+    from ..files import check_outputs, write_json
+    from ..validation.report import write_diagnosis_report
 
-    check_free(args.json, args.overwrite)
-    if args.report:
-        check_free(Path(args.report) / "report.md", args.overwrite)
+    if args.list_measured:
+        from ..data import measured_sets
+
+        for name, description in measured_sets().items():
+            print(f"{name}: {description}")
+        return 0
+
+    report = Path(args.report) / "report.md" if args.report else None
+    check_outputs([args.json, report], args.overwrite, directories=[args.report])
     observables = _observables(args)
     result = diagnose(observables, threshold=args.threshold,
                       prefer_physical=args.physical_first)
@@ -107,7 +121,7 @@ def run(args):
         else:
             print(f"{label}: chi2 {values['chi2']:.1f} / {values['n']}")
     if args.json:
-        write_json(summary, args.json, overwrite=args.overwrite)
+        write_json(args.json, summary, overwrite=args.overwrite)
     if args.report:
         label = getattr(observables.sizes, "label", "") if observables.sizes is not None else ""
         context = [f"Data: {label or 'flats and images'}."]

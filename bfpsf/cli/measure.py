@@ -1,4 +1,4 @@
-"""``bfpsf measure IMAGE... -o STARS.ecsv``: detect and measure stars (issue 4).
+"""``bfpsf measure IMAGE... -o STARS.ecsv``: detect and measure stars.
 
 Parse, read the images (ADU, converted to electrons with the gain), call
 `bfpsf.measure.sources.measure_sources`, write the star table (ECSV) and the JSON summary.
@@ -8,7 +8,22 @@ Parse, read the images (ADU, converted to electrons with the gain), call
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ._files import check_free, read_image, write_json
+from ..files import check_outputs, read_table, refuse_duplicates, write_json, write_table
+from ..measure.sources import DETECTION_THRESHOLD
+from ._files import place_stars, read_image
+
+
+def _amplifier_colours(colour_table, amplifier):
+    """The colour catalogue (detector x, y) in the pixels of one amplifier."""
+    from ..io.amplifiers import detector_offset
+
+    x0, y0 = detector_offset(amplifier.layout)
+    if not (x0 or y0):
+        return colour_table
+    shifted = colour_table.copy()
+    shifted["x"] = shifted["x"] - x0
+    shifted["y"] = shifted["y"] - y0
+    return shifted
 
 
 def add_parser(subparsers):
@@ -18,7 +33,9 @@ def add_parser(subparsers):
                     "measure peak, flux and adaptive second moments (G15 section 3.2). "
                     "Saturated, blended and edge sources are flagged, not dropped.")
     parser.add_argument("images", nargs="+", metavar="IMAGE.fits",
-                        help="bias-subtracted images in ADU (primary HDU, header EXPTIME)")
+                        help="images in ADU with header EXPTIME: bias-subtracted single-HDU, "
+                             "or one HDU per amplifier (EXTNAME, optional BIASSEC/DATASEC/"
+                             "DETSEC); x, y are detector pixels")
     parser.add_argument("-o", "--output", required=True, metavar="STARS.ecsv",
                         help="star table to write (ECSV)")
     gain = parser.add_mutually_exclusive_group()
@@ -31,8 +48,12 @@ def add_parser(subparsers):
                              "image's CATALOG extension (x, y in 0-based pixels); repeatable")
     parser.add_argument("--catalog", metavar="FILE",
                         help="table with x, y and colour columns (default: CATALOG HDU)")
-    parser.add_argument("--threshold", type=float, default=5.0,
-                        help="detection threshold, RMS of the smoothed image (default 5)")
+    parser.add_argument("--amp", action="append", metavar="NAME",
+                        help="measure only this amplifier (EXTNAME) of multi-extension "
+                             "images; repeatable")
+    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+                        help=f"detection threshold, RMS of the smoothed image (default "
+                             f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--stamp-size", type=int, default=32,
                         help="measurement stamp side, pixels (default 32)")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
@@ -42,19 +63,13 @@ def add_parser(subparsers):
     return parser
 
 
-def _calibration_gain(path):
-    # imported here: the calibration product is another module's concern (issue 2);
-    # Calibration.read names a missing or foreign file itself.
-    from ..calibration.product import Calibration
+def _gain(args, header, path, calibration, amplifier):
+    from ..calibration.product import calibration_of_amplifier
 
-    return Calibration.read(path).gain
-
-
-def _gain(args, header, path, calibration_gain):
     if args.gain is not None:
         gain = args.gain
-    elif calibration_gain is not None:
-        gain = calibration_gain
+    elif calibration is not None:
+        gain = calibration_of_amplifier(calibration, amplifier, str(path)).gain
     elif "GAIN" in header:
         gain = float(header["GAIN"])
     else:
@@ -67,40 +82,50 @@ def _gain(args, header, path, calibration_gain):
 
 
 def run(args):
-    from astropy.table import Table, vstack
+    from astropy.table import vstack
 
+    from ..calibration.product import read_calibration
+    from ..io.amplifiers import shared_sides
     from ..measure.sources import measure_sources
 
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
-    external = Table.read(args.catalog) if args.catalog else None
+    check_outputs([args.output, args.json], args.overwrite)
+    refuse_duplicates(args.images, "image")
+    external = read_table(args.catalog, "catalog") if args.catalog else None
     tables, summary_images = [], []
-    calibration_gain = _calibration_gain(args.calib) if args.calib else None
+    # read_calibration names a missing or foreign file itself
+    calibration = read_calibration(args.calib) if args.calib else None
     for path in args.images:
-        image_adu, header, catalog = read_image(path)
-        gain = _gain(args, header, path, calibration_gain)
+        amplifiers, catalog = read_image(path, args.amp)
         colour_table = external if external is not None else catalog
         if args.colour and colour_table is None:
             msg = f"{path}: --color needs --catalog FILE or a CATALOG extension in the image"
             raise BFPSFInputError(msg, path)
-        table = measure_sources(
-            image_adu * gain, threshold=args.threshold, stamp_size=args.stamp_size,
-            saturation=None if args.saturation is None else args.saturation * gain,
-            colour=colour_table if args.colour else None, colour_columns=args.colour)
-        table.add_column(str(path), name="image", index=0)
-        tables.append(table)
-        summary_images.append({"image": str(path), "gain": gain, "n_sources": len(table),
-                               "n_clean": int(np.sum(table["flags"] == 0)),
-                               "exptime": header.get("EXPTIME")})
+        sides = shared_sides([amplifier.layout for amplifier in amplifiers])
+        for amplifier in amplifiers:
+            header = amplifier.header
+            gain = _gain(args, header, path, calibration, amplifier.name)
+            table = measure_sources(
+                amplifier.data * gain, threshold=args.threshold, stamp_size=args.stamp_size,
+                saturation=None if args.saturation is None else args.saturation * gain,
+                colour=_amplifier_colours(colour_table, amplifier) if args.colour else None,
+                colour_columns=args.colour)
+            place_stars(table, amplifier, sides, args.stamp_size / 2)
+            table.add_column(str(path), name="image", index=0)
+            tables.append(table)
+            summary_images.append({"image": str(path), "amplifier": amplifier.name,
+                                   "gain": gain, "n_sources": len(table),
+                                   "n_clean": int(np.sum(table["flags"] == 0)),
+                                   "n_amp_boundary": int(np.sum(table["amp_boundary"])),
+                                   "exptime": header.get("EXPTIME")})
     stars = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     stars.meta["gains"] = [entry["gain"] for entry in summary_images]
     stars.meta["images"] = [entry["image"] for entry in summary_images]
-    stars.write(args.output, format="ascii.ecsv", overwrite=args.overwrite)
+    write_table(stars, args.output, overwrite=args.overwrite)
     summary = {"output": str(args.output), "n_stars": len(stars),
                "n_clean": int(np.sum(stars["flags"] == 0)),
                "n_flagged": int(np.sum(stars["flags"] != 0)), "images": summary_images}
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     print(f"{len(stars)} sources ({summary['n_clean']} clean) in {len(args.images)} image(s); "
           f"wrote {args.output}")
     return 0

@@ -1,4 +1,4 @@
-"""``bfpsf photometry IMAGE... --psf PSF.fits -o PHOT.ecsv``: PSF photometry with P(F) (issue 5).
+"""``bfpsf photometry IMAGE... --psf PSF.fits -o PHOT.ecsv``: PSF photometry with P(F).
 
 Parse, read the PSF product and the images (ADU -> e- with the product's gain), call
 `bfpsf.measure.photometry.psf_photometry` (photutils PSFPhotometry with the flux-dependent
@@ -8,7 +8,9 @@ PSF), write the table (fluxes in e-) and the JSON summary.
 
 import numpy as np
 
-from ._files import check_free, read_image, write_json
+from ..files import check_outputs, write_json, write_table
+from ..measure.sources import DETECTION_THRESHOLD
+from ._files import place_stars, read_image
 
 
 def add_parser(subparsers):
@@ -18,7 +20,13 @@ def add_parser(subparsers):
                     "(photutils PSFPhotometry, grouped fits for close stars). Columns x_fit, "
                     "y_fit, flux_fit, flux_err (e-), flags, plus photutils' own.")
     parser.add_argument("images", nargs="+", metavar="IMAGE.fits",
-                        help="bias-subtracted images in ADU (first 2-D image HDU)")
+                        help="images in ADU: bias-subtracted single-HDU, or one HDU per "
+                             "amplifier (EXTNAME, optional BIASSEC/DATASEC/DETSEC)")
+    parser.add_argument("--amp", action="append", metavar="NAME",
+                        help="fit only this amplifier (EXTNAME); repeatable")
+    parser.add_argument("--calib", metavar="CALIB.fits",
+                        help="per-amplifier gains and boundary shifts (needed for images of "
+                             "several amplifiers; default: the PSF product's)")
     parser.add_argument("--psf", required=True, metavar="PSF.fits",
                         help="PSF product written by 'bfpsf psf'")
     parser.add_argument("-o", "--output", required=True, metavar="PHOT.ecsv",
@@ -27,8 +35,9 @@ def add_parser(subparsers):
                         help="e-/ADU (default: the gain stored in the PSF product)")
     parser.add_argument("--read-noise", type=float, default=0.0, metavar="E",
                         help="read noise, e- rms, for the pixel errors (default 0)")
-    parser.add_argument("--threshold", type=float, default=5.0,
-                        help="detection threshold, RMS of the smoothed image (default 5)")
+    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+                        help=f"detection threshold, RMS of the smoothed image (default "
+                             f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--fit-shape", type=int, default=None,
                         help="fit box, pixels, odd (default about 3 FWHM)")
     parser.add_argument("--static", action="store_true",
@@ -41,46 +50,82 @@ def add_parser(subparsers):
     return parser
 
 
+def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, static):
+    """Gain (e-/ADU) and PSF model of one amplifier: with a calibration, its gain (unless
+    --gain) and P0 with that amplifier's boundary shifts; else the PSF product's."""
+    from ..calibration.product import calibration_of_amplifier
+    from ..interop.photutils import static_image_psf
+    from ..model.psf import FluxDependentPSF
+
+    model = psf
+    if calibration is not None:
+        one = calibration_of_amplifier(calibration, amplifier.name, str(path))
+        gain = one.gain if gain_option is None else float(gain_option)
+        if one.shifts is not None and one.shifts is not psf.shifts:
+            model = FluxDependentPSF(
+                psf.data, one.shifts, origin=psf.origin, oversampling=psf.oversampling,
+                gain=psf.gain, mode=psf.mode, buildup_steps=psf.buildup_steps,
+                density_profile=psf.density_profile,
+                density_oversampling=psf.density_oversampling, fill_value=psf.fill_value)
+    return float(gain), (static_image_psf(model) if static else model)
+
+
 def run(args):
     from astropy.table import vstack
 
+    from ..calibration.product import read_calibration
     from ..errors import BFPSFInputError
-    from ..interop.photutils import static_image_psf
+    from ..io.amplifiers import shared_sides
     from ..measure.photometry import psf_photometry
     from ..model.psf import FluxDependentPSF
 
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite)
     psf = FluxDependentPSF.read(args.psf)
     gain = psf.image_gain if args.gain is None else float(args.gain)
     if not (np.isfinite(gain) and gain > 0):
         msg = f"the gain must be positive e-/ADU, got {gain!r}"
         raise BFPSFInputError(msg, gain)
-    model = static_image_psf(psf) if args.static else psf
+    calibration = read_calibration(args.calib) if args.calib else None
     tables, per_image = [], []
     for path in args.images:
-        image_e = read_image(path)[0] * gain
-        table = psf_photometry(image_e, model, read_noise_e=args.read_noise,
-                               fit_shape=args.fit_shape, detection_threshold=args.threshold,
-                               cross_terms=not args.no_cross_terms)
-        table.add_column(str(path), name="image", index=0)
-        tables.append(table)
-        per_image.append({"image": str(path), "n_stars": len(table),
-                          "n_flagged": int(np.sum(table["flags"] != 0)),
-                          "background_e": table.meta["background_e"],
-                          "n_blended": int(np.sum(table["group_size"] > 1)),
-                          "cross_term_refits": table.meta["cross_term_refits"]})
+        amplifiers, _ = read_image(path, args.amp)
+        if len(amplifiers) > 1 and calibration is None:
+            msg = (f"{path} has {len(amplifiers)} amplifiers: give --calib CALIB.fits for the "
+                   "gain and boundary shifts of each")
+            raise BFPSFInputError(msg, str(path))
+        sides = shared_sides([amplifier.layout for amplifier in amplifiers])
+        for amplifier in amplifiers:
+            amp_gain, model = _amplifier_model(psf, gain, calibration, amplifier, path,
+                                               args.gain, args.static)
+            table = psf_photometry(amplifier.data * amp_gain, model,
+                                   read_noise_e=args.read_noise, fit_shape=args.fit_shape,
+                                   detection_threshold=args.threshold,
+                                   cross_terms=not args.no_cross_terms)
+            margin = (args.fit_shape or 2 * psf.half_size + 1) / 2
+            place_stars(table, amplifier, sides, margin, x="x_fit", y="y_fit")
+            if "x_init" in table.colnames and amplifier.layout.detsec is not None:
+                table["x_init"] = table["x_init"] + amplifier.layout.detsec.x.start
+                table["y_init"] = table["y_init"] + amplifier.layout.detsec.y.start
+            table.add_column(str(path), name="image", index=0)
+            tables.append(table)
+            per_image.append({"image": str(path), "amplifier": amplifier.name,
+                              "gain": amp_gain, "n_stars": len(table),
+                              "n_flagged": int(np.sum(table["flags"] != 0)),
+                              "n_amp_boundary": int(np.sum(table["amp_boundary"])),
+                              "background_e": table.meta["background_e"],
+                              "n_blended": int(np.sum(table["group_size"] > 1)),
+                              "cross_term_refits": table.meta["cross_term_refits"]})
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     result.meta.update({"psf": str(args.psf), "gain": gain, "flux_unit": "electron",
                         "static_psf": bool(args.static)})
     result["flux_fit"].unit = "electron"
     result["flux_err"].unit = "electron"
-    result.write(args.output, format="ascii.ecsv", overwrite=args.overwrite)
+    write_table(result, args.output, overwrite=args.overwrite)
     summary = {"output": str(args.output), "psf": str(args.psf), "gain": gain,
                "static_psf": bool(args.static), "n_stars": len(result),
                "n_flagged": int(np.sum(result["flags"] != 0)), "images": per_image}
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "
           f"({summary['n_flagged']} flagged); wrote {args.output}")
     return 0

@@ -1,4 +1,4 @@
-"""``bfpsf psf IMAGE... --calib CALIB.fits -o PSF.fits``: fit the flux-dependent PSF (issue 5).
+"""``bfpsf psf IMAGE... --calib CALIB.fits -o PSF.fits``: fit the flux-dependent PSF.
 
 Parse, read the images (ADU -> e- with the calibration gain), detect isolated stars
 (`bfpsf.measure.sources.measure_sources`), fit P0 from stars of all fluxes with the
@@ -12,7 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ._files import check_free, read_image, write_json
+from ..files import check_outputs, refuse_duplicates, write_json
+from ..measure.sources import DETECTION_THRESHOLD
+from ._files import read_image
+
+
+#: Shift samples of the calibration kept in the PSF product for predictions with errors.
+PREDICTION_SAMPLES = 30
 
 
 def add_parser(subparsers):
@@ -22,7 +28,10 @@ def add_parser(subparsers):
                     "stars of all fluxes, each modelled as F P0 + F^2 R[P0] with R the G15 "
                     "charge redistribution of the calibration, and write the PSF product.")
     parser.add_argument("images", nargs="+", metavar="IMAGE.fits",
-                        help="bias-subtracted images in ADU (first 2-D image HDU)")
+                        help="images in ADU: bias-subtracted single-HDU, or one HDU per "
+                             "amplifier (EXTNAME, optional BIASSEC/DATASEC/DETSEC)")
+    parser.add_argument("--amp", action="append", metavar="NAME",
+                        help="use only this amplifier (EXTNAME); repeatable")
     parser.add_argument("--calib", required=True, metavar="CALIB.fits",
                         help="calibration (boundary shifts, gain, read noise)")
     parser.add_argument("-o", "--output", required=True, metavar="PSF.fits",
@@ -31,8 +40,9 @@ def add_parser(subparsers):
                         help="oversampling of P0 (default 2; 4 needs several hundred stars)")
     parser.add_argument("--size", type=int, default=25,
                         help="support of P0 and star cutouts, pixels, odd (default 25)")
-    parser.add_argument("--threshold", type=float, default=10.0,
-                        help="detection threshold, RMS of the smoothed image (default 10)")
+    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+                        help=f"detection threshold, RMS of the smoothed image (default "
+                             f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
                         help="saturation level, ADU: saturated stars are not used")
     parser.add_argument("--grid", type=int, nargs=2, metavar=("NX", "NY"), default=None,
@@ -59,38 +69,87 @@ def _isolated_stars(image_e, threshold, saturation_e, size):
     return xy, len(sources)
 
 
+def _star_weighted(used):
+    """Shifts, gain, read noise and shift samples (`PREDICTION_SAMPLES` at most) of the
+    amplifiers the stars came from: those of the one calibration, or for several amplifiers
+    their averages weighted by the number of stars (the P0 fit takes one set of shifts;
+    photometry with --calib applies each amplifier's). Sample i of the average is the
+    weighted average of the amplifiers' samples i (none unless every amplifier has some)."""
+    from ..shifts import BoundaryShifts
+
+    calibrations = {id(one): one for one, _ in used}
+    if len(calibrations) == 1:
+        one = used[0][0]
+        return (one.shifts, float(one.gain), float(one.noise_e),
+                tuple(one.shift_samples(limit=PREDICTION_SAMPLES)))
+    weights = np.array([count for _, count in used], dtype=float)
+    if weights.sum() == 0:
+        weights[:] = 1.0
+    weights /= weights.sum()
+    north = sum(weight * one.shifts.north for (one, _), weight in zip(used, weights))
+    east = sum(weight * one.shifts.east for (one, _), weight in zip(used, weights))
+    gain = float(sum(weight * one.gain for (one, _), weight in zip(used, weights)))
+    noise = float(sum(weight * one.noise_e for (one, _), weight in zip(used, weights)))
+    per_entry = [one.shift_samples(limit=PREDICTION_SAMPLES) for one, _ in used]
+    count = min(len(samples) for samples in per_entry)
+    samples = tuple(
+        BoundaryShifts(sum(weight * entry[i].north for entry, weight in zip(per_entry, weights)),
+                       sum(weight * entry[i].east for entry, weight in zip(per_entry, weights)),
+                       check=False)
+        for i in range(count))
+    return BoundaryShifts(north, east, check=False), gain, noise, samples
+
+
 def run(args):
     from astropy.stats import sigma_clipped_stats
 
-    from ..calibration.product import Calibration
+    from ..calibration.product import calibration_of_amplifier, read_calibration
+    from ..io.amplifiers import near_shared_side, shared_sides
     from ..model.psf_fit import fit_psf
 
-    check_free(args.output, args.overwrite)
-    check_free(args.json, args.overwrite)
-    calibration = Calibration.read(args.calib)
-    if calibration.shifts is None:
-        msg = f"{args.calib} has no boundary shifts (calibration solved without them)"
-        raise BFPSFInputError(msg, args.calib)
-    gain = float(calibration.gain)
-    images, positions, skies, per_image = [], [], [], []
+    check_outputs([args.output, args.json], args.overwrite)
+    refuse_duplicates(args.images, "image")
+    calibration = read_calibration(args.calib)
+    images, positions, skies, per_image, used = [], [], [], [], []
     for path in args.images:
-        image_e = read_image(path)[0] * gain
-        _, background, _ = sigma_clipped_stats(image_e[np.isfinite(image_e)], sigma=3.0)
-        image_e = image_e - background
-        saturation_e = None if args.saturation is None else args.saturation * gain - background
-        xy, n_detected = _isolated_stars(image_e, args.threshold, saturation_e, args.size)
-        images.append(image_e)
-        skies.append(max(float(background), 0.0))
-        positions.append(xy)
-        per_image.append({"image": str(path), "n_detected": int(n_detected),
-                          "n_isolated": int(len(xy)), "background_e": float(background)})
-    result = fit_psf(images, positions, calibration.shifts, oversampling=args.oversampling,
-                     size=args.size, read_noise=float(calibration.noise_e),
+        amplifiers, _ = read_image(path, args.amp)
+        sides = shared_sides([amplifier.layout for amplifier in amplifiers])
+        for amplifier in amplifiers:
+            # each amplifier in electrons with its own gain
+            one = calibration_of_amplifier(calibration, amplifier.name, str(path))
+            if one.shifts is None:
+                msg = (f"{args.calib} has no boundary shifts"
+                       f"{f' for amplifier {one.amplifier}' if one.amplifier else ''} "
+                       "(calibration solved without them)")
+                raise BFPSFInputError(msg, args.calib)
+            gain = float(one.gain)
+            image_e = amplifier.data * gain
+            _, background, _ = sigma_clipped_stats(image_e[np.isfinite(image_e)], sigma=3.0)
+            image_e = image_e - background
+            saturation_e = (None if args.saturation is None
+                            else args.saturation * gain - background)
+            xy, n_detected = _isolated_stars(image_e, args.threshold, saturation_e, args.size)
+            # a star whose light falls on two amplifiers (two gains) is left out, and counted
+            boundary = near_shared_side(xy[:, 0], xy[:, 1], image_e.shape,
+                                        sides[amplifier.name], args.size / 2)
+            xy = xy[~boundary]
+            images.append(image_e)
+            skies.append(max(float(background), 0.0))
+            positions.append(xy)
+            used.append((one, len(xy)))
+            per_image.append({"image": str(path), "amplifier": amplifier.name, "gain": gain,
+                              "n_detected": int(n_detected), "n_isolated": int(len(xy)),
+                              "n_amp_boundary": int(np.sum(boundary)),
+                              "background_e": float(background)})
+    shifts, gain, noise, samples = _star_weighted(used)
+    result = fit_psf(images, positions, shifts, oversampling=args.oversampling,
+                     size=args.size, read_noise=noise,
                      sky_e=skies, include_bf=args.include_bf,
                      max_iterations=args.max_iterations, grid=args.grid, progress=None)
     psf = result.psf
     psf.image_gain = gain
     psf.calibration = Path(args.calib).name
+    psf.shift_samples = samples
     psf.write(args.output, meta={"NSTARS": int(np.sum(result.stars["flags"] == 0)),
                                  "CONVERGD": bool(result.converged),
                                  "BFTERM": bool(args.include_bf)},
@@ -114,7 +173,7 @@ def run(args):
                            "x_nodes": psf.x_nodes.tolist(), "y_nodes": psf.y_nodes.tolist(),
                            "fwhm_pixels": [psf_fwhm(node) for node in psf.nodes]}
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "
           f"{len(args.images)} image(s), {result.iterations} iterations "
           f"({'converged' if result.converged else 'NOT converged'}); wrote {args.output}")

@@ -1,13 +1,15 @@
 """``bfpsf simulate``: write simulated data with known truth.
 
     bfpsf simulate flats --sensor lsst_itl_50_8 --levels 10000 30000 ... --pairs N --size N
-                         --gain G --read-noise R --nsteps K --seed S --out DIR [--overwrite]
+                         --gain G --read-noise R --nsteps K --seed S -o DIR [--overwrite]
 
 Each target is a sub-command of ``simulate`` (``flats`` here; others, e.g. ``spots``, can be
 added to ``TARGETS``).
 """
 
 import argparse
+
+from . import add_common_options
 
 __all__ = ["add_parser", "run", "TARGETS"]
 
@@ -42,24 +44,25 @@ def _add_flats(targets):
                         help="columns with 2%% extra charge")
     parser.add_argument("--defect-clusters", type=int, default=0,
                         help="number of 3x3 defect clusters")
-    parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    parser.add_argument("-o", "--output", required=True, metavar="DIR",
+                        help="output directory (created if missing)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing files")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_common_options(parser)
     return parser
 
 
 def _run_flats(args):
     from ..validation.simulate_flats import write_flats
 
-    paths = write_flats(args.out, args.sensor, args.levels, overwrite=args.overwrite,
+    paths = write_flats(args.output, args.sensor, args.levels, overwrite=args.overwrite,
                         pairs=args.pairs, size=args.size, gain=args.gain,
                         read_noise_e=args.read_noise, nsteps=args.nsteps, seed=args.seed,
                         exptime_per_e=args.exptime_per_e, nonlinearity=args.nonlinearity,
                         readout_correlation=args.readout_correlation,
                         hot_columns=args.hot_columns, defect_clusters=args.defect_clusters,
-                        progress=not args.quiet)
+                        progress=args.progress)
     print(f"wrote {len(paths)} flats ({len(args.levels)} levels x {args.pairs} pair(s)) "
-          f"to {args.out}")
+          f"to {args.output}")
     return 0
 
 

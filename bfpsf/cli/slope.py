@@ -1,4 +1,4 @@
-"""``bfpsf slope STARS.ecsv``: brighter-fatter slopes of the star sizes (issue 4).
+"""``bfpsf slope STARS.ecsv``: brighter-fatter slopes of the star sizes.
 
 Parse, read the star table of ``bfpsf measure``, optionally correct the size-colour relation
 (G15 section 3.3), fit sigma_x, sigma_y and IQ against peak flux
@@ -6,13 +6,17 @@ Parse, read the star table of ``bfpsf measure``, optionally correct the size-col
 
 JSON keys: ``x``, ``y``, ``iq`` (each ``{slope, slope_err, intercept, relative_percent}``,
 slope in pixels per 100 ke- of peak, relative_percent in percent of the intercept per
-100 ke-), ``n_stars``, and ``details`` (full fits, colour fit, peak range).
+100 ke-), ``n_stars``, and ``details`` (full fits, colour fit, peak range). With ``--psf``:
+``prediction`` (``{x, y, iq: {slope, slope_err}}``, the slopes P(F) predicts for these stars,
+slope_err the calibration error from the shift samples in the PSF product) and
+``model_residual`` (slopes of measured minus predicted sizes, with ``slope_err_total``, the
+statistical and calibration errors combined, and ``pull``).
 """
 
-from pathlib import Path
+import numpy as np
 
 from ..errors import BFPSFInputError
-from ._files import check_free, write_json
+from ..files import check_outputs, read_table, save_figure, write_json
 
 
 def add_parser(subparsers):
@@ -22,7 +26,7 @@ def add_parser(subparsers):
                     "IQ against peak flux below a maximum peak (G15 section 3.3, fig. mbf).")
     parser.add_argument("stars", metavar="STARS.ecsv", help="star table from bfpsf measure")
     parser.add_argument("--psf", metavar="PSF.fits",
-                        help="flux-dependent PSF product (issue 5): adds model_residual")
+                        help="flux-dependent PSF product: adds prediction (the slopes the model predicts, with the calibration error) and model_residual")
     parser.add_argument("--color", "--colour", dest="colour", metavar="COLUMN",
                         help="correct the size-colour relation with this column first")
     parser.add_argument("--color-max-peak", dest="colour_max_peak", type=float, metavar="E",
@@ -40,12 +44,10 @@ def add_parser(subparsers):
     return parser
 
 
-def _model_residual(stars, args, colour_fit):
+def _model_residual(stars, args, colour_fit, psf):
     """Slopes of the sizes measured minus the sizes the flux-dependent PSF predicts."""
     from ..measure.slopes import bf_slopes, model_size_increments
-    from ..model.psf import FluxDependentPSF
 
-    psf = FluxDependentPSF.read(args.psf)
     if "flux_e" not in stars.colnames:
         msg = f"{args.stars} has no flux_e column: --psf needs each star's flux"
         raise BFPSFInputError(msg, args.stars)
@@ -58,17 +60,11 @@ def _model_residual(stars, args, colour_fit):
 
 
 def run(args):
-    from astropy.table import Table
-
     from ..measure.colour import correct_size_colour
     from ..measure.slopes import bf_slopes
 
-    check_free(args.json, args.overwrite)
-    check_free(args.plot, args.overwrite)
-    if not Path(args.stars).exists():
-        msg = f"star table {args.stars} does not exist"
-        raise BFPSFInputError(msg, args.stars)
-    stars = Table.read(args.stars, format="ascii.ecsv")
+    check_outputs([args.json, args.plot], args.overwrite)
+    stars = read_table(args.stars, "star table", format="ascii.ecsv")
     colour_fit = None
     if args.colour:
         stars, colour_fit = correct_size_colour(stars, args.colour,
@@ -77,11 +73,24 @@ def run(args):
                        use_errors=not args.unweighted, colour_fit=colour_fit)
     summary = {key: slopes[key].as_dict(short=True) for key in ("x", "y", "iq")}
     summary["n_stars"] = int(slopes["n_stars"])
-    residual = None
+    residual = prediction = None
     if args.psf is not None:
-        residual = _model_residual(stars, args, colour_fit)
-        summary["model_residual"] = {key: residual[key].as_dict(short=True)
-                                     for key in ("x", "y", "iq")}
+        from ..measure.slopes import predicted_slopes
+        from ..model.psf import FluxDependentPSF
+
+        psf = FluxDependentPSF.read(args.psf)
+        residual = _model_residual(stars, args, colour_fit, psf)
+        prediction = predicted_slopes(psf, stars, min_peak_e=args.min_peak,
+                                      max_peak_e=args.max_peak, use_errors=not args.unweighted)
+        summary["model_residual"] = {}
+        for key in ("x", "y", "iq"):
+            entry = residual[key].as_dict(short=True)
+            # the residual's error with the calibration's: what a pull should divide by
+            entry["slope_err_total"] = float(np.hypot(entry["slope_err"],
+                                                      prediction[key]["slope_err"]))
+            entry["pull"] = entry["slope"] / entry["slope_err_total"]
+            summary["model_residual"][key] = entry
+        summary["prediction"] = prediction
     summary["details"] = {
         "units": {"slope": "pixel per 100 ke- of peak", "intercept": "pixel",
                   "relative_percent": "percent of the intercept per 100 ke- of peak",
@@ -91,17 +100,20 @@ def run(args):
         "stars": str(args.stars),
     }
     if args.json:
-        write_json(args.json, summary)
+        write_json(args.json, summary, overwrite=args.overwrite)
     if args.plot:
         from ..plotting.moments import plot_size_vs_peak
 
         figure = plot_size_vs_peak(stars, slopes, max_peak_e=args.max_peak)
-        figure.savefig(args.plot, dpi=120)
+        save_figure(figure, args.plot, overwrite=args.overwrite, dpi=120)
     for key, label in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "IQ")):
         fit = slopes[key]
         if residual is not None:
-            print(f"{label:8s} residual slope after P(F) {residual[key].slope:+.5f} +- "
-                  f"{residual[key].slope_err:.5f} pix/100ke-")
+            entry = summary["model_residual"][key]
+            print(f"{label:8s} predicted by P(F) {prediction[key]['slope']:+.5f} +- "
+                  f"{prediction[key]['slope_err']:.5f} (calibration); residual after P(F) "
+                  f"{entry['slope']:+.5f} +- {entry['slope_err_total']:.5f} pix/100ke- "
+                  f"(pull {entry['pull']:+.1f})")
         print(f"{label:8s} slope {fit.slope:+.5f} +- {fit.slope_err:.5f} pix/100ke-  "
               f"intercept {fit.intercept:.4f} pix  {fit.relative_percent:+.3f} %/100ke-")
     print(f"{slopes['n_stars']} stars fitted"

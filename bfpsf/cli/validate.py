@@ -7,7 +7,6 @@ chain, print the side-by-side table, write the JSON summary and the Markdown rep
 import sys
 from pathlib import Path
 
-from ._files import check_free
 
 __all__ = ["add_parser", "run"]
 
@@ -26,17 +25,21 @@ def add_parser(subparsers):
     parser.add_argument("--beta", type=float, default=None, help="Moffat index")
     parser.add_argument("--peaks", type=float, nargs="+", default=None, metavar="E",
                         help="spot peak levels, e-")
-    parser.add_argument("--spots-per-level", type=int, default=None, dest="n_per_level")
+    parser.add_argument("--spots-per-level", type=int, default=None, dest="n_per_level",
+                        help="spots per peak level (default: the configuration's)")
     parser.add_argument("--flat-size", type=int, default=None, help="flat side, pixels")
     parser.add_argument("--flat-pairs", type=int, default=None, help="pairs per flat level")
-    parser.add_argument("--flat-levels", type=float, nargs="+", default=None, metavar="E")
-    parser.add_argument("--model-shifts", choices=("truth", "flats"), default="truth",
-                        help="shifts for P(F), the inverse and the loop (default: truth)")
-    parser.add_argument("--seed", type=int, default=None)
+    parser.add_argument("--flat-levels", type=float, nargs="+", default=None, metavar="E",
+                        help="flat levels, electrons (default: the configuration's)")
+    parser.add_argument("--model-shifts", choices=("flats", "truth"), default="flats",
+                        help="shifts for P(F), the inverse and the loop: from the simulated "
+                             "flats (default, the path a user takes) or SiliconSensor's landing "
+                             "truth (a diagnostic, labelled as such)")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="random seed (default: the configuration's)")
     parser.add_argument("--report", metavar="DIR", help="write report.md and PNG figures")
     parser.add_argument("--json", metavar="FILE", help="write the JSON summary")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
 
 
@@ -64,7 +67,9 @@ def _print_table(result):
             error = row.get(f"predicted_slope_{axis}_err")
             text.append(f"{axis.upper()} {row[f'predicted_slope_{axis}']:.4f}"
                         + (f" +- {error:.4f}" if error is not None else "")
-                        + f" ({100 * row[f'predicted_over_measured_{axis}']:.1f} %)")
+                        + f" ({100 * row[f'predicted_over_measured_{axis}']:.1f} %"
+                        + (f", pull {row[f'pull_{axis}']:+.1f}" if f"pull_{axis}" in row else "")
+                        + ")")
         print(f"predicted from {row['shifts']}: {', '.join(text)}")
     for key, label in (("psf", "residual slope after P(F)"),
                        ("inverse", "residual slope after pixel inverse")):
@@ -85,23 +90,24 @@ def _print_table(result):
         print(f"photometry bias bright - faint: static PSF "
               f"{psf['photometry_bias_static_mmag']:+.2f} mmag, P(F) "
               f"{psf['photometry_bias_flux_dependent_mmag']:+.2f} mmag")
+    print(f"P(F), inverse and loop used the shifts of: {result['model_shifts']}")
     print(f"closed loop selected: {', '.join(result['diagnose']['selected']) or 'nothing'}")
 
 
 def run(args):
-    from ..validation.report import write_json, write_validation_report
+    from ..files import check_outputs, write_json
+    from ..validation.report import write_validation_report
     from ..validation.validate import validate
 
-    check_free(args.json, args.overwrite)
-    if args.report:
-        check_free(Path(args.report) / "report.md", args.overwrite)
-    result = validate(_config(args), progress=not args.no_progress,
+    report = Path(args.report) / "report.md" if args.report else None
+    check_outputs([args.json, report], args.overwrite, directories=[args.report])
+    result = validate(_config(args), progress=args.progress,
                       shifts_for_model=args.model_shifts)
     _print_table(result)
     if args.json:
         summary = {key: value for key, value in result.items()
                    if key not in ("diagnosis", "truth_area", "residual_images")}
-        write_json(summary, args.json, overwrite=args.overwrite)
+        write_json(args.json, summary, overwrite=args.overwrite)
     if args.report:
         path = write_validation_report(result, args.report, overwrite=args.overwrite)
         print(f"report: {path}", file=sys.stderr)

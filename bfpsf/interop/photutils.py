@@ -67,6 +67,11 @@ def make_psf_photometry(psf, *, fit_shape=None, group_separation=None, iterative
 
     if fit_shape is None:
         fit_shape = default_fit_shape(psf)
+    sides = np.atleast_1d(fit_shape)
+    if sides.size > 2 or np.any(sides != np.round(sides)) or np.any(sides < 3) or np.any(
+            sides % 2 == 0):
+        msg = f"fit shape must be an odd number of pixels >= 3 (e.g. 5, 7), got {fit_shape!r}"
+        raise BFPSFValueError(msg, fit_shape)
     if group_separation is None:
         group_separation = float(np.max(np.atleast_1d(fit_shape)))
     if group_separation < 0:

@@ -12,6 +12,7 @@ from astropy.table import Table
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import make_psf_photometry
+from .sources import DETECTION_THRESHOLD, measure_sources
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 
@@ -27,27 +28,13 @@ def _background(image):
 
 
 def _initial_positions(image_e, detection_threshold):
-    """Detections: bfpsf.measure.sources when available, else photutils DAOStarFinder."""
-    try:
-        from .sources import measure_sources
-    except ImportError:  # pragma: no cover - sources is written concurrently
-        measure_sources = None
-    if measure_sources is not None:
-        sources = measure_sources(image_e, threshold=detection_threshold)
-        table = Table()
-        table["x_init"] = np.asarray(sources["x"], dtype=float)
-        table["y_init"] = np.asarray(sources["y"], dtype=float)
-        table["flux_init"] = np.asarray(sources["flux_e"], dtype=float)
-        return table
-    from astropy.stats import sigma_clipped_stats
-    from photutils.detection import DAOStarFinder
-
-    _, _, std = sigma_clipped_stats(image_e, sigma=3.0)
-    found = DAOStarFinder(threshold=detection_threshold * std, fwhm=3.0)(image_e)
+    """Detections of `bfpsf.measure.sources.measure_sources`, as photutils' initial table."""
+    sources = measure_sources(image_e, threshold=detection_threshold)
     table = Table()
-    table["x_init"] = np.asarray(found["xcentroid"], dtype=float)
-    table["y_init"] = np.asarray(found["ycentroid"], dtype=float)
-    table["flux_init"] = np.asarray(found["flux"], dtype=float)
+    table["x_init"] = np.asarray(sources["x"], dtype=float)
+    table["y_init"] = np.asarray(sources["y"], dtype=float)
+    table["flux_init"] = np.asarray(sources["flux_e"], dtype=float)
+    table["source_flags"] = np.asarray(sources["flags"], dtype=np.int64)
     return table
 
 
@@ -84,15 +71,47 @@ def _cross_term_image(psf, table, shape):
         y, x = np.mgrid[box]
         if x.size == 0:
             continue
-        star = flux * psf._evaluate_base(x - x_0, y - y_0)  # F P0, no BF
+        star = flux * psf.evaluate_base(x - x_0, y - y_0)  # F P0, no BF
         static[box] += star
         own[box] += psf.evaluate(x, y, flux, x_0, y_0) - star
     return redistribution_delta(static, psf.shifts) - own
 
 
+#: Largest group of stars fitted together that `psf_photometry` accepts: photutils fits a
+#: group as one model with 3 parameters per star, so a larger one is slow and poorly conditioned.
+MAX_GROUP_SIZE = 25
+
+
+def _check_groups(psf, fit_shape, group_separation, init):
+    """Refuse a fit box (or group separation) so wide against the star spacing that many stars
+    would be fitted as one group: slow, and biased with flags 0."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from ..interop.photutils import default_fit_shape
+
+    if len(init) <= MAX_GROUP_SIZE:
+        return
+    side = float(np.max(np.atleast_1d(default_fit_shape(psf) if fit_shape is None
+                                      else fit_shape)))
+    separation = side if group_separation is None else float(group_separation)
+    xy = np.column_stack([np.asarray(init["x_init"], float), np.asarray(init["y_init"], float)])
+    pairs = cKDTree(xy).query_pairs(separation, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(xy),) * 2)
+    _, labels = connected_components(graph, directed=False)
+    largest = int(np.bincount(labels).max())
+    if largest > MAX_GROUP_SIZE:
+        msg = (f"fit shape {side:g} px (group separation {separation:g} px) puts {largest} of "
+               f"the {len(xy)} stars in one group fitted together (at most {MAX_GROUP_SIZE}): "
+               "the stars are closer than that; give a smaller fit shape")
+        raise BFPSFValueError(msg, side)
+
+
 def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background_e=None,
-                   fit_shape=None, group_separation=None, detection_threshold=5.0,
-                   weights="model", cross_terms=True, **kwargs):
+                   fit_shape=None, group_separation=None,
+                   detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
+                   **kwargs):
     """Fit every star of an image with the flux-dependent PSF.
 
     Parameters
@@ -141,6 +160,9 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         (e-), ``flags`` (photutils bit flags, `photutils.psf.decode_psf_flags`) and photutils'
         other columns; ``meta['background_e']`` holds the subtracted sky and
         ``meta['weights']`` the variance model, ``meta['cross_term_refits']`` the refits made.
+        With the stars detected here (or ``positions`` a table with a ``source_flags``
+        column), ``source_flags`` carries the detection's `bfpsf.measure.sources.SourceFlag`
+        bits (``BLENDED``: an unresolved neighbour) to each fitted star.
     """
     image = np.asarray(image_e, dtype=float)
     if image.ndim != 2:
@@ -175,6 +197,12 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     if len(init) == 0:
         msg = "no star to fit (no detection and no positions given)"
         raise BFPSFInputError(msg, 0)
+    _check_groups(psf, fit_shape, group_separation, init)
+    source_flags = None
+    if "source_flags" in init.colnames:  # measure_sources' flags (blended, ...), carried over
+        source_flags = np.asarray(init["source_flags"], dtype=np.int64)
+        init = init.copy()
+        init.remove_column("source_flags")
     photometry = make_psf_photometry(psf, fit_shape=fit_shape, group_separation=group_separation,
                                      **kwargs)
     mask = mask if mask.any() else None
@@ -199,6 +227,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
                 if name in result.colnames and name not in ("id", "group_id", "group_size"):
                     result[name][blended] = refit[name]
             n_cross += 1
+    if source_flags is not None:
+        result["source_flags"] = source_flags[np.asarray(result["id"], dtype=int) - 1]
     result.meta["background_e"] = float(background_e)
     result.meta["cross_term_refits"] = n_cross
     result.meta["weights"] = weights

@@ -55,6 +55,9 @@ class SlopeFit:
     slope_err_colour : float
         Part of ``slope_err`` from the size-colour fit's coefficient errors (pixels per
         100 ke-; 0 without colour correction), added in quadrature by `bf_slopes`.
+    n_clipped : int
+        Outliers left out by the clipping (``clip_nsigma`` of `fit_bf_slope`), not counted in
+        ``n_points``.
     """
 
     slope: float
@@ -71,6 +74,7 @@ class SlopeFit:
     peak_min_e: float
     peak_max_e: float
     slope_err_colour: float = 0.0
+    n_clipped: int = 0
 
     def as_dict(self, short=False):
         """The fit as a dict (``short=True``: slope, slope_err, intercept, relative_percent)."""
@@ -87,7 +91,7 @@ class SlopeFit:
 
 
 def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=None,
-                 scale_errors=True):
+                 scale_errors=True, clip_nsigma=5.0):
     """Weighted linear fit ``size = intercept + slope * peak / 100 ke-``.
 
     Parameters
@@ -105,6 +109,11 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
     scale_errors : bool, optional
         Multiply the errors by ``sqrt(chi2 / dof)`` when it exceeds 1 (default True), so
         scatter beyond the given errors (e.g. PSF variations) shows up in the slope error.
+    clip_nsigma : float or None, optional
+        Leave out, iteratively, the points whose normalised residual is more than
+        ``clip_nsigma`` robust standard deviations (1.4826 x the median absolute deviation)
+        from the line: one unresolved blend must not set the slope. Default 5; None: no
+        clipping. The number left out is ``SlopeFit.n_clipped``.
 
     Returns
     -------
@@ -130,17 +139,30 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
         msg = (f"a brighter-fatter slope needs at least 3 usable objects in the peak range "
                f"[{min_peak_e}, {max_peak_e}] e-, got {n_points}")
         raise BFPSFValueError(msg, n_points)
-    x = peak[keep] / PEAK_UNIT_E
-    y = values[keep]
-    weights = np.ones(n_points) if errors is None else 1.0 / errors[keep]**2
-    design = np.stack([np.ones(n_points), x], axis=1)
-    normal = design.T @ (weights[:, None] * design)
-    if np.linalg.cond(normal) > 1e12:
-        msg = "the peak fluxes span no range: the slope is undetermined"
-        raise BFPSFValueError(msg, (x.min(), x.max()))
-    covariance = np.linalg.inv(normal)
-    intercept, slope = covariance @ (design.T @ (weights * y))
-    residual = y - (intercept + slope * x)
+    n_usable = n_points
+    for _ in range(20):
+        x = peak[keep] / PEAK_UNIT_E
+        y = values[keep]
+        weights = np.ones(n_points) if errors is None else 1.0 / errors[keep]**2
+        design = np.stack([np.ones(n_points), x], axis=1)
+        normal = design.T @ (weights[:, None] * design)
+        if np.linalg.cond(normal) > 1e12:
+            msg = "the peak fluxes span no range: the slope is undetermined"
+            raise BFPSFValueError(msg, (x.min(), x.max()))
+        covariance = np.linalg.inv(normal)
+        intercept, slope = covariance @ (design.T @ (weights * y))
+        residual = y - (intercept + slope * x)
+        if clip_nsigma is None or n_points <= 3:
+            break
+        normalised = residual * np.sqrt(weights)
+        scale = 1.4826 * np.median(np.abs(normalised - np.median(normalised)))
+        outliers = np.abs(normalised) > clip_nsigma * scale if scale > 0 else np.zeros(
+            n_points, dtype=bool)
+        if not outliers.any() or n_points - outliers.sum() < 3:
+            break
+        indices = np.flatnonzero(keep)
+        keep[indices[outliers]] = False
+        n_points = int(keep.sum())
     dof = n_points - 2
     chi2 = float(np.sum(weights * residual**2))
     if errors is None:
@@ -163,7 +185,8 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
                     relative_percent_err=float(relative_err),
                     range_percent=float(relative * span), chi2=chi2, dof=int(dof),
                     error_scale=float(error_scale), n_points=n_points,
-                    peak_min_e=float(peak[keep].min()), peak_max_e=float(peak[keep].max()))
+                    peak_min_e=float(peak[keep].min()), peak_max_e=float(peak[keep].max()),
+                    n_clipped=n_usable - n_points)
 
 
 #: (result key, size column, error column) fitted by `bf_slopes`
@@ -306,3 +329,37 @@ def model_size_increments(psf, flux_e, *, n_grid=24):
     sizes = {"x": np.sqrt(moments.mxx), "y": np.sqrt(moments.myy), "iq": moments.sigma}
     return {key: np.interp(flux_e, grid, value - value[0], left=np.nan, right=np.nan)
             for key, value in sizes.items()}
+
+
+def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors=True):
+    """The BF slopes a flux-dependent PSF predicts for a star table, with the calibration error.
+
+    The model's size increments at each star's flux (`model_size_increments`) are fitted
+    exactly as the measured sizes are (`bf_slopes`: same stars, peak range and weights); the
+    fit of every shift sample the model carries (``psf.shift_samples``, the calibration's
+    uncertainty) gives the error.
+
+    Returns
+    -------
+    dict
+        ``{'x': {...}, 'y': {...}, 'iq': {...}, 'n_samples': int}``; each axis holds
+        ``slope`` and ``slope_err`` (pixels per 100 ke- of peak; the error is that of the
+        calibration, NaN without samples).
+    """
+    def slopes_of(model):
+        increments = model_size_increments(model, table["flux_e"])
+        predicted = table.copy()
+        for key, column, _ in _AXES:
+            predicted[column] = increments[key]
+        fits = bf_slopes(predicted, min_peak_e=min_peak_e, max_peak_e=max_peak_e,
+                         use_errors=use_errors)
+        return np.array([fits[key].slope for key, _, _ in _AXES])
+
+    best = slopes_of(psf)
+    draws = np.array([slopes_of(psf.with_shifts(sample)) for sample in psf.shift_samples])
+    errors = (draws.std(axis=0, ddof=1) if len(draws) >= 2
+              else np.full(best.shape, np.nan))
+    out = {key: {"slope": float(value), "slope_err": float(error)}
+           for (key, _, _), value, error in zip(_AXES, best, errors)}
+    out["n_samples"] = int(len(draws))
+    return out

@@ -111,7 +111,12 @@ def _empty_table(colour_columns):
     return Table(names=names, dtype=dtypes)
 
 
-def measure_sources(image_e, *, threshold=5.0, n_pixels=5, stamp_size=32, saturation=None,
+#: Default detection threshold of every bfpsf command and function, in units of the RMS of the
+#: smoothed background-subtracted image.
+DETECTION_THRESHOLD = 5.0
+
+
+def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp_size=32, saturation=None,
                     colour=None, colour_columns=None, match_radius=2.0, annulus=None,
                     detection_fwhm=3.0, blend_radius=None, deblend=True,
                     aperture_nsigma=5.0):

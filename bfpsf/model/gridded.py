@@ -196,6 +196,8 @@ class GriddedFluxDependentPSF(Fittable2DModel):
     gain = property(lambda self: self.nodes[0].gain, doc="e- per image unit")
     fill_value = property(lambda self: self.nodes[0].fill_value, doc="value outside the data")
     half_size = property(lambda self: self.nodes[0].half_size, doc="stamp half-width, pixels")
+    shift_samples = property(lambda self: self.nodes[0].shift_samples,
+                             doc="shifts drawn from the calibration's uncertainty")
 
     # -- astropy model interface -------------------------------------------------------------
     def copy(self):

@@ -26,8 +26,10 @@ from astropy.modeling import Fittable2DModel, Parameter
 from scipy.interpolate import RectBivariateSpline
 
 from ..errors import BFPSFValueError
-from .redistribution import (_as_shifts, exact_boundary_density, redistribute_buildup,
-                             redistribution_delta)
+from ..shifts import as_shifts
+from .buildup import redistribute_buildup
+from .density import exact_boundary_density
+from .redistribution import redistribution_delta
 
 __all__ = ["FluxDependentPSF", "bf_response_table", "pixelised_stamp"]
 
@@ -136,7 +138,7 @@ def pixelised_stamp(psf, *, x_phase=0.0, y_phase=0.0, half_size=None):
     half_size = psf.half_size if half_size is None else int(half_size)
     offsets = np.arange(-half_size, half_size + 1, dtype=float)
     dy, dx = np.meshgrid(offsets - y_phase, offsets - x_phase, indexing="ij")
-    return psf._evaluate_base(dx, dy)
+    return psf.evaluate_base(dx, dy)
 
 
 class FluxDependentPSF(Fittable2DModel):
@@ -177,7 +179,7 @@ class FluxDependentPSF(Fittable2DModel):
         from the pixelised P0 (one small FFT per call).
     buildup_steps : int, optional
         Integrate the build-up of the boundary shifts during the exposure in this many steps
-        (`bfpsf.model.redistribution.redistribute_buildup`). The response is then no longer
+        (`bfpsf.model.buildup.redistribute_buildup`). The response is then no longer
         quadratic in F (the redistributed charge acts back, second order in a), so it requires
         ``mode='exact'``, where each star is redistributed at its own flux. Default None:
         the one-step model of G15.
@@ -188,7 +190,7 @@ class FluxDependentPSF(Fittable2DModel):
     density_profile : galsim.GSObject, optional
         The unit-flux profile (no pixel) whose charge density integrated along each pixel
         boundary replaces G15's mean of the two pixels
-        (`bfpsf.model.redistribution.exact_boundary_density`): in mode 'table' it makes the
+        (`bfpsf.model.density.exact_boundary_density`): in mode 'table' it makes the
         table (unless ``bf_table`` is given); in mode 'exact' it is used at every evaluation
         phase and in every build-up step. `from_galsim` with ``density='exact'`` sets it.
         Default None.
@@ -219,7 +221,7 @@ class FluxDependentPSF(Fittable2DModel):
                  density_oversampling=8, **kwargs):
         self.data = _validate_data(data)
         self.data.flags.writeable = False
-        self.shifts = _as_shifts(shifts)
+        self.shifts = as_shifts(shifts)
         self.oversampling = _validate_oversampling(oversampling)
         if origin is None:
             origin = ((self.data.shape[1] - 1) / 2.0, (self.data.shape[0] - 1) / 2.0)
@@ -262,6 +264,13 @@ class FluxDependentPSF(Fittable2DModel):
         self.image_gain = 1.0
         #: Name of the calibration file the shifts come from (product metadata).
         self.calibration = ""
+        #: Shifts drawn from the calibration's uncertainty (`Calibration.shift_samples`):
+        #: predictions made with this model propagate them (``bfpsf slope --psf``).
+        self.shift_samples = tuple(shifts.shift_samples()) if hasattr(shifts, "shift_samples") else ()
+        self._options = dict(origin=tuple(origin), oversampling=tuple(self.oversampling.tolist()),
+                             gain=self.gain, mode=mode, buildup_steps=buildup_steps,
+                             fill_value=float(fill_value), density_profile=density_profile,
+                             density_oversampling=self.density_oversampling)
         x = np.arange(self.data.shape[1])
         y = np.arange(self.data.shape[0])
         self._base_spline = RectBivariateSpline(x, y, self.data.T, kx=3, ky=3, s=0)
@@ -311,7 +320,7 @@ class FluxDependentPSF(Fittable2DModel):
             Boundary charge density of the BF table: G15's mean of the two pixels (eq.
             density-approx, default) or the density integrated along each boundary from the
             profile drawn at ``density_oversampling`` sub-pixels per pixel
-            (`bfpsf.model.redistribution.exact_boundary_density`), for undersampled PSFs.
+            (`bfpsf.model.density.exact_boundary_density`), for undersampled PSFs.
         density_oversampling : int, optional
             Sub-pixels per pixel for ``density='exact'``. Default 8.
         **kwargs
@@ -348,6 +357,15 @@ class FluxDependentPSF(Fittable2DModel):
         """A copy that owns every array."""
         return copy.deepcopy(self)
 
+    def with_shifts(self, shifts):
+        """The same P0 and options with other boundary shifts (a new model; the BF table, if
+        any, is recomputed from the new shifts, a custom ``bf_table`` is not carried over)."""
+        new = self.__class__(self.data, shifts, flux=self.flux.value, x_0=self.x_0.value,
+                             y_0=self.y_0.value, **self._options)
+        new.image_gain = self.image_gain
+        new.calibration = self.calibration
+        return new
+
     @property
     def half_size(self):
         """Half-width, in pixels, of the pixel stamps used for R (covers the data)."""
@@ -366,17 +384,19 @@ class FluxDependentPSF(Fittable2DModel):
         x_0, y_0 = float(self.x_0.value), float(self.y_0.value)
         return ((y_0 + y_low, y_0 + y_high), (x_0 + x_low, x_0 + x_high))
 
-    def _data_coordinates(self, dx, dy):
+    def data_coordinates(self, dx, dy):
+        """Fractional indices (xi, yi) into ``data`` of offsets (dx, dy) from the star centre,
+        pixels, and the mask of the offsets outside the data."""
         xi = self.oversampling[1] * dx + self.origin[0]
         yi = self.oversampling[0] * dy + self.origin[1]
         ny, nx = self.data.shape
         outside = (xi < 0) | (xi > nx - 1) | (yi < 0) | (yi > ny - 1)
         return xi, yi, outside
 
-    def _evaluate_base(self, dx, dy):
+    def evaluate_base(self, dx, dy):
         """Unit-flux P0 at offsets (dx, dy) from the star centre, zero outside the data."""
         shape = np.shape(dx)
-        xi, yi, outside = self._data_coordinates(np.ravel(dx), np.ravel(dy))
+        xi, yi, outside = self.data_coordinates(np.ravel(dx), np.ravel(dy))
         values = self._base_spline(xi, yi, grid=False)
         values[outside] = 0.0
         return values.reshape(shape)
@@ -455,7 +475,7 @@ class FluxDependentPSF(Fittable2DModel):
         shape = x.shape
         dx = np.ravel(x) - x_0
         dy = np.ravel(y) - y_0
-        xi, yi, outside = self._data_coordinates(dx, dy)
+        xi, yi, outside = self.data_coordinates(dx, dy)
         if not (np.isfinite(flux) and np.isfinite(x_0) and np.isfinite(y_0)):
             return np.full(shape, np.nan)
         result = flux * self._base_spline(xi, yi, grid=False)

@@ -39,9 +39,9 @@ from astropy.table import Table
 from scipy.interpolate import make_interp_spline
 
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
+from ..shifts import as_shifts
 from .gridded import GriddedFluxDependentPSF, bilinear_weights, grid_node_positions
 from .psf import FluxDependentPSF
-from .redistribution import _as_shifts
 
 __all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS"]
 
@@ -253,7 +253,7 @@ def _exact_bf_terms(grid, weights, stars):
         for node, weight in zip(grid.nodes, weights[star]):
             if weight > 0:
                 terms[star] += weight * (node.evaluate(x, y, flux, x_0, y_0)
-                                         - flux * node._evaluate_base(x - x_0, y - y_0))
+                                         - flux * node.evaluate_base(x - x_0, y - y_0))
     return terms
 
 
@@ -473,7 +473,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
     """
     from tqdm import tqdm
 
-    shifts = _as_shifts(shifts)
+    shifts = as_shifts(shifts)
     size = int(size)
     if size < 5 or size % 2 == 0:
         msg = f"size must be an odd number of pixels >= 5, got {size}"

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFValueError
-from ..files import refuse_overwrite
+from ..files import refuse_overwrite, save_figure
 
 __all__ = ["plot_ptc", "plot_correlation_map", "plot_area_profile", "save_calibration_plots"]
 
@@ -175,8 +175,6 @@ def save_calibration_plots(calibration, directory, *, overwrite=False):
     -------
     list of pathlib.Path
     """
-    import matplotlib.pyplot as plt
-
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     makers = {"ptc.png": plot_ptc, "area_profile.png": plot_area_profile}
@@ -186,8 +184,6 @@ def save_calibration_plots(calibration, directory, *, overwrite=False):
     for name, maker in makers.items():
         path = directory / name
         refuse_overwrite(path, overwrite)
-        figure = maker(calibration)
-        figure.savefig(path, dpi=110, bbox_inches="tight")
-        plt.close(figure)
+        save_figure(maker(calibration), path, overwrite=overwrite, dpi=110, bbox_inches="tight")
         paths.append(path)
     return paths

@@ -32,7 +32,7 @@ def plot_density_approximation(table, ax=None):
     Parameters
     ----------
     table : astropy.table.Table
-        Output of `bfpsf.interop.galsim.density_approximation_error`.
+        Output of `bfpsf.validation.approximations.density_approximation_error`.
     ax : pair of matplotlib Axes, optional
         Top: relative size increase against IQ; bottom: the approximation's error.
 
@@ -61,7 +61,7 @@ def plot_buildup(table, ax=None):
     Parameters
     ----------
     table : astropy.table.Table
-        Output of `bfpsf.interop.galsim.buildup_error`.
+        Output of `bfpsf.validation.approximations.buildup_error`.
 
     Returns
     -------
@@ -81,7 +81,7 @@ def plot_buildup(table, ax=None):
 
 
 def plot_correction_convergence(result, ax=None):
-    """Residual of the iterative inverse (`bfpsf.model.redistribution.correct`) per iteration.
+    """Residual of the iterative inverse (`bfpsf.model.inverse.correct`) per iteration.
 
     Parameters
     ----------

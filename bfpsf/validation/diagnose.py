@@ -670,11 +670,11 @@ def observables_from_tables(correlations, sizes, *, kind=None, gain=None, measur
     Observables
         With ``meta`` holding ``area``, ``area_err``, ``shift_solution`` and the inputs.
     """
-    from ..calibration.coefficients import solve_boundary_shifts
+    from ..calibration.coefficients import solve_ei_shifts
     from ..calibration.measured import read_measured_area
 
     measured = read_measured_area(correlations)
-    solution = solve_boundary_shifts(measured.area, measured.area_err, n_monte_carlo=0)
+    solution = solve_ei_shifts(measured.area, measured.area_err, n_monte_carlo=0)
     with open(sizes) as handle:
         text = handle.read(4096)
     if kind is None:
@@ -882,26 +882,33 @@ def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, m
 
 
 def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, gain=None,
-                            calibration=None, fit_b=True):
+                            calibration=None, fit_b=True, amp=None):
     """Observables from flat-field FITS and spot / star images (ADU, bias subtracted).
 
     The flats are calibrated (`bfpsf.calibrate`), the sources of every image measured
     (`bfpsf.measure.sources.measure_sources`, unflagged sources only) and their sizes averaged
     in ``n_bins`` quantile bins of peak; the spot model is matched to the zero-flux intercept
     (a Moffat of index ``beta``, or a Gaussian). ``fit_b`` is passed to `bfpsf.calibrate`
-    (False for a few small flats, whose b term is unconstrained).
+    (False for a few small flats, whose b term is unconstrained). The loop works on one
+    amplifier: ``amp`` names it in multi-amplifier files (flats and images are read by
+    `bfpsf.io.amplifiers`).
 
     Also formed: the PTC residuals (`ptc_observable`, a fitted observable) and the stacked
     residual of the stars against P(F) built from the matched profile and the calibrated
     shifts (`stacked_star_residual`, in ``meta['star_residual']``, with the stacked image in
     ``meta['residual_images']`` for the report).
     """
-    from astropy.io import fits
-
     from ..calibration import calibrate
+    from ..calibration.product import Calibration
+    from ..io.amplifiers import read_amplifiers
     from ..measure.sources import measure_sources
 
-    cal = calibration or calibrate(list(flats), maxlag=maxlag, n_monte_carlo=0, fit_b=fit_b)
+    cal = calibration or calibrate(list(flats), maxlag=maxlag, n_monte_carlo=0, fit_b=fit_b,
+                                   amps=amp)
+    if not isinstance(cal, Calibration):
+        msg = (f"the flats hold {len(cal)} amplifiers ({', '.join(cal.names)}); the closed loop "
+               "works on one: choose it with --amp NAME")
+        raise BFPSFInputError(msg, cal.names)
     if cal.shifts is None:
         reason = cal.parameters.get("shifts_failure", "not solved")
         msg = f"the calibration has no boundary shifts ({reason})"
@@ -910,8 +917,12 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
     peaks, sigma_x, sigma_y = [], [], []
     pixels, tables = [], []
     for path in images:
-        with fits.open(path) as hdus:
-            data = np.asarray(hdus[0].data, float)
+        amplifiers = read_amplifiers(path, amp)
+        if len(amplifiers) > 1:
+            msg = (f"{path} holds {len(amplifiers)} amplifiers; the closed loop works on one: "
+                   "choose it with --amp NAME")
+            raise BFPSFInputError(msg, str(path))
+        data = amplifiers[0].data
         table = measure_sources(data * gain)
         pixels.append(data * gain)
         tables.append(table)

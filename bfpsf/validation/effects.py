@@ -554,11 +554,6 @@ class SpotForwardModel:
         self._cache[key] = value
         return value
 
-    def sizes_without_bf(self):
-        """(sigma_x, sigma_y) of the unit spot without redistribution, pixels."""
-        zero = self.shifts.scaled(0.0)
-        return self.sizes([self.peak_fraction], shifts=zero)
-
 
 # -- the candidates -------------------------------------------------------------------------------
 class Effect:
@@ -758,9 +753,9 @@ class SumRuleTail(Effect):
 
     def tail_area(self, area):
         """Ei-model area outside the measured window, 1/e- (full plane, (0, 0) excluded)."""
-        from ..calibration.coefficients import smoothing_model_area, solve_boundary_shifts
+        from ..calibration.coefficients import smoothing_model_area, solve_ei_shifts
 
-        solution = solve_boundary_shifts(area, n_monte_carlo=0)
+        solution = solve_ei_shifts(area, n_monte_carlo=0)
         p0, p1 = solution.p0, solution.p1
         big = smoothing_model_area(p0, p1, 200)
         weights = np.ones_like(big)
@@ -775,7 +770,7 @@ class SumRuleTail(Effect):
         area = observables.meta.get("area")
         if observables.sizes is None or area is None:
             return {}
-        from ..calibration.coefficients import solve_boundary_shifts
+        from ..calibration.coefficients import solve_ei_shifts
 
         area = np.array(area, dtype=float)
         weights = np.ones_like(area)
@@ -789,8 +784,8 @@ class SumRuleTail(Effect):
             return {}
         lowered = area.copy()
         lowered[0, 0] -= tail
-        base = solve_boundary_shifts(area, n_monte_carlo=0).shifts
-        shifts = solve_boundary_shifts(lowered, n_monte_carlo=0).shifts
+        base = solve_ei_shifts(area, n_monte_carlo=0).shifts
+        shifts = solve_ei_shifts(lowered, n_monte_carlo=0).shifts
         model = observables.spot_model
         # the difference of the two solutions, added to the model's own shifts
         change = _add_shifts(shifts, base.scaled(-1.0))

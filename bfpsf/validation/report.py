@@ -4,14 +4,13 @@
 into a directory; they refuse to replace existing files unless ``overwrite=True``.
 """
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from ..files import refuse_overwrite
+from ..files import refuse_overwrite, save_figure, write_text
 
-__all__ = ["write_diagnosis_report", "write_validation_report", "format_number", "to_json"]
+__all__ = ["write_diagnosis_report", "write_validation_report", "format_number"]
 
 
 def format_number(value, digits=3):
@@ -29,24 +28,6 @@ def format_number(value, digits=3):
     return f"{value:.{digits}g}"
 
 
-def to_json(value):
-    """JSON-safe copy: arrays to lists, NaN to None, objects dropped."""
-    if isinstance(value, dict):
-        return {str(key): to_json(item) for key, item in value.items()
-                if not hasattr(item, "__dataclass_fields__")}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [to_json(item) for item in value]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if np.isfinite(value) else None
-    if value is None or isinstance(value, str):
-        return value
-    return str(value)
-
-
 def _prepare(directory, names, overwrite):
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -56,10 +37,8 @@ def _prepare(directory, names, overwrite):
 
 
 def _save(figure, path):
-    import matplotlib.pyplot as plt
-
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    # _prepare has checked the names: a figure replaces a file only with overwrite
+    save_figure(figure, path, overwrite=True, dpi=110)
 
 
 def _residual_rows(before, after, physical=None):
@@ -193,8 +172,8 @@ def write_diagnosis_report(result, directory, *, title="bfpsf diagnose", context
         _save_residual_images(residual_images, directory)
         figures += ["residual_images.png", "radial_profile.png"]
     path = directory / "report.md"
-    path.write_text(diagnosis_markdown(result, title=title, figures=figures, context=context,
-                                       star_residual=star_residual))
+    write_text(path, diagnosis_markdown(result, title=title, figures=figures, context=context,
+                                        star_residual=star_residual), overwrite=True)
     return path
 
 
@@ -316,14 +295,5 @@ def write_validation_report(result, directory, *, overwrite=False):
         _save_residual_images(images, directory)
         figures += ["residual_images.png", "radial_profile.png"]
     path = directory / "report.md"
-    path.write_text(validation_markdown(result, figures=figures))
-    return path
-
-
-def write_json(summary, path, *, overwrite=False):
-    """Write a JSON summary (refuses to replace a file unless ``overwrite``)."""
-    path = Path(path)
-    refuse_overwrite(path, overwrite)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(to_json(summary), indent=2) + "\n")
+    write_text(path, validation_markdown(result, figures=figures), overwrite=True)
     return path

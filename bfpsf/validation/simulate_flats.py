@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFFileExistsError, BFPSFValueError
+from ..files import write_fits
 
 __all__ = ["simulate_flat", "simulate_flats", "write_flats", "DEFAULT_LEVELS_E"]
 
@@ -38,7 +39,9 @@ def _sensor(sensor):
     import galsim
 
     if isinstance(sensor, str):
-        return galsim.SiliconSensor(name=sensor)
+        from ..interop.silicon_truth import silicon_sensor
+
+        return silicon_sensor(sensor)
     if not isinstance(sensor, galsim.Sensor):
         msg = f"sensor must be a GalSim sensor name or a galsim.Sensor, got {sensor!r}"
         raise BFPSFValueError(msg, sensor)
@@ -310,6 +313,6 @@ def write_flats(outdir, sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, ov
         hdu.header.comments["SIMGAIN"] = "true gain (e-/ADU)"
         hdu.header.comments["SIMNOISE"] = "true read noise (e-)"
         hdu.header.comments["SIMLEVEL"] = "nominal charge level (e-)"
-        hdu.writeto(path, overwrite=overwrite)
+        write_fits(fits.HDUList([hdu]), path, overwrite=overwrite)
         log.info("wrote %s", path)
     return paths

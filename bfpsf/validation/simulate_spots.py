@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
-from ..files import refuse_overwrite
+from ..files import refuse_overwrite, write_fits
 
 __all__ = ["SpotSet", "StarField", "simulate_spots", "simulate_star_field", "write_image_adu",
            "bf_free_sensor", "simulate_varying_exposures"]
@@ -472,4 +472,4 @@ def write_image_adu(path, image_e, *, gain, exptime=1.0, catalog=None, overwrite
     if catalog is not None:
         hdus.append(fits.table_to_hdu(catalog))
         hdus[-1].name = "CATALOG"
-    fits.HDUList(hdus).writeto(path, overwrite=overwrite)
+    write_fits(fits.HDUList(hdus), path, overwrite=overwrite)

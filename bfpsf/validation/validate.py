@@ -3,8 +3,8 @@
 `validate` simulates SiliconSensor flats and Moffat spots, runs the whole chain and reports, side
 by side:
 
-1. truth a(dx, dy) (`bfpsf.interop.galsim.silicon_area_coefficients`) against the a recovered
-   by `bfpsf.calibrate` from the simulated flats;
+1. truth a(dx, dy) (`bfpsf.interop.silicon_truth.silicon_area_coefficients`) against the a
+   recovered by `bfpsf.calibrate` from the simulated flats;
 2. the measured BF slope of the spots in X and Y (adaptive moments, G15 section 3.2) against
    the slope predicted from the boundary shifts (G15 section 6.3: the faint-spot model scaled
    and redistributed), for the shifts of the flats calibration (with the error propagated from
@@ -33,14 +33,17 @@ SiliconSensor uses OpenMP; run with ``OMP_NUM_THREADS`` at most the free cores.
 """
 
 import dataclasses
-import importlib
 import time
 
 import numpy as np
 
 from ..errors import BFPSFError, BFPSFValueError
 
-__all__ = ["ValidationConfig", "QUICK", "FULL", "validate"]
+__all__ = ["ValidationConfig", "QUICK", "FULL", "validate", "FLATS_LABEL", "TRUTH_LABEL"]
+
+#: How the two sources of boundary shifts are named in every result and table.
+FLATS_LABEL = "flats calibration"
+TRUTH_LABEL = "SiliconSensor landing truth (diagnostic)"
 
 _MAG = 2.5 / np.log(10.0)
 
@@ -109,15 +112,6 @@ QUICK = ValidationConfig(fwhm=3.0, peaks_e=(5e3, 2.5e4, 5e4, 7.5e4, 1e5, 1.2e5),
                          flat_size=256, flat_nsteps=8, stamp_size=24, psf_oversampling=2)
 #: `bfpsf validate`: the full run (about 30 minutes on 2 cores).
 FULL = ValidationConfig()
-
-
-def _module(name):
-    try:
-        return importlib.import_module(name)
-    except ModuleNotFoundError as error:
-        if error.name == name:
-            return None
-        raise
 
 
 def _unavailable(reason):
@@ -211,10 +205,9 @@ def _residual_entries(spots, raw, measured, twin, predicted=(0.0, 0.0), static=(
 
 # -- stages ---------------------------------------------------------------------------------------
 def _stage_flats(config):
-    simulate = _module("bfpsf.validation.simulate_flats")
-    calibration = _module("bfpsf.calibration")
-    if simulate is None or not hasattr(calibration, "calibrate"):
-        return _unavailable("flat simulator or calibration not installed"), None
+    from .. import calibration
+    from . import simulate_flats as simulate
+
     flats = simulate.simulate_flats(config.sensor, config.flat_levels_e, pairs=config.flat_pairs,
                                     size=config.flat_size, gain=config.gain,
                                     read_noise_e=config.read_noise_e, nsteps=config.flat_nsteps,
@@ -225,7 +218,7 @@ def _stage_flats(config):
     try:
         cal = calibration.calibrate([flat[0] for flat in flats],
                                     exptimes=[flat[1] for flat in flats], maxlag=config.maxlag,
-                                    fit_b=config.fit_b, n_monte_carlo=50, seed=config.seed)
+                                    fit_b=config.fit_b, n_monte_carlo=20, seed=config.seed)
     except BFPSFError as error:
         # reported in the table; the spot stages still run with the truth shifts
         return _unavailable(f"calibration failed: {error}"), None
@@ -234,7 +227,7 @@ def _stage_flats(config):
 
 
 def _stage_truth(config, cal):
-    from ..interop import galsim as interop
+    from ..interop import silicon_truth as interop
 
     truth = interop.silicon_area_coefficients(config.sensor, maxlag=config.maxlag)
     out = {"available": True, "lags": [], "truth": [], "recovered": [], "recovered_err": [],
@@ -247,9 +240,7 @@ def _stage_truth(config, cal):
             out["recovered"].append(value)
             out["recovered_err"].append(error)
             out["pull"].append((value - truth[dy, dx]) / error if error > 0 else None)
-    shifts = None
-    if hasattr(interop, "silicon_boundary_shifts"):
-        shifts = interop.silicon_boundary_shifts(config.sensor, radius=config.maxlag)
+    shifts = interop.silicon_boundary_shifts(config.sensor, radius=config.maxlag)
     return out, truth, shifts
 
 
@@ -332,7 +323,7 @@ def _stage_prediction(config, spots, measured, shift_sets, cal=None, n_draws=20)
 
     from .effects import SpotForwardModel
 
-    from ..interop.galsim import silicon_diffusion_sigma
+    from ..interop.silicon_truth import silicon_diffusion_sigma
 
     # the spots BF acts on are the optical Moffat blurred by SiliconSensor's charge diffusion
     profile = galsim.Convolve(galsim.Moffat(fwhm=config.fwhm, beta=config.beta),
@@ -350,24 +341,20 @@ def _stage_prediction(config, spots, measured, shift_sets, cal=None, n_draws=20)
         row = {"shifts": label}
         slopes = predict(shifts)
         errors = (None, None)
-        if label == "flats calibration" and cal is not None and n_draws:
-            # propagate the errors of the measured a through the shift solution to the slope
-            from ..calibration.coefficients import solve_boundary_shifts
-
-            rng = np.random.default_rng(config.seed)
-            draws = []
-            for _ in range(n_draws):
-                area = np.array(cal.a) + rng.standard_normal(cal.a.shape) * np.array(cal.a_err)
-                try:
-                    draws.append(predict(solve_boundary_shifts(area, n_monte_carlo=0).shifts))
-                except BFPSFError:
-                    continue
+        if label == FLATS_LABEL and cal is not None and n_draws:
+            # the calibration error: the slope of every shift sample the calibration carries
+            draws = [predict(sample) for sample in cal.shift_samples(limit=n_draws)]
             if len(draws) >= 2:
                 errors = tuple(np.std(np.array(draws), axis=0, ddof=1))
         for index, axis in enumerate("xy"):
             row[f"predicted_slope_{axis}"] = slopes[index]
             row[f"predicted_slope_{axis}_err"] = errors[index]
             row[f"predicted_over_measured_{axis}"] = slopes[index] / measured[f"slope_{axis}"]
+            # pull against the BF-free-twin slope (the measured slope without photon noise)
+            if errors[index] is not None:
+                difference = slopes[index] - measured[f"paired_slope_{axis}"]
+                sigma = np.hypot(errors[index], measured[f"paired_slope_{axis}_err"])
+                row[f"pull_{axis}"] = float(difference / sigma)
         out["rows"].append(row)
     return out
 
@@ -398,9 +385,8 @@ def _flux_fit(psf, stamp, x, y, flux_guess, *, flux_dependent, iterations=3):
 
 
 def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts, progress):
-    psf_fit = _module("bfpsf.model.psf_fit")
-    if psf_fit is None:
-        return _unavailable("bfpsf.model.psf_fit not installed"), None
+    from ..model import psf_fit
+
     fluxes = spots.stamps.sum(axis=(1, 2))
     positions = [[(x, y)] for x, y in zip(spots.x, spots.y)]
     images = list(spots.stamps)
@@ -437,24 +423,23 @@ def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts, progress)
                              [positions[i] for i in np.flatnonzero(bright)], shifts,
                              oversampling=config.psf_oversampling, size=size,
                              include_bf=False, max_iterations=20).psf
-    photometry = _module("bfpsf.measure.photometry")
-    magnitudes = {"static": [], "flux_dependent": []}
-    if photometry is not None:
-        magnitudes.update({"photutils_static": [], "photutils_flux_dependent": []})
+    from ..measure import photometry
+
+    magnitudes = {"static": [], "flux_dependent": [], "photutils_static": [],
+                  "photutils_flux_dependent": []}
     for index in range(len(images)):
         for key, model, dependent in (("static", static, False),
                                       ("flux_dependent", psf, True)):
             flux = _flux_fit(model, images[index], spots.x[index], spots.y[index],
                              fluxes[index], flux_dependent=dependent)
             magnitudes[key].append(-_MAG * np.log(flux / fluxes[index]))
-            if photometry is not None:
-                # the sky is noiseless: the bias is not buried in its photon noise
-                table = photometry.psf_photometry(
-                    images[index] + PHOTOMETRY_SKY_E, model, background_e=PHOTOMETRY_SKY_E,
-                    read_noise_e=config.read_noise_e,
-                    positions=np.array([[spots.x[index], spots.y[index]]]))
-                flux = float(table["flux_fit"][0])
-                magnitudes[f"photutils_{key}"].append(-_MAG * np.log(flux / fluxes[index]))
+            # the sky is noiseless: the bias is not buried in its photon noise
+            table = photometry.psf_photometry(
+                images[index] + PHOTOMETRY_SKY_E, model, background_e=PHOTOMETRY_SKY_E,
+                read_noise_e=config.read_noise_e,
+                positions=np.array([[spots.x[index], spots.y[index]]]))
+            flux = float(table["flux_fit"][0])
+            magnitudes[f"photutils_{key}"].append(-_MAG * np.log(flux / fluxes[index]))
     for key, values in magnitudes.items():
         values = np.asarray(values)
         faint = values[spots.level == spots.level.min()].mean()
@@ -466,10 +451,9 @@ def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts, progress)
 
 
 def _stage_inverse(spots, raw, twin_sizes, shifts):
-    redistribution = _module("bfpsf.model.redistribution")
-    if not hasattr(redistribution, "correct"):
-        return _unavailable("bfpsf.correct not installed")
-    corrected = np.array([redistribution.correct(np.clip(stamp, 0, None), shifts)
+    from ..model.inverse import correct
+
+    corrected = np.array([correct(np.clip(stamp, 0, None), shifts)
                           for stamp in spots.stamps])
     sigma_x, sigma_y, _ = _moments(corrected)
     return {"available": True,
@@ -492,7 +476,7 @@ def _stage_diagnose(config, spots, sizes_x, sizes_y, shifts, cal):
     return diagnose(observables)
 
 
-def validate(config=None, *, quick=False, progress=False, shifts_for_model="truth"):
+def validate(config=None, *, quick=False, progress=False, shifts_for_model="flats"):
     """Run the end-to-end validation on GalSim SiliconSensor simulations.
 
     Parameters
@@ -502,11 +486,11 @@ def validate(config=None, *, quick=False, progress=False, shifts_for_model="trut
     quick : bool, optional
     progress : bool, optional
         tqdm progress bar over the stages.
-    shifts_for_model : {'truth', 'flats'}, optional
-        Boundary shifts given to P(F), the pixel inverse and the closed loop: SiliconSensor's own
-        (``'truth'``, default: isolates the PSF model from calibration noise) or the flats
-        calibration (``'flats'``: the whole chain; needs flats large enough to measure a to a
-        few percent). The slope prediction is reported for both.
+    shifts_for_model : {'flats', 'truth'}, optional
+        Boundary shifts given to P(F), the pixel inverse and the closed loop: the flats
+        calibration (``'flats'``, default: the path a user takes) or SiliconSensor's own
+        landing shifts (``'truth'``: a diagnostic that isolates the PSF model from the
+        calibration; every table names it as such). The slope prediction is reported for both.
 
     Returns
     -------
@@ -556,18 +540,20 @@ def validate(config=None, *, quick=False, progress=False, shifts_for_model="trut
     result["slopes"] = slopes
 
     shift_sets = {}
-    if truth_shifts is not None:
-        shift_sets["SiliconSensor truth"] = truth_shifts
     if cal is not None and cal.shifts is not None:
-        shift_sets["flats calibration"] = cal.shifts
+        shift_sets[FLATS_LABEL] = cal.shifts
+    if truth_shifts is not None:
+        shift_sets[TRUTH_LABEL] = truth_shifts
     result["prediction"] = step("prediction", _stage_prediction, config, spots, slopes,
                                 shift_sets, cal)
-    model_shifts = (truth_shifts if shifts_for_model == "truth" or cal is None
-                    else cal.shifts)
-    if model_shifts is None:
-        model_shifts = cal.shifts if cal is not None else None
-    result["model_shifts"] = ("SiliconSensor truth" if model_shifts is truth_shifts
-                              else "flats calibration")
+    flats_shifts = cal.shifts if cal is not None else None
+    if shifts_for_model == "flats" and flats_shifts is None:
+        msg = ("the flats calibration gave no boundary shifts "
+               f"({result['calibration'].get('reason', 'no brighter-fatter signal')}); "
+               "use shifts_for_model='truth' for a diagnostic run")
+        raise BFPSFValueError(msg, shifts_for_model)
+    model_shifts = flats_shifts if shifts_for_model == "flats" else truth_shifts
+    result["model_shifts"] = FLATS_LABEL if shifts_for_model == "flats" else TRUTH_LABEL
     result["psf"], result["residual_images"] = step(
         "P(F)", _stage_psf, config, spots, (sizes_x, sizes_y), (twin_x, twin_y), raw, model_shifts,
         progress)

@@ -1,0 +1,148 @@
+"""Benchmark: a simulated focal plane through `bfpsf.calibration.calibrate_detectors` on Dask.
+
+1. Speed: 4 detectors x 4 amplifiers of small flat pairs (multi-extension files with overscan,
+   one directory per detector), calibrated in this process, on a Dask LocalCluster of one
+   worker and of two workers; prints the times and the speed-up of 2 workers over 1, and
+   checks that every amplifier's gain and a(dx, dy) are identical across the three runs.
+2. Memory: one amplifier with 4, 16 and 64 pairs, each run in a fresh process (in process and
+   on 2 Dask workers); prints the peak resident memory of the main process and of the largest
+   worker process. Bounded streaming means the peak does not grow with the number of pairs.
+
+The pairs are Poisson flats (no GalSim: the map, not the physics, is measured). On a shared
+machine the numbers are noisy; run it when the machine is quiet.
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_parallel.py [--size 512] [--pairs 6]
+"""
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+for _variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
+
+import numpy as np  # noqa: E402
+
+from bfpsf.calibration import calibrate_detectors  # noqa: E402
+from bfpsf.validation.simulate_camera import write_amplifier_file  # noqa: E402
+
+AMPLIFIERS = ("C00", "C01", "C10", "C11")
+OPTIONS = dict(maxlag=4, n_monte_carlo=0, solve_shifts=False, fit_b="none")
+
+
+def focal_plane(directory, *, detectors, amplifiers, pairs, size, seed=0):
+    """``detectors`` directories of ``2 * pairs`` MEF flats with ``amplifiers`` amplifiers."""
+    rng = np.random.default_rng(seed)
+    levels = np.repeat(np.linspace(2e3, 8e4, pairs), 2)
+    folders = {}
+    for detector in range(detectors):
+        folder = Path(directory) / f"R{detector:02d}"
+        folder.mkdir()
+        for number, level in enumerate(levels):
+            images = [(rng.poisson(level, (size, size)) + rng.normal(0, 5, (size, size))) / 1.5
+                      for _ in amplifiers]
+            write_amplifier_file(folder / f"flat{number:03d}.fits", images, list(amplifiers),
+                                 bias_adu=[1000.0] * len(amplifiers),
+                                 read_noise_adu=[3.0] * len(amplifiers), exptime=level / 1e3,
+                                 rng=rng)
+        folders[folder.name] = sorted(str(path) for path in folder.glob("*.fits"))
+    return folders
+
+
+def timed(detectors, workers, scheduler_mode):
+    """Wall seconds, CPU seconds (this process, or the sum over the workers) and the result."""
+    if scheduler_mode == "in-process":
+        start, start_cpu = time.perf_counter(), time.process_time()
+        result = calibrate_detectors(detectors, workers=1, **OPTIONS)
+        return time.perf_counter() - start, time.process_time() - start_cpu, result
+    from bfpsf.parallel import _client
+
+    # the cluster (started as bfpsf starts it) is outside the timing: a long run amortises it
+    client, cluster = _client(workers, None)
+    try:
+        cpu_before = sum(client.run(time.process_time).values())
+        start = time.perf_counter()
+        result = calibrate_detectors(detectors, scheduler=cluster.scheduler_address, **OPTIONS)
+        wall = time.perf_counter() - start
+        cpu = sum(client.run(time.process_time).values()) - cpu_before
+    finally:
+        client.close()
+        cluster.close()
+    return wall, cpu, result
+
+
+def speed(args):
+    with tempfile.TemporaryDirectory() as directory:
+        detectors = focal_plane(directory, detectors=4, amplifiers=AMPLIFIERS,
+                                pairs=args.pairs, size=args.size)
+        tasks = 4 * len(AMPLIFIERS) * args.pairs
+        print(f"focal plane: 4 detectors x {len(AMPLIFIERS)} amplifiers x {args.pairs} pairs "
+              f"of {args.size}^2 = {tasks} pair tasks")
+        runs = {}
+        for label, workers, mode in (("in process", 1, "in-process"), ("Dask, 1 worker", 1, "dask"),
+                                     ("Dask, 2 workers", 2, "dask")):
+            seconds, cpu, result = timed(detectors, workers, mode)
+            runs[label] = (seconds, result)
+            print(f"  {label:16s} {seconds:7.2f} s wall, {cpu:7.2f} s CPU (the workers' for "
+                  "Dask: a CPU time near the wall time times the workers means each had a core)")
+        reference = runs["in process"][1]
+        identical = all(
+            np.array_equal(result[detector][amp].a, reference[detector][amp].a)
+            and result[detector][amp].gain == reference[detector][amp].gain
+            for _, result in runs.values() for detector in reference for amp in AMPLIFIERS)
+        print(f"  speed-up, 2 workers over 1: "
+              f"{runs['Dask, 1 worker'][0] / runs['Dask, 2 workers'][0]:.2f}x; "
+              f"gains and a(dx, dy) identical in all runs: {identical}")
+
+
+def one_memory_run(directory, workers):
+    """Run in a fresh process on flats written by the parent: peak RSS (MB) after the imports,
+    at the end, and of the largest child (a Dask worker)."""
+    files = sorted(str(path) for path in Path(directory).glob("*.fits"))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    calibrate_detectors({"R00": files}, workers=workers, **OPTIONS)
+    main = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    print(json.dumps({"before": before, "main": main, "children": children}))
+
+
+def memory(args):
+    print(f"peak resident memory, one amplifier of {args.size}^2 (MB; one flat "
+          f"{args.size**2 * 8 / 1e6:.1f} MB, so holding every pair would take 4.2 MB per pair):")
+    for pairs in (4, 16, 64):
+        with tempfile.TemporaryDirectory() as directory:
+            focal_plane(directory, detectors=1, amplifiers=("C00",), pairs=pairs, size=args.size)
+            for workers in (1, 2):
+                label = "in process" if workers == 1 else "Dask, 2 workers"
+                output = subprocess.run(
+                    [sys.executable, __file__, "--memory-run", str(Path(directory) / "R00"),
+                     "--workers", str(workers)], check=True, capture_output=True,
+                    text=True).stdout
+                peaks = json.loads(output.strip().splitlines()[-1])
+                print(f"  {label:16s} {pairs:3d} pairs: main process {peaks['main']:7.1f} "
+                      f"(after the imports {peaks['before']:.1f}), largest worker "
+                      f"{peaks['children']:7.1f}")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", type=int, default=512, help="amplifier side, pixels")
+    parser.add_argument("--pairs", type=int, default=6, help="pairs per amplifier (speed)")
+    parser.add_argument("--memory-run", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--workers", type=int, default=1, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.memory_run is not None:
+        one_memory_run(args.memory_run, args.workers)
+        return
+    speed(args)
+    memory(args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,488 @@
+"""Boundary shifts from an electrostatic model of the sensor (Astier & Regnault 2023).
+
+The flats measure the area coefficients a(dx, dy) = sum_X a^X(dx, dy) (G15 eq. covar). How
+a(0, 0) splits between the N/S and the E/W boundaries is, to first order, invisible to them:
+moving the N and S boundaries of a pixel in and the E and W ones out by the same amount
+changes no area. G15's Ei smoothing model fixes that split from the far lags' radial profile,
+which finite flats measure poorly. This module fixes it with physics instead, as Astier &
+Regnault (2023, A&A 670, A118; the model behind LSST cp_pipe's
+``ElectrostaticBrighterFatterSolveTask``) do:
+
+* The collected charge is a uniform rectangular sheet of half-sizes (``half_width_x``,
+  ``half_width_y``) at height ``charge_height`` above the clock (gate) plane, in a sensor of
+  ``thickness``. Both faces are held at fixed potential, so the sheet has image charges of
+  alternating sign at ``2 n t +- z_q`` for every integer n (the method of images).
+* An electron converted at the entrance face (z = t) drifts to the collection plane. The
+  transverse field of the collected charge deflects it; with a uniform drift field the
+  deflection is proportional to the transverse field integrated along z. It is integrated from
+  the entrance face down to the height at which the pixel boundaries are fixed by the clock
+  potentials: ``horizontal_height`` for the N/S boundaries (fixed by the parallel clocks) and
+  ``vertical_height`` for the E/W ones (the channel stops), which need not be equal. That
+  difference, with the aspect ratio of the charge sheet, is what sets the N/E split.
+* A boundary moves by minus the mean deflection of the electrons that reach it, averaged along
+  the boundary (Gauss-Legendre), times one overall amplitude ``alpha`` (1 / (epsilon E_drift),
+  which is fitted rather than computed).
+
+All lengths are in pixels. The shifts are positive outward and in pixels per electron, as
+everywhere in bfpsf (`bfpsf.shifts`); they obey parity and the mirror symmetries by
+construction, and every boundary is physical: a repulsive charge always shrinks its own pixel
+on all four sides.
+
+The five geometric parameters (``thickness`` is held fixed) and ``alpha`` are fitted to every
+measured lag by weighted least squares with the full covariance of a (`scipy.optimize`), each
+bounded to a physical range. The shifts' uncertainty is a parametric bootstrap: the measured a
+are redrawn from their covariance (scaled by chi2/dof when chi2 exceeds its 99th percentile,
+so that a model that does not describe the data carries that into its errors) and refitted from every distinct
+local minimum, which follows parameters stopped on a bound and solutions that move between
+minima of nearly equal chi2. The refitted shifts are returned as samples, which every
+downstream prediction propagates.
+"""
+
+import dataclasses
+
+import numpy as np
+from scipy import optimize, stats
+
+from ..errors import BFPSFValueError
+from ..shifts import BoundaryShifts
+
+__all__ = ["ElectrostaticGeometry", "electrostatic_shifts", "electrostatic_area", "fit_electrostatic",
+           "ElectrostaticFit", "GEOMETRY_BOUNDS"]
+
+# Gauss-Legendre nodes along a boundary and across the charge sheet, and image-charge pairs
+# on each side. 8 nodes along a boundary half a pixel from the sheet edge are exact to 1e-4;
+# the images beyond 2 K t contribute (rho / (2 K t))^3 of the field at distance rho.
+_BOUNDARY_NODES = 8
+_SHEET_NODES = 3
+_IMAGE_PAIRS = 6
+
+#: Physical ranges of the fitted geometry, in units of the sensor thickness for heights and
+#: of the pixel for the sheet. The sheet reaches at most 0.49 pixel from its centre in each
+#: direction (as in cp_pipe); the boundary heights are above the charge and below half the
+#: thickness.
+GEOMETRY_BOUNDS = {
+    "charge_height": (0.0, 0.25),
+    "horizontal_height": (0.0, 0.5),
+    "vertical_height": (0.0, 0.5),
+    "half_width_x": (0.01, 0.49),
+    "half_width_y": (0.01, 0.49),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class ElectrostaticGeometry:
+    """Geometry of the electrostatic model, in pixels.
+
+    Attributes
+    ----------
+    thickness : float
+        Sensor thickness t (held fixed in the fit; 10 for 100 um sensors with 10 um pixels).
+    charge_height : float
+        Height z_q of the collected-charge sheet above the clock plane.
+    horizontal_height, vertical_height : float
+        Heights z_sh, z_sv below which the N/S (horizontal) and E/W (vertical) boundaries no
+        longer move; the deflection is integrated from them to the entrance face.
+    half_width_x, half_width_y : float
+        Half-sizes of the charge sheet along x (serial) and y (parallel).
+    """
+
+    thickness: float
+    charge_height: float
+    horizontal_height: float
+    vertical_height: float
+    half_width_x: float
+    half_width_y: float
+
+    def __post_init__(self):
+        if not self.thickness > 0:
+            msg = f"thickness must be positive, got {self.thickness}"
+            raise BFPSFValueError(msg, self.thickness)
+        if not 0 <= self.charge_height < min(self.horizontal_height, self.vertical_height):
+            msg = (f"the charge ({self.charge_height:.3g} px) must lie below both boundary "
+                   f"heights ({self.horizontal_height:.3g}, {self.vertical_height:.3g} px)")
+            raise BFPSFValueError(msg, self.charge_height)
+        if max(self.horizontal_height, self.vertical_height) >= self.thickness:
+            msg = "the boundary heights must lie inside the sensor thickness"
+            raise BFPSFValueError(msg)
+        if not (0 < self.half_width_x < 0.5 and 0 < self.half_width_y < 0.5):
+            msg = (f"the charge sheet must lie inside its pixel, got half-widths "
+                   f"{self.half_width_x:.3g}, {self.half_width_y:.3g}")
+            raise BFPSFValueError(msg)
+
+    def as_dict(self):
+        return dataclasses.asdict(self)
+
+
+def _integrated_field(along, normal, z_low, geometry, axis_half_width, cross_half_width):
+    """Transverse field of the unit sheet, normal to a boundary, integrated over z.
+
+    ``along`` [..., B] are positions along the boundary and ``normal`` [...] the boundary's
+    distance from the sheet centre along its normal, both relative to the sheet centre.
+    ``axis_half_width`` is the sheet half-size along the normal, ``cross_half_width`` along
+    the boundary. Returns the integral from ``z_low`` to the thickness, averaged over the
+    sheet, [..., B]. For a point charge at height c,
+    int E_n dz = n / rho^2 [(z - c) / sqrt(rho^2 + (z - c)^2)], rho the horizontal distance.
+    """
+    t = geometry.thickness
+    nodes, weights = np.polynomial.legendre.leggauss(_SHEET_NODES)
+    # sheet points (u across the boundary, v along it) and their weights, flattened: [S]
+    u = np.repeat(nodes * axis_half_width, _SHEET_NODES)
+    v = np.tile(nodes * cross_half_width, _SHEET_NODES)
+    sheet_weights = np.outer(weights, weights).ravel() / 4.0
+    normal = np.asarray(normal, dtype=float)[..., None]
+    # The charge and its image in the clock plane, as the extended sheet.
+    n = normal[..., None] - u                                            # [..., 1, S]
+    rho2 = n ** 2 + (along[..., None] - v) ** 2                          # [..., B, S]
+    near = (_z_integral(rho2, z_low, t, geometry.charge_height)
+            - _z_integral(rho2, z_low, t, -geometry.charge_height))
+    result = np.sum(sheet_weights * n / rho2 * near, axis=-1)
+    # The other images are at least 2 t - z_q away: point charges at the sheet centre.
+    orders = np.concatenate([np.arange(-_IMAGE_PAIRS, 0), np.arange(1, _IMAGE_PAIRS + 1)])
+    heights = np.concatenate([2 * orders * t + geometry.charge_height,
+                              2 * orders * t - geometry.charge_height])
+    signs = np.concatenate([np.ones(orders.size), -np.ones(orders.size)])
+    rho2 = (normal ** 2 + along ** 2)[..., None]                         # [..., B, 1]
+    far = np.sum(signs * _z_integral(rho2, z_low, t, heights), axis=-1)
+    return result + normal / rho2[..., 0] * far
+
+
+def _z_integral(rho2, z_low, z_high, height):
+    """int_{z_low}^{z_high} dz / (rho^2 + (z - c)^2)^(3/2), times rho^2, for a charge at c."""
+    top = z_high - height
+    bottom = z_low - height
+    return top / np.sqrt(rho2 + top ** 2) - bottom / np.sqrt(rho2 + bottom ** 2)
+
+
+def _boundary_nodes(centres):
+    """Gauss-Legendre points and weights along unit boundaries centred on ``centres`` [...]."""
+    nodes, weights = np.polynomial.legendre.leggauss(_BOUNDARY_NODES)
+    return centres[..., None] + nodes / 2.0, weights / 2.0
+
+
+def _unit_north(geometry, dx, dy):
+    """a^N(dx, dy) for alpha = 1 on any grid of source offsets.
+
+    The N boundary of pixel (0, 0) seen from a charge at (dx, dy) is the segment
+    y = 1/2 - dy, x in -dx +- 1/2; the charge deflects electrons along +y there by the
+    integral of E_y, so the boundary moves by minus that (outward positive).
+    """
+    along, weights = _boundary_nodes(-np.asarray(dx, dtype=float))
+    deflection = _integrated_field(along, 0.5 - np.asarray(dy, dtype=float),
+                                   geometry.horizontal_height, geometry,
+                                   geometry.half_width_y, geometry.half_width_x)
+    return -np.sum(weights * deflection, axis=-1)
+
+
+def _unit_east(geometry, dx, dy):
+    """a^E(dx, dy) for alpha = 1: the segment x = 1/2 - dx, y in -dy +- 1/2, field E_x."""
+    along, weights = _boundary_nodes(-np.asarray(dy, dtype=float))
+    deflection = _integrated_field(along, 0.5 - np.asarray(dx, dtype=float),
+                                   geometry.vertical_height, geometry,
+                                   geometry.half_width_x, geometry.half_width_y)
+    return -np.sum(weights * deflection, axis=-1)
+
+
+def electrostatic_shifts(geometry, alpha, radius):
+    """Boundary shifts a^N, a^E of the electrostatic model on offsets -radius..radius.
+
+    Parameters
+    ----------
+    geometry : ElectrostaticGeometry
+    alpha : float
+        Amplitude, pixels per electron per unit integrated field (pixel^-1).
+    radius : int
+        Offsets -radius..radius. As in `BoundaryShifts.from_radial_profile`, the row of a^N
+        at dy = -radius and the column of a^E at dx = -radius (outside the grid by parity)
+        are zero.
+
+    Returns
+    -------
+    BoundaryShifts
+    """
+    m = int(radius)
+    grid = np.arange(-m, m + 1, dtype=float)
+    dy, dx = np.meshgrid(grid, grid, indexing="ij")
+    north = alpha * _unit_north(geometry, dx, dy)
+    east = alpha * _unit_east(geometry, dx, dy)
+    north[0, :] = 0.0
+    east[:, 0] = 0.0
+    return BoundaryShifts(north, east, check=True, rtol=1e-9)
+
+
+def electrostatic_area(geometry, alpha, maxlag):
+    """Area coefficients a(dx, dy) = sum_X a^X of the model, [dy, dx] for 0..maxlag, 1/e-.
+
+    Only the boundaries that enter the quadrant are computed (G15 eq. covar):
+    a = a^N(dx, dy) - a^N(dx, dy + 1) + a^E(dx, dy) - a^E(dx + 1, dy).
+    """
+    n = int(maxlag)
+    dy, dx = np.mgrid[0:n + 2, 0:n + 2].astype(float)
+    north = _unit_north(geometry, dx[:, :n + 1], dy[:, :n + 1])   # dy = 0..n+1
+    east = _unit_east(geometry, dx[:n + 1, :], dy[:n + 1, :])     # dx = 0..n+1
+    return alpha * (north[:-1] - north[1:] + east[:, :-1] - east[:, 1:])
+
+
+# -- the fit ------------------------------------------------------------------------------------
+# Fitted vector: charge height, the two boundary heights above it (so that both stay above the
+# charge), in units of the thickness, and the two sheet half-widths in pixels.
+_NAMES = ("charge_height", "horizontal_gap", "vertical_gap", "half_width_x", "half_width_y")
+_LOWER = np.array([0.0, 1e-4, 1e-4, GEOMETRY_BOUNDS["half_width_x"][0],
+                   GEOMETRY_BOUNDS["half_width_y"][0]])
+_UPPER = np.array([GEOMETRY_BOUNDS["charge_height"][1], 0.25, 0.25,
+                   GEOMETRY_BOUNDS["half_width_x"][1], GEOMETRY_BOUNDS["half_width_y"][1]])
+# Starting points: a grid over the two boundary heights and the sheet half-widths. The landscape has several local minima of nearly equal chi2 that
+# split a(0, 0) differently between N and E: every start is fitted coarsely, the best few are
+# polished.
+_STARTS = tuple((charge, horizontal, vertical, half_x, half_y)
+                for charge in (0.01,)
+                for horizontal, vertical in ((0.01, 0.01), (0.003, 0.1), (0.1, 0.003),
+                                             (0.05, 0.2), (0.2, 0.05), (0.1, 0.1))
+                for half_x, half_y in ((0.2, 0.2), (0.4, 0.4), (0.4, 0.15), (0.15, 0.4)))
+_POLISHED = 3
+# Monte Carlo samples of the shifts kept for downstream error propagation.
+DEFAULT_SAMPLES = 100
+
+
+def _geometry(vector, thickness):
+    charge, horizontal, vertical, half_x, half_y = vector
+    return ElectrostaticGeometry(
+        thickness=thickness, charge_height=charge * thickness,
+        horizontal_height=(charge + horizontal) * thickness,
+        vertical_height=(charge + vertical) * thickness,
+        half_width_x=half_x, half_width_y=half_y)
+
+
+def _vector(geometry):
+    t = geometry.thickness
+    return np.array([geometry.charge_height / t,
+                     (geometry.horizontal_height - geometry.charge_height) / t,
+                     (geometry.vertical_height - geometry.charge_height) / t,
+                     geometry.half_width_x, geometry.half_width_y])
+
+
+@dataclasses.dataclass(frozen=True)
+class ElectrostaticFit:
+    """Boundary shifts fitted with the electrostatic model, with their uncertainties.
+
+    Attributes
+    ----------
+    shifts : BoundaryShifts
+        a^N, a^E (1/e-) on offsets -m..m, m = n + 1 (n the largest measured lag).
+    north_err, east_err : ndarray
+        Standard deviations of ``shifts.north`` and ``shifts.east`` over the samples (1/e-).
+    samples_north, samples_east : ndarray, shape (S, 2m + 1, 2m + 1)
+        The shifts of refits of a drawn from its covariance (scaled by chi2/dof when the
+        model does not describe the data): the calibration error every prediction propagates.
+    geometry : ElectrostaticGeometry
+        Best-fit geometry (pixels).
+    alpha : float
+        Best-fit amplitude.
+    parameters, parameter_cov : ndarray
+        The fitted vector (charge height / t, the two boundary heights above it / t, the
+        two half-widths, alpha) and its covariance over the samples.
+    at_bound : tuple of str
+        Parameters that ended on their physical bound (their error is then not Gaussian).
+    chi2 : float
+        Chi-square of the fit on the measured a(dx, dy), with their covariance.
+    dof : int
+        Measured lags minus 6.
+    error_scale : float
+        The factor applied to the errors of a in the refits: sqrt(chi2 / dof) without given
+        errors or when chi2 exceeds its 99th percentile, else 1.
+    area, area_err : ndarray
+        The measured a [dy, dx] and its 1-sigma errors (1/e-).
+    area_model : ndarray
+        The model's a [dy, dx] at the measured lags.
+    """
+
+    shifts: BoundaryShifts
+    north_err: np.ndarray
+    east_err: np.ndarray
+    samples_north: np.ndarray
+    samples_east: np.ndarray
+    geometry: ElectrostaticGeometry
+    alpha: float
+    parameters: np.ndarray
+    parameter_cov: np.ndarray
+    at_bound: tuple
+    chi2: float
+    dof: int
+    error_scale: float
+    area: np.ndarray
+    area_err: np.ndarray
+    area_model: np.ndarray
+
+    method = "electrostatic"
+
+    @property
+    def maxlag(self):
+        return self.area.shape[0] - 1
+
+
+def _whitener(area, area_err, area_cov):
+    """Matrix W^(1/2) such that |W^(1/2) r|^2 is the chi-square of residuals r = a.ravel()."""
+    if area_cov is not None:
+        eigenvalues, eigenvectors = np.linalg.eigh(area_cov)
+        floor = 1e-12 * eigenvalues.max()
+        return (eigenvectors / np.sqrt(np.maximum(eigenvalues, floor))).T
+    return np.diag(1.0 / area_err.ravel())
+
+
+def _noise_root(area_err, area_cov):
+    """A matrix S with S S^T the covariance of a.ravel() (semi-definite accepted)."""
+    if area_cov is None:
+        return np.diag(area_err.ravel())
+    eigenvalues, eigenvectors = np.linalg.eigh(area_cov)
+    return eigenvectors * np.sqrt(np.clip(eigenvalues, 0.0, None))
+
+
+def _default_errors(area):
+    """Errors for an a-matrix given without any: equal per independent measurement.
+
+    A quadrant-averaged lag off both axes averages 4 lags of the full plane, one on an axis 2
+    and (0, 0) 1 (with twice the error of a fitted slope), as in cp_pipe: relative variances
+    1, 2 and 8 for 4, 2 and 1 replicas, i.e. sigma 1/2, 1 and sqrt(8) (times 1e-3 |a(0, 0)|).
+    """
+    errors = np.full(area.shape, 0.5)
+    errors[0, :] = 1.0
+    errors[:, 0] = 1.0
+    errors[0, 0] = np.sqrt(8.0)
+    return errors * 1e-3 * abs(area[0, 0])
+
+
+def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
+                      n_samples=DEFAULT_SAMPLES, seed=0):
+    """Fit the electrostatic model to measured area coefficients and return the shifts.
+
+    Parameters
+    ----------
+    area : array_like, shape (n + 1, n + 1)
+        a(dx, dy) = C(dx, dy) / (V mu), 1/e-, [dy, dx], dx, dy = 0..n, n >= 1; a(0, 0) < 0.
+    area_err : array_like, optional
+        1-sigma errors of ``area``. Without them (and without ``area_cov``) the fit weights
+        the lags as `_default_errors` and scales the errors by the fit's chi2/dof.
+    area_cov : array_like, shape ((n + 1)^2, (n + 1)^2), optional
+        Full covariance of ``area.ravel()`` (takes precedence over ``area_err``).
+    thickness : float, optional
+        Sensor thickness in pixels, held fixed. Default 10 (100 um, 10 um pixels: the LSST
+        E2V and ITL sensors).
+    n_samples : int, optional
+        Monte Carlo samples of the shifts. Default 100.
+    seed : int, optional
+        Seed of the samples.
+
+    Returns
+    -------
+    ElectrostaticFit
+    """
+    area = np.array(area, dtype=float)
+    if area.ndim != 2 or area.shape[0] != area.shape[1] or area.shape[0] < 2:
+        msg = f"area must be a square 2-D array a[dy, dx] for lags 0..n, n >= 1, got {area.shape}"
+        raise BFPSFValueError(msg, area.shape)
+    if not np.all(np.isfinite(area)):
+        msg = f"area contains {np.count_nonzero(~np.isfinite(area))} non-finite values"
+        raise BFPSFValueError(msg)
+    if not area[0, 0] < 0:
+        msg = (f"area a(0, 0) must be negative (a charge shrinks its own pixel), "
+               f"got {area[0, 0]:.4g}")
+        raise BFPSFValueError(msg, area[0, 0])
+    given_errors = area_err is not None or area_cov is not None
+    if area_cov is not None:
+        area_cov = np.array(area_cov, dtype=float)
+        if area_cov.shape != (area.size, area.size) or not np.all(np.isfinite(area_cov)):
+            msg = (f"area_cov must be a finite ({area.size}, {area.size}) covariance, "
+                   f"got shape {area_cov.shape}")
+            raise BFPSFValueError(msg, area_cov.shape)
+        area_err = np.sqrt(np.clip(np.diag(area_cov), 0.0, None)).reshape(area.shape)
+    elif area_err is not None:
+        area_err = np.array(area_err, dtype=float)
+        if area_err.shape != area.shape or not np.all(np.isfinite(area_err) & (area_err > 0)):
+            msg = f"area_err must be finite, positive and shaped like area {area.shape}"
+            raise BFPSFValueError(msg, area_err.shape)
+    else:
+        area_err = _default_errors(area)
+    whiten = _whitener(area, area_err, area_cov)
+    n = area.shape[0] - 1
+    radius = n + 1
+    data = whiten @ area.ravel()
+
+    def model_area(vector):
+        return electrostatic_area(_geometry(vector, thickness), 1.0, n)
+
+    def _profile(vector, target):
+        """Best alpha (linear) for the geometry ``vector`` and the whitened residuals."""
+        basis = whiten @ model_area(vector).ravel()
+        alpha = float(basis @ target / (basis @ basis))
+        return alpha, target - alpha * basis
+
+    def profile(vector):
+        return _profile(vector, data)
+
+    def fit(start, **tolerances):
+        return optimize.least_squares(lambda v: profile(v)[1], np.asarray(start),
+                                      bounds=(_LOWER, _UPPER), x_scale="jac", **tolerances)
+
+    coarse = sorted((fit(start, max_nfev=15, xtol=1e-4, ftol=1e-4) for start in _STARTS),
+                    key=lambda result: result.cost)
+    polished = sorted((fit(result.x, xtol=1e-10, ftol=1e-10, gtol=1e-10)
+                       for result in coarse[:_POLISHED]), key=lambda result: result.cost)
+    best = polished[0]
+    vector = best.x
+    alpha, residual = profile(vector)
+    chi2 = float(residual @ residual)
+    dof = max(area.size - 6, 1)
+
+    # Errors are scaled by chi2/dof when the model does not describe the data: always without
+    # given errors, and when chi2 exceeds its 99th percentile with them (a normal fluctuation
+    # of chi2 above dof is not a model failure).
+    if not given_errors:
+        scale = chi2 / dof
+    else:
+        scale = chi2 / dof if chi2 > stats.chi2.ppf(0.99, dof) else 1.0
+    at_bound = tuple(name for name, value, low, high in zip(_NAMES, vector, _LOWER, _UPPER)
+                     if min(value - low, high - value) < 1e-6 * (high - low))
+    geometry = _geometry(vector, thickness)
+    shifts = electrostatic_shifts(geometry, alpha, radius)
+
+    # The calibration error: refit data drawn from the covariance of a (scaled by chi2/dof
+    # when the model does not describe the data), from each distinct local minimum found
+    # above. Unlike a linearised covariance, this follows parameters that stop on a physical
+    # bound and solutions that jump between minima of nearly equal chi2 (the N/E split).
+    minima = [best.x]
+    for result in polished:
+        if all(np.max(np.abs(result.x - kept) / (_UPPER - _LOWER)) > 0.02 for kept in minima):
+            minima.append(result.x)
+    noise_root = _noise_root(area_err, area_cov) * np.sqrt(scale)
+    rng = np.random.default_rng(seed)
+    draws, samples_north, samples_east = [], [], []
+    for _ in range(int(n_samples)):
+        perturbed = whiten @ (area.ravel() + noise_root @ rng.standard_normal(area.size))
+        refits = []
+        for start in minima:
+            refit = optimize.least_squares(lambda v: _profile(v, perturbed)[1], start,
+                                           bounds=(_LOWER, _UPPER), x_scale="jac",
+                                           xtol=1e-6, ftol=1e-6)
+            refits.append(refit)
+        refit = min(refits, key=lambda result: result.cost)
+        draw_alpha = _profile(refit.x, perturbed)[0]
+        draws.append(np.append(refit.x, draw_alpha))
+        sample = electrostatic_shifts(_geometry(refit.x, thickness), draw_alpha, radius)
+        samples_north.append(sample.north)
+        samples_east.append(sample.east)
+    full = np.append(vector, alpha)
+    samples_north = np.array(samples_north).reshape((-1,) + shifts.shape)
+    samples_east = np.array(samples_east).reshape((-1,) + shifts.shape)
+    if n_samples >= 2:
+        parameter_cov = np.cov(np.array(draws), rowvar=False)
+        north_err = samples_north.std(axis=0, ddof=1)
+        east_err = samples_east.std(axis=0, ddof=1)
+    else:
+        parameter_cov = np.full((full.size, full.size), np.nan)
+        north_err = np.full(shifts.shape, np.nan)
+        east_err = np.full(shifts.shape, np.nan)
+    return ElectrostaticFit(
+        shifts=shifts, north_err=north_err, east_err=east_err, samples_north=samples_north,
+        samples_east=samples_east, geometry=geometry, alpha=alpha, parameters=full,
+        parameter_cov=parameter_cov, at_bound=at_bound, chi2=chi2, dof=dof,
+        error_scale=float(np.sqrt(scale)), area=area, area_err=area_err,
+        area_model=shifts.area_quadrant(n))

@@ -1,0 +1,60 @@
+"""Harmonic (Laplace) filling of non-finite pixels, so that charge can be moved through them.
+
+`bfpsf.model.redistribution.redistribute` with ``nan_policy='interpolate'`` fills the pixels with
+this, redistributes the filled image and sets them back to NaN.
+"""
+
+import numpy as np
+
+from ..errors import BFPSFInputError
+
+__all__ = ["harmonic_fill"]
+
+
+def harmonic_fill(image, bad):
+    """Replace ``image[bad]`` by the solution of Laplace's equation with the finite pixels as
+    boundary values (each filled pixel is the mean of its in-image neighbours)."""
+    import scipy.ndimage
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    ny, nx = image.shape
+    ys, xs = np.nonzero(bad)
+    index = -np.ones(image.shape, dtype=np.int64)
+    index[ys, xs] = np.arange(ys.size)
+    rows, cols, vals = [], [], []
+    rhs = np.zeros(ys.size)
+    degree = np.zeros(ys.size)
+    for dy, dx in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        ny_, nx_ = ys + dy, xs + dx
+        inside = (ny_ >= 0) & (ny_ < ny) & (nx_ >= 0) & (nx_ < nx)
+        degree += inside
+        k = np.nonzero(inside)[0]
+        neighbour_bad = bad[ny_[k], nx_[k]]
+        kb = k[neighbour_bad]
+        rows.append(kb)
+        cols.append(index[ny_[kb], nx_[kb]])
+        vals.append(-np.ones(kb.size))
+        kg = k[~neighbour_bad]
+        np.add.at(rhs, kg, image[ny_[kg], nx_[kg]])
+    rows.append(np.arange(ys.size))
+    cols.append(np.arange(ys.size))
+    vals.append(degree)
+    matrix = scipy.sparse.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(ys.size, ys.size))
+    # A group of bad pixels with no finite neighbour would make the system singular.
+    good_neighbours = degree.copy()
+    for bad_rows in rows[:-1]:
+        np.subtract.at(good_neighbours, bad_rows, 1.0)
+    labels, count = scipy.ndimage.label(bad)
+    per_group = scipy.ndimage.sum_labels(good_neighbours, labels[ys, xs],
+                                         index=np.arange(1, count + 1))
+    isolated = int(np.count_nonzero(per_group == 0))
+    if isolated:
+        msg = (f"cannot interpolate: {isolated} group(s) of non-finite pixels have no finite "
+               f"neighbour ({ys.size} non-finite pixels of {image.size})")
+        raise BFPSFInputError(msg, isolated)
+    filled = image.copy()
+    filled[ys, xs] = scipy.sparse.linalg.spsolve(matrix.tocsc(), rhs)
+    return filled

@@ -1,0 +1,337 @@
+"""Camera input: IRAF sections, overscan, multi-amplifier files, malformed inputs, and the
+per-amplifier calibration of a two-amplifier GalSim flat set against truth."""
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from bfpsf.calibration import calibrate
+from bfpsf.calibration.flats import pair_flats, read_flats
+from bfpsf.calibration.product import Calibration, DetectorCalibration, read_calibration
+from bfpsf.cli import main
+from bfpsf.errors import BFPSFInputError
+from bfpsf.io.amplifiers import (amplifier_layout, parse_section, read_amplifiers,
+                                 subtract_overscan)
+from bfpsf.validation.simulate_camera import amplifier_hdus, write_amplifier_file
+
+
+# -- sections and overscan ------------------------------------------------------------------
+def test_parse_section_is_one_based_inclusive():
+    section = parse_section("[1:512,3:2048]")
+    assert section.x == slice(0, 512) and section.y == slice(2, 2048)
+    assert section.shape == (2046, 512) and not section.flip_x
+    flipped = parse_section("[ 512:1 , 1:10 ]")
+    assert flipped.x == slice(0, 512) and flipped.flip_x and not flipped.flip_y
+
+
+@pytest.mark.parametrize("text", ["[1:512]", "1:512,1:10", "[0:10,1:10]", "[a:b,1:2]"])
+def test_parse_section_refuses_malformed(text):
+    with pytest.raises(BFPSFInputError, match=r"f\.fits: HDU 1: DATASEC = .* (is not an IRAF "
+                                              r"section|IRAF sections are 1-based)"):
+        parse_section(text, keyword="DATASEC", where="f.fits: HDU 1")
+
+
+def test_overscan_is_subtracted_row_by_row_and_trimmed():
+    rng = np.random.default_rng(0)
+    image = rng.normal(100.0, 3.0, (40, 30))
+    bias = 1000.0 + 5.0 * np.arange(40)  # a bias that drifts along the columns (row by row)
+    raw = np.empty((40, 50))
+    raw[:, :30] = image + bias[:, None]
+    raw[:, 30:] = bias[:, None]
+    raw[7, 45] = 1e6  # a cosmic in the overscan: the median of the row ignores it
+    datasec, biassec = parse_section("[1:30,1:40]"), parse_section("[31:50,1:40]")
+    for method in ("median", "clipped_mean"):
+        trimmed, level = subtract_overscan(raw, datasec, biassec, method=method)
+        np.testing.assert_allclose(level, bias, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(trimmed, image, rtol=0, atol=1e-9)
+
+
+def _two_amp_file(path, shapes=((16, 12), (16, 12)), names=("C00", "C01"), bias=(900.0, 1300.0),
+                  exptime=1.0, seed=0):
+    rng = np.random.default_rng(seed)
+    images = [rng.normal(1000.0, 30.0, shape) for shape in shapes]
+    write_amplifier_file(path, images, names, bias_adu=bias, exptime=exptime, rng=rng)
+    return images
+
+
+def test_read_amplifiers_recovers_each_image(tmp_path):
+    images = _two_amp_file(tmp_path / "mef.fits")
+    amplifiers = read_amplifiers(tmp_path / "mef.fits")
+    assert [amp.name for amp in amplifiers] == ["C00", "C01"]
+    for amplifier, image in zip(amplifiers, images):
+        np.testing.assert_allclose(amplifier.data, image, rtol=0, atol=1e-9)
+        assert amplifier.header["EXPTIME"] == 1.0  # from the primary header
+    assert amplifiers[1].layout.detsec.x == slice(12, 24)
+    (only,) = read_amplifiers(tmp_path / "mef.fits", amps="C01")
+    assert only.name == "C01"
+
+
+# -- malformed inputs: one-line errors naming file and HDU -----------------------------------
+def test_cube_is_refused(tmp_path):
+    path = tmp_path / "cube.fits"
+    fits.HDUList([fits.PrimaryHDU(np.zeros((3, 4, 5)))]).writeto(path)
+    with pytest.raises(BFPSFInputError) as error:
+        read_flats([path], exptimes=[1.0])
+    assert str(error.value) == (f"{path}: HDU 0 is a 3-D array of shape (3, 4, 5), not a 2-D "
+                                "amplifier image")
+
+
+def test_table_hdu_is_refused(tmp_path):
+    path = tmp_path / "table.fits"
+    table = fits.BinTableHDU.from_columns([fits.Column(name="x", format="D", array=[1.0])],
+                                          name="STUFF")
+    fits.HDUList([fits.PrimaryHDU(np.zeros((4, 5))), table]).writeto(path)
+    with pytest.raises(BFPSFInputError) as error:
+        read_flats([path], exptimes=[1.0])
+    assert str(error.value) == (f"{path}: HDU 1 (STUFF) is a table, not an amplifier image "
+                                "(bfpsf reads image HDUs and a CATALOG table)")
+
+
+def test_missing_extname_among_several_images_is_refused(tmp_path):
+    path = tmp_path / "noname.fits"
+    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.zeros((4, 5)), name="C00"),
+                  fits.ImageHDU(np.zeros((4, 5)))]).writeto(path)
+    with pytest.raises(BFPSFInputError) as error:
+        amplifier_layout(path)
+    assert str(error.value) == (f"{path}: HDU 2 has no EXTNAME; a file with several images "
+                                "needs one EXTNAME per amplifier")
+
+
+def test_amplifiers_of_different_shapes_in_a_pair_are_refused(tmp_path):
+    _two_amp_file(tmp_path / "a.fits")
+    _two_amp_file(tmp_path / "b.fits", shapes=((16, 12), (16, 10)))
+    with pytest.raises(BFPSFInputError) as error:
+        pair_flats(read_flats([tmp_path / "a.fits", tmp_path / "b.fits"], lazy=True))
+    assert str(error.value) == (f"flats {tmp_path / 'a.fits'}[C01] (16, 12) and "
+                                f"{tmp_path / 'b.fits'}[C01] (16, 10) have the same EXPTIME but "
+                                "different shapes")
+
+
+def test_unknown_amplifier_is_refused_on_the_command_line(tmp_path, capsys):
+    _two_amp_file(tmp_path / "a.fits")
+    _two_amp_file(tmp_path / "b.fits", seed=1)
+    code = main(["calibrate", str(tmp_path / "a.fits"), str(tmp_path / "b.fits"), "--amp", "C07",
+                 "-o", str(tmp_path / "cal.fits")])
+    assert code == 1
+    assert capsys.readouterr().err == (f"bfpsf calibrate: error: {tmp_path / 'a.fits'}: no "
+                                       "amplifier 'C07'; it has 'C00', 'C01'\n")
+
+
+def test_pairs_never_mix_amplifiers(tmp_path):
+    _two_amp_file(tmp_path / "a.fits")
+    _two_amp_file(tmp_path / "b.fits", seed=1)
+    pairs = pair_flats(read_flats([tmp_path / "a.fits", tmp_path / "b.fits"]))
+    assert [(pair.flat1.amplifier, pair.flat2.amplifier) for pair in pairs] == [
+        ("C00", "C00"), ("C01", "C01")]
+    assert pairs[0].names == (f"{tmp_path / 'a.fits'}[C00]", f"{tmp_path / 'b.fits'}[C00]")
+
+
+# -- the two-amplifier GalSim flat set (acceptance) ------------------------------------------
+GAINS = {"C00": 1.4, "C01": 1.7}
+BIAS = {"C00": 900.0, "C01": 1350.0}
+READ_NOISE = 5.0
+NSTEPS = 5
+
+
+def _simulate_camera(directory, *, size, levels, pairs, seed=0):
+    """Two amplifiers of GalSim ITL flats written as MEF files with overscan, and the same
+    bias-free amplifier images as single-HDU files (one set per amplifier)."""
+    from bfpsf.validation.simulate_flats import simulate_flats
+
+    flats = {name: simulate_flats("lsst_itl_50_8", levels, pairs=pairs, size=size,
+                                  nsteps=NSTEPS, gain=gain, read_noise_e=READ_NOISE,
+                                  seed=seed + index)
+             for index, (name, gain) in enumerate(GAINS.items())}
+    rng = np.random.default_rng(seed)
+    mef, single = [], {name: [] for name in GAINS}
+    for number, members in enumerate(zip(*flats.values())):
+        images = [image for image, _, _ in members]
+        exptime = members[0][1]
+        path = directory / f"flat{number:03d}.fits"
+        write_amplifier_file(path, images, list(GAINS), bias_adu=list(BIAS.values()),
+                             overscan_columns=20,
+                             read_noise_adu=[READ_NOISE / gain for gain in GAINS.values()],
+                             exptime=exptime, rng=rng)
+        mef.append(path)
+        for name, image in zip(GAINS, images):
+            single_path = directory / f"{name}_{number:03d}.fits"
+            fits.PrimaryHDU(image, header=fits.Header({"EXPTIME": exptime})).writeto(single_path)
+            single[name].append(single_path)
+    return mef, single
+
+
+def _check_against_truth(detector, single, maxlag, tolerance_gain):
+    from bfpsf.interop.silicon_truth import silicon_area_coefficients
+
+    truth = silicon_area_coefficients("lsst_itl_50_8", maxlag=maxlag) * (1 - 1 / NSTEPS**2)
+    assert isinstance(detector, DetectorCalibration) and detector.names == list(GAINS)
+    for name, gain in GAINS.items():
+        calibration = detector[name]
+        gain_pull = (calibration.gain - gain) / calibration.gain_err
+        a00_pull = (calibration.a[0, 0] - truth[0, 0]) / calibration.a_err[0, 0]
+        print(f"{name}: gain {100 * (calibration.gain / gain - 1):+.3f} % "
+              f"(+- {100 * calibration.gain_err / gain:.3f} %), a00 pull {a00_pull:+.2f}")
+        assert abs(gain_pull) < 3 and abs(a00_pull) < 3
+        if tolerance_gain:
+            assert abs(calibration.gain / gain - 1) < tolerance_gain
+        # The same amplifier from its single-HDU (bias-free) files: the overscan subtraction
+        # adds only a row-correlated read noise (the median of 20 overscan pixels per row,
+        # 0.28 read-noise rms), which the noise term n(dx, 0) of the full model absorbs; the
+        # remaining difference is far below the statistical errors.
+        alone = calibrate(single[name], maxlag=maxlag, n_monte_carlo=20)
+        assert alone.amplifier == ""
+        assert abs(alone.gain - calibration.gain) < 0.1 * calibration.gain_err
+        np.testing.assert_array_less(np.abs(alone.a - calibration.a), 0.1 * calibration.a_err)
+
+
+def test_two_amplifier_flats_match_galsim_truth(tmp_path):
+    # 10 levels x 2 pairs of 128^2 per amplifier (about 15 s of GalSim on one core): the gain
+    # to about 0.6 % (1 sigma), so here within 3 sigma; the slow variant has the pixels for
+    # the 0.5 % of the acceptance.
+    levels = [100.0, *np.linspace(3e5 / 9, 3e5, 9)]
+    mef, single = _simulate_camera(tmp_path, size=128, levels=levels, pairs=2)
+    detector = calibrate(mef, maxlag=2, n_monte_carlo=20)
+    _check_against_truth(detector, single, maxlag=2, tolerance_gain=None)
+    detector.write(tmp_path / "cal.fits")
+    back = read_calibration(tmp_path / "cal.fits")
+    assert back.names == list(GAINS)
+    for name in GAINS:
+        assert back[name].gain == detector[name].gain
+        np.testing.assert_array_equal(back[name].a, detector[name].a)
+        assert Calibration.read(tmp_path / "cal.fits", amp=name).amplifier == name
+    with pytest.raises(BFPSFInputError, match=r"holds 2 amplifiers \(C00, C01\); choose one"):
+        Calibration.read(tmp_path / "cal.fits")
+
+
+@pytest.mark.slow
+def test_two_amplifier_flats_match_galsim_truth_full():
+    # 27 levels x 2 pairs of 256^2 per amplifier, as the ITL calibration test: gain to 0.2 %.
+    import tempfile
+    from pathlib import Path
+
+    levels = [100.0, *np.linspace(3e5 / 26, 3e5, 26)]
+    with tempfile.TemporaryDirectory() as directory:
+        mef, single = _simulate_camera(Path(directory), size=256, levels=levels, pairs=2)
+        detector = calibrate(mef, maxlag=4, n_monte_carlo=20)
+        _check_against_truth(detector, single, maxlag=4, tolerance_gain=0.005)
+
+
+# -- per-amplifier stars: gains, detector positions, boundary flags ---------------------------
+def _star_detector(path, gains=(1.4, 1.7), size=64, seed=3):
+    """Gaussian stars (sigma 1.5 px) on a 2-amplifier detector (amplifiers side by side in x,
+    ``size`` x ``size`` each), Poisson noise, read out with each amplifier's gain and bias."""
+    rng = np.random.default_rng(seed)
+    stars = [(20.3, 20.6, 4e4), (40.7, 44.2, 8e4), (84.4, 24.1, 4e4), (108.2, 47.5, 8e4),
+             (64.2, 32.3, 6e4)]  # the last one straddles the two amplifiers
+    y, x = np.mgrid[0:size, 0:2 * size]
+    charge = np.full((size, 2 * size), 100.0)
+    for x0, y0, flux in stars:
+        charge += flux / (2 * np.pi * 1.5**2) * np.exp(-((x - x0) ** 2 + (y - y0) ** 2) / 4.5)
+    charge = rng.poisson(charge).astype(float)
+    images = [charge[:, :size] / gains[0], charge[:, size:] / gains[1]]
+    write_amplifier_file(path, images, ["C00", "C01"], bias_adu=[900.0, 1300.0],
+                         read_noise_adu=[2.0, 2.0], exptime=1.0, rng=rng)
+    return stars
+
+
+def test_measure_uses_each_amplifiers_gain_and_flags_the_boundary(tmp_path):
+    from astropy.table import Table
+
+    stars = _star_detector(tmp_path / "stars.fits")
+    # a calibration per amplifier (only the gains are used by measure)
+    from dataclasses import replace
+
+    from bfpsf.calibration.product import DetectorCalibration
+
+    base = _tiny_calibration()
+    detector = DetectorCalibration({"C00": replace(base, gain=1.4, amplifier="C00"),
+                                    "C01": replace(base, gain=1.7, amplifier="C01")})
+    detector.write(tmp_path / "cal.fits")
+    code = main(["measure", str(tmp_path / "stars.fits"), "--calib", str(tmp_path / "cal.fits"),
+                 "-o", str(tmp_path / "stars.ecsv")])
+    assert code == 0
+    table = Table.read(tmp_path / "stars.ecsv")
+    for x0, y0, flux in stars:
+        distance = np.hypot(table["x"] - x0, table["y"] - y0)
+        row = table[np.argmin(distance)]
+        if abs(x0 - 64) < 8:
+            # cut in two by the amplifier edge: each half is measured, and flagged
+            halves = table[distance < 3]
+            assert len(halves) == 2 and np.all(halves["amp_boundary"])
+            assert set(halves["amplifier"]) == {"C00", "C01"}
+        else:
+            assert distance.min() < 0.3  # detector pixels (DETSEC offset of C01 applied)
+            assert not row["amp_boundary"]
+            assert row["amplifier"] == ("C00" if x0 < 64 else "C01")
+            # electrons with the amplifier's own gain: the flux within its Poisson noise
+            # and the aperture loss of a 1.5 px Gaussian (< 1 %)
+            assert abs(row["flux_e"] / flux - 1) < 0.02, (row["flux_e"], flux)
+
+
+def _tiny_calibration():
+    """A Calibration of Poisson flats (gain 1): only its fields are reused here."""
+    rng = np.random.default_rng(0)
+    levels = np.repeat([1e3, 5e3, 1e4, 2e4, 4e4, 6e4], 2)
+    images = [rng.poisson(level, (40, 40)).astype(float) for level in levels]
+    return calibrate(images, exptimes=levels / 1e3, maxlag=1, solve_shifts=False, fit_b="none")
+
+
+def test_photometry_applies_each_amplifiers_gain_and_shifts(tmp_path, capsys):
+    from dataclasses import replace
+
+    import galsim
+    from astropy.table import Table
+
+    from bfpsf.calibration import calibrate_from_ptc
+    from bfpsf.calibration.product import DetectorCalibration
+    from bfpsf.io.cp_pipe import ptc_table_hdu
+    from bfpsf.model.psf import FluxDependentPSF
+    from test_cp_pipe import cp_pipe_table
+
+    # per-amplifier shifts from a cp_pipe-like PTC (a(0,0) -3.3e-6, two different amplifiers)
+    a = np.zeros((3, 3))
+    a[0, 0], a[1, 0], a[0, 1] = -3.3e-6, 1.75e-7, 4.16e-7
+    fits.HDUList([fits.PrimaryHDU(), ptc_table_hdu(cp_pipe_table(
+        {"X0": (a, 1.6), "X1": (1.3 * a, 1.6)}))]).writeto(tmp_path / "ptc.fits")
+    solved = calibrate_from_ptc(tmp_path / "ptc.fits", n_monte_carlo=0)
+    detector = DetectorCalibration({"C00": replace(solved["X0"], gain=1.4, amplifier="C00"),
+                                    "C01": replace(solved["X1"], gain=1.7, amplifier="C01")})
+    detector.write(tmp_path / "cal.fits")
+    psf = FluxDependentPSF.from_galsim(galsim.Gaussian(sigma=1.5), detector["C00"].shifts,
+                                       oversampling=2, size=15)
+    psf.write(tmp_path / "psf.fits")
+    stars = _star_detector(tmp_path / "stars.fits")
+
+    arguments = ["photometry", str(tmp_path / "stars.fits"), "--psf", str(tmp_path / "psf.fits")]
+    assert main([*arguments, "-o", str(tmp_path / "no.ecsv")]) == 1
+    assert capsys.readouterr().err == (
+        f"bfpsf photometry: error: {tmp_path / 'stars.fits'} has 2 amplifiers: give --calib "
+        "CALIB.fits for the gain and boundary shifts of each\n")
+    code = main([*arguments, "--calib", str(tmp_path / "cal.fits"), "-o",
+                 str(tmp_path / "phot.ecsv"), "--json", str(tmp_path / "phot.json")])
+    assert code == 0, capsys.readouterr().err
+    table = Table.read(tmp_path / "phot.ecsv")
+    for x0, y0, flux in stars:
+        distance = np.hypot(table["x_fit"] - x0, table["y_fit"] - y0)
+        row = table[np.argmin(distance)]
+        if abs(x0 - 64) < 8:
+            assert np.all(table["amp_boundary"][distance < 3])
+            continue
+        assert distance.min() < 0.2 and not row["amp_boundary"]
+        assert row["amplifier"] == ("C00" if x0 < 64 else "C01")
+        # electrons with the amplifier's gain; the model is the pixel-integrated Gaussian,
+        # the image the sampled one (0.3 % wider): within 2 %
+        assert abs(row["flux_fit"] / flux - 1) < 0.02, (row["flux_fit"], flux)
+    import json
+
+    summary = json.loads((tmp_path / "phot.json").read_text())
+    assert [entry["gain"] for entry in summary["images"]] == [1.4, 1.7]
+    # each amplifier's model carries that amplifier's boundary shifts
+    from bfpsf.cli.photometry import _amplifier_model
+
+    back = read_calibration(tmp_path / "cal.fits")
+    for amplifier in read_amplifiers(tmp_path / "stars.fits"):
+        gain, model = _amplifier_model(psf, 1.0, back, amplifier, "stars.fits", None, False)
+        np.testing.assert_array_equal(model.shifts.north, back[amplifier.name].shifts.north)
+        assert gain == back[amplifier.name].gain
+    assert not np.array_equal(back["C00"].shifts.north, back["C01"].shifts.north)

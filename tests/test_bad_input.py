@@ -1,0 +1,227 @@
+"""Bad input never gives a traceback: each case is one line naming the file and the problem,
+exit code 1 (through the CLI's main, as a user sees it), or a warning where a result is still
+computed but may be wrong."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from astropy.table import Table
+
+from bfpsf.cli import main
+from bfpsf.errors import BFPSFInputError, BFPSFValueError, BFPSFWarning
+from bfpsf.model.redistribution import redistribute
+from bfpsf.shifts import BoundaryShifts
+
+SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 1e-7 * np.exp(-r), 2)
+LEVELS = ((2e3, 1.0), (1e4, 5.0), (3e4, 15.0), (6e4, 30.0))
+
+
+@pytest.fixture()
+def flats(tmp_path, monkeypatch):
+    """Four Poisson flat pairs, 64 x 64, in the working directory (short names in messages)."""
+    monkeypatch.chdir(tmp_path)
+    rng = np.random.default_rng(1)
+    names = []
+    for level, exptime in LEVELS:
+        for member in (1, 2):
+            name = f"f{int(exptime)}_{member}.fits"
+            image = (rng.poisson(level, (64, 64)) / 1.5).astype(np.float32)
+            fits.PrimaryHDU(image, header=fits.Header({"EXPTIME": exptime})).writeto(name)
+            names.append(name)
+    return names
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    return code, capsys.readouterr().err
+
+
+def test_fits_file_cut_short(flats, capsys):
+    data = Path(flats[0]).read_bytes()
+    Path("short.fits").write_bytes(data[:len(data) // 2])
+    assert run(capsys, "calibrate", "short.fits", *flats[1:], "-o", "c.fits") == (
+        1, "bfpsf calibrate: error: short.fits is not a readable flat FITS file (truncated, "
+           "damaged or another format)\n")
+    assert run(capsys, "measure", "short.fits", "--gain", "1.5", "-o", "m.ecsv") == (
+        1, "bfpsf measure: error: short.fits is not a readable FITS image (truncated, damaged "
+           "or another format)\n")
+
+
+def test_zero_variance_flats(flats, capsys):
+    constant = np.full((64, 64), 100.0, dtype=np.float32)
+    fits.PrimaryHDU(constant, header=fits.Header({"EXPTIME": 1.0})).writeto("zero.fits")
+    assert run(capsys, "calibrate", "zero.fits", *flats[1:], "-o", "c.fits") == (
+        1, "bfpsf calibrate: error: flat zero.fits has zero variance (a constant image), not a "
+           "flat-field exposure\n")
+
+
+def test_same_file_as_both_members_of_a_pair(flats, capsys):
+    assert run(capsys, "calibrate", flats[0], flats[0], *flats[2:], "-o", "c.fits") == (
+        1, "bfpsf calibrate: error: flat f1_1.fits is given twice: each file may be used once\n")
+
+
+def test_identical_copies_as_a_pair(flats, capsys):
+    Path("copy.fits").write_bytes(Path(flats[0]).read_bytes())
+    assert run(capsys, "calibrate", flats[0], "copy.fits", *flats[2:], "-o", "c.fits") == (
+        1, "bfpsf calibrate: error: flats f1_1.fits and copy.fits are identical (their "
+           "difference has zero variance): a pair needs two exposures\n")
+
+
+def test_same_pair_listed_twice(flats, capsys):
+    assert run(capsys, "calibrate", *flats, *flats[:2], "-o", "c.fits") == (
+        1, "bfpsf calibrate: error: flat f1_1.fits is given twice: each file may be used once\n")
+
+
+def test_same_image_given_twice(flats, capsys):
+    assert run(capsys, "measure", flats[0], flats[0], "--gain", "1.5", "-o", "m.ecsv") == (
+        1, "bfpsf measure: error: image f1_1.fits is given twice: each file may be used once\n")
+
+
+def test_maxlag_bounded_by_memory_time_and_image_size(flats, capsys):
+    assert run(capsys, "calibrate", *flats, "-o", "c.fits", "--maxlag", "60") == (
+        1, "bfpsf calibrate: error: maxlag 60 is too large for the full PTC model: its memory "
+           "and time grow as (maxlag + 1)^6 (384 GiB here); use maxlag <= 12 or the "
+           "exponential PTC model\n")
+    assert run(capsys, "calibrate", *flats, "-o", "c.fits", "--maxlag", "40",
+               "--model", "exponential") == (
+        1, "bfpsf calibrate: error: flat f1_1.fits (64 x 64 pixels) is too small for maxlag "
+           "40: give maxlag < 32\n")
+
+
+def test_ecsv_given_as_calibration_or_psf(flats, capsys):
+    Table({"x": [1.0]}).write("t.ecsv")
+    assert run(capsys, "measure", flats[0], "--calib", "t.ecsv", "-o", "m.ecsv") == (
+        1, "bfpsf measure: error: t.ecsv is not a bfpsf calibration file (not FITS)\n")
+    assert run(capsys, "photometry", flats[0], "--psf", "t.ecsv", "-o", "p.ecsv") == (
+        1, "bfpsf photometry: error: t.ecsv is not a bfpsf PSF product file (not FITS)\n")
+
+
+def test_calibration_with_a_missing_hdu_or_column(capsys, tmp_path, monkeypatch):
+    from test_product import calibration as calibration_fixture
+
+    monkeypatch.chdir(tmp_path)
+    calibration = calibration_fixture.__wrapped__()
+    calibration.write("c.fits")
+    with fits.open("c.fits") as hdul:
+        del hdul["PTC"]
+        hdul.writeto("no_ptc.fits")
+    with fits.open("c.fits") as hdul:
+        summary = Table.read(hdul["SUMMARY"])
+        summary.remove_column("gain")
+        hdul["SUMMARY"] = fits.table_to_hdu(summary)
+        hdul["SUMMARY"].name = "SUMMARY"
+        hdul.writeto("no_gain.fits")
+    fits.PrimaryHDU(np.ones((8, 8))).writeto("img.fits")
+    assert run(capsys, "measure", "img.fits", "--calib", "no_ptc.fits", "-o", "m.ecsv") == (
+        1, "bfpsf measure: error: no_ptc.fits is an incomplete bfpsf calibration file "
+           "(Extension 'PTC' not found)\n")
+    assert run(capsys, "measure", "img.fits", "--calib", "no_gain.fits", "-o", "m.ecsv") == (
+        1, "bfpsf measure: error: no_gain.fits is an incomplete bfpsf calibration file (no "
+           "column or extension 'gain')\n")
+
+
+def test_slope_given_a_fits_file(flats, capsys):
+    assert run(capsys, "slope", flats[0]) == (
+        1, "bfpsf slope: error: f1_1.fits is not a readable star table (truncated, damaged or "
+           "another format)\n")
+
+
+def test_missing_catalog(flats, capsys):
+    assert run(capsys, "measure", flats[0], "--gain", "1.5", "--catalog", "nosuch.ecsv",
+               "-o", "m.ecsv") == (1, "bfpsf measure: error: catalog nosuch.ecsv does not exist\n")
+
+
+def test_directory_given_as_an_image(flats, capsys, tmp_path):
+    (tmp_path / "sub").mkdir()
+    assert run(capsys, "measure", "sub", "--gain", "1.5", "-o", "m.ecsv") == (
+        1, "bfpsf measure: error: image sub is a directory, not a file\n")
+    assert run(capsys, "calibrate", "sub", *flats[1:], "-o", "c.fits") == (
+        1, "bfpsf calibrate: error: flat file sub is a directory, not a file\n")
+
+
+def test_photometry_fit_shape_must_be_odd(capsys, tmp_path, monkeypatch):
+    from bfpsf.model.psf import FluxDependentPSF
+
+    monkeypatch.chdir(tmp_path)
+    y, x = np.mgrid[-12:13, -12:13]
+    FluxDependentPSF(np.exp(-(x**2 + y**2) / 8.0), SHIFTS).write("psf.fits")
+    image = np.zeros((40, 40), dtype=np.float32)
+    image[20, 20] = 1e4
+    fits.PrimaryHDU(image).writeto("img.fits")
+    assert run(capsys, "photometry", "img.fits", "--psf", "psf.fits", "--gain", "1",
+               "--fit-shape", "4", "-o", "p.ecsv") == (
+        1, "bfpsf photometry: error: fit shape must be an odd number of pixels >= 3 (e.g. 5, "
+           "7), got 4\n")
+
+
+def test_photometry_fit_shape_wider_than_the_star_spacing():
+    from bfpsf.measure.photometry import psf_photometry
+    from bfpsf.model.psf import FluxDependentPSF
+
+    y, x = np.mgrid[-12:13, -12:13]
+    psf = FluxDependentPSF(np.exp(-(x**2 + y**2) / 8.0), SHIFTS)
+    positions = np.array([(10.0 + 8 * i, 10.0 + 8 * j) for i in range(6) for j in range(6)])
+    with pytest.raises(BFPSFValueError) as error:
+        psf_photometry(np.zeros((60, 60)), psf, positions=positions, background_e=0.0,
+                       fit_shape=41)
+    assert str(error.value) == ("fit shape 41 px (group separation 41 px) puts 36 of the 36 "
+                                "stars in one group fitted together (at most 25): the stars are "
+                                "closer than that; give a smaller fit shape")
+
+
+def test_simulate_unknown_sensor(capsys, tmp_path):
+    code, err = run(capsys, "simulate", "flats", "--sensor", "nosuch", "-o",
+                    str(tmp_path / "sim"), "--levels", "1000", "--size", "16")
+    assert code == 1
+    assert err.startswith("bfpsf simulate: error: unknown GalSim SiliconSensor 'nosuch'; GalSim "
+                          "has lsst_e2v_32, ")
+    assert "lsst_itl_50_8" in err and err.count("\n") == 1
+    assert not (tmp_path / "sim").exists()
+
+
+def test_redistribute_refuses_an_empty_image_and_honours_masks():
+    with pytest.raises(BFPSFInputError) as error:
+        redistribute(np.zeros((0, 0)), SHIFTS)
+    assert str(error.value) == "image has no pixel (shape (0, 0))"
+    image = np.full((9, 9), 1e4)
+    mask = np.zeros(image.shape, dtype=bool)
+    mask[4, 4] = True
+    masked = np.ma.masked_array(image.copy(), mask=mask)
+    masked.data[4, 4] = 1e9  # a bad value under the mask must not move any charge
+    with pytest.raises(BFPSFInputError, match="image has 1 non-finite pixels"):
+        redistribute(masked, SHIFTS)
+    result = redistribute(masked, SHIFTS, nan_policy="interpolate")
+    assert np.isnan(result[4, 4])
+    np.testing.assert_allclose(result[~mask], redistribute(image, SHIFTS)[~mask], rtol=1e-12)
+
+
+def test_huge_fluxes_warn_where_first_order_breaks():
+    image = np.zeros((9, 9))
+    image[4, 4] = 1e5
+    redistribute(image, SHIFTS)  # fine: no warning (filterwarnings = error)
+    image[4, 4] = 1e12
+    with pytest.warns(BFPSFWarning, match="beyond the first-order BF model"):
+        redistribute(image, SHIFTS)
+
+
+def test_photometry_carries_the_blend_flags_of_the_detection():
+    from bfpsf.interop.galsim_psf import render_stars
+    from bfpsf.measure.photometry import psf_photometry
+    from bfpsf.measure.sources import SourceFlag
+    from bfpsf.model.psf import FluxDependentPSF
+
+    galsim = pytest.importorskip("galsim")
+    y, x = np.mgrid[-12:13, -12:13]
+    psf = FluxDependentPSF(np.exp(-(x**2 + y**2) / 8.0) / (8 * np.pi), SHIFTS)
+    xy = np.array([[30.0, 30.0], [90.0, 40.0], [95.5, 43.0], [40.0, 90.0]])  # one close pair
+    image = render_stars(galsim.Gaussian(sigma=2.0), xy, np.full(4, 2e5), (130, 130)) + 100.0
+    image += np.random.default_rng(3).normal(0.0, 10.0, image.shape)
+    result = psf_photometry(image, psf, background_e=100.0, read_noise_e=10.0, cross_terms=0,
+                            weights="data")
+    assert "source_flags" in result.colnames
+    blended = (np.asarray(result["source_flags"]) & SourceFlag.BLENDED) != 0
+    near_pair = np.hypot(result["x_fit"] - 92.7, result["y_fit"] - 41.5) < 6
+    assert near_pair.sum() >= 1 and np.all(blended[near_pair])
+    assert not blended[~near_pair].any()

@@ -1,0 +1,52 @@
+"""The package as a stranger gets it: top-level names, shipped data, no path outside the
+repository."""
+
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+
+import bfpsf
+from bfpsf.data import MEASURED, measured_path, measured_sets
+from bfpsf.errors import BFPSFInputError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("name", sorted(set(bfpsf.__all__) - {"__version__"}))
+def test_every_exported_name_resolves(name):
+    assert getattr(bfpsf, name) is not None
+
+
+def test_measured_sets_ship_with_their_sources_and_are_small():
+    assert list(measured_sets()) == list(MEASURED)
+    total = 0
+    for name in MEASURED:
+        folder = measured_path(name)
+        assert (folder / "SOURCE.md").is_file(), name
+        files = [path for path in folder.iterdir() if path.is_file()]
+        assert len(files) >= 2, name
+        total += sum(path.stat().st_size for path in files)
+    assert (measured_path("itl3800c002").parent / "INDEX.md").is_file()
+    assert total < 200_000
+
+
+def test_measured_path_by_folder_name_and_errors():
+    assert measured_path("lage_BF_Kernel_ITL3800C002") == measured_path("itl3800c002")
+    with pytest.raises(BFPSFInputError, match="unknown measured data set 'nosuch'"):
+        measured_path("nosuch")
+    with pytest.raises(BFPSFInputError, match="measured data set 'poisson_ccd' has no file"):
+        measured_path("poisson_ccd", "nosuch.txt")
+
+
+def test_no_file_reads_a_path_outside_the_repository():
+    listed = subprocess.run(["git", "ls-files", "*.py", "*.md", "*.toml"], cwd=ROOT,
+                            capture_output=True, text=True, check=False)
+    if listed.returncode != 0:
+        pytest.skip("not a git checkout")  # an installed copy has no tests to check
+    outside = re.compile(r"\.\./shared|parents\[2\]|\"\.\.\", \"\.\.\", \"shared\"")
+    offenders = [name for name in listed.stdout.split()
+                 if (ROOT / name).is_file() and name != "tests/test_package.py"
+                 and outside.search((ROOT / name).read_text(errors="replace"))]
+    assert offenders == []

@@ -1,0 +1,121 @@
+"""The Dask map: the same numbers as in process; detectors x amplifiers through the CLI; the
+JSON ``amplifiers`` list; schema-1 calibration files still read."""
+
+import json
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from bfpsf.calibration import calibrate_detectors
+from bfpsf.calibration.product import Calibration, read_calibration
+from bfpsf.cli import main
+from bfpsf.parallel import dask_available, parallel_map
+from bfpsf.validation.simulate_camera import write_amplifier_file
+
+AMPS = ("C00", "C01")
+
+
+def _square(value):
+    return value * value
+
+
+def _focal_plane(directory, detectors=2, levels=(2e3, 8e3, 2e4, 4e4, 6e4, 8e4), size=48,
+                 seed=0):
+    """Poisson flats of a sensor with a nearest-neighbour correlation (so a(1, 0) is not zero),
+    two amplifiers per MEF file with overscan, ``detectors`` directories."""
+    rng = np.random.default_rng(seed)
+    for detector in range(detectors):
+        folder = directory / f"R{detector:02d}"
+        folder.mkdir()
+        for number, level in enumerate(np.repeat(levels, 2)):
+            images = []
+            for gain in (1.4, 1.7):
+                charge = rng.poisson(level, (size, size + 1)).astype(float)
+                charge = charge[:, 1:] + 0.02 * (charge[:, :-1] - level)  # serial correlation
+                images.append((charge + rng.normal(0, 5, charge.shape)) / gain)
+            write_amplifier_file(folder / f"flat{number:02d}.fits", images, list(AMPS),
+                                 bias_adu=[800.0, 1200.0], read_noise_adu=[3.0, 3.0],
+                                 exptime=level / 1e3, rng=rng)
+    return sorted(directory.glob("R*"))
+
+
+def test_in_process_map_keeps_the_order():
+    assert parallel_map(_square, [3, 1, 2]) == [9, 1, 4]
+
+
+@pytest.mark.skipif(not dask_available(), reason="dask.distributed is not installed")
+def test_dask_map_streams_and_keeps_the_order():
+    items = list(range(12))
+    assert parallel_map(_square, items, workers=2, max_in_flight=3) == [i * i for i in items]
+
+
+@pytest.mark.skipif(not dask_available(), reason="dask.distributed is not installed")
+def test_dask_focal_plane_matches_in_process(tmp_path):
+    folders = _focal_plane(tmp_path)
+    detectors = {folder.name: sorted(str(path) for path in folder.glob("*.fits"))
+                 for folder in folders}
+    options = dict(maxlag=2, n_monte_carlo=0, solve_shifts=False, fit_b="none")
+    serial = calibrate_detectors(detectors, workers=1, **options)
+    on_dask = calibrate_detectors(detectors, workers=2, **options)
+    for detector in detectors:
+        for amp in AMPS:
+            one, other = serial[detector][amp], on_dask[detector][amp]
+            np.testing.assert_array_equal(one.covariances_adu, other.covariances_adu)
+            assert one.gain == other.gain
+            np.testing.assert_array_equal(one.a, other.a)
+
+
+def test_detector_directories_write_one_product_each_with_amplifier_json(tmp_path, capsys):
+    folders = _focal_plane(tmp_path, detectors=2)
+    out = tmp_path / "calibs"
+    code = main(["calibrate", *map(str, folders), "-o", str(out), "--maxlag", "2",
+                 "--n-monte-carlo", "0", "--workers", "1", "--json", str(tmp_path / "s.json")])
+    assert code == 0, capsys.readouterr().err
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert [entry["detector"] for entry in summary["detectors"]] == ["R00", "R01"]
+    for entry in summary["detectors"]:
+        assert [amp["name"] for amp in entry["amplifiers"]] == list(AMPS)
+        for amp, gain in zip(entry["amplifiers"], (1.4, 1.7)):
+            # 6 levels of 48^2: gains to 3-5 %, each amplifier its own
+            assert abs(amp["gain"] - gain) < 3 * amp["gain_err"]
+        for key in ("gain_err", "noise_e", "a", "a_err", "n_pairs"):
+            assert key in entry["amplifiers"][0]
+        calibration = read_calibration(entry["output"])
+        assert calibration.names == list(AMPS)
+        assert calibration["C01"].gain == entry["amplifiers"][1]["gain"]
+
+
+def test_one_amplifier_selected_reads_as_a_single_calibration(tmp_path, capsys):
+    (folder,) = _focal_plane(tmp_path, detectors=1)
+    files = sorted(map(str, folder.glob("*.fits")))
+    code = main(["calibrate", *files, "--amp", "C01", "-o", str(tmp_path / "c.fits"),
+                 "--maxlag", "2", "--n-monte-carlo", "0", "--workers", "1",
+                 "--plots", str(tmp_path / "plots")])
+    assert code == 0, capsys.readouterr().err
+    calibration = Calibration.read(tmp_path / "c.fits")
+    assert calibration.amplifier == "C01" and calibration.inputs[0].endswith("[C01]")
+    assert (tmp_path / "plots" / "ptc.png").exists()
+
+
+def test_two_amplifiers_plot_and_schema_one_file_reads(tmp_path, capsys):
+    (folder,) = _focal_plane(tmp_path, detectors=1)
+    files = sorted(map(str, folder.glob("*.fits")))
+    code = main(["calibrate", *files, "-o", str(tmp_path / "c.fits"), "--maxlag", "2",
+                 "--n-monte-carlo", "0", "--workers", "1", "--plots", str(tmp_path / "plots")])
+    assert code == 0, capsys.readouterr().err
+    assert (tmp_path / "plots" / "amplifiers.png").exists()
+    assert (tmp_path / "plots" / "C01" / "ptc.png").exists()
+    # a schema-1 file (before per-amplifier groups): no NAMP, AMPNAME or EXTVER
+    one = read_calibration(tmp_path / "c.fits")["C00"]
+    one.write(tmp_path / "single.fits")
+    with fits.open(tmp_path / "single.fits", mode="update") as hdul:
+        hdul[0].header["BFSCHEMA"] = 1
+        del hdul[0].header["NAMP"]
+        for hdu in hdul[1:]:
+            del hdu.header["AMPNAME"]
+            del hdu.header["EXTVER"]
+    old = Calibration.read(tmp_path / "single.fits")
+    assert old.schema_version == 1 and old.amplifier == ""
+    assert old.gain == one.gain
+    np.testing.assert_array_equal(old.a, one.a)
