@@ -196,8 +196,16 @@ class GriddedFluxDependentPSF(Fittable2DModel):
     gain = property(lambda self: self.nodes[0].gain, doc="e- per image unit")
     fill_value = property(lambda self: self.nodes[0].fill_value, doc="value outside the data")
     half_size = property(lambda self: self.nodes[0].half_size, doc="stamp half-width, pixels")
-    shift_samples = property(lambda self: self.nodes[0].shift_samples,
-                             doc="shifts drawn from the calibration's uncertainty")
+
+    @property
+    def shift_samples(self):
+        """Shifts drawn from the calibration's uncertainty (shared by every node)."""
+        return self.nodes[0].shift_samples
+
+    @shift_samples.setter
+    def shift_samples(self, samples):
+        for node in self.nodes:
+            node.shift_samples = tuple(samples)
 
     # -- astropy model interface -------------------------------------------------------------
     def copy(self):
