@@ -25,6 +25,7 @@ _EXPORTS = {
     "adaptive_moments": "bfpsf.measure.moments",
     "Moments": "bfpsf.measure.moments",
     "FluxDependentPSF": "bfpsf.model.psf",
+    "GriddedFluxDependentPSF": "bfpsf.model.gridded",
     "solve_boundary_shifts": "bfpsf.calibration.boundary_shifts",
     "adaptive_moments_batch": "bfpsf.measure.moments",
     "measure_sources": "bfpsf.measure.sources",

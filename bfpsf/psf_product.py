@@ -12,6 +12,10 @@ Optional ``SHIFT_N_SAMP`` / ``SHIFT_E_SAMP`` [sample, dy+m, dx+m] hold the shift
 calibration (its uncertainty, propagated by ``bfpsf slope --psf``). Schema 2 files (no
 FLUXUNIT, BUILDUP, ...) read as models in electrons with their GAIN recorded. The calibration
 file is not needed to read the product back.
+Schema 4 adds the grid of a `~bfpsf.model.gridded.GriddedFluxDependentPSF`: HDU ``GRID`` = the
+node P0s (ny_nodes, nx_nodes, n, n) with ``NODESX``/``NODESY``, HDUs ``GRIDX``/``GRIDY`` = the
+node coordinates (pixels) and, in table mode, ``GRIDBFT`` = every node's BF table; the primary
+HDU and the option cards then describe the central node (readers of schema 3 see one P0).
 """
 
 import numpy as np
@@ -22,8 +26,9 @@ from .files import open_product, refuse_overwrite, write_fits
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 
 #: Version of the PSF product layout written by `write_psf` (2: optional BFTABLE HDU;
-#: 3: every constructor option, FLUXUNIT replacing the ADU meaning of GAIN).
-PSF_SCHEMA_VERSION = 3
+#: 3: every constructor option, FLUXUNIT replacing the ADU meaning of GAIN; 4: optional GRID,
+#: GRIDX, GRIDY, GRIDBFT HDUs of a gridded PSF).
+PSF_SCHEMA_VERSION = 4
 
 
 def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
@@ -31,7 +36,7 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
 
     Parameters
     ----------
-    psf : FluxDependentPSF
+    psf : FluxDependentPSF or GriddedFluxDependentPSF
     path : str or path-like
     calibration : str, optional
         Name of the calibration file the shifts come from (kept in ``CALIB``); default
@@ -44,13 +49,16 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     from astropy.io import fits
 
     refuse_overwrite(path, overwrite)
-    if psf.mode == "exact" and psf.density_profile is not None:
+    if psf.mode == "exact" and any(node.density_profile is not None
+                                   for node in getattr(psf, "nodes", [psf])):
         msg = ("a mode='exact' model with a density_profile cannot be stored: the file keeps no "
                "GalSim profile and would read back with G15's mean density; write the same "
                "model in mode='table' (its exact-density table is stored)")
         raise BFPSFValueError(msg, psf.mode)
-    options = psf.options
-    primary = fits.PrimaryHDU(np.asarray(psf.data, dtype=np.float64))
+    nodes = getattr(psf, "nodes", None)
+    single = psf if nodes is None else nodes[len(nodes) // 2]
+    options = single.options
+    primary = fits.PrimaryHDU(np.asarray(single.data, dtype=np.float64))
     header = primary.header
     header["BFPSFVER"] = (PSF_SCHEMA_VERSION, "bfpsf PSF product schema")
     header["BUNIT"] = ("1/pixel", "unit-flux P0 per image pixel, oversampled")
@@ -87,7 +95,27 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
         table = fits.ImageHDU(np.asarray(options["bf_table"], dtype=np.float64), name="BFTABLE")
         table.header["BUNIT"] = ("1/(pixel electron)", "R[P0] per unit flux squared")
         hdus.append(table)
+    if nodes is not None:
+        hdus.extend(_grid_hdus(psf))
     write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
+
+
+def _grid_hdus(psf):
+    """HDUs of the grid of a `GriddedFluxDependentPSF` (schema 3)."""
+    from astropy.io import fits
+
+    grid = fits.ImageHDU(np.asarray(psf.data, dtype=np.float64), name="GRID")
+    grid.header["NODESX"] = (int(psf.grid_shape[1]), "grid nodes along x")
+    grid.header["NODESY"] = (int(psf.grid_shape[0]), "grid nodes along y")
+    grid.header["BUNIT"] = ("1/pixel", "unit-flux P0 of each node [y, x, ...]")
+    hdus = [grid, fits.ImageHDU(np.asarray(psf.x_nodes), name="GRIDX"),
+            fits.ImageHDU(np.asarray(psf.y_nodes), name="GRIDY")]
+    for hdu in hdus[1:]:
+        hdu.header["BUNIT"] = ("pixel", "node coordinates on the image")
+    if psf.mode == "table":
+        tables = np.array([node.bf_table for node in psf.nodes]).reshape(psf.data.shape)
+        hdus.append(fits.ImageHDU(tables, name="GRIDBFT"))
+    return hdus
 
 
 def read_psf(path, *, cls=None, **kwargs):
@@ -135,7 +163,24 @@ def read_psf(path, *, cls=None, **kwargs):
             samples = tuple(BoundaryShifts(north, east, check=False) for north, east in
                             zip(np.array(hdul["SHIFT_N_SAMP"].data, dtype=float),
                                 np.array(hdul["SHIFT_E_SAMP"].data, dtype=float)))
+        grid = None
+        if "GRID" in hdul:
+            grid = (np.array(hdul["GRID"].data, dtype=float),
+                    np.array(hdul["GRIDX"].data, dtype=float),
+                    np.array(hdul["GRIDY"].data, dtype=float),
+                    np.array(hdul["GRIDBFT"].data, dtype=float) if "GRIDBFT" in hdul
+                    and options["mode"] == "table" else None)
     options.update(kwargs)
+    if grid is not None:
+        from .model.gridded import GriddedFluxDependentPSF
+
+        options.pop("bf_table", None)
+        if grid[3] is not None and options.get("mode") == "table":
+            options["bf_table"] = grid[3]
+        psf = GriddedFluxDependentPSF.from_data(grid[0], grid[1], grid[2], shifts, **options)
+        psf.calibration = calibration
+        psf.shift_samples = samples
+        return psf
     if options.get("mode") != "table":
         options.pop("bf_table", None)  # an exact-mode override recomputes R
     psf = cls(data, shifts, **options)

@@ -2,8 +2,9 @@
 
 Parse, read the images (ADU -> e- with the calibration gain), detect isolated stars
 (`bfpsf.measure.sources.measure_sources`), fit P0 from stars of all fluxes with the
-brighter-fatter term of each removed (`bfpsf.model.psf_fit.fit_psf`), write the PSF product
-and the JSON summary.
+brighter-fatter term of each removed (`bfpsf.model.psf_fit.fit_psf`; with ``--grid NX NY`` one
+P0 per node of a grid over the image, `bfpsf.model.gridded.GriddedFluxDependentPSF`), write the
+PSF product and the JSON summary.
 """
 
 from pathlib import Path
@@ -44,6 +45,9 @@ def add_parser(subparsers):
                              f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
                         help="saturation level, ADU: saturated stars are not used")
+    parser.add_argument("--grid", type=int, nargs=2, metavar=("NX", "NY"), default=None,
+                        help="fit P0 on NX x NY nodes over the image (P(F, x, y), bilinear "
+                             "between nodes, as photutils GriddedPSFModel); default one P0")
     parser.add_argument("--max-iterations", type=int, default=40,
                         help="iterations of the P0 fit (default 40)")
     parser.add_argument("--no-bf", dest="include_bf", action="store_false",
@@ -152,6 +156,7 @@ def run(args):
                      size=args.size, read_noise=noise,
                      sky_e=skies, include_bf=args.include_bf,
                      max_iterations=args.max_iterations, flux_unit="electron", gain=gain,
+                     grid=args.grid, progress=None,
                      **({"mode": "exact", "buildup_steps": int(buildup)} if buildup else {}))
     psf = result.psf
     psf.calibration = Path(args.calib).name
@@ -167,12 +172,18 @@ def run(args):
                "oversampling": int(args.oversampling), "size": int(args.size),
                "include_bf": bool(args.include_bf), "n_stars": int(len(result.stars)),
                "n_used": int(np.sum(used)), "iterations": int(result.iterations),
-               "converged": bool(result.converged), "fwhm_pixels": psf_fwhm(psf),
+               "converged": bool(result.converged),
+               "fwhm_pixels": psf_fwhm(psf if args.grid is None
+                                       else psf.nodes[len(psf.nodes) // 2]),
                "flux_range_e": [float(np.min(result.stars["flux_fit"][used])),
                                 float(np.max(result.stars["flux_fit"][used]))]
                if np.any(used) else None,
                "images": per_image,
                "refinement_applied": sorted(refinement.get("applied", {}))}
+    if args.grid is not None:
+        summary["grid"] = {"nx": int(args.grid[0]), "ny": int(args.grid[1]),
+                           "x_nodes": psf.x_nodes.tolist(), "y_nodes": psf.y_nodes.tolist(),
+                           "fwhm_pixels": [psf_fwhm(node) for node in psf.nodes]}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "

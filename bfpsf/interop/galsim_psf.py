@@ -18,18 +18,21 @@ from ..model.redistribution import redistribute
 __all__ = ["to_galsim", "apply_bf_to_rendered", "render_stars"]
 
 
-def to_galsim(psf, flux, *, x_phase=0.0, y_phase=0.0, normalise=True):
+def to_galsim(psf, flux, *, x_phase=0.0, y_phase=0.0, normalise=True, position=None):
     """The pixelised PSF of a star of flux F as a GalSim object.
 
     Parameters
     ----------
-    psf : FluxDependentPSF
+    psf : FluxDependentPSF or GriddedFluxDependentPSF
     flux : float
         Flux of the star, in the PSF's ``flux_unit``.
     x_phase, y_phase : float, optional
         Star centre minus the centre of its pixel, pixels: R depends on it.
     normalise : bool, optional
         True (default): unit flux, i.e. P(F) = p + F R[p]; False: flux F.
+    position : (float, float), optional
+        (x, y) of the star on the image, pixels: needed by a `GriddedFluxDependentPSF`
+        (P(F, x, y)), ignored by a `FluxDependentPSF` (the same everywhere).
 
     Returns
     -------
@@ -44,7 +47,14 @@ def to_galsim(psf, flux, *, x_phase=0.0, y_phase=0.0, normalise=True):
     if not np.isfinite(flux) or flux <= 0:
         msg = f"flux must be a positive finite number, got {flux!r}"
         raise BFPSFValueError(msg, flux)
-    stamp = psf.star_image(flux, x_phase=x_phase, y_phase=y_phase)
+    if hasattr(psf, "nodes"):
+        if position is None:
+            msg = "a gridded PSF varies over the image: give position=(x, y)"
+            raise BFPSFValueError(msg, position)
+        stamp = psf.star_image(flux, x=position[0], y=position[1], x_phase=x_phase,
+                               y_phase=y_phase)
+    else:
+        stamp = psf.star_image(flux, x_phase=x_phase, y_phase=y_phase)
     if normalise:
         stamp = stamp / flux
     image = galsim.ImageD(stamp, scale=1.0)

@@ -15,7 +15,10 @@ __all__ = ["default_fit_shape", "make_psf_photometry", "static_image_psf", "psf_
 
 
 def psf_fwhm(psf):
-    """FWHM of the pixelised P0 along x through its peak, pixels (half-maximum crossing)."""
+    """FWHM of the pixelised P0 along x through its peak, pixels (half-maximum crossing); of
+    a gridded PSF, the largest of its nodes."""
+    if hasattr(psf, "nodes"):
+        return max(psf_fwhm(node) for node in psf.nodes)
     oy, ox = psf.oversampling
     row = psf.data[int(round(psf.origin[1]))]
     half = row.max() / 2

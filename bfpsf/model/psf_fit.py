@@ -1,38 +1,47 @@
-"""Fitting the base PSF P0 from stars of all fluxes at once.
+"""Fitting the base PSF P0 from stars of all fluxes at once, on one node or a grid of nodes.
 
 Every star i is modelled as (G15 eq. scrambling_model folded into the PSF)
 
-    d_i = F_i p_i + F_i**2 R[p_i] + noise,       p_i = P0 pixelised at the phase of star i,
+    d_i = F_i p_i + F_i**2 R[p_i] + noise,       p_i = sum_k w_ik P0_k at the phase of star i,
 
-so that, once each star's predicted brighter-fatter term is removed, the bright stars (which
-give the signal-to-noise) no longer bias P0 towards a broader profile. The fit is a fixed-point
-iteration, as in the ePSF construction of Anderson & King (2000) and photutils'
-`~photutils.psf.EPSFBuilder`:
+with w_ik the bilinear weights of the grid nodes k around the star (one node: w = 1; the model
+is `~bfpsf.model.gridded.GriddedFluxDependentPSF`), so that, once each star's predicted
+brighter-fatter term is removed, the bright stars (which give the signal-to-noise) no longer
+bias P0 towards a broader profile. The fit is a fixed-point iteration, as in the ePSF
+construction of Anderson & King (2000) and photutils' `~photutils.psf.EPSFBuilder`:
 
-1. start from a stack of d_i / F_i on the oversampled grid (nearest node, inverse-variance
-   weights, empty nodes filled from their neighbours);
-2. for each star, fit F_i (and, after ``hold_positions`` iterations at the flux-weighted
-   centroids, x_i and y_i) with the current `FluxDependentPSF`, with pixel variances from the
-   model (sky and read noise included), not from the noisy data;
-3. add to P0 the inverse-variance weighted average, in each node, of the normalised residuals
-   (d_i - model_i) / F_i at the samples that fall in the node, then renormalise each phase to
-   unit flux;
-4. repeat until the largest change of P0 is below ``tolerance`` times its peak.
+1. start from the stack of d_i / F_i on the oversampled grid (nearest node, inverse-variance
+   weights, grid nodes solved jointly, empty nodes filled from their neighbours);
+2. one weighted Gauss-Newton step of every star's F_i (and, after ``hold_positions``
+   iterations at the flux-weighted centroids, x_i and y_i), with pixel variances from the model
+   (sky and read noise included), not from the noisy data;
+3. add to each P0_k the least-squares solution, in each oversampled pixel, for the normalised
+   residuals (d_i - model_i) / F_i predicted after the star step (a K x K system per pixel
+   couples the grid nodes), without its translation, then renormalise;
+4. once P0 has nearly settled, fix the positions (P0's odd part and the positions share a
+   weakly constrained direction along which alternating updates creep); stop when the largest
+   change of P0 is below ``tolerance`` times its peak; recentre P0 on its centroid and refit
+   the stars.
 
 Binning the residuals rather than the data removes the broadening that nearest-node binning
-would otherwise cause: at the fixed point the binned residuals vanish.
+would otherwise cause: at the fixed point the binned residuals vanish. Every star's model is a
+product of small matrices, ``Ly @ P0_i @ Lx.T``, with rows of the cubic interpolating spline
+that `FluxDependentPSF` evaluates (so the fit and the model agree to rounding), evaluated for
+all stars at once: 3600 stars and a 3 x 3 grid take about a minute on one core
+(``benchmarks/bench_psf_fit.py``).
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.ndimage
-import scipy.optimize
 from astropy.table import Table
+from scipy.interpolate import make_interp_spline
 
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
-from .psf import FluxDependentPSF
 from ..shifts import as_shifts
+from .gridded import GriddedFluxDependentPSF, bilinear_weights, grid_node_positions
+from .psf import FluxDependentPSF
 
 __all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS"]
 
@@ -51,8 +60,9 @@ class PSFFitResult:
 
     Attributes
     ----------
-    psf : FluxDependentPSF
-        The model with the fitted P0 (``psf.data``), unit flux.
+    psf : FluxDependentPSF or GriddedFluxDependentPSF
+        The model with the fitted P0 (``psf.data``), unit flux; gridded when ``grid`` is
+        given.
     stars : astropy.table.Table
         One row per input star: ``image``, ``x_init``, ``y_init``, ``x_fit``, ``y_fit``
         (pixels), ``flux_fit`` (e-), ``weight`` (share of the stack), ``flags`` (`STAR_FLAGS`).
@@ -87,61 +97,62 @@ def _as_star_list(images, positions):
     return images, positions
 
 
-class _Star:
-    """Cutout of one star: pixel coordinates, data, variance."""
+class _Stars:
+    """Cutouts of the usable stars, stacked for vectorised fitting.
 
-    __slots__ = ("x", "y", "data", "variance", "flux", "x_0", "y_0", "flags", "noise_floor")
+    Attributes: ``data`` (N, n, n) e-; ``column``, ``row`` (N,) pixel of the cutout's first
+    column / row; ``floor`` (N,) variance floor, e-**2; ``flux``, ``x_0``, ``y_0`` (N,) the
+    current estimates (first: sum and flux-weighted centroid); ``flags`` (N,) `STAR_FLAGS`.
+    """
 
-    def __init__(self, image, x_0, y_0, half, noise_floor):
-        self.flags = 0
-        self.flux, self.x_0, self.y_0 = np.nan, x_0, y_0
-        col, row = int(np.rint(x_0)), int(np.rint(y_0))
+    def __init__(self, data, column, row, floor, x_0, y_0):
+        self.data, self.column, self.row, self.floor = data, column, row, floor
+        positive = np.clip(data, 0.0, None)
+        self.flux = data.sum(axis=(1, 2))
+        size = data.shape[1]
+        total = positive.sum(axis=(1, 2))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.x_0 = np.where(total > 0, column + (positive.sum(axis=1) @ np.arange(size))
+                                / total, x_0)
+            self.y_0 = np.where(total > 0, row + (positive.sum(axis=2) @ np.arange(size))
+                                / total, y_0)
+        self.flags = np.zeros(len(data), dtype=int)
+        self.x_start, self.y_start = self.x_0.copy(), self.y_0.copy()
+
+
+def _cut_stars(images, positions, half, floors):
+    """Flags of every star (bits 1, 2, 4 of `STAR_FLAGS`), its image, and the usable ones."""
+    flags, image_index, cutouts, corners, star_floors, centres = [], [], [], [], [], []
+    for index, (image, xy) in enumerate(zip(images, positions)):
         ny, nx = image.shape
-        if not (np.isfinite(x_0) and np.isfinite(y_0)) or (
-                col - half < 0 or row - half < 0 or col + half >= nx or row + half >= ny):
-            self.flags |= 1
-            return
-        cutout = image[row - half:row + half + 1, col - half:col + half + 1]
-        if not np.all(np.isfinite(cutout)):
-            self.flags |= 2
-            return
-        y, x = np.mgrid[row - half:row + half + 1, col - half:col + half + 1]
-        self.x, self.y, self.data = x.ravel().astype(float), y.ravel().astype(float), cutout.ravel()
-        # Data-based variance only for the first stack; model-based once fitted (a variance
-        # from the noisy data itself biases the weighted means).
-        self.noise_floor = noise_floor
-        self.variance = np.clip(self.data, 0.0, None) + noise_floor
-        self.flux = float(self.data.sum())
-        if self.flux <= 0:
-            self.flags |= 4
-            return
-        weights = np.clip(self.data, 0.0, None)
-        self.x_0 = float((weights * self.x).sum() / weights.sum())
-        self.y_0 = float((weights * self.y).sum() / weights.sum())
-
-    @property
-    def usable(self):
-        return self.flags & 7 == 0
-
-
-def _node_indices(psf, star):
-    xi, yi, outside = psf.data_coordinates(star.x - star.x_0, star.y - star.y_0)
-    col = np.rint(xi).astype(int)
-    row = np.rint(yi).astype(int)
-    return row, col, ~outside
-
-
-def _stack(shape, stars, psf_like, values_of):
-    """Inverse-variance weighted nearest-node average of per-star normalised samples."""
-    total = np.zeros(shape)
-    weight = np.zeros(shape)
-    for star in stars:
-        row, col, inside = _node_indices(psf_like, star)
-        values, weights = values_of(star)
-        np.add.at(total, (row[inside], col[inside]), (weights * values)[inside])
-        np.add.at(weight, (row[inside], col[inside]), weights[inside])
-    return total, weight
-
+        for x_0, y_0 in xy:
+            image_index.append(index)
+            if not (np.isfinite(x_0) and np.isfinite(y_0)):
+                flags.append(1)
+                continue
+            column, row = int(np.rint(x_0)) - half, int(np.rint(y_0)) - half
+            if column < 0 or row < 0 or column + 2 * half >= nx or row + 2 * half >= ny:
+                flags.append(1)
+                continue
+            cutout = image[row:row + 2 * half + 1, column:column + 2 * half + 1]
+            if not np.all(np.isfinite(cutout)):
+                flags.append(2)
+                continue
+            if not cutout.sum() > 0:
+                flags.append(4)
+                continue
+            flags.append(0)
+            cutouts.append(cutout)
+            corners.append((column, row))
+            star_floors.append(floors[index])
+            centres.append((x_0, y_0))
+    flags = np.array(flags, dtype=int)
+    if not cutouts:
+        return flags, np.array(image_index, dtype=int), None
+    corners, centres = np.array(corners, dtype=float), np.array(centres, dtype=float)
+    stars = _Stars(np.array(cutouts, dtype=float), corners[:, 0], corners[:, 1],
+                   np.array(star_floors, dtype=float), centres[:, 0], centres[:, 1])
+    return flags, np.array(image_index, dtype=int), stars
 
 def _fill_empty(stack, weight):
     """Fill nodes without samples by normalised Gaussian interpolation from their neighbours."""
@@ -170,65 +181,242 @@ def _normalise(data, oversampling):
     return data * (oy * ox / total)
 
 
-def _fit_star(psf, star, *, positions=True):
-    """Least-squares F (and x_0, y_0) of one star with the current model; False on failure."""
-    sigma = np.sqrt(star.variance)
-    if not positions:
-        # Linear in F apart from the small F|F| term: two Newton steps are exact enough.
-        flux = star.flux
-        for _ in range(3):
-            base = psf.evaluate(star.x, star.y, 1.0, star.x_0, star.y_0)
-            model = psf.evaluate(star.x, star.y, flux, star.x_0, star.y_0)
-            bf_unit = (model - flux * base) / (flux * abs(flux))
-            derivative = base + 2 * abs(flux) * bf_unit
-            flux += (np.sum(derivative * (star.data - model) / sigma**2)
-                     / np.sum(derivative**2 / sigma**2))
-        if not (np.isfinite(flux) and flux > 0):
-            return False
-        star.flux = float(flux)
-        _update_variance(psf, star)
-        return True
+class _Sampling:
+    """Where each star's pixels fall on the oversampled P0 grid, along one axis.
 
-    def residuals(params):
-        return (star.data - psf.evaluate(star.x, star.y, *params)) / sigma
+    ``matrix[i, j, a]`` is the not-a-knot cubic interpolating spline through the unit vector a
+    of the P0 grid, evaluated at pixel j of star i: the same spline as
+    `FluxDependentPSF` (scipy's ``RectBivariateSpline`` with ``s=0`` is its tensor product), so
+    ``Ly @ P0 @ Lx.T`` is the model's ``evaluate`` of P0 at every pixel of every cutout.
+    ``derivative`` is d/d(pixel offset); ``node`` the nearest grid node of each pixel; pixels
+    beyond the data (``outside``) have zero rows, as the model is zero there.
+    """
 
-    start = np.array([star.flux, star.x_0, star.y_0])
-    try:
-        solution = scipy.optimize.least_squares(residuals, start, method="lm",
-                                                x_scale=[max(star.flux, 1.0), 1.0, 1.0])
-    except (ValueError, np.linalg.LinAlgError):
-        return False
-    flux, x_0, y_0 = solution.x
-    if not (solution.success and flux > 0 and abs(x_0 - start[1]) < 1 and abs(y_0 - start[2]) < 1):
-        return False
-    star.flux, star.x_0, star.y_0 = float(flux), float(x_0), float(y_0)
-    _update_variance(psf, star)
-    return True
+    def __init__(self, start, centre, size, oversampling, origin, cardinal):
+        n_data = cardinal[0].c.shape[0]
+        coords = oversampling * (start[:, None] + np.arange(size) - centre[:, None]) + origin
+        self.outside = (coords < 0) | (coords > n_data - 1)
+        flat = np.clip(coords, 0, n_data - 1).ravel()
+        shape = coords.shape + (n_data,)
+        self.matrix = cardinal[0](flat).reshape(shape)
+        self.derivative = oversampling * cardinal[1](flat).reshape(shape)
+        self.matrix[self.outside] = 0.0
+        self.derivative[self.outside] = 0.0
+        self.node = np.clip(np.rint(coords).astype(int), 0, n_data - 1)
 
 
-def _update_variance(psf, star):
-    """Pixel variances from the fitted model (not the noisy data), e-**2."""
-    model = psf.evaluate(star.x, star.y, star.flux, star.x_0, star.y_0)
-    star.variance = np.clip(model, 0.0, None) + star.noise_floor
+def _cardinal_splines(n_data):
+    spline = make_interp_spline(np.arange(n_data), np.eye(n_data), k=3)
+    return spline, spline.derivative()
+
+
+def _project(rows, grid, columns):
+    """``rows @ grid @ columns.T`` per star: (N, n, M) @ (N or 1, M, M) @ (N, M, n)."""
+    return (rows @ grid) @ np.swapaxes(columns, 1, 2)
+
+
+class _Grid:
+    """The node P0s being fitted, their node models, and each star's interpolation weights."""
+
+    def __init__(self, data, x_nodes, y_nodes, shifts, oversampling, psf_kwargs):
+        self.data = data                    # (K, M, M)
+        self.x_nodes, self.y_nodes = x_nodes, y_nodes
+        self.shifts, self.oversampling, self.psf_kwargs = shifts, oversampling, psf_kwargs
+        self.nodes = [FluxDependentPSF(node, shifts, oversampling=oversampling, **psf_kwargs)
+                      for node in data]
+        self.table = self.nodes[0].mode == "table"
+
+    def per_star(self, cube, weights):
+        """Each star's bilinear mix of a node cube: (1, M, M) for one node, else (N, M, M)."""
+        if len(cube) == 1:
+            return cube
+        return (weights @ cube.reshape(len(cube), -1)).reshape((-1,) + cube.shape[1:])
+
+
+
+def _dense_weights(indices, weights, n_nodes):
+    dense = np.zeros((len(indices), n_nodes))
+    np.add.at(dense, (np.arange(len(indices))[:, None], indices), weights)
+    return dense
+
+
+def _exact_bf_terms(grid, weights, stars):
+    """Each star's BF term (e-) from the node models' own evaluation (modes other than
+    'table': exact phase, build-up), weighted over the nodes."""
+    size = stars.data.shape[1]
+    columns = stars.column[:, None] + np.arange(size)
+    rows = stars.row[:, None] + np.arange(size)
+    terms = np.zeros_like(stars.data)
+    for star in range(len(stars.data)):
+        y, x = np.meshgrid(rows[star], columns[star], indexing="ij")
+        flux, x_0, y_0 = stars.flux[star], stars.x_0[star], stars.y_0[star]
+        for node, weight in zip(grid.nodes, weights[star]):
+            if weight > 0:
+                terms[star] += weight * (node.evaluate(x, y, flux, x_0, y_0)
+                                         - flux * node.evaluate_base(x - x_0, y - y_0))
+    return terms
+
+
+def _star_models(grid, weights, stars, free_positions):
+    """Model of every star, residual weights and the Jacobian of (F, x_0, y_0)."""
+    size = stars.data.shape[1]
+    over = grid.oversampling
+    origin = grid.nodes[0].origin
+    cardinal = grid.cardinal
+    xs = _Sampling(stars.column, stars.x_0, size, over, origin[0], cardinal)
+    ys = _Sampling(stars.row, stars.y_0, size, over, origin[1], cardinal)
+    p0 = grid.per_star(grid.data, weights)
+    base = _project(ys.matrix, p0, xs.matrix)
+    flux = stars.flux[:, None, None]
+    if grid.table:
+        tables = grid.per_star(np.array([node.bf_table for node in grid.nodes]), weights)
+        bf_unit = _project(ys.matrix, tables, xs.matrix)
+        bf = flux * np.abs(flux) * bf_unit
+        d_flux = base + 2 * np.abs(flux) * bf_unit
+        charge = flux * p0 + flux * np.abs(flux) * tables
+    else:
+        tables = None
+        bf = _exact_bf_terms(grid, weights, stars)
+        d_flux = base + 2 * bf / flux
+        charge = flux * p0  # the BF term's own position derivative is neglected here
+    model = flux * base + bf
+    jacobian = [d_flux]
+    if free_positions:
+        jacobian.append(-_project(ys.matrix, charge, xs.derivative))
+        jacobian.append(-_project(ys.derivative, charge, xs.matrix))
+    return model, np.stack(jacobian, axis=1), xs, ys
+
+
+def _gauss_newton(stars, model, jacobian, variance, usable):
+    """One weighted Gauss-Newton step of every star's (F[, x_0, y_0]); returns the residuals
+    predicted after the step and flags bit 8 where the step fails."""
+    n_stars, n_params = jacobian.shape[:2]
+    jac = jacobian.reshape(n_stars, n_params, -1)
+    residual = (stars.data - model).reshape(n_stars, -1)
+    weighted = jac / variance.reshape(n_stars, 1, -1)
+    normal = weighted @ np.swapaxes(jac, 1, 2)
+    gradient = np.einsum("ipq,iq->ip", weighted, residual)
+    # Solve with unit diagonal (F and positions differ in scale by F).
+    scale = np.sqrt(np.clip(np.einsum("ipp->ip", normal), 1e-300, None))
+    scaled = normal / (scale[:, :, None] * scale[:, None, :])
+    step = np.zeros((n_stars, n_params))
+    good = usable & (np.linalg.cond(scaled) < 1e10)
+    step[good] = np.linalg.solve(scaled[good], (gradient / scale)[good][..., None])[..., 0]
+    step /= scale
+    if n_params == 3:
+        step[:, 1:] = np.clip(step[:, 1:], -0.5, 0.5)
+    flux = stars.flux + step[:, 0]
+    failed = usable & ~(good & np.isfinite(flux) & (flux > 0))
+    if n_params == 3:
+        x_0, y_0 = stars.x_0 + step[:, 1], stars.y_0 + step[:, 2]
+        failed |= usable & ((np.abs(x_0 - stars.x_start) > 1) | (np.abs(y_0 - stars.y_start) > 1))
+        ok = ~failed & usable
+        stars.x_0[ok], stars.y_0[ok] = x_0[ok], y_0[ok]
+    ok = ~failed & usable
+    stars.flux[ok] = flux[ok]
+    step[~ok] = 0.0
+    stars.flags[failed] |= 8
+    return (residual - np.einsum("ip,ipq->iq", step, jac)).reshape(stars.data.shape)
+
+
+def _node_solution(values, sample_weights, dense_weights, xs, ys, n_data):
+    """Least-squares node values that best give ``values`` at every star pixel.
+
+    In the nearest-node approximation the model of pixel j of star i is
+    sum_k w_ik v_k[c_ij], with c_ij the oversampled node of the pixel and w_ik the star's
+    bilinear weight of grid node k: for each oversampled node c, the grid nodes' values
+    v_k[c] solve a small K x K weighted normal system (one value per c for one node: the
+    weighted average). Nodes without samples are filled from their neighbours.
+
+    Parameters
+    ----------
+    values, sample_weights : ndarray (N, n, n)
+    dense_weights : ndarray (N, K)
+        Bilinear weight of every grid node for every star.
+    xs, ys : _Sampling
+    n_data : int
+        M, the side of the oversampled grid.
+
+    Returns
+    -------
+    ndarray (K, M, M)
+    """
+    n_stars, n_nodes = dense_weights.shape
+    n_cells = n_data * n_data
+    inside = ~(ys.outside[:, :, None] | xs.outside[:, None, :])
+    cell = ys.node[:, :, None] * n_data + xs.node[:, None, :]
+    flat = (np.arange(n_stars)[:, None, None] * n_cells + cell)[inside]
+    # Per star and oversampled node: sum of weight x value, and of weight.
+    weighted = np.bincount(flat, weights=(sample_weights * values)[inside],
+                           minlength=n_stars * n_cells).reshape(n_stars, n_cells)
+    weight = np.bincount(flat, weights=sample_weights[inside],
+                         minlength=n_stars * n_cells).reshape(n_stars, n_cells)
+    right = (dense_weights.T @ weighted).T                              # (M*M, K)
+    pairs = (dense_weights[:, :, None] * dense_weights[:, None, :]).reshape(n_stars, -1)
+    normal = (pairs.T @ weight).T.reshape(n_cells, n_nodes, n_nodes)   # (M*M, K, K)
+    diagonal = np.einsum("ckk->ck", normal).copy()
+    empty = diagonal <= 0
+    # Unsampled grid nodes of a cell get an identity row (value 0, filled below). A ridge of
+    # 1 % of the diagonal damps cells where grid nodes are seen only in nearly the same
+    # mixture (few stars); it shrinks each update, not the converged P0 (update 0).
+    normal[empty[:, :, None] & np.eye(n_nodes, dtype=bool)[None]] = 1.0
+    if n_nodes > 1:
+        normal += 1e-2 * np.einsum("ck,kl->ckl", np.where(empty, 0.0, diagonal),
+                                   np.eye(n_nodes))
+    solution = np.linalg.solve(normal, right[..., None])[..., 0]
+    solution[empty] = 0.0
+    shape = (n_nodes, n_data, n_data)
+    solution, diagonal = solution.T.reshape(shape), diagonal.T.reshape(shape)
+    return np.array([_fill_empty(node, node_weight)
+                     for node, node_weight in zip(solution, diagonal)])
+
+
+def _without_translation(update, data):
+    """The update minus its least-squares projection on a shift of P0 (its x and y
+    gradients): a shift of P0 with every star moved alike fits the data as well, so that
+    direction is left to the star positions instead of letting P0 drift."""
+    gradients = np.array(np.gradient(data)).reshape(2, -1)
+    amplitudes = np.linalg.lstsq(gradients.T, update.ravel(), rcond=None)[0]
+    return update - (amplitudes @ gradients).reshape(update.shape)
+
+
+def _recentred(data, oversampling):
+    """P0 shifted so that its centroid is the origin (the centre of the grid), normalised.
+
+    A shift of P0 with every star moved alike fits the data as well; the iteration leaves that
+    direction alone (`_without_translation`) and the converged P0 is recentred once, so the
+    fitted star positions are centroids of the PSF (photutils' `~photutils.psf.EPSFBuilder`
+    recentres its ePSF too).
+    """
+    weights = np.clip(data, 0.0, None)
+    centre = (np.asarray(data.shape) - 1) / 2.0
+    offsets = [(weights * np.arange(n).reshape(shape)).sum() / weights.sum() - c
+               for n, shape, c in ((data.shape[0], (-1, 1), centre[0]),
+                                   (data.shape[1], (1, -1), centre[1]))]
+    shifted = scipy.ndimage.shift(data, [-offset for offset in offsets], order=3,
+                                  mode="constant")
+    return _normalise(shifted, (oversampling, oversampling))
 
 
 def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=0.0,
-            sky_e=0.0, include_bf=True, initial=None, hold_positions=10, damping=1.0,
-            max_iterations=40, tolerance=3e-4, strict=False, **psf_kwargs):
-    """Fit the base PSF P0 of `FluxDependentPSF` from isolated stars of all fluxes.
+            sky_e=0.0, include_bf=True, grid=None, initial=None, hold_positions=5,
+            damping=1.0, max_iterations=40, tolerance=3e-4, strict=False, progress=False,
+            **psf_kwargs):
+    """Fit the base PSF P0 of `FluxDependentPSF` from isolated stars of all fluxes, on one
+    node or on a grid of nodes over the image (`GriddedFluxDependentPSF`).
 
     Parameters
     ----------
     images_e : ndarray [y, x] or sequence of them
-        Background-subtracted images in electrons.
+        Background-subtracted images in electrons (all of one shape when ``grid`` is given:
+        the grid covers the image).
     positions : (N, 2) array_like of (x, y), or a sequence of them (one per image)
         Approximate star centres, pixels. Stars must be isolated within ``size`` pixels.
     shifts : BoundaryShifts or Calibration
         Boundary shifts a^X, 1/e- (G15 eq. def-a).
     oversampling : int, optional
         Oversampling of P0. Default 2: with 144 noisy stars (peaks 3-120 ke-) it recovers
-        the P0 size to 0.05 %, where oversampling 4 (9 stars per phase cell) neither
-        converges nor does better than -0.5 %; use 4 with several hundred stars.
+        the P0 size to 0.05 %; use 4 only with several hundred stars per node.
     size : int, optional
         Side of the star cutouts and of the P0 support, pixels (odd). Default 25.
     read_noise : float, optional
@@ -240,31 +428,52 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
     include_bf : bool, optional
         Subtract each star's BF term F_i**2 R[p_i] (default). False gives the static ePSF of
         the same stars, for comparison.
+    grid : (int, int), optional
+        (nx, ny) nodes over the image, from edge to edge
+        (`~bfpsf.model.gridded.grid_node_positions`): every node's P0 is fitted jointly from
+        all stars, each star weighted by its bilinear weights; returns a
+        `GriddedFluxDependentPSF`. Default None: one P0 (the 1 x 1 case), a
+        `FluxDependentPSF`.
     initial : ndarray, optional
-        Starting P0 on the oversampled grid (shape ``(size * oversampling + 1,)*2`` for even
-        oversampling, ``size * oversampling`` squared for odd); default the stack of the stars.
+        Starting P0 (one node, or a cube of ``ny * nx`` nodes) on the oversampled grid (shape
+        ``(size * oversampling + 1,)*2`` for even oversampling, ``size * oversampling``
+        squared for odd); default the stack of the stars.
     hold_positions : int, optional
         Iterations during which the star positions stay at their flux-weighted centroids
-        (only fluxes are refitted). Default 10.
+        (only fluxes are refitted). Default 5.
     damping : float, optional
         Fraction of the binned residual added to P0 at each iteration (0 < damping <= 1).
         Default 1.
     max_iterations : int, optional
         Default 40.
     tolerance : float, optional
-        Stop when the largest change of P0 is below ``tolerance`` times its peak. Default
-        3e-4 (noisy stars reach a floor of about 1e-4 as their positions are refitted).
+        Stop when the largest change of any node's P0 is below ``tolerance`` times its peak.
+        Default 3e-4.
     strict : bool, optional
         Raise `~bfpsf.errors.BFPSFConvergenceError` if not converged; otherwise report it in
         ``converged``. Default False.
+    progress : bool or None, optional
+        Show a tqdm progress bar of the iterations (None: only on a terminal). Default False.
     **psf_kwargs
         Passed to `FluxDependentPSF`; the images are in e-, so ``flux_unit`` must be
-        'electron' (``gain`` is then only recorded).
+        'electron' (``gain`` is then only recorded). In ``mode='table'`` (default) every
+        star's model is a product of small matrices (fast); other modes evaluate each star's
+        BF term with the model itself (slow).
 
     Returns
     -------
     PSFFitResult
+
+    Notes
+    -----
+    Each iteration is one weighted Gauss-Newton step of every star's flux (and position)
+    followed by one update of every node: the average, in each oversampled pixel, of the
+    normalised residuals predicted after the star step, each star weighted by its bilinear
+    weight of that node times its inverse variance. That average is the gradient step of the
+    joint least-squares problem, so its fixed point is the joint fit.
     """
+    from tqdm import tqdm
+
     shifts = as_shifts(shifts)
     if psf_kwargs.get("flux_unit", "electron") != "electron":
         msg = (f"fit_psf works on images in e-: flux_unit must be 'electron', got "
@@ -283,87 +492,134 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
     if np.any(~np.isfinite(skies)) or np.any(skies < 0):
         msg = f"sky_e must be finite and >= 0 e- per pixel, got {sky_e!r}"
         raise BFPSFValueError(msg, sky_e)
+    x_nodes, y_nodes = _grid_nodes(grid, images)
+    n_nodes = x_nodes.size * y_nodes.size
     half = size // 2 + 1  # cutouts one pixel wider than P0: every node gets samples
-    stars, image_index = [], []
-    for index, (image, xy) in enumerate(zip(images, positions)):
-        for x_0, y_0 in xy:
-            stars.append(_Star(image, x_0, y_0, half, read_noise**2 + skies[index] + 1.0))
-            image_index.append(index)
-    usable = [star for star in stars if star.usable]
-    if len(usable) < 3:
-        msg = f"need at least 3 usable stars to fit a PSF, got {len(usable)} of {len(stars)}"
-        raise BFPSFInputError(msg, len(usable))
+    flags, image_index, stars = _cut_stars(images, positions, half,
+                                           read_noise**2 + skies + 1.0)
+    if stars is None or len(stars.data) < 3:
+        n_usable = 0 if stars is None else len(stars.data)
+        msg = f"need at least 3 usable stars to fit a PSF, got {n_usable} of {len(flags)}"
+        raise BFPSFInputError(msg, n_usable)
     if not include_bf:
         shifts = shifts.scaled(0.0)
+    star_images = image_index[flags == 0]
+    node_indices, node_weights = bilinear_weights(stars.x_0, stars.y_0, x_nodes, y_nodes)
+    dense_weights = _dense_weights(node_indices, node_weights, n_nodes)
 
     npix = size * over + (1 - over % 2)
     shape = (npix, npix)
-    # A model of the right geometry to map samples to nodes (its data is a placeholder).
-    geometry = FluxDependentPSF(np.ones(shape), shifts, oversampling=over, mode="exact")
-
-    def normalised_data(star):
-        return star.data / star.flux, star.flux**2 / star.variance
-
+    cardinal = _cardinal_splines(npix)
+    origin = ((npix - 1) / 2.0,) * 2
+    usable = np.ones(len(stars.data), dtype=bool)
     if initial is None:
-        stack, weight = _stack(shape, usable, geometry, normalised_data)
-        data = _normalise(_fill_empty(np.divide(stack, weight, out=np.zeros(shape),
-                                                where=weight > 0), weight), (over, over))
+        xs = _Sampling(stars.column, stars.x_0, 2 * half + 1, over, origin[0], cardinal)
+        ys = _Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
+        flux = stars.flux[:, None, None]
+        variance = np.clip(stars.data, 0.0, None) + stars.floor[:, None, None]
+        data = _node_solution(stars.data / flux, flux**2 / variance, dense_weights, xs, ys,
+                              npix)
     else:
         data = np.asarray(initial, dtype=float)
-        if data.shape != shape:
-            msg = f"initial must have shape {shape} for size {size}, got {data.shape}"
+        if data.shape[-2:] != shape or data.size != n_nodes * npix * npix:
+            msg = (f"initial must have shape {shape} (per node, {n_nodes} nodes) for size "
+                   f"{size}, got {data.shape}")
             raise BFPSFValueError(msg, data.shape)
-        data = _normalise(data, (over, over))
-    psf = FluxDependentPSF(data, shifts, oversampling=over, **psf_kwargs)
+        data = data.reshape((n_nodes,) + shape)
+    data = np.array([_normalise(node, (over, over)) for node in data])
+    fitted = _Grid(data, x_nodes, y_nodes, shifts, over, psf_kwargs)
+    fitted.cardinal = cardinal
     changes = []
     converged = False
-    for iteration in range(1, max_iterations + 1):
+    positions_settled, free_iterations, settle_factor = False, 0, 5.0
+    bar = tqdm(range(1, max_iterations + 1), disable=(False if progress else
+                                                      None if progress is None else True),
+               desc="P0 fit", unit="it", leave=False)
+    for iteration in bar:
         # Hold the centroids while P0 is far from converged: free positions would absorb a
         # phase-dependent distortion of the first stack (bright stars at different phases
         # carry different BF), a near-degeneracy the iteration would not leave.
-        free_positions = iteration > hold_positions
-        for star in usable:
-            star.flags &= ~8
-            if not _fit_star(psf, star, positions=free_positions):
-                star.flags |= 8
-        fitted = [star for star in usable if not star.flags & 8]
-
-        def normalised_residual(star, psf=psf):
-            model = psf.evaluate(star.x, star.y, star.flux, star.x_0, star.y_0)
-            return (star.data - model) / star.flux, star.flux**2 / star.variance
-
-        residual, weight = _stack(shape, fitted, psf, normalised_residual)
-        update = np.divide(residual, weight, out=np.zeros(shape), where=weight > 0)
-        # Nodes no star samples (phases nobody covers) follow their neighbours' update:
-        # left alone they would distort the spline at the sampled phases around them.
-        update = _fill_empty(update, weight)
-        new_data = _normalise(psf.data + damping * update, (over, over))
-        change = float(np.abs(new_data - psf.data).max() / np.abs(psf.data).max())
+        # Then free them until P0 has nearly settled, and finish with them fixed: P0 and the
+        # positions share a weakly constrained direction (the odd part of P0 against each
+        # star's centre) along which alternating updates creep; with the positions fixed the
+        # remaining problem is linear in P0 and the fluxes and converges in a few steps.
+        free_positions = iteration > hold_positions and not positions_settled
+        stars.flags[:] = 0
+        model, jacobian, xs, ys = _star_models(fitted, dense_weights, stars, free_positions)
+        variance = np.clip(model, 0.0, None) + stars.floor[:, None, None]
+        residual = _gauss_newton(stars, model, jacobian, variance, usable)
+        # Nodes and samples follow the stars' new positions.
+        xs = _Sampling(stars.column, stars.x_0, 2 * half + 1, over, origin[0], cardinal)
+        ys = _Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
+        flux = stars.flux[:, None, None]
+        weight = np.where((stars.flags & 8)[:, None, None] == 0, flux**2 / variance, 0.0)
+        update = _node_solution(residual / flux, weight, dense_weights, xs, ys, npix)
+        new_data = np.array([_normalise(node + damping * _without_translation(step, node),
+                                        (over, over))
+                             for node, step in zip(fitted.data, update)])
+        change = float(max(np.abs(new - old).max() / np.abs(old).max()
+                           for new, old in zip(new_data, fitted.data)))
         changes.append(change)
-        psf = FluxDependentPSF(new_data, shifts, oversampling=over, **psf_kwargs)
-        if change < tolerance and iteration > hold_positions:
+        bar.set_postfix(change=f"{change:.2e}")
+        fitted = _Grid(new_data, x_nodes, y_nodes, shifts, over, psf_kwargs)
+        fitted.cardinal = cardinal
+        if free_positions:
+            free_iterations += 1
+            positions_settled = change < settle_factor * tolerance or free_iterations >= 15
+        elif change < tolerance and iteration > hold_positions:
             converged = True
             break
+    bar.close()
     if not converged and strict:
         msg = (f"P0 did not converge in {max_iterations} iterations (last change "
                f"{changes[-1]:.3g} of the peak, tolerance {tolerance:.3g})")
         raise BFPSFConvergenceError(msg)
-    for star in usable:  # final positions and fluxes with the final P0
-        star.flags &= ~8
-        if not _fit_star(psf, star):
-            star.flags |= 8
-    total_weight = sum(star.flux**2 / star.variance.mean() for star in usable
-                       if not star.flags & 8)
+    fitted = _Grid(np.array([_recentred(node, over) for node in fitted.data]), x_nodes,
+                   y_nodes, shifts, over, psf_kwargs)
+    fitted.cardinal = cardinal
+    for _ in range(3):  # final positions and fluxes with the final P0
+        stars.flags[:] = 0
+        model, jacobian, _, _ = _star_models(fitted, dense_weights, stars, True)
+        variance = np.clip(model, 0.0, None) + stars.floor[:, None, None]
+        _gauss_newton(stars, model, jacobian, variance, usable)
+    psf = (fitted.nodes[0] if grid is None
+           else GriddedFluxDependentPSF(fitted.nodes, x_nodes, y_nodes))
+    return PSFFitResult(psf=psf, stars=_star_table(flags, image_index, positions, stars,
+                                                   variance),
+                        iterations=len(changes), converged=converged, changes=np.array(changes))
+
+
+def _grid_nodes(grid, images):
+    """Node coordinates (x_nodes, y_nodes) of the grid over the images (one node: (0, 0))."""
+    if grid is None:
+        return np.zeros(1), np.zeros(1)
+    grid = np.asarray(grid)
+    if grid.shape != (2,) or np.any(grid != np.round(grid)) or np.any(grid < 1):
+        msg = f"grid must be two positive integers (nx, ny), got {grid!r}"
+        raise BFPSFValueError(msg, grid)
+    shapes = {image.shape for image in images}
+    if len(shapes) != 1:
+        msg = f"a grid needs images of one shape (it covers the image), got {sorted(shapes)}"
+        raise BFPSFInputError(msg, sorted(shapes))
+    ny, nx = shapes.pop()
+    return grid_node_positions(int(grid[0]), nx), grid_node_positions(int(grid[1]), ny)
+
+
+def _star_table(flags, image_index, positions, stars, variance):
+    """One row per input star (see `PSFFitResult`)."""
+    used = np.flatnonzero(flags == 0)
+    flags = flags.copy()
+    flags[used] |= stars.flags
+    share = np.where(stars.flags & 8, 0.0, stars.flux**2 / variance.mean(axis=(1, 2)))
     table = Table()
-    table["image"] = np.array(image_index, dtype=int)
+    table["image"] = image_index
     table["x_init"] = np.concatenate([np.asarray(xy)[:, 0] for xy in positions if xy.size])
     table["y_init"] = np.concatenate([np.asarray(xy)[:, 1] for xy in positions if xy.size])
-    table["x_fit"] = [star.x_0 if star.usable else np.nan for star in stars]
-    table["y_fit"] = [star.y_0 if star.usable else np.nan for star in stars]
-    table["flux_fit"] = [star.flux if star.usable else np.nan for star in stars]
+    for name, values in (("x_fit", stars.x_0), ("y_fit", stars.y_0),
+                         ("flux_fit", stars.flux), ("weight", share / share.sum())):
+        column = np.full(len(flags), np.nan if name != "weight" else 0.0)
+        column[used] = values
+        table[name] = column
     table["flux_fit"].unit = "electron"
-    table["weight"] = [star.flux**2 / star.variance.mean() / total_weight
-                       if star.usable and not star.flags & 8 else 0.0 for star in stars]
-    table["flags"] = np.array([star.flags for star in stars], dtype=int)
-    return PSFFitResult(psf=psf, stars=table, iterations=len(changes), converged=converged,
-                        changes=np.array(changes))
+    table["flags"] = flags
+    return table

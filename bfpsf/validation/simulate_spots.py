@@ -19,7 +19,7 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from ..files import refuse_overwrite, write_fits
 
 __all__ = ["SpotSet", "StarField", "simulate_spots", "simulate_star_field", "write_image_adu",
-           "bf_free_sensor"]
+           "bf_free_sensor", "simulate_varying_exposures"]
 
 
 @dataclass(frozen=True)
@@ -382,6 +382,78 @@ def simulate_star_field(*, shape=(512, 512), n_stars=100, peak_range_e=(2e3, 1.2
                       fwhm_colour_slope=fwhm_colour_slope, colour_reference=colour_reference,
                       sky_e=sky_e, read_noise_e=read_noise_e, seed=seed)
     return StarField(image=array, truth=truth, parameters=parameters)
+
+
+def simulate_varying_exposures(*, n_exposures=36, shape=(400, 400), spacing=40,
+                               sensor="lsst_e2v_50_8", fwhm_range=(3.0, 3.9),
+                               e1_range=(-0.04, 0.04), beta=3.5, peak_range_e=(3e3, 1.2e5),
+                               seed=0, bf_free_twin=True, progress=False):
+    """Exposures of isolated `simulate_spots` stars whose PSF varies over the field.
+
+    Each exposure holds one star per ``spacing`` x ``spacing`` tile (random sub-pixel
+    position, log-uniform peak). The Moffat FWHM grows linearly with x across the image from
+    ``fwhm_range[0]`` to ``fwhm_range[1]``, and the distortion e1 = (Mxx - Myy) / (Mxx + Myy)
+    linearly with y over ``e1_range`` (reduced shear g1 = e1 / (1 + sqrt(1 - e1**2))).
+
+    Parameters
+    ----------
+    n_exposures : int, optional
+    shape : (int, int), optional
+        (ny, nx) of each exposure, pixels; multiples of ``spacing``.
+    spacing : int, optional
+        Tile side, pixels (the stamp of each star).
+    sensor, beta, seed, bf_free_twin
+        As in `simulate_spots`.
+    fwhm_range : (float, float), optional
+        FWHM at x = 0 and x = nx, pixels.
+    e1_range : (float, float), optional
+        e1 at y = 0 and y = ny.
+    peak_range_e : (float, float), optional
+        Peaks drawn log-uniformly, electrons.
+    progress : bool, optional
+        Show a tqdm progress bar.
+
+    Returns
+    -------
+    images : ndarray (n_exposures, ny, nx)
+        Electrons, no sky.
+    twins : ndarray or None
+        The same exposures without BF (`SpotSet.twin`).
+    truth : astropy.table.Table
+        ``image``, ``x``, ``y`` (pixels), ``flux_e``, ``peak_e``, ``fwhm``, ``e1``.
+    """
+    from astropy.table import Table
+    from tqdm import tqdm
+
+    ny, nx = (int(value) for value in shape)
+    if ny % spacing or nx % spacing:
+        msg = f"shape {shape} must be a multiple of spacing {spacing}"
+        raise BFPSFValueError(msg, shape)
+    rng = np.random.default_rng(seed)
+    images = np.zeros((n_exposures, ny, nx))
+    twins = np.zeros_like(images) if bf_free_twin else None
+    rows = []
+    tiles = [(row, column) for row in range(ny // spacing) for column in range(nx // spacing)]
+    low, high = np.log(peak_range_e)
+    for exposure in tqdm(range(n_exposures), disable=not progress, desc="exposures"):
+        for row, column in tiles:
+            peak = float(np.exp(rng.uniform(low, high)))
+            x_tile, y_tile = (column + 0.5) * spacing, (row + 0.5) * spacing
+            fwhm = fwhm_range[0] + (fwhm_range[1] - fwhm_range[0]) * x_tile / nx
+            e1 = e1_range[0] + (e1_range[1] - e1_range[0]) * y_tile / ny
+            spot = simulate_spots(sensor=sensor, fwhm=fwhm, beta=beta, peaks_e=(peak,),
+                                  n_per_level=1, stamp_size=spacing,
+                                  g1=e1 / (1 + np.sqrt(1 - e1**2)),
+                                  seed=int(rng.integers(2**31)), bf_free_twin=bf_free_twin)
+            box = (exposure, slice(row * spacing, (row + 1) * spacing),
+                   slice(column * spacing, (column + 1) * spacing))
+            images[box] = spot.stamps[0]
+            if bf_free_twin:
+                twins[box] = spot.twin[0]
+            rows.append((exposure, column * spacing + spot.x[0], row * spacing + spot.y[0],
+                         spot.fluxes[0], peak, fwhm, e1))
+    truth = Table(rows=rows, names=("image", "x", "y", "flux_e", "peak_e", "fwhm", "e1"))
+    return images, twins, truth
 
 
 def write_image_adu(path, image_e, *, gain, exptime=1.0, catalog=None, overwrite=False):
