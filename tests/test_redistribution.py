@@ -91,6 +91,9 @@ shift_sets = st.builds(
     n0=st.floats(-0.5, 0.5), e0=st.floats(-0.5, 0.5), nd=st.floats(-0.1, 0.1))
 
 
+# Strong shifts on noisy random images can leave a pixel below zero (beyond first order):
+# redistribute says so with a BFPSFWarning; conservation and parity must hold all the same.
+@pytest.mark.filterwarnings("ignore::bfpsf.errors.BFPSFWarning")
 @settings(max_examples=60, deadline=None)
 @given(shifts=shift_sets, ny=st.integers(2, 40), nx=st.integers(2, 40),
        level=st.floats(1.0, 2e5), seed=st.integers(0, 2**32 - 1))
