@@ -917,7 +917,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
     peaks, sigma_x, sigma_y = [], [], []
     pixels, tables = [], []
     for path in images:
-        amplifiers = read_amplifiers(path, amp)
+        amplifiers = read_amplifiers(path, amp, what="image")
         if len(amplifiers) > 1:
             msg = (f"{path} holds {len(amplifiers)} amplifiers; the closed loop works on one: "
                    "choose it with --amp NAME")
