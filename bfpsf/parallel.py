@@ -74,8 +74,11 @@ def _client(workers, scheduler):
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
     environ["MALLOC_TRIM_THRESHOLD_"] = MALLOC_TRIM_THRESHOLD
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+        # no dashboard; the scheduler's HTTP routes on a free local port (the default 8787
+        # may be taken by another cluster, and Dask then warns)
         cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                               dashboard_address=None)
+                               dashboard_address=None,
+                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
     return Client(cluster), cluster
 
 

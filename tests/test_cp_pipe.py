@@ -20,24 +20,11 @@ R22_S11 = ("measured/lsst_cp_pipe_LSSTCam_R22_S11_amatrix/"
 
 @pytest.fixture(scope="module")
 def r22_s11_amatrix():
-    """The measured R22_S11 a-matrix, cp_pipe layout [i = dx, j = dy], 1/e-.
-
-    Read from the package data (bfpsf/data/measured, shipped by issue 14) when it is there.
-    Until then a stand-in with the same nearest values (a00 -3.29e-6, serial 1.75e-7, parallel
-    4.16e-7) and a seeded r^-3 tail is used, and the test says so.
-    """
-    try:
-        source = resources.files("bfpsf") / "data" / R22_S11
-        with source.open() as stream:  # 3 comment lines, then the column names
-            rows = np.loadtxt(stream, delimiter=",", comments="#", skiprows=4)
-    except (FileNotFoundError, ModuleNotFoundError, OSError):
-        rng = np.random.default_rng(22)
-        i, j = np.meshgrid(np.arange(5), np.arange(5), indexing="ij")
-        r = np.hypot(i, j)
-        matrix = 4e-7 / np.where(r > 0, r, 1) ** 3 * (1 + 0.1 * rng.normal(size=r.shape))
-        matrix[0, 0], matrix[1, 0], matrix[0, 1] = -3.29e-6, 1.75e-7, 4.16e-7
-        print("R22_S11 a-matrix: package data not available yet, seeded stand-in used")
-        return matrix
+    """The measured R22_S11 a-matrix (package data, bfpsf/data/measured), cp_pipe layout
+    [i = dx, j = dy], 1/e-."""
+    source = resources.files("bfpsf") / "data" / R22_S11
+    with source.open() as stream:  # 3 comment lines, then the column names
+        rows = np.loadtxt(stream, delimiter=",", comments="#", skiprows=4)
     matrix = np.zeros((5, 5))
     for i, j, value, _ in rows:
         matrix[int(i), int(j)] = value

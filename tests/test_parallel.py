@@ -79,9 +79,16 @@ def test_detector_directories_write_one_product_each_with_amplifier_json(tmp_pat
         for amp, gain in zip(entry["amplifiers"], (1.4, 1.7)):
             # 6 levels of 48^2: gains to 3-5 %, each amplifier its own
             assert abs(amp["gain"] - gain) < 3 * amp["gain_err"]
-        for key in ("gain_err", "noise_e", "a", "a_err", "n_pairs"):
+        for key in ("gain_err", "noise_e", "a", "a_err", "n_pairs", "shift_method", "warnings"):
             assert key in entry["amplifiers"][0]
+        # few pairs: each amplifier warns, and the detector lists them by amplifier
+        for amp in entry["amplifiers"]:
+            assert any(text.startswith("the full PTC model is under-constrained")
+                       for text in amp["warnings"])
+        assert entry["warnings"] == [f"{amp['name']}: {text}" for amp in entry["amplifiers"]
+                                     for text in amp["warnings"]]
         calibration = read_calibration(entry["output"])
+        assert calibration["C00"].warnings == tuple(entry["amplifiers"][0]["warnings"])
         assert calibration.names == list(AMPS)
         assert calibration["C01"].gain == entry["amplifiers"][1]["gain"]
 

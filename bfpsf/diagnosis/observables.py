@@ -526,7 +526,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
     fluxes, peaks, sigma_x, sigma_y, exposure = [], [], [], [], []
     pixels, tables, sky_noise = [], [], []
     for index, path in enumerate(images):
-        amplifiers = read_amplifiers(path, amp)
+        amplifiers = read_amplifiers(path, amp, what="image")
         if len(amplifiers) > 1:
             msg = (f"{path} holds {len(amplifiers)} amplifiers; the closed loop works on one: "
                    "choose it with --amp NAME")
