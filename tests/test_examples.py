@@ -58,3 +58,15 @@ def test_cp_pipe_amatrix(tmp_path):
     for value in slopes.values():
         # E2V: the parallel neighbour a(0,1) is larger, so sigma_y grows faster
         assert 0 < value["x"] < value["y"]
+
+
+def test_measured_shifts(tmp_path, capsys):
+    """The published ITL-3800C-002 table through G15's Ei solver and the electrostatic one."""
+    spec = importlib.util.spec_from_file_location("example_measured_shifts",
+                                                  EXAMPLES / "measured_shifts.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main(["--quick", "--plots", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert "ITL-3800C-002" in out and "electrostatic" in out
+    assert list(tmp_path.glob("*.png"))
