@@ -41,7 +41,10 @@ def varying_exposures(request, chunks, shape=(400, 400)):
     images, twins, truths, offset = [], [], [], 0
     for n_exposures, seed in chunks:
         name = f"bfpsf_varying_{n_exposures}_{seed}_{shape[0]}x{shape[1]}.npz"
-        path = request.config.cache.mkdir("bfpsf") / name
+        cache = getattr(request.config, "cache", None)  # absent with -p no:cacheprovider
+        directory = (cache.mkdir("bfpsf") if cache is not None
+                     else request.getfixturevalue("tmp_path_factory").mktemp("bfpsf"))
+        path = directory / name
         if not path.exists():
             drawn = simulate_varying_exposures(n_exposures=n_exposures, shape=shape, seed=seed)
             np.savez(path, images=drawn[0], twins=drawn[1],

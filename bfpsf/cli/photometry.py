@@ -55,18 +55,13 @@ def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, stati
     --gain) and P0 with that amplifier's boundary shifts; else the PSF product's."""
     from ..calibration.product import calibration_of_amplifier
     from ..interop.photutils import static_image_psf
-    from ..model.psf import FluxDependentPSF
 
     model = psf
     if calibration is not None:
         one = calibration_of_amplifier(calibration, amplifier.name, str(path))
         gain = one.gain if gain_option is None else float(gain_option)
         if one.shifts is not None and one.shifts is not psf.shifts:
-            model = FluxDependentPSF(
-                psf.data, one.shifts, origin=psf.origin, oversampling=psf.oversampling,
-                gain=psf.gain, mode=psf.mode, buildup_steps=psf.buildup_steps,
-                density_profile=psf.density_profile,
-                density_oversampling=psf.density_oversampling, fill_value=psf.fill_value)
+            model = psf.with_shifts(one.shifts)
     return float(gain), (static_image_psf(model) if static else model)
 
 
@@ -84,10 +79,7 @@ def run(args):
     if psf.flux_unit != "electron":
         psf = psf.with_flux_unit("electron")  # the images are converted to e- below
     gain = psf.gain if args.gain is None else float(args.gain)
-    if gain is None:
-        msg = f"{args.psf} records no gain: give --gain G (e-/ADU of the images)"
-        raise BFPSFInputError(msg, args.psf)
-    if not (np.isfinite(gain) and gain > 0):
+    if gain is not None and not (np.isfinite(gain) and gain > 0):
         msg = f"the gain must be positive e-/ADU, got {gain!r}"
         raise BFPSFInputError(msg, gain)
     calibration = read_calibration(args.calib) if args.calib else None
@@ -98,6 +90,9 @@ def run(args):
             msg = (f"{path} has {len(amplifiers)} amplifiers: give --calib CALIB.fits for the "
                    "gain and boundary shifts of each")
             raise BFPSFInputError(msg, str(path))
+        if gain is None and calibration is None:
+            msg = f"{args.psf} records no gain: give --gain G (e-/ADU of the images)"
+            raise BFPSFInputError(msg, args.psf)
         sides = shared_sides([amplifier.layout for amplifier in amplifiers])
         for amplifier in amplifiers:
             amp_gain, model = _amplifier_model(psf, gain, calibration, amplifier, path,
