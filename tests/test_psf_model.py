@@ -297,3 +297,27 @@ def test_buildup_mode_is_the_engine(psf):
     # Build-up differs from the one-step model at second order in a: small but not zero.
     difference = np.abs(model_image - one_step).max() / np.abs(one_step - BRIGHT * stamp).max()
     assert 0 < difference < 0.1
+
+
+def test_flux_beyond_first_order_warns():
+    """Fluxes of 1e9 e- break G15's first order (pixels of P(F) go negative): said, in every
+    mode; a bright but real star (1e6 e-) is not."""
+    import galsim
+
+    from bfpsf.errors import BFPSFWarning
+    from bfpsf.model.psf import FluxDependentPSF
+    from bfpsf.shifts import BoundaryShifts
+
+    shifts = BoundaryShifts.from_radial_profile(lambda r: 1.2e-6 * np.exp(-r / 0.8), 5)
+    for mode in ("table", "exact"):
+        psf = FluxDependentPSF.from_galsim(galsim.Moffat(beta=3.5, fwhm=3.5), shifts, mode=mode)
+        # the limit is where P0 + F R reaches -1 % of the peak
+        limit = psf.first_order_flux
+        assert 1e7 < limit < 1e8
+        image = psf.star_image(1e6)
+        assert image.min() > -1e-3 * image.max()
+        with pytest.warns(BFPSFWarning, match="beyond the first-order BF model"):
+            image = psf.star_image(1e9)
+        assert image.min() < -0.01 * image.max()
+        with pytest.warns(BFPSFWarning, match="beyond the first-order BF model"):
+            psf.evaluate(0.0, 0.0, 1e9, 0.0, 0.0)

@@ -20,12 +20,13 @@ uniform sky S adds a term linear in F that P0 absorbs when it is fitted at that 
 """
 
 import copy
+import warnings
 
 import numpy as np
 from astropy.modeling import Fittable2DModel, Parameter
 from scipy.interpolate import RectBivariateSpline
 
-from ..errors import BFPSFValueError
+from ..errors import BFPSFValueError, BFPSFWarning
 from ..shifts import as_shifts
 from .buildup import redistribute_buildup
 from .density import exact_boundary_density
@@ -518,6 +519,33 @@ class FluxDependentPSF(Fittable2DModel):
             result[members] = values
         return result
 
+    @property
+    def first_order_flux(self):
+        """Largest |flux| (image unit) for which P(F) = P0 + F R[P0] stays above -1 % of the
+        peak of P0 everywhere: beyond it G15's first-order model is broken (pixels go negative)
+        and `evaluate` and `star_image` warn (`~bfpsf.errors.BFPSFWarning`)."""
+        if getattr(self, "_first_order_flux", None) is None:
+            if self.bf_table is not None:
+                base, response = self.data, self.electrons_per_unit * self.bf_table
+            else:
+                base = pixelised_stamp(self)
+                response = self.electrons_per_unit * redistribution_delta(base, self.shifts)
+            # pixels the BF term lowers, that P0 itself holds above -1 % of its peak (a fitted
+            # P0 can be slightly negative in its wings)
+            margin = base + 0.01 * base.max()
+            shrinking = (response < 0) & (margin > 0)
+            limit = np.inf
+            if np.any(shrinking):
+                limit = float(np.min(margin[shrinking] / -response[shrinking]))
+            self._first_order_flux = limit
+        return self._first_order_flux
+
+    def _warn_beyond_first_order(self, flux):
+        if abs(flux) > self.first_order_flux:
+            warnings.warn(f"flux {flux:.3g} is beyond the first-order BF model (G15): P(F) goes "
+                          f"negative above {self.first_order_flux:.3g} for these boundary shifts",
+                          BFPSFWarning, stacklevel=3)
+
     def _stamp_delta(self, stamp, flux, x_phase, y_phase):
         """BF term (image unit) of a star of flux F on its pixelised unit stamp (star at
         ``(x_phase, y_phase)`` from the central pixel), as mode='exact' computes it."""
@@ -607,6 +635,7 @@ class FluxDependentPSF(Fittable2DModel):
         xi, yi, outside = self.data_coordinates(dx, dy)
         if not (np.isfinite(flux) and np.isfinite(x_0) and np.isfinite(y_0)):
             return np.full(shape, np.nan)
+        self._warn_beyond_first_order(flux)
         result = flux * self._base_spline(xi, yi, grid=False)
         if self.mode == "table":
             bf_term = self.electrons_per_unit * flux * abs(flux) * self._bf_spline(xi, yi, grid=False)
@@ -640,6 +669,7 @@ class FluxDependentPSF(Fittable2DModel):
             F p + g F |F| R[p]; divide by F for the normalised P(F).
         """
         half = self.half_size if half_size is None else int(half_size)
+        self._warn_beyond_first_order(flux)
         stamp = pixelised_stamp(self, x_phase=x_phase, y_phase=y_phase, half_size=half)
         return flux * stamp + self._stamp_delta(stamp, flux, x_phase, y_phase)
 
