@@ -16,7 +16,6 @@ R is interpolated, not recomputed from the interpolated P0: the two differ by
 the BF term for nodes whose FWHM differ by 10 %).
 """
 
-import copy
 
 import numpy as np
 from astropy.modeling import Fittable2DModel, Parameter
@@ -206,16 +205,9 @@ class GriddedFluxDependentPSF(Fittable2DModel):
             node.shift_samples = tuple(samples)
 
     # -- astropy model interface -------------------------------------------------------------
-    def copy(self):
-        """Copy with the parameter values copied and the node models shared."""
-        new = object.__new__(self.__class__)
-        for key, value in self.__dict__.items():
-            new.__dict__[key] = copy.copy(value) if key in self.param_names else value
-        return new
-
-    def deepcopy(self):
-        """A copy that owns every array."""
-        return copy.deepcopy(self)
+    # the parameter values copied, the node models shared (as FluxDependentPSF shares arrays)
+    copy = FluxDependentPSF.copy
+    deepcopy = FluxDependentPSF.deepcopy
 
     @property
     def bounding_box(self):
