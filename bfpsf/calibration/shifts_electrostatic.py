@@ -319,21 +319,15 @@ class ElectrostaticFit:
         return self.area.shape[0] - 1
 
 
-def _whitener(area, area_err, area_cov):
-    """Matrix W^(1/2) such that |W^(1/2) r|^2 is the chi-square of residuals r = a.ravel()."""
-    if area_cov is not None:
-        eigenvalues, eigenvectors = np.linalg.eigh(area_cov)
-        floor = 1e-12 * eigenvalues.max()
-        return (eigenvectors / np.sqrt(np.maximum(eigenvalues, floor))).T
-    return np.diag(1.0 / area_err.ravel())
-
-
-def _noise_root(area_err, area_cov):
-    """A matrix S with S S^T the covariance of a.ravel() (semi-definite accepted)."""
+def _covariance_roots(area_err, area_cov):
+    """(W, S) from one decomposition of the covariance of a.ravel(): |W r|^2 is the chi-square
+    of residuals r, and S S^T the covariance (semi-definite accepted) for drawing noise."""
     if area_cov is None:
-        return np.diag(area_err.ravel())
+        return np.diag(1.0 / area_err.ravel()), np.diag(area_err.ravel())
     eigenvalues, eigenvectors = np.linalg.eigh(area_cov)
-    return eigenvectors * np.sqrt(np.clip(eigenvalues, 0.0, None))
+    floor = 1e-12 * eigenvalues.max()
+    whiten = (eigenvectors / np.sqrt(np.maximum(eigenvalues, floor))).T
+    return whiten, eigenvectors * np.sqrt(np.clip(eigenvalues, 0.0, None))
 
 
 def _default_errors(area):
@@ -401,7 +395,7 @@ def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
             raise BFPSFValueError(msg, area_err.shape)
     else:
         area_err = _default_errors(area)
-    whiten = _whitener(area, area_err, area_cov)
+    whiten, noise_root = _covariance_roots(area_err, area_cov)
     n = area.shape[0] - 1
     radius = n + 1
     data = whiten @ area.ravel()
@@ -452,7 +446,7 @@ def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
     for result in polished:
         if all(np.max(np.abs(result.x - kept) / (_UPPER - _LOWER)) > 0.02 for kept in minima):
             minima.append(result.x)
-    noise_root = _noise_root(area_err, area_cov) * np.sqrt(scale)
+    noise_root = noise_root * np.sqrt(scale)
     rng = np.random.default_rng(seed)
     draws, samples_north, samples_east = [], [], []
     for _ in range(int(n_samples)):
