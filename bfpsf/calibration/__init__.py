@@ -27,7 +27,7 @@ MAX_FULL_MODEL_MAXLAG = 12
 MIN_PAIRS_FULL_MODEL = 8
 
 
-def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-origin",
+def calibrate(sources, *, exptimes=None, maxlag="auto", ptc_model="full", fit_b="off-origin",
               saturation=None, mean_tolerance=0.05, clip_nsigma=4.0, pedestal_nsigma=4.0,
               pedestal_degree=2, linearity_threshold=None, solve_shifts=True,
               shift_method="electrostatic", thickness=10.0, n_monte_carlo=100, seed=0,
@@ -47,8 +47,12 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
         EXPTIME are paired in the order given.
     exptimes : sequence of float, optional
         Exposure times, s, one per source (required for arrays; overrides EXPTIME).
-    maxlag : int, optional
-        Largest lag |dx|, |dy| of the covariances and of a(dx, dy). Default 8.
+    maxlag : 'auto' or int, optional
+        Largest lag |dx|, |dy| of the covariances and of a(dx, dy). Default ``'auto'``: the
+        largest lag the flats constrain, chosen per amplifier from the significance of the
+        measured correlations ring by ring (`bfpsf.calibration.maxlag.choose_maxlag`; the
+        covariances are measured to `MAX_FULL_MODEL_MAXLAG` or the image size first). The
+        choice and the significance of each ring are recorded in ``parameters``.
     ptc_model : {'full', 'exponential', 'quadratic'}, optional
         PTC model (`bfpsf.calibration.ptc`). Default ``'full'``: Astier et al. 2019 eq. 20,
         free of the first-order bias of G15's slopes.
@@ -112,7 +116,7 @@ def calibrate(sources, *, exptimes=None, maxlag=8, ptc_model="full", fit_b="off-
                                workers=workers, scheduler=scheduler)[""]
 
 
-def calibrate_detectors(detectors, *, exptimes=None, maxlag=8, ptc_model="full",
+def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="full",
                         fit_b="off-origin", saturation=None, mean_tolerance=0.05,
                         clip_nsigma=4.0, pedestal_nsigma=4.0, pedestal_degree=2,
                         linearity_threshold=None, solve_shifts=True,
@@ -146,7 +150,6 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag=8, ptc_model="full",
         pedestal_degree=pedestal_degree, linearity_threshold=linearity_threshold,
         solve_shifts=solve_shifts, shift_method=shift_method, thickness=thickness,
         n_monte_carlo=n_monte_carlo, seed=seed)
-    maxlag = parameters["maxlag"]
     exptimes = exptimes or {}
     tasks, owners = [], []
     for detector, sources in detectors.items():
@@ -155,12 +158,11 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag=8, ptc_model="full",
                                if isinstance(source, (str, os.PathLike))], "flat")
         flats = read_flats(sources, exptimes.get(detector), amps=amps, lazy=True,
                            overscan=overscan)
-        for flat in flats:
-            _check_size(flat, maxlag)
+        measured_lag = _measured_lag(flats, parameters["maxlag"])
         for amplifier, amplifier_flats in group_amplifiers(flats).items():
             pairs = pair_flats(amplifier_flats, mean_tolerance=mean_tolerance)
             for pair in pairs:
-                tasks.append(PairTask(pair, saturation, maxlag, clip_nsigma, mean_tolerance,
+                tasks.append(PairTask(pair, saturation, measured_lag, clip_nsigma, mean_tolerance,
                                       overscan))
                 owners.append((detector, amplifier))
     with parallel_session(workers, scheduler) as session:
@@ -187,16 +189,14 @@ def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsig
     """Validated parameters (recorded in the product) and the options of `fit_amplifier`."""
     from .boundary_shifts import SHIFT_METHODS
     from .linearity import DEFAULT_LINEARITY_THRESHOLD
+    from .maxlag import check_maxlag
     from .ptc import PTC_MODELS, _b_mask
 
-    if int(maxlag) != maxlag or maxlag < 1:
-        msg = f"maxlag must be a positive integer, got {maxlag!r}"
-        raise BFPSFValueError(msg, maxlag)
-    maxlag = int(maxlag)
+    maxlag = check_maxlag(maxlag)
     if ptc_model not in PTC_MODELS:
         msg = f"ptc_model must be one of {PTC_MODELS}, got {ptc_model!r}"
         raise BFPSFValueError(msg, ptc_model)
-    if ptc_model == "full" and maxlag > MAX_FULL_MODEL_MAXLAG:
+    if ptc_model == "full" and maxlag != "auto" and maxlag > MAX_FULL_MODEL_MAXLAG:
         msg = (f"maxlag {maxlag} is too large for the full PTC model: its memory and time grow "
                f"as (maxlag + 1)^6 ({8 * (maxlag + 1) ** 6 / 2**30:.3g} GiB here); use maxlag "
                f"<= {MAX_FULL_MODEL_MAXLAG} or the exponential PTC model")
@@ -225,7 +225,7 @@ def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsig
     return parameters, options
 
 
-def calibrate_from_ptc(path, *, amps=None, maxlag=None, ptc_model="full", fit_b="off-origin",
+def calibrate_from_ptc(path, *, amps=None, maxlag="auto", ptc_model="full", fit_b="off-origin",
                        pedestal_nsigma=4.0, pedestal_degree=2, linearity_threshold=None,
                        solve_shifts=True, shift_method="electrostatic", thickness=10.0,
                        n_monte_carlo=100, seed=0):
@@ -243,8 +243,9 @@ def calibrate_from_ptc(path, *, amps=None, maxlag=None, ptc_model="full", fit_b=
         The PhotonTransferCurveDataset FITS file.
     amps : str or sequence of str, optional
         Amplifiers to calibrate. Default: all.
-    maxlag : int, optional
-        Largest lag fitted (default: all of cp_pipe's, COV_MATRIX_SIDE - 1).
+    maxlag : 'auto' or int, optional
+        Largest lag fitted, at most cp_pipe's COV_MATRIX_SIDE - 1. Default ``'auto'``: chosen
+        from cp_pipe's covariances as `calibrate` does.
     Others
         As `calibrate`.
 
@@ -254,9 +255,10 @@ def calibrate_from_ptc(path, *, amps=None, maxlag=None, ptc_model="full", fit_b=
         One amplifier, or several.
     """
     from ..io.cp_pipe import read_ptc_dataset
+    from .maxlag import check_maxlag
     from .product import DetectorCalibration
-    from .ptc import PTCData
 
+    maxlag = check_maxlag(maxlag)
     dataset = read_ptc_dataset(path)
     if amps is not None:
         amps = [amps] if isinstance(amps, str) else list(amps)
@@ -269,9 +271,9 @@ def calibrate_from_ptc(path, *, amps=None, maxlag=None, ptc_model="full", fit_b=
     fitted = {}
     for name, amplifier in dataset.items():
         side = amplifier.a.shape[0]
-        lags = side - 1 if maxlag is None else min(int(maxlag), side - 1)
         parameters, options = _settings(
-            maxlag=lags, ptc_model=ptc_model, fit_b=fit_b, saturation=None,
+            maxlag=maxlag if maxlag == "auto" else min(maxlag, side - 1),
+            ptc_model=ptc_model, fit_b=fit_b, saturation=None,
             mean_tolerance=None, clip_nsigma=None,
             pedestal_nsigma=pedestal_nsigma, pedestal_degree=pedestal_degree,
             linearity_threshold=linearity_threshold, solve_shifts=solve_shifts,
@@ -281,9 +283,8 @@ def calibrate_from_ptc(path, *, amps=None, maxlag=None, ptc_model="full", fit_b=
                            "cp_pipe_a00": float(amplifier.a[0, 0]),
                            "cp_pipe_fit_type": amplifier.fit_type})
         data = amplifier.data
-        keep = slice(0, lags + 1)
-        data = PTCData(data.exptime, data.mean_adu, data.cov_adu[:, keep, keep],
-                       data.npix[:, keep, keep])
+        if maxlag != "auto":
+            data = data.to_maxlag(parameters["maxlag"])
         count = data.mean_adu.size
         ids = amplifier.pair_ids or [(2 * index, 2 * index + 1) for index in range(count)]
         fitted[name] = fit_amplifier(data, parameters, amplifier=name,
@@ -331,6 +332,20 @@ def measure_pair(task):
                "has zero variance): a pair needs two exposures")
         raise BFPSFInputError(msg, (flat1.name, flat2.name))
     return covariance, report
+
+
+def _measured_lag(flats, maxlag):
+    """The lag to measure the covariances to: ``maxlag``, or for ``'auto'`` the largest the
+    flats and the full model allow (`MAX_FULL_MODEL_MAXLAG`); `BFPSFInputError` if a flat is
+    too small."""
+    if maxlag == "auto":
+        smallest = min(flats, key=lambda flat: min(flat.shape), default=None)
+        if smallest is None:
+            return 1
+        maxlag = max(1, min(MAX_FULL_MODEL_MAXLAG, min(smallest.shape) // 2 - 1))
+    for flat in flats:
+        _check_size(flat, maxlag)
+    return maxlag
 
 
 def _check_size(flat, maxlag):
@@ -400,6 +415,7 @@ def fit_amplifier(data, parameters, *, amplifier="", names, n_masked, n_clipped,
     # The pedestal is the zero-flux intercept of R = C / V, measured below the PTC extremum.
     below, _ = detect_turnoff(data.mean_adu, data.var_adu,
                               covariance_errors(data.cov_adu, data.npix)[:, 0, 0])
+    data = _fitted_lags(data, below, parameters, ptc_model)
     pedestal = measure_pedestal(data.mean_adu[below], data.cov_adu[below], data.npix[below],
                                 nsigma=pedestal_nsigma, degree=pedestal_degree)
     corrected = data.with_covariances(subtract_pedestal(data.cov_adu, pedestal))
@@ -440,6 +456,25 @@ def fit_amplifier(data, parameters, *, amplifier="", names, n_masked, n_clipped,
         covariances_adu=data.cov_adu, npix=data.npix,
         inputs=[str(name) for pair in names for name in pair], parameters=parameters,
         amplifier=amplifier)
+
+
+def _fitted_lags(data, below, parameters, ptc_model):
+    """``data`` to the lags fitted: for ``maxlag='auto'`` those the flats constrain
+    (`bfpsf.calibration.maxlag.choose_maxlag`, on the pairs below the turnoff), recorded in
+    ``parameters`` (``maxlag``, ``maxlag_auto``, ``maxlag_ring_sigma``, ``maxlag_reason``)."""
+    from .maxlag import choose_maxlag
+
+    parameters["maxlag_auto"] = parameters["maxlag"] == "auto"
+    if not parameters["maxlag_auto"]:
+        parameters["maxlag"] = data.maxlag
+        return data
+    data = data.to_maxlag(min(data.maxlag, MAX_FULL_MODEL_MAXLAG))
+    choice = choose_maxlag(data.mean_adu[below], data.cov_adu[below], data.npix[below],
+                           model=ptc_model, min_pairs_full_model=MIN_PAIRS_FULL_MODEL)
+    parameters.update(maxlag=choice.maxlag, maxlag_reason=choice.reason,
+                      maxlag_ring_sigma=[round(float(value), 2)
+                                         for value in choice.significance])
+    return data.to_maxlag(choice.maxlag)
 
 
 def _solve_shifts(fit, method, thickness, n_samples, seed, parameters):

@@ -94,6 +94,12 @@ class PTCData:
     def maxlag(self):
         return self.cov_adu.shape[1] - 1
 
+    def to_maxlag(self, maxlag):
+        """Return a copy with the lags 0..``maxlag`` only."""
+        keep = slice(0, int(maxlag) + 1)
+        return PTCData(self.exptime, self.mean_adu, self.cov_adu[:, keep, keep],
+                       self.npix[:, keep, keep])
+
     def with_covariances(self, cov_adu):
         """Return a copy with ``cov_adu`` replaced (e.g. after pedestal subtraction)."""
         return PTCData(self.exptime, self.mean_adu, np.asarray(cov_adu, dtype=float), self.npix)

@@ -5,6 +5,7 @@ and the JSON summary. Inputs are flat files (one detector, one product) or direc
 detector each, every ``*.fits`` in it; ``-o`` is then a directory receiving ``DETECTOR.fits``).
 """
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -41,8 +42,10 @@ def add_parser(subparsers):
     parser.add_argument("--overscan", choices=("median", "clipped_mean"), default="median",
                         help="row-by-row overscan estimator where BIASSEC is given "
                              "(default median)")
-    parser.add_argument("--maxlag", type=int, default=8,
-                        help="largest lag of the covariances and of a(dx, dy) (default 8)")
+    parser.add_argument("--maxlag", type=_maxlag, default="auto", metavar="auto|N",
+                        help="largest lag of the covariances and of a(dx, dy): 'auto' "
+                             "(default) picks, per amplifier, the largest lag ring whose "
+                             "correlation the flats measure (3 sigma), or give an integer")
     parser.add_argument("--model", choices=("full", "exponential", "quadratic"), default="full",
                         help="PTC model: Astier+19 eq. 20 'full' (default), eq. 16 "
                              "'exponential', or G15's 'quadratic'")
@@ -71,6 +74,20 @@ def add_parser(subparsers):
     parser.add_argument("--overwrite", action="store_true",
                         help="replace existing output files")
     return parser
+
+
+def _maxlag(text):
+    """``--maxlag``: 'auto' or a positive integer."""
+    if text == "auto":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        msg = f"expected 'auto' or a positive integer, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
 
 
 def _detectors(args):
@@ -121,6 +138,9 @@ def _print(detector, calibration):
               f"read noise {one.noise_e:.3f} e-, {one.n_pairs} pairs, "
               f"turnoff {one.turnoff_e:.4g} e-"
               + (" (detected)" if one.turnoff_detected else " (not reached)"))
+        how = ("chosen from the data: " + one.parameters["maxlag_reason"]
+               if one.parameters.get("maxlag_auto") else "given")
+        print(f"{prefix}maxlag {one.maxlag} ({how})")
         print(f"{prefix}a(0,0) {a[0, 0]:.4e} +- {one.a_err[0, 0]:.2e}, a(1,0) {a[0, 1]:.4e}, "
               f"a(0,1) {a[1, 0]:.4e} 1/e-  [{one.model} model]")
         if one.linearity.flagged:
