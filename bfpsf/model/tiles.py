@@ -138,7 +138,7 @@ def run_bands(sources, kernels, task, *, dtype=np.float64, workers=None, tile=No
         return ([np.zeros(window_shape, dtype=dtype) for _ in sources],
                 np.empty((size_y, size_x // 2 + 1), dtype=complex_dtype), {})
 
-    def tiles(y0, rows, windows, product):
+    def tiles(rows, windows, product):
         for ix in range(nbx):
             x0 = ix * block_x
             cols = min(block_x, nx - x0)
@@ -164,7 +164,7 @@ def run_bands(sources, kernels, task, *, dtype=np.float64, workers=None, tile=No
             window[:first] = 0.0
             window[last:] = 0.0
             window[first:last, m:m + nx] = image[top:bottom]
-        return task(y0, rows, tiles(y0, rows, windows, product), scratch)
+        return task(y0, rows, tiles(rows, windows, product), scratch)
 
     workers = min(validate_workers(workers), nby)
     if workers == 1:

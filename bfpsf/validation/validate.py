@@ -253,7 +253,7 @@ def _phase_grid(n, seed):
                             (k * golden + shift[1]) % 1.0 - 0.5])
 
 
-def _stage_spots(config, progress=False):
+def _stage_spots(config):
     """Moffat spots photon-shot through SiliconSensor with their BF-free twins, the SAME
     sub-pixel phases at every level (`bfpsf.validation.simulate_spots.simulate_spots`)."""
     from .simulate_spots import simulate_spots
@@ -331,7 +331,7 @@ def _flux_fit(psf, stamp, x, y, flux_guess, *, flux_dependent, iterations=3):
     return flux
 
 
-def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts, progress):
+def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts):
     from ..model import psf_fit
 
     fluxes = spots.stamps.sum(axis=(1, 2))
@@ -467,7 +467,7 @@ def validate(config=None, *, quick=False, progress=False, shifts_for_model="flat
 
     result["calibration"], cal = step("flats+calibration", _stage_flats, config)
     result["area"], truth_area, truth_shifts = step("truth", _stage_truth, config, cal)
-    spots = step("spots", _stage_spots, config, progress)
+    spots = step("spots", _stage_spots, config)
 
     sizes_x, sizes_y, flags = _moments(spots.stamps)
     slopes = {"available": True, "n_spots": int(len(spots.peaks)),
@@ -502,8 +502,7 @@ def validate(config=None, *, quick=False, progress=False, shifts_for_model="flat
     model_shifts = flats_shifts if shifts_for_model == "flats" else truth_shifts
     result["model_shifts"] = FLATS_LABEL if shifts_for_model == "flats" else TRUTH_LABEL
     result["psf"], result["residual_images"] = step(
-        "P(F)", _stage_psf, config, spots, (sizes_x, sizes_y), (twin_x, twin_y), raw, model_shifts,
-        progress)
+        "P(F)", _stage_psf, config, spots, (sizes_x, sizes_y), (twin_x, twin_y), raw, model_shifts)
     result["inverse"] = step("inverse", _stage_inverse, spots, raw, (twin_x, twin_y),
                              model_shifts)
     diagnosis = step("diagnose", _stage_diagnose, config, spots, sizes_x, sizes_y,
