@@ -32,6 +32,22 @@ def test_measured_sets_ship_with_their_sources_and_are_small():
     assert total < 200_000
 
 
+def test_every_shipped_set_states_its_licence_and_citation():
+    """Each folder of bfpsf/data/measured (every one, listed in MEASURED or not) has a
+    SOURCE.md with a 'Licence:' and a 'Citation:' paragraph that says something."""
+    root = measured_path("itl3800c002").parent
+    folders = sorted(path for path in root.iterdir() if path.is_dir())
+    assert {path.name for path in folders} == {folder for folder, _ in MEASURED.values()}
+    for folder in folders:
+        text = (folder / "SOURCE.md").read_text()
+        for label in ("Licence", "Citation"):
+            found = re.search(rf"^{label}: (.+)$", text, flags=re.MULTILINE)
+            assert found and len(found.group(1)) > 20, (folder.name, label)
+        citation = re.search(r"^Citation: ((?:.+\n)+)", text, flags=re.MULTILINE).group(1)
+        assert re.search(r"https://github\.com/\S+", citation), folder.name
+        assert re.search(r"commit\s[0-9a-f]{40}", citation), folder.name
+
+
 def test_measured_path_by_folder_name_and_errors():
     assert measured_path("lage_BF_Kernel_ITL3800C002") == measured_path("itl3800c002")
     with pytest.raises(BFPSFInputError, match="unknown measured data set 'nosuch'"):
