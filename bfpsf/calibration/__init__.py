@@ -162,8 +162,8 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="f
         for amplifier, amplifier_flats in group_amplifiers(flats).items():
             pairs = pair_flats(amplifier_flats, mean_tolerance=mean_tolerance)
             for pair in pairs:
-                tasks.append(PairTask(pair, saturation, measured_lag, clip_nsigma, mean_tolerance,
-                                      overscan))
+                tasks.append(PairTask(pair, saturation, measured_lag, clip_nsigma,
+                                      mean_tolerance, overscan))
                 owners.append((detector, amplifier))
     with parallel_session(workers, scheduler) as session:
         measured = session.map(measure_pair, tasks, progress=progress,

@@ -63,8 +63,9 @@ def check_maxlag(maxlag):
     """``'auto'`` or a positive int, else `BFPSFValueError`."""
     if isinstance(maxlag, str) and maxlag == "auto":
         return maxlag
-    if isinstance(maxlag, (bool, np.bool_)) or not isinstance(maxlag, (int, np.integer, float)) \
-            or int(maxlag) != maxlag or maxlag < 1:
+    if (isinstance(maxlag, (bool, np.bool_))
+            or not isinstance(maxlag, (int, np.integer, float, np.floating))
+            or not float(maxlag).is_integer() or maxlag < 1):
         msg = f"maxlag must be 'auto' or a positive integer, got {maxlag!r}"
         raise BFPSFValueError(msg, maxlag)
     return int(maxlag)
