@@ -38,7 +38,12 @@ def add_parser(subparsers):
     data.add_argument("--amp", metavar="NAME",
                       help="the amplifier (EXTNAME) of multi-extension flats and images")
     data.add_argument("--beta", type=float, default=None,
-                      help="Moffat index of the spot model (default: Gaussian)")
+                      help="Moffat index of the profile that gives the exact boundary density "
+                           "(default: Gaussian); the spot model itself is the P0 fitted from "
+                           "the stars")
+    data.add_argument("--background", type=float, default=None, metavar="ADU",
+                      help="sky level of the images, ADU per pixel (0 for sky-subtracted "
+                           "images); default the sigma-clipped median of each image")
     data.add_argument("--maxlag", type=int, default=4, help="calibration lags (default 4)")
     data.add_argument("--no-fit-b", dest="fit_b", action="store_false",
                       help="calibrate without the Astier+19 b term (few or small flats)")
@@ -91,7 +96,10 @@ def _observables(args):
     if args.flats and args.images:
         return builders.observables_from_images(args.flats, args.images, beta=args.beta,
                                                 maxlag=args.maxlag, n_bins=args.bins,
-                                                fit_b=args.fit_b, amp=args.amp)
+                                                fit_b=args.fit_b, amp=args.amp,
+                                                holdout_fraction=args.holdout_fraction,
+                                                background=args.background,
+                                                progress=None)
     msg = ("give --flats and --images, or --correlations and --sizes, or --measured NAME")
     raise BFPSFInputError(msg)
 

@@ -34,7 +34,12 @@ def add_parser(subparsers):
     parser.add_argument("--gain", type=float, default=None,
                         help="e-/ADU (default: the gain stored in the PSF product)")
     parser.add_argument("--read-noise", type=float, default=0.0, metavar="E",
-                        help="read noise, e- rms, for the pixel errors (default 0)")
+                        help="read noise, e- rms, for the pixel errors (with --background 0 "
+                             "on sky-subtracted images: include the sky's noise; default 0)")
+    parser.add_argument("--background", type=float, default=None, metavar="ADU",
+                        help="sky level of the images, ADU per pixel (0 for sky-subtracted "
+                             "images); default the sigma-clipped median of each image, which "
+                             "the wings of dense bright stars bias high")
     parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")
@@ -99,6 +104,8 @@ def run(args):
                                                args.gain, args.static)
             table = psf_photometry(amplifier.data * amp_gain, model,
                                    read_noise_e=args.read_noise, fit_shape=args.fit_shape,
+                                   background_e=(None if args.background is None
+                                                 else args.background * amp_gain),
                                    detection_threshold=args.threshold,
                                    cross_terms=not args.no_cross_terms)
             margin = (args.fit_shape or 2 * psf.half_size + 1) / 2

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError
 from ..files import check_outputs, refuse_duplicates, write_json
-from ..measure.sources import DETECTION_THRESHOLD
+from ..measure.sources import DETECTION_THRESHOLD, isolated_stars
 from ._files import read_image
 
 
@@ -43,6 +43,10 @@ def add_parser(subparsers):
     parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")
+    parser.add_argument("--background", type=float, default=None, metavar="ADU",
+                        help="sky level of the images, ADU per pixel (0 for sky-subtracted "
+                             "images); default the sigma-clipped median of each image, which "
+                             "the wings of dense bright stars bias high")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
                         help="saturation level, ADU: saturated stars are not used")
     parser.add_argument("--grid", type=int, nargs=2, metavar=("NX", "NY"), default=None,
@@ -55,18 +59,6 @@ def add_parser(subparsers):
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     return parser
-
-
-def _isolated_stars(image_e, threshold, saturation_e, size):
-    """Clean, unsaturated, isolated detections: positions (N, 2) and background (e-)."""
-    from ..measure.sources import measure_sources
-
-    sources = measure_sources(image_e, threshold=threshold, blend_radius=size / 2 + 2,
-                              saturation=saturation_e, stamp_size=size + 6)
-    clean = np.asarray(sources["flags"]) == 0
-    xy = np.column_stack([np.asarray(sources["x"], dtype=float)[clean],
-                          np.asarray(sources["y"], dtype=float)[clean]])
-    return xy, len(sources)
 
 
 def _star_weighted(used):
@@ -133,11 +125,16 @@ def run(args):
                 from ..diagnosis.refine import linearise
 
                 image_e = linearise(image_e, linearity_c)
-            _, background, _ = sigma_clipped_stats(image_e[np.isfinite(image_e)], sigma=3.0)
+            if args.background is None:
+                _, background, _ = sigma_clipped_stats(image_e[np.isfinite(image_e)],
+                                                       sigma=3.0)
+            else:
+                background = float(args.background) * gain
             image_e = image_e - background
             saturation_e = (None if args.saturation is None
                             else args.saturation * gain - background)
-            xy, n_detected = _isolated_stars(image_e, args.threshold, saturation_e, args.size)
+            xy, n_detected = isolated_stars(image_e, args.size, threshold=args.threshold,
+                                               saturation_e=saturation_e)
             # a star whose light falls on two amplifiers (two gains) is left out, and counted
             boundary = near_shared_side(xy[:, 0], xy[:, 1], image_e.shape,
                                         sides[amplifier.name], args.size / 2)

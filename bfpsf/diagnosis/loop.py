@@ -46,6 +46,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from .catalogue import CATALOGUE
+from .observables import interleaved as _interleaved
 
 __all__ = ["DiagnosisResult", "diagnose", "DEFAULT_THRESHOLD", "slope_residuals", "split_observables",
            "describe_unexplained", "UNEXPLAINED_NSIGMA"]
@@ -609,12 +610,6 @@ def _effect_values(values, problem, names, fixed, by_name, family):
 
 
 # -- held-out split ------------------------------------------------------------------------------
-def _interleaved(n, fraction):
-    """Boolean mask of the held-out members of n ordered items, evenly interleaved."""
-    index = np.arange(n)
-    return np.floor((index + 1) * fraction) > np.floor(index * fraction)
-
-
 def split_observables(observables, fraction=0.5):
     """Split the observables into a part to fit and a held-out part.
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
-from .spot_model import FLUX_SCALE, SpotForwardModel
+from .spot_model import FLUX_SCALE, SpotForwardModel, flux_of_peak
 
 __all__ = ["SizeTable", "LinearityTable", "CorrelationTable", "PTCTable", "Observables",
            "matched_profile", "observables_from_sizes", "observables_from_images",
@@ -309,23 +309,29 @@ def _intercepts(table):
     return px[1], py[1]
 
 
-def observables_from_sizes(sizes, shifts, *, area=None, area_err=None, beta=None,
-                           measure="moments", phases=3, linearity=None, correlations=None,
-                           meta=None, ptc=None):
+def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=None,
+                           measure="moments",
+                           phases=3, linearity=None, correlations=None, meta=None, ptc=None,
+                           base_psf=None, peak_to_flux=None):
     """Observables for a size table and a set of boundary shifts (the G15 prediction).
 
-    The model spot is matched to the zero-flux intercepts of the sizes (`matched_profile`).
-    With ``area`` and ``area_err`` (the calibrated a and their errors), the relative error of
-    the predicted BF amplitude (`bf_scale_error`) is kept in ``meta['scale_err']``.
+    The model spot is ``base_psf``'s P0 when given (a P0 fitted from the stars, as
+    ``bfpsf psf`` does), else a GalSim profile matched to the zero-flux intercepts of the sizes
+    (`matched_profile`). With ``shift_draws`` (shifts drawn within the calibration's errors),
+    the relative error of the predicted BF amplitude (`bf_scale_error`) is kept in
+    ``meta['scale_err']``; ``peak_to_flux`` relates the table's peaks to fluxes
+    (`SpotForwardModel`); ``area`` (the calibrated a, 1/e-) is kept in ``meta['area']`` for
+    the ``sum_rule_tail`` candidate.
     """
     sigma_x0, sigma_y0 = _intercepts(sizes)
     profile = matched_profile(sigma_x0, sigma_y0, beta=beta, measure=measure)
-    model = SpotForwardModel(profile, shifts, phases=phases, measure=measure)
+    model = SpotForwardModel(profile, shifts, phases=phases, measure=measure, base_psf=base_psf,
+                             peak_to_flux=peak_to_flux)
     meta = dict(meta or {})
     if area is not None:
         meta["area"] = np.asarray(area, dtype=float)
-        if area_err is not None:
-            meta["scale_err"] = bf_scale_error(model, area, area_err, sizes.peak_e)
+    if len(shift_draws):
+        meta["scale_err"] = bf_scale_error(model, shift_draws, sizes.peak_e)
     return Observables(sizes=sizes, spot_model=model, linearity=linearity,
                        correlations=correlations, meta=meta, ptc=ptc)
 
@@ -358,35 +364,22 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label):
                      exposure=rows[:, 5].astype(int))
 
 
-def bf_scale_error(spot_model, area, area_err, peaks_e, *, n_draws=8, seed=0):
-    """Relative error of the predicted BF slope from the errors of the area coefficients.
+def bf_scale_error(spot_model, shift_draws, peaks_e):
+    """Relative error of the predicted BF slope from the calibration's shift errors.
 
-    The a(dx, dy) are drawn within their errors, solved into shifts
-    (`bfpsf.calibration.coefficients.solve_ei_shifts`) and the model spot's size change
-    between the faintest and brightest peak recomputed; the rms of its ratio to the nominal
-    one, averaged over X and Y. The loop gives the size block a common scale within this
-    error (a nuisance with a Gaussian prior): the prediction is no better than its flats.
+    The model spot's size change between the faintest and brightest peak is recomputed with
+    each of ``shift_draws`` (shifts drawn within the calibration's errors: its bootstrap
+    samples, `Calibration.shift_samples`); the rms of its ratio to the nominal one, averaged
+    over X and Y. The loop gives the size block a common scale within this error (a nuisance
+    with a Gaussian prior): the prediction is no better than its flats. 0 with fewer than 3
+    draws.
     """
-    from ..calibration.coefficients import solve_ei_shifts
-    from ..errors import BFPSFError
-
-    area, area_err = np.asarray(area, float), np.asarray(area_err, float)
-    if not np.any(area_err > 0):
+    if len(shift_draws) < 3:
         return 0.0
     peaks = np.array([np.min(peaks_e), np.max(peaks_e)])
     nominal = np.array([np.diff(v)[0] for v in spot_model.sizes(peaks)])
-    rng = np.random.default_rng(seed)
-    ratios = []
-    for _ in range(int(n_draws)):
-        draw = area + rng.standard_normal(area.shape) * area_err
-        try:
-            shifts = solve_ei_shifts(draw, n_monte_carlo=0).shifts
-        except BFPSFError:
-            continue
-        sizes = spot_model.sizes(peaks, shifts=shifts)
-        ratios.append(np.array([np.diff(v)[0] for v in sizes]) / nominal)
-    if len(ratios) < 3:
-        return 0.0
+    ratios = [np.array([np.diff(v)[0] for v in spot_model.sizes(peaks, shifts=shifts)]) / nominal
+              for shifts in shift_draws]
     return float(np.mean(np.std(np.array(ratios), axis=0, ddof=1)))
 
 
@@ -487,31 +480,55 @@ def ptc_observable(calibration):
     return PTCTable(mean_e, var_e, shot, model, slope, sum_rule_err=sum_rule_err)
 
 
+def interleaved(n, fraction):
+    """Boolean mask of the held-out members of n ordered items, evenly interleaved (the
+    held-out split of `bfpsf.diagnosis.loop.split_observables`)."""
+    index = np.arange(n)
+    return np.floor((index + 1) * fraction) > np.floor(index * fraction)
+
+
+#: Side of P0's support and of the star cutouts in the loop's P0 fit (`bfpsf psf`'s default).
+PSF_SIZE = 25
+
+
 def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, gain=None,
-                            calibration=None, fit_b=True, amp=None):
+                            calibration=None, fit_b=True, amp=None, holdout_fraction=0.5,
+                            n_monte_carlo=30, background=None, progress=False):
     """Observables from flat-field FITS and spot / star images (ADU, bias subtracted).
 
-    The flats are calibrated (`bfpsf.calibrate`), the sources of every image measured
-    (`bfpsf.measure.sources.measure_sources`, unflagged sources only) and their sizes averaged
-    in ``n_bins`` quantile bins of flux for each image (rows labelled by exposure, for the
-    held-out split); the spot model is matched to the zero-flux intercept
-    (a Moffat of index ``beta``, or a Gaussian). ``fit_b`` is passed to `bfpsf.calibrate`
-    (False for a few small flats, whose b term is unconstrained). The loop works on one
-    amplifier: ``amp`` names it in multi-amplifier files (flats and images are read by
-    `bfpsf.io.amplifiers`).
+    The flats are calibrated (`bfpsf.calibrate`, with ``n_monte_carlo`` bootstrap samples of
+    the shifts), the sources of every image measured (`bfpsf.measure.sources.measure_sources`,
+    unflagged sources only) and their sizes averaged in ``n_bins`` quantile bins of flux for
+    each image (rows labelled by exposure, for the held-out split). ``fit_b`` is passed to
+    `bfpsf.calibrate` (False for a few small flats, whose b term is unconstrained). The loop
+    works on one amplifier: ``amp`` names it in multi-amplifier files (flats and images are
+    read by `bfpsf.io.amplifiers`). ``background`` is the images' sky level, ADU per pixel
+    (default: the sigma-clipped median of each image).
 
-    Also formed: the PTC residuals (`ptc_observable`, a fitted observable) and the stacked
-    residual of the stars against P(F) built from the matched profile and the calibrated
-    shifts (`stacked_star_residual`, in ``meta['star_residual']``, with the stacked image in
-    ``meta['residual_images']`` for the report).
+    The model spot is the P0 that ``bfpsf psf`` would fit (`bfpsf.model.psf_fit.fit_psf`, its
+    defaults, the calibrated shifts) from the isolated stars of the exposures the loop fits
+    (all but the held-out ones of a ``holdout_fraction`` split, or all for 0): what the loop
+    finds is then what P(F) needs, and the held-out exposures stay unseen. The model is
+    evaluated at the stars' measured fluxes (`flux_of_peak`), as ``bfpsf slope --psf``
+    evaluates P(F). ``beta`` shapes the
+    GalSim profile that only gives the exact boundary density (a Moffat, or a Gaussian).
+
+    Also formed: the PTC residuals (`ptc_observable`, a fitted observable), the relative error
+    of the predicted BF amplitude from the calibration's shift samples (``meta['scale_err']``)
+    and the stacked residual of the stars against that P(F) (`stacked_star_residual`, in
+    ``meta['star_residual']``, with the stacked image in ``meta['residual_images']``).
     """
+    from astropy.stats import sigma_clipped_stats
+
     from ..calibration import calibrate
     from ..calibration.product import Calibration
     from ..io.amplifiers import read_amplifiers
-    from ..measure.sources import measure_sources
+    from ..measure.sources import isolated_stars, measure_sources
+    from ..model.psf_fit import fit_psf
+    from .star_residual import stacked_star_residual
 
-    cal = calibration or calibrate(list(flats), maxlag=maxlag, n_monte_carlo=0, fit_b=fit_b,
-                                   amps=amp)
+    cal = calibration or calibrate(list(flats), maxlag=maxlag, n_monte_carlo=n_monte_carlo,
+                                   fit_b=fit_b, amps=amp)
     if not isinstance(cal, Calibration):
         msg = (f"the flats hold {len(cal)} amplifiers ({', '.join(cal.names)}); the closed loop "
                "works on one: choose it with --amp NAME")
@@ -520,8 +537,6 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
         reason = cal.parameters.get("shifts_failure", "not solved")
         msg = f"the calibration has no boundary shifts ({reason})"
         raise BFPSFInputError(msg)
-    from astropy.stats import sigma_clipped_stats
-
     gain = cal.gain if gain is None else gain
     fluxes, peaks, sigma_x, sigma_y, exposure = [], [], [], [], []
     pixels, tables, sky_noise = [], [], []
@@ -535,6 +550,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
         table = measure_sources(data)
         # the sky left in the image (level and noise), for the stacked residual
         _, sky, noise = sigma_clipped_stats(data, sigma=3.0, maxiters=10)
+        if background is not None:
+            sky = float(background) * gain
         pixels.append(data - sky)
         sky_noise.append(noise)
         tables.append(table)
@@ -548,24 +565,37 @@ def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, ga
                                                  (fluxes, peaks, sigma_x, sigma_y, exposure))
     sizes = _binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
                           f"{len(images)} images")
+    # P0 from the exposures the loop fits (`bfpsf.diagnosis.loop.split_observables`)
+    fitted = np.unique(sizes.exposure)
+    if holdout_fraction and fitted.size >= 2:
+        fitted = fitted[~interleaved(fitted.size, holdout_fraction)]
+    stars = [isolated_stars(pixels[index], PSF_SIZE)[0] for index in fitted]
+    if sum(len(xy) for xy in stars) < 10:
+        msg = (f"only {sum(len(xy) for xy in stars)} isolated stars in the fitted exposures: "
+               "too few to fit P0")
+        raise BFPSFInputError(msg)
+    fit = fit_psf([pixels[index] for index in fitted], stars, cal.shifts, size=PSF_SIZE,
+                  read_noise=float(cal.noise_e), flux_unit="electron", gain=float(gain),
+                  progress=progress)
+    psf = fit.psf
     linearity, correlations = flat_observables(cal)
     meta = {"flats": len(list(flats)), "images": len(list(images)), "gain": float(gain),
             "n_sources": int(peaks.size), "calibration": cal,
-            "image_paths": [str(path) for path in images]}
+            "image_paths": [str(path) for path in images],
+            "p0_exposures": [int(index) for index in fitted],
+            "p0_stars": int(np.sum(fit.stars["flags"] == 0)),
+            "p0_converged": bool(fit.converged)}
     try:
         ptc = ptc_observable(cal)
     except (BFPSFInputError, BFPSFValueError) as error:
         # e.g. a calibration read from a file without per-pair covariances: said, not hidden
         ptc = None
         meta["ptc_unavailable"] = str(error)
-    observables = observables_from_sizes(sizes, cal.shifts, area=cal.a, area_err=cal.a_err,
-                                         beta=beta,
+    observables = observables_from_sizes(sizes, cal.shifts, area=cal.a,
+                                         shift_draws=cal.shift_samples(), beta=beta,
                                          linearity=linearity, correlations=correlations,
-                                         meta=meta, ptc=ptc)
-    from ..model.psf import FluxDependentPSF
-    from .star_residual import stacked_star_residual
-
-    psf = FluxDependentPSF.from_galsim(observables.spot_model.profile, cal.shifts)
+                                         meta=meta, ptc=ptc, base_psf=psf,
+                                         peak_to_flux=flux_of_peak(peaks, fluxes))
     # sky-subtracted images; the noise per pixel is the sky's (read noise included)
     star = stacked_star_residual(pixels, tables, psf, half_size=min(psf.half_size, 7),
                                  noise_e=float(np.median(sky_noise)))

@@ -150,8 +150,30 @@ def observables_from_tables(correlations, sizes, *, kind=None, gain=None, measur
             "measure": measure, "shift_solution": solution, "area_err": measured.area_err,
             "gain": gain, "corrected": corrected}
     return observables_from_sizes(table, solution.shifts, area=measured.area,
-                                  area_err=measured.area_err, measure=measure,
-                                  phases=phases, meta=meta)
+                                  shift_draws=_area_shift_draws(measured.area,
+                                                                measured.area_err),
+                                  measure=measure, phases=phases, meta=meta)
+
+
+def _area_shift_draws(area, area_err, n_draws=8, seed=0):
+    """Shifts of a(dx, dy) drawn within their errors (lags independent), each solved as the
+    table's own shifts are (`bfpsf.calibration.coefficients.solve_ei_shifts`); draws the
+    solver rejects are left out. A measured table carries errors, not bootstrap samples."""
+    from ..calibration.coefficients import solve_ei_shifts
+    from ..errors import BFPSFError
+
+    area, area_err = np.asarray(area, float), np.asarray(area_err, float)
+    if not np.any(area_err > 0):
+        return []
+    rng = np.random.default_rng(seed)
+    draws = []
+    for _ in range(int(n_draws)):
+        try:
+            draws.append(solve_ei_shifts(area + rng.standard_normal(area.shape) * area_err,
+                                         n_monte_carlo=0).shifts)
+        except BFPSFError:
+            continue
+    return draws
 
 
 def observables_from_measured(directory, *, phases=3, corrected=False):

@@ -1,6 +1,8 @@
 """The base model of spot sizes: a model spot scaled to each peak and redistributed (G15 6.3).
 
-The redistribution is the model layer's (`bfpsf.model.redistribution`): G15's boundary density
+The model spot is the base PSF P0 that `bfpsf psf` fits from the stars (``base_psf``), so that
+what the loop finds is what P(F) needs; for size tables without images (measured data) it is a
+GalSim profile matched to the sizes. The redistribution is the model layer's (`bfpsf.model.redistribution`): G15's boundary density
 (Q_00 + Q_X) / 2 (eq. density-approx) or the exact density integrated along each boundary of
 an oversampled model (`exact_boundary_density`, fourth order), the same operator `bfpsf psf`
 and `bfpsf.redistribute` use.
@@ -11,7 +13,7 @@ import numpy as np
 from ..errors import BFPSFValueError
 from ..shifts import BoundaryShifts
 
-__all__ = ["SpotForwardModel", "FLUX_SCALE"]
+__all__ = ["SpotForwardModel", "flux_of_peak", "FLUX_SCALE"]
 
 #: Reference flux of the flux-scaled parameters (nonlinearity), e-.
 FLUX_SCALE = 1e5
@@ -51,6 +53,25 @@ def _gaussian_fit_sigmas(stamps):
     return sigma_x, sigma_y
 
 
+def flux_of_peak(peak_e, flux_e):
+    """(c1, c2) of flux = c1 peak + c2 peak**2, least squares on measured stars (e-).
+
+    The relation a star table holds between its peaks and fluxes: phase-averaged, with the
+    peaks of bright stars lowered by their BF (the quadratic term).
+    """
+    peak = np.asarray(peak_e, dtype=float)
+    flux = np.asarray(flux_e, dtype=float)
+    good = np.isfinite(peak) & np.isfinite(flux) & (peak > 0)
+    if good.sum() < 3:
+        msg = f"only {good.sum()} stars with a finite peak and flux: cannot relate them"
+        raise BFPSFValueError(msg, int(good.sum()))
+    design = np.column_stack([peak[good], peak[good] ** 2])
+    # relative errors: every star counts alike
+    weight = 1.0 / flux[good]
+    coefficients = np.linalg.lstsq(design * weight[:, None], flux[good] * weight, rcond=None)[0]
+    return float(coefficients[0]), float(coefficients[1])
+
+
 class SpotForwardModel:
     """Sizes of a model spot scaled to given peaks and redistributed (G15 section 6.3).
 
@@ -73,15 +94,25 @@ class SpotForwardModel:
     measure : {'moments', 'gaussian_fit'}, optional
         Adaptive moments (`bfpsf.measure.moments`, G15 section 3.2, default) or a
         pixel-integrated Gaussian fit (as Lage's spot tables).
+    base_psf : FluxDependentPSF, optional
+        A P0 fitted from the stars (`bfpsf.model.psf_fit.fit_psf`): its pixelised P0 at each
+        phase is the model's unit charge, so the loop's sizes are those of the P(F) that
+        ``bfpsf psf`` builds. ``profile`` then only gives the exact boundary density (the
+        ``boundary_density`` candidate), which a pixel-integrated P0 does not hold.
+    peak_to_flux : (float, float), optional
+        (c1, c2): the data's total flux at a peak p is c1 p + c2 p**2, fitted on the measured
+        stars (`flux_of_peak`). Measured peaks are averaged over sub-pixel phases and lowered
+        by the BF of bright stars; with this relation the model is evaluated at the flux the
+        stars were measured at, as ``bfpsf slope --psf`` evaluates P(F).
 
     Notes
     -----
-    The peak of a spot of flux F is F times the central-pixel fraction of the centred profile;
-    the data's peaks are converted to fluxes with the same fraction.
+    Without ``peak_to_flux``, the peak of a spot of flux F is F times the central-pixel
+    fraction of the centred model spot (the peaks of tables computed from fluxes).
     """
 
     def __init__(self, profile, shifts, *, stamp_size=None, phases=3, oversampling=10,
-                 measure="moments"):
+                 measure="moments", base_psf=None, peak_to_flux=None):
         import galsim
 
         if not isinstance(profile, galsim.GSObject):
@@ -96,6 +127,8 @@ class SpotForwardModel:
             msg = f"measure must be 'moments' or 'gaussian_fit', got {measure!r}"
             raise BFPSFValueError(msg, measure)
         self.profile = profile.withFlux(1.0)
+        self.base_psf = base_psf
+        self.peak_to_flux = None if peak_to_flux is None else tuple(map(float, peak_to_flux))
         self.shifts = shifts
         self.measure = measure
         if stamp_size is None:
@@ -108,23 +141,32 @@ class SpotForwardModel:
         self.phases = [(px, py) for py in grid for px in grid]
         self._cache = {}
         self._fine = [self._draw_fine(px, py) for px, py in self.phases]
-        centred = self.profile.drawImage(nx=self.stamp_size, ny=self.stamp_size, scale=1.0)
-        self.peak_fraction = float(centred.array[self.stamp_size // 2, self.stamp_size // 2])
+        centred = self._draw_fine(0.0, 0.0)[0]
+        self.peak_fraction = float(centred[self.stamp_size // 2, self.stamp_size // 2])
 
     def _draw_fine(self, px, py):
         """Pixel charges and exact boundary densities of the unit-flux spot at a phase
-        (`bfpsf.model.redistribution.exact_boundary_density`)."""
+        (`bfpsf.model.redistribution.exact_boundary_density`); the charges are the base
+        PSF's pixelised P0 when there is one."""
         from ..model.density import exact_boundary_density
+        from ..model.psf import pixelised_stamp
 
         s, n = self.oversampling, self.stamp_size
         fine = self.profile.drawImage(nx=n * s, ny=n * s, scale=1.0 / s, method="no_pixel",
                                       offset=(px * s, py * s)).array
         pixels, (north, east) = exact_boundary_density(fine, s)
+        if self.base_psf is not None:
+            pixels = pixelised_stamp(self.base_psf, x_phase=px, y_phase=py, half_size=n // 2)
         return pixels, north, east
 
     def fluxes(self, peaks_e):
-        """Total flux of a spot of each peak, e-."""
-        return np.asarray(peaks_e, dtype=float) / self.peak_fraction
+        """Total flux of a spot of each peak, e- (``peak_to_flux``, or the centred peak
+        fraction)."""
+        peaks = np.asarray(peaks_e, dtype=float)
+        if self.peak_to_flux is None:
+            return peaks / self.peak_fraction
+        c1, c2 = self.peak_to_flux
+        return c1 * peaks + c2 * peaks ** 2
 
     def stamps(self, peaks_e, *, shifts=None, density="approx", second_order=0.0,
                nonlinearity=0.0):

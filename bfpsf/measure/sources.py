@@ -15,7 +15,7 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from .moments import MomentsFlag, adaptive_moments_batch, moment_errors
 from .shapes import distortion
 
-__all__ = ["SourceFlag", "measure_sources", "source_flag_string", "STAR_COLUMNS"]
+__all__ = ["SourceFlag", "measure_sources", "isolated_stars", "source_flag_string", "STAR_COLUMNS"]
 
 #: columns every star table holds (the ``bfpsf measure`` contract)
 STAR_COLUMNS = ["x", "y", "flux_e", "peak_e", "mxx", "myy", "mxy", "sigma_x", "sigma_y", "iq",
@@ -309,6 +309,36 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     table.meta["threshold"] = float(threshold)
     table.meta["saturation_e"] = None if saturation is None else float(saturation)
     return table
+
+
+def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None):
+    """Clean, unsaturated detections isolated within ``size`` pixels: the stars a P0 fit
+    (`bfpsf.model.psf_fit.fit_psf`) takes.
+
+    Parameters
+    ----------
+    image_e : ndarray [y, x]
+        Background-subtracted image, e-.
+    size : int
+        Side of the P0 support and of the star cutouts, pixels.
+    threshold : float, optional
+        Detection threshold (`measure_sources`).
+    saturation_e : float, optional
+        Saturation level above the background, e-.
+
+    Returns
+    -------
+    positions : ndarray (N, 2)
+        (x, y) of the stars, pixels.
+    n_detected : int
+        All detections, flagged ones included.
+    """
+    sources = measure_sources(image_e, threshold=threshold, blend_radius=size / 2 + 2,
+                              saturation=saturation_e, stamp_size=size + 6)
+    clean = np.asarray(sources["flags"]) == 0
+    positions = np.column_stack([np.asarray(sources["x"], dtype=float)[clean],
+                                 np.asarray(sources["y"], dtype=float)[clean]])
+    return positions, len(sources)
 
 
 def _match_colours(table, colour, colour_columns, match_radius):
