@@ -25,6 +25,20 @@ COMMANDS = ["simulate", "calibrate", "measure", "slope", "psf", "photometry", "v
 
 
 
+def maxlag_option(text):
+    """``--maxlag``: 'auto' or a positive integer."""
+    if text == "auto":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        msg = f"expected 'auto' or a positive integer, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
 def add_common_options(parser):
     """Add the options every command shares (module docstring)."""
     common = parser.add_argument_group("common options")

@@ -5,12 +5,12 @@ and the JSON summary. Inputs are flat files (one detector, one product) or direc
 detector each, every ``*.fits`` in it; ``-o`` is then a directory receiving ``DETECTOR.fits``).
 """
 
-import argparse
 import sys
 from pathlib import Path
 
 from ..errors import BFPSFInputError
 from ..files import check_outputs, write_json
+from . import maxlag_option
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 AMPLIFIER_PLOT = "amplifiers.png"
@@ -42,7 +42,7 @@ def add_parser(subparsers):
     parser.add_argument("--overscan", choices=("median", "clipped_mean"), default="median",
                         help="row-by-row overscan estimator where BIASSEC is given "
                              "(default median)")
-    parser.add_argument("--maxlag", type=_maxlag, default="auto", metavar="auto|N",
+    parser.add_argument("--maxlag", type=maxlag_option, default="auto", metavar="auto|N",
                         help="largest lag of the covariances and of a(dx, dy): 'auto' "
                              "(default) picks, per amplifier, the largest lag ring whose "
                              "correlation the flats measure (3 sigma), or give an integer")
@@ -74,20 +74,6 @@ def add_parser(subparsers):
     parser.add_argument("--overwrite", action="store_true",
                         help="replace existing output files")
     return parser
-
-
-def _maxlag(text):
-    """``--maxlag``: 'auto' or a positive integer."""
-    if text == "auto":
-        return text
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        msg = f"expected 'auto' or a positive integer, got {text!r}"
-        raise argparse.ArgumentTypeError(msg)
-    return value
 
 
 def _detectors(args):

@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 from ..errors import BFPSFInputError
+from . import maxlag_option
 
 __all__ = ["add_parser", "run"]
 
@@ -44,7 +45,9 @@ def add_parser(subparsers):
     data.add_argument("--background", type=float, default=None, metavar="ADU",
                       help="sky level of the images, ADU per pixel (0 for sky-subtracted "
                            "images); default the sigma-clipped median of each image")
-    data.add_argument("--maxlag", type=int, default=4, help="calibration lags (default 4)")
+    data.add_argument("--maxlag", type=maxlag_option, default="auto", metavar="auto|N",
+                      help="calibration lags: 'auto' (default, as bfpsf calibrate) or an "
+                           "integer")
     data.add_argument("--no-fit-b", dest="fit_b", action="store_false",
                       help="calibrate without the Astier+19 b term (few or small flats)")
     data.add_argument("--bins", type=int, default=10,

@@ -491,7 +491,7 @@ def interleaved(n, fraction):
 PSF_SIZE = 25
 
 
-def observables_from_images(flats, images, *, beta=None, maxlag=4, n_bins=10, gain=None,
+def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=10, gain=None,
                             calibration=None, fit_b=True, amp=None, holdout_fraction=0.5,
                             n_monte_carlo=30, background=None, progress=False):
     """Observables from flat-field FITS and spot / star images (ADU, bias subtracted).
