@@ -3,6 +3,10 @@
 Slow tests run the full-size physics (GalSim SiliconSensor flats and spots); each has a quick
 variant that runs in CI.
 
+``e2v_flats_calibration``: the user's calibration of the E2V SiliconSensor, `bfpsf.calibrate` on
+a small simulated flat set (seed 203), shared by the tests that start from flats
+(test_flats_to_psf.py, test_gridded_silicon.py) so that CI simulates it once.
+
 Hypothesis: with the ``CI`` environment variable set, the derandomized ``ci`` profile draws the
 same examples on every run (a CI failure is reproducible, never random); locally the ``dev``
 profile searches new random examples each run. ``HYPOTHESIS_PROFILE`` chooses explicitly.
@@ -10,6 +14,7 @@ profile searches new random examples each run. ``HYPOTHESIS_PROFILE`` chooses ex
 
 import os
 
+import numpy as np
 import pytest
 from hypothesis import settings
 
@@ -35,3 +40,22 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip_slow)
+
+
+#: The quick flat set of `e2v_flats_calibration`: 12 levels from 2 to 100 ke-, 3 pairs each of
+#: 128^2 pixels (0.6 Mpixel of pairs), gain 1.5 e-/ADU, read noise 5 e-.
+E2V_FLAT_LEVELS = np.geomspace(2e3, 1e5, 12)
+E2V_FLAT_SEED = 203
+
+
+@pytest.fixture(scope="session")
+def e2v_flats_calibration():
+    """`bfpsf.calibrate` (electrostatic shifts, 12 shift samples) of SiliconSensor
+    ``lsst_e2v_50_8`` flats simulated from seed `E2V_FLAT_SEED` (about 70 s on one core)."""
+    from bfpsf import calibrate
+    from bfpsf.validation.simulate_flats import simulate_flats
+
+    flats = simulate_flats("lsst_e2v_50_8", E2V_FLAT_LEVELS, pairs=3, size=128, nsteps=10,
+                           gain=1.5, read_noise_e=5.0, seed=E2V_FLAT_SEED)
+    return calibrate([image for image, _, _ in flats], exptimes=[t for _, t, _ in flats],
+                     maxlag=6, fit_b=False, n_monte_carlo=12)

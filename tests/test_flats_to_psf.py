@@ -22,20 +22,17 @@ from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.validation.simulate_flats import simulate_flats
 from bfpsf.validation.simulate_spots import simulate_spots
 
+from conftest import E2V_FLAT_LEVELS
+
 SENSOR = "lsst_e2v_50_8"
 FWHM, BETA = 3.6, 2.7
-#: A small flat set: 12 levels from 2 to 100 ke-, 3 pairs each of 128^2 (0.6 Mpixel of pairs).
-FLAT_LEVELS = np.geomspace(2e3, 1e5, 12)
-FLAT_SEED = 203
 SPOT_PEAKS = np.geomspace(3e3, 1.2e5, 6)
 
 
 @pytest.fixture(scope="module")
-def calibration():
-    flats = simulate_flats(SENSOR, FLAT_LEVELS, pairs=3, size=128, nsteps=10, gain=1.5,
-                           read_noise_e=5.0, seed=FLAT_SEED)
-    return calibrate([image for image, _, _ in flats], exptimes=[t for _, t, _ in flats],
-                     maxlag=6, fit_b=False, n_monte_carlo=12)
+def calibration(e2v_flats_calibration):
+    """The small flat set of conftest.py (12 levels, 3 pairs of 128^2, seed 203)."""
+    return e2v_flats_calibration
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +111,7 @@ def test_pulls_over_independent_flat_sets(measured_slopes):
     k = landing.radius
     pulls = []
     for seed in range(200, 210):
-        flats = simulate_flats(SENSOR, FLAT_LEVELS, pairs=3, size=128, nsteps=10, gain=1.5,
+        flats = simulate_flats(SENSOR, E2V_FLAT_LEVELS, pairs=3, size=128, nsteps=10, gain=1.5,
                                read_noise_e=5.0, seed=seed)
         cal = calibrate([image for image, _, _ in flats], exptimes=[t for _, t, _ in flats],
                         maxlag=6, fit_b=False, n_monte_carlo=30)
