@@ -296,3 +296,31 @@ def test_iterative_psf_photometry_finds_the_hidden_companions(psf):
     assert np.all(distance.min(axis=1) < 0.03)
     ratio = np.asarray(result["flux_fit"]) / fluxes[nearest]
     assert np.abs(ratio - 1).max() < 0.01
+
+
+def test_cli_known_background(cli_files):
+    """--background ADU replaces the clipped median of each image (which a dense field of
+    bright stars biases high) in psf and photometry, converted with the gain."""
+    from bfpsf.cli import main
+
+    directory, xy, fluxes = cli_files
+    calib, image = str(directory / "calib.fits"), str(directory / "stars.fits")
+    sky_adu = str(SKY / 1.5)
+    psf_path = str(directory / "psf_sky.fits")
+    assert main(["psf", image, "--calib", calib, "-o", psf_path, "--size", "21",
+                 "--background", sky_adu, "--json", str(directory / "psf_sky.json")]) == 0
+    summary = json.loads((directory / "psf_sky.json").read_text())
+    assert summary["images"][0]["background_e"] == pytest.approx(SKY, rel=1e-12)
+    assert main(["photometry", image, "--psf", psf_path, "-o", str(directory / "sky.ecsv"),
+                 "--background", sky_adu, "--read-noise", "5",
+                 "--json", str(directory / "sky.json")]) == 0
+    phot = json.loads((directory / "sky.json").read_text())
+    assert phot["images"][0]["background_e"] == pytest.approx(SKY, rel=1e-12)
+    table = Table.read(directory / "sky.ecsv")
+    enclosed = MOFFAT.drawImage(nx=21, ny=21, scale=1.0).array.sum()
+    distance = np.hypot(table["x_fit"][:, None] - xy[None, :, 0],
+                        table["y_fit"][:, None] - xy[None, :, 1])
+    matched = distance.min(axis=1) < 0.5
+    ratio = (np.asarray(table["flux_fit"])[matched]
+             / fluxes[distance.argmin(axis=1)[matched]] / enclosed)
+    assert abs(np.median(ratio) - 1) < 1e-2
