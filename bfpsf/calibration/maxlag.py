@@ -15,10 +15,11 @@ of pixel products (rho's shot-noise error is 1/sqrt(N)), is the matched measurem
 the bright pairs their weight. The ring's mean slope over its error is the ring's significance.
 The chosen maxlag is the last ring before the first one below `RING_NSIGMA`, bounded by:
 
-- `MIN_AUTO_MAXLAG` below: the boundary-shift solvers split a(0, 0) between the N/S and E/W
-  boundaries with the rings beyond the nearest neighbours. From GalSim's noise-free E2V areas
-  the electrostatic fit's a^N(0, 0), a^E(0, 0) are within 1.5 % and 3 % of the landing truth
-  at maxlag 3, but 5 % and 13 % off at maxlag 2;
+- `MIN_AUTO_MAXLAG` below (the boundary-shift solvers split a(0, 0) between the N/S and E/W
+  boundaries with the ring beyond the nearest neighbours). Deeper is not better for them:
+  from GalSim's noise-free areas the electrostatic fit's a^N(0, 0), a^E(0, 0) are, against
+  the landing truth, 0.95 / 1.13 (E2V) and 0.99 / 1.01 (ITL) at maxlag 2, 1.02 / 1.03 and
+  1.00 / 1.00 at 3, 0.96 / 1.13 and 0.96 / 1.07 at 4 and 6;
 - the lags measured (the image size and `bfpsf.calibration.MAX_FULL_MODEL_MAXLAG`, the
   memory and time of the full model);
 - for the full model with fewer pairs than `bfpsf.calibration.MIN_PAIRS_FULL_MODEL` (at most
@@ -40,7 +41,7 @@ __all__ = ["MaxlagChoice", "ring_significance", "choose_maxlag", "RING_NSIGMA",
 RING_NSIGMA = 3.0
 
 #: Smallest maxlag `choose_maxlag` returns (when the flats allow it).
-MIN_AUTO_MAXLAG = 3
+MIN_AUTO_MAXLAG = 2
 
 #: The maxlag of the full PTC model on fewer than `bfpsf.calibration.MIN_PAIRS_FULL_MODEL` pairs.
 HELD_FULL_MODEL_MAXLAG = 2
