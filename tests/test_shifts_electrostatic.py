@@ -169,3 +169,23 @@ def test_warnings_name_an_unphysical_or_poorly_determined_split():
                                  samples_east=np.array([truth.east, east]))
     assert any(line.startswith("N/E split of a(0,0) poorly determined")
                for line in shift_warnings(spread))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sensor, maxlag, north, east", [
+    ("lsst_e2v_50_8", 2, 0.95, 1.13), ("lsst_e2v_50_8", 4, 0.96, 1.13),
+    ("lsst_e2v_50_8", 6, 0.96, 1.13), ("lsst_itl_50_8", 2, 0.99, 1.01),
+    ("lsst_itl_50_8", 4, 0.96, 1.07), ("lsst_itl_50_8", 6, 0.96, 1.07)])
+def test_split_of_noise_free_areas_against_maxlag(sensor, maxlag, north, east):
+    """The N/E split of a(0, 0) from noise-free areas at other maxlags than the 3 of
+    `test_fit_to_galsim_areas_recovers_the_landing_shifts`: deeper lags do not sharpen it
+    (measured ratios to the landing truth, as the README and `bfpsf.calibration.maxlag` quote
+    them, to 0.01)."""
+    from bfpsf.interop.silicon_truth import silicon_area_coefficients, silicon_boundary_shifts
+
+    area = silicon_area_coefficients(sensor, charge=1e3, maxlag=maxlag)
+    landing = silicon_boundary_shifts(sensor, charge=1e3, radius=4)
+    fit = fit_electrostatic(area, n_samples=0)
+    m, k = fit.shifts.radius, landing.radius
+    assert fit.shifts.north[m, m] / landing.north[k, k] == pytest.approx(north, abs=0.01)
+    assert fit.shifts.east[m, m] / landing.east[k, k] == pytest.approx(east, abs=0.01)
