@@ -13,7 +13,7 @@ testable" on that data set and says so):
   evaluated with a(0, 0) from the sum rule (see `PTCTable`).
 
 Builders: `observables_from_sizes` (a size table and boundary shifts), `observables_from_images`
-(flat-field and spot FITS files: calibrate, measure, bin), `flat_observables` and
+(flat-field and spot FITS files: calibrate, measure, bin, fit P0 as `bfpsf psf`), `flat_observables` and
 `ptc_observable` (the flat tables of a `Calibration`). The measured-table readers are in
 `bfpsf.diagnosis.readers`.
 """
