@@ -11,7 +11,11 @@
 The pairs are Poisson flats (no GalSim: the map, not the physics, is measured). On a shared
 machine the numbers are noisy; run it when the machine is quiet.
 
-    OMP_NUM_THREADS=1 python benchmarks/bench_parallel.py [--size 512] [--pairs 6]
+    OMP_NUM_THREADS=1 python benchmarks/bench_parallel.py [--size 512] [--pairs 6] [--speed-only]
+
+Each worker is a process with one thread (OMP/MKL/OpenBLAS threads 1, Dask's nanny default),
+so the GIL and nested threading play no part; the larger ``--size``, the smaller the share of
+the per-task scheduling and file opening.
 """
 
 import argparse
@@ -55,6 +59,21 @@ def focal_plane(directory, *, detectors, amplifiers, pairs, size, seed=0):
     return folders
 
 
+def _import_bfpsf():
+    """What a worker imports at its first pair (run on each worker before the timing)."""
+    import astropy.io.fits  # noqa: F401
+    import scipy.fft  # noqa: F401
+
+    import bfpsf.calibration.covariance  # noqa: F401
+    import bfpsf.calibration.ptc  # noqa: F401
+    return os.environ.get("OMP_NUM_THREADS")
+
+
+def load_average():
+    """The 1-minute load average (the machine is shared: say how busy it was)."""
+    return os.getloadavg()[0]
+
+
 def timed(detectors, workers, scheduler_mode):
     """Wall seconds, CPU seconds (this process, or the sum over the workers) and the result."""
     if scheduler_mode == "in-process":
@@ -63,9 +82,11 @@ def timed(detectors, workers, scheduler_mode):
         return time.perf_counter() - start, time.process_time() - start_cpu, result
     from bfpsf.parallel import _client
 
-    # the cluster (started as bfpsf starts it) is outside the timing: a long run amortises it
+    # the cluster (started as bfpsf starts it) and the workers' first imports are outside the
+    # timing: a long run amortises them
     client, cluster = _client(workers, None)
     try:
+        client.run(_import_bfpsf)
         cpu_before = sum(client.run(time.process_time).values())
         start = time.perf_counter()
         result = calibrate_detectors(detectors, scheduler=cluster.scheduler_address, **OPTIONS)
@@ -83,14 +104,16 @@ def speed(args):
                                 pairs=args.pairs, size=args.size)
         tasks = 4 * len(AMPLIFIERS) * args.pairs
         print(f"focal plane: 4 detectors x {len(AMPLIFIERS)} amplifiers x {args.pairs} pairs "
-              f"of {args.size}^2 = {tasks} pair tasks")
+              f"of {args.size}^2 = {tasks} pair tasks; {os.cpu_count()} CPUs, load average "
+              f"{load_average():.2f} before")
         runs = {}
         for label, workers, mode in (("in process", 1, "in-process"), ("Dask, 1 worker", 1, "dask"),
                                      ("Dask, 2 workers", 2, "dask")):
             seconds, cpu, result = timed(detectors, workers, mode)
             runs[label] = (seconds, result)
             print(f"  {label:16s} {seconds:7.2f} s wall, {cpu:7.2f} s CPU (the workers' for "
-                  "Dask: a CPU time near the wall time times the workers means each had a core)")
+                  "Dask: a CPU time near the wall time times the workers means each had a core); "
+                  f"load average {load_average():.2f} after")
         reference = runs["in process"][1]
         identical = all(
             np.array_equal(result[detector][amp].a, reference[detector][amp].a)
@@ -134,6 +157,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=512, help="amplifier side, pixels")
     parser.add_argument("--pairs", type=int, default=6, help="pairs per amplifier (speed)")
+    parser.add_argument("--speed-only", action="store_true", help="skip the memory runs")
     parser.add_argument("--memory-run", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--workers", type=int, default=1, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -141,7 +165,8 @@ def main(argv=None):
         one_memory_run(args.memory_run, args.workers)
         return
     speed(args)
-    memory(args)
+    if not args.speed_only:
+        memory(args)
 
 
 if __name__ == "__main__":
