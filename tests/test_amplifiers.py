@@ -335,3 +335,55 @@ def test_photometry_applies_each_amplifiers_gain_and_shifts(tmp_path, capsys):
         np.testing.assert_array_equal(model.shifts.north, back[amplifier.name].shifts.north)
         assert gain == back[amplifier.name].gain
     assert not np.array_equal(back["C00"].shifts.north, back["C01"].shifts.north)
+
+
+def test_reversed_detsec_flips_the_pixels_into_detector_orientation(tmp_path):
+    """Amplifier C01 is read out right to left and C00 top to bottom (DETSEC x1 > x2, y1 > y2):
+    the reader flips their trimmed pixels, so the amplifiers placed at their DETSEC offsets
+    rebuild the detector, and the shared sides are the detector's."""
+    from bfpsf.io.amplifiers import detector_offset, shared_sides
+
+    rng = np.random.default_rng(5)
+    detector = rng.normal(1000.0, 30.0, (16, 24))
+    readout = [detector[::-1, :12], detector[:, 12:][:, ::-1]]  # as each amplifier reads out
+    hdus = amplifier_hdus(readout, ["C00", "C01"], bias_adu=[500.0, 700.0],
+                          overscan_columns=4)
+    hdus["C00"].header["DETSEC"] = "[1:12,16:1]"
+    hdus["C01"].header["DETSEC"] = "[24:13,1:16]"
+    hdus.writeto(tmp_path / "flipped.fits")
+    amplifiers = read_amplifiers(tmp_path / "flipped.fits")
+    rebuilt = np.full(detector.shape, np.nan)
+    for amplifier in amplifiers:
+        x0, y0 = detector_offset(amplifier.layout)
+        ny, nx = amplifier.data.shape
+        rebuilt[y0:y0 + ny, x0:x0 + nx] = amplifier.data
+    np.testing.assert_allclose(rebuilt, detector, atol=1e-9)
+    assert shared_sides([amplifier.layout for amplifier in amplifiers]) == {
+        "C00": {"right"}, "C01": {"left"}}
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_flipped_readout_keeps_the_shift_arrays(axis):
+    """The claim of `bfpsf.io.amplifiers`: with G15's mirror-symmetric shifts (an E2V-like
+    profile), redistributing the flipped image with the same a^N, a^E arrays gives the flip of
+    the redistribution, so a flipped amplifier's shifts need no change. Shifts without that
+    symmetry (a control) do not commute with the flip."""
+    from bfpsf.model.redistribution import redistribute
+    from bfpsf.shifts import BoundaryShifts
+
+    y, x = np.mgrid[0:21, 0:21]
+    # a lopsided star: two Gaussians, so no flip leaves it unchanged
+    image = 5e4 * (np.exp(-((x - 9.3) ** 2 + (y - 10.6) ** 2) / 5.0)
+                   + 0.5 * np.exp(-((x - 12.1) ** 2 + (y - 8.2) ** 2) / 3.0))
+    shifts = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
+    flipped = redistribute(np.flip(image, axis), shifts) - np.flip(image, axis)
+    expected = np.flip(redistribute(image, shifts) - image, axis)
+    np.testing.assert_allclose(flipped, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+    lopsided_north = shifts.north.copy()
+    lopsided_north[:, 5:] *= 1.5  # a^N stronger for charge to the east: not mirror-symmetric
+    lopsided_east = shifts.east.copy()
+    lopsided_east[5:, :] *= 1.5   # a^E stronger for charge to the north
+    lopsided = BoundaryShifts(lopsided_north, lopsided_east, check=False)
+    flipped = redistribute(np.flip(image, axis), lopsided) - np.flip(image, axis)
+    expected = np.flip(redistribute(image, lopsided) - image, axis)
+    assert np.abs(flipped - expected).max() > 1e-3 * np.abs(expected).max()
