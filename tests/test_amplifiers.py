@@ -387,3 +387,59 @@ def test_flipped_readout_keeps_the_shift_arrays(axis):
     flipped = redistribute(np.flip(image, axis), lopsided) - np.flip(image, axis)
     expected = np.flip(redistribute(image, lopsided) - image, axis)
     assert np.abs(flipped - expected).max() > 1e-3 * np.abs(expected).max()
+
+
+def test_psf_keeps_each_amplifiers_shifts(tmp_path, capsys):
+    """`bfpsf psf` on a two-amplifier file: the product keeps each amplifier's shifts (from the
+    calibration), its main shifts are their star-weighted mean, and `photometry` without
+    --calib evaluates each amplifier with its own (the fit itself: tests/test_psf_fit.py)."""
+    from dataclasses import replace
+
+    import galsim
+
+    from bfpsf.calibration import calibrate_from_ptc
+    from bfpsf.cli.photometry import _amplifier_model
+    from bfpsf.interop.galsim_psf import render_stars
+    from bfpsf.io.cp_pipe import ptc_table_hdu
+    from bfpsf.model.psf import FluxDependentPSF
+    from test_cp_pipe import cp_pipe_table
+
+    a = np.zeros((3, 3))
+    a[0, 0], a[1, 0], a[0, 1] = -3.3e-6, 1.75e-7, 4.16e-7
+    fits.HDUList([fits.PrimaryHDU(), ptc_table_hdu(cp_pipe_table(
+        {"X0": (a, 1.6)}))]).writeto(tmp_path / "ptc.fits")
+    base = calibrate_from_ptc(tmp_path / "ptc.fits", n_monte_carlo=0)
+    base = base["X0"] if isinstance(base, DetectorCalibration) else base
+    shifts = {"C00": base.shifts.scaled(0.6), "C01": base.shifts.scaled(1.4)}
+    detector = DetectorCalibration({name: replace(base, amplifier=name, shifts=one,
+                                                  shifts_north_err=None, shifts_east_err=None)
+                                    for name, one in shifts.items()})
+    detector.write(tmp_path / "cal.fits")
+    rng = np.random.default_rng(4)
+    grid = 30 * (np.arange(4) + 0.5) + 12
+    images = []
+    for name in shifts:
+        xy = np.array([(x, y) for y in grid for x in grid]) + rng.uniform(-0.5, 0.5, (16, 2))
+        charge = render_stars(galsim.Moffat(beta=3.0, fwhm=3.5), xy,
+                              np.exp(rng.uniform(np.log(5e4), np.log(1e6), 16)), (144, 144),
+                              shifts=shifts[name]) + 100.0
+        images.append(rng.poisson(charge).astype(float) / base.gain)
+    write_amplifier_file(tmp_path / "stars.fits", images, list(shifts), bias_adu=[900.0, 1300.0],
+                         read_noise_adu=[2.0, 2.0], exptime=1.0, rng=rng)
+    code = main(["psf", str(tmp_path / "stars.fits"), "--calib", str(tmp_path / "cal.fits"),
+                 "-o", str(tmp_path / "psf.fits"), "--size", "15", "--max-iterations", "8"])
+    assert code == 0, capsys.readouterr().err
+    psf = FluxDependentPSF.read(tmp_path / "psf.fits")
+    assert sorted(psf.amplifier_shifts) == ["C00", "C01"]
+    for name, one in shifts.items():
+        np.testing.assert_allclose(psf.amplifier_shifts[name].north, one.north, rtol=1e-12)
+    # the main shifts: the mean weighted by the stars used (0.6 and 1.4 times one set, 16
+    # stars each: 1.0 times it, 0.05 from it for each star one amplifier lost)
+    nonzero = base.shifts.north != 0
+    factor = psf.shifts.north[nonzero] / base.shifts.north[nonzero]
+    finite = np.isfinite(factor)
+    np.testing.assert_allclose(factor[finite], factor[finite][0], rtol=1e-9)
+    assert abs(factor[finite][0] - 1.0) < 0.06
+    for amplifier in read_amplifiers(tmp_path / "stars.fits"):
+        _, model = _amplifier_model(psf, 1.0, None, amplifier, "stars.fits", None, False)
+        np.testing.assert_allclose(model.shifts.north, shifts[amplifier.name].north, rtol=1e-12)
