@@ -407,7 +407,7 @@ def _band_tests(band, good, box, defect_nsigma, column_clip=5.0):
     if good is not None:
         outlier &= good
     # the column levels: the first pass's sums less the few pixels beyond column_clip sigma
-    index = np.flatnonzero(outlier)
+    index = np.flatnonzero(outlier) if outlier.any() else np.empty(0, dtype=np.intp)
     column = index % nx
     usable = np.isfinite(centre) & np.isfinite(width)
     level_sums = np.where(usable, column_sums - np.bincount(
@@ -416,13 +416,14 @@ def _band_tests(band, good, box, defect_nsigma, column_clip=5.0):
     return level_sums, level_counts, np.flatnonzero(is_high)
 
 
-def _image_tests(image1, image2, bad, box, defect_nsigma):
+def _image_tests(image1, image2, bad, box, defect_nsigma, totals=None):
     """Column levels and high pixels (`_band_tests`) of two flats and of their difference,
     one row of tiles at a time.
 
     The second flat is scaled to the first's mean in the difference (for a pair that is not a
     flat, means not both positive within a factor 1.5 of each other, e.g. bias frames, the
-    plain difference is taken).
+    plain difference is taken). ``totals``: the sums of the two images, when known and
+    ``bad`` is None.
 
     Returns
     -------
@@ -438,10 +439,12 @@ def _image_tests(image1, image2, bad, box, defect_nsigma):
     precision over the rows of a tile and in double precision across tiles and tile rows.
     """
     ny, nx = image1.shape
-    where = True if bad is None else ~bad
-    means = [image.sum(dtype=np.float64, where=where) / np.count_nonzero(where)
-             if bad is not None else image.sum(dtype=np.float64) / image.size
-             for image in (image1, image2)]
+    if bad is None:
+        totals = totals or [image.sum(dtype=np.float64) for image in (image1, image2)]
+        means = [total / image1.size for total in totals]
+    else:
+        means = [image.sum(dtype=np.float64, where=~bad) / np.count_nonzero(~bad)
+                 for image in (image1, image2)]
     flat_pair = min(means) > 0 and max(means) < 1.5 * min(means)
     scale = np.float32(means[0] / means[1] if flat_pair else 1.0)
     level_sums = np.zeros((3, nx))
@@ -585,7 +588,8 @@ def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma
         msg = f"defect_box must be at least 3 pixels, got {defect_box}"
         raise BFPSFValueError(msg, defect_box)
 
-    if np.isfinite(image1.sum()) and np.isfinite(image2.sum()):
+    totals = [image1.sum(dtype=np.float64), image2.sum(dtype=np.float64)]
+    if np.isfinite(totals).all():
         nonfinite = np.zeros(image1.shape, dtype=bool)
     else:
         nonfinite = ~(np.isfinite(image1) & np.isfinite(image2))
@@ -606,7 +610,7 @@ def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma
     box = int(defect_box)
     bad = mask if mask.any() else None
     bad_columns = np.zeros(image1.shape[1], dtype=bool)
-    levels, high = _image_tests(image1, image2, bad, box, defect_nsigma)
+    levels, high = _image_tests(image1, image2, bad, box, defect_nsigma, totals)
     for image_levels in levels:
         bad_columns |= _bad_columns(image_levels, column_nsigma)
     columns = np.zeros_like(mask)
