@@ -393,27 +393,33 @@ def _band_tests(band, good, box, defect_nsigma, column_clip=5.0):
     kept = np.abs(offset) <= _per_column(2.0 * sigma, box, nx)
     if good is not None:
         kept &= good
-    offset *= kept
-    offset_mean, sigma = _tile_moments(offset.sum(axis=0), np.einsum("ij,ij->j", offset, offset),
-                                       kept.view(np.uint8).sum(axis=0, dtype=np.int32), starts)
-    # the tests, with the second estimate
-    centre = _per_column(mean + offset_mean, box, nx)
+    masked = offset * kept
+    count_type = np.uint16 if rows < 2**16 else np.int64
+    offset_mean, sigma = _tile_moments(masked.sum(axis=0), np.einsum("ij,ij->j", masked, masked),
+                                       kept.view(np.uint8).sum(axis=0, dtype=count_type), starts)
+    # the tests, with the second estimate, on the offsets from the first mean
+    shift = _per_column(offset_mean, box, nx)  # second mean less the first
     width = _per_column(sigma, box, nx)
-    deviation = np.subtract(band, centre, out=offset)
-    is_high = deviation > defect_nsigma * width
+    is_high = offset > shift + defect_nsigma * width
+    below = offset < shift - column_clip * width
     if good is not None:
         is_high &= good
-    outlier = np.abs(deviation, out=deviation) > column_clip * width
-    if good is not None:
-        outlier &= good
+        below &= good
+    high = np.flatnonzero(is_high)
     # the column levels: the first pass's sums less the few pixels beyond column_clip sigma
-    index = np.flatnonzero(outlier) if outlier.any() else np.empty(0, dtype=np.intp)
+    above_limit = shift + column_clip * width
+    if column_clip >= defect_nsigma:  # those above are high pixels: look among them
+        above = high[offset.ravel()[high] > above_limit[high % nx]]
+    else:
+        above = np.flatnonzero((offset > above_limit) & (True if good is None else good))
+    index = np.concatenate([above, np.flatnonzero(below) if below.any() else
+                            np.empty(0, dtype=np.intp)])
     column = index % nx
-    usable = np.isfinite(centre) & np.isfinite(width)
+    usable = np.isfinite(centre) & np.isfinite(shift) & np.isfinite(width)
     level_sums = np.where(usable, column_sums - np.bincount(
         column, weights=band.ravel()[index], minlength=nx), 0.0)
     level_counts = np.where(usable, counts - np.bincount(column, minlength=nx), 0)
-    return level_sums, level_counts, np.flatnonzero(is_high)
+    return level_sums, level_counts, high
 
 
 def _image_tests(image1, image2, bad, box, defect_nsigma, totals=None):
