@@ -146,8 +146,9 @@ def _sigma_clip(values, nsigma, count, max_iterations=50):
     ``values`` (1-D, single or double precision; sums in double) holds ``count`` good pixels
     and zeros at the bad ones; since the good pixels average to zero, the fill values always
     lie inside the cut. Pixels more than ``nsigma`` times the sigma of the kept pixels from
-    their mean are clipped, iterated to convergence. The running sums are updated from a pre-selected tail of candidate outliers,
-    so an iteration costs only the tail, not the whole image.
+    their mean are clipped, iterated to convergence. The running sums are updated from a
+    pre-selected tail of candidate outliers, so an iteration costs only the tail, not the
+    whole image.
 
     Returns the flat indices of the clipped pixels.
     """
