@@ -59,10 +59,14 @@ def _in_process(function, items, bar):
     return results
 
 
-#: glibc's default trim threshold for the local workers. Dask sets 64 kB, which returns every
-#: freed multi-megabyte temporary of the pair mask to the system and page-faults it back on
-#: the next allocation: the pairs measured 2.5 times slower than in process (issue 12).
-MALLOC_TRIM_THRESHOLD = 128 * 1024**2
+#: Environment variables of Dask's worker defaults left out of the local workers. Dask sets
+#: MALLOC_TRIM_THRESHOLD_ (65536) to return freed memory to the system; setting any glibc malloc
+#: threshold also turns off glibc's dynamic mmap threshold, so every temporary above 128 kB of
+#: the pair mask and covariances is mapped afresh and page-faulted on each use: a worker
+#: measured a pair with 12 times the page faults and twice the CPU time of this process
+#: (issue 12). Without it the workers allocate as this process does (memory stays bounded: a
+#: few pairs per worker).
+WORKER_ENVIRON_DROPPED = ("MALLOC_TRIM_THRESHOLD_",)
 
 
 def _client(workers, scheduler):
@@ -72,7 +76,8 @@ def _client(workers, scheduler):
     if scheduler is not None:
         return Client(scheduler), None
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
-    environ["MALLOC_TRIM_THRESHOLD_"] = MALLOC_TRIM_THRESHOLD
+    for name in WORKER_ENVIRON_DROPPED:
+        environ.pop(name, None)
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         # no dashboard; the scheduler's HTTP routes on a free local port (the default 8787
         # may be taken by another cluster, and Dask then warns)

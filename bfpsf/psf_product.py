@@ -12,6 +12,10 @@ Optional ``SHIFT_N_SAMP`` / ``SHIFT_E_SAMP`` [sample, dy+m, dx+m] hold the shift
 calibration (its uncertainty, propagated by ``bfpsf slope --psf``). Schema 2 files (no
 FLUXUNIT, BUILDUP, ...) read as models in electrons with their GAIN recorded. The calibration
 file is not needed to read the product back.
+Schema 5 adds the optional HDU ``AMPSHIFT``, a table of the boundary shifts of each amplifier
+the P0 was fitted on (columns ``AMP``, ``SHIFT_N``, ``SHIFT_E``, 1/e-, [dy+m, dx+m]; ``bfpsf
+psf`` on several amplifiers), read back as ``psf.amplifier_shifts``; ``SHIFT_N``/``SHIFT_E``
+are then their mean weighted by the stars used.
 Schema 4 adds the grid of a `~bfpsf.model.gridded.GriddedFluxDependentPSF`: HDU ``GRID`` = the
 node P0s (ny_nodes, nx_nodes, n, n) with ``NODESX``/``NODESY``, HDUs ``GRIDX``/``GRIDY`` = the
 node coordinates (pixels) and, in table mode, ``GRIDBFT`` = every node's BF table; the primary
@@ -27,8 +31,9 @@ __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 
 #: Version of the PSF product layout written by `write_psf` (2: optional BFTABLE HDU;
 #: 3: every constructor option, FLUXUNIT replacing the ADU meaning of GAIN; 4: optional GRID,
-#: GRIDX, GRIDY, GRIDBFT HDUs of a gridded PSF).
-PSF_SCHEMA_VERSION = 4
+#: GRIDX, GRIDY, GRIDBFT HDUs of a gridded PSF; 5: optional AMPSHIFT table of per-amplifier
+#: shifts).
+PSF_SCHEMA_VERSION = 5
 
 
 def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
@@ -95,9 +100,40 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
         table = fits.ImageHDU(np.asarray(options["bf_table"], dtype=np.float64), name="BFTABLE")
         table.header["BUNIT"] = ("1/(pixel electron)", "R[P0] per unit flux squared")
         hdus.append(table)
+    if getattr(psf, "amplifier_shifts", None):
+        hdus.append(_amplifier_hdu(psf.amplifier_shifts))
     if nodes is not None:
         hdus.extend(_grid_hdus(psf))
     write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
+
+
+def _amplifier_hdu(amplifier_shifts):
+    """Table HDU ``AMPSHIFT`` of the shifts of each amplifier (one radius: the largest)."""
+    from astropy.io import fits
+    from astropy.table import Table
+
+    radius = max(shifts.radius for shifts in amplifier_shifts.values())
+    padded = [shifts.padded(radius) for shifts in amplifier_shifts.values()]
+    table = Table({"AMP": list(amplifier_shifts),
+                   "SHIFT_N": np.array([shifts.north for shifts in padded]),
+                   "SHIFT_E": np.array([shifts.east for shifts in padded])})
+    hdu = fits.table_to_hdu(table)
+    hdu.name = "AMPSHIFT"
+    for column in (2, 3):  # FITS has no 1/electron unit string: say it in words
+        hdu.header[f"TUNIT{column}"] = "electron-1"
+    return hdu
+
+
+def _read_amplifier_shifts(hdul):
+    """{EXTNAME: BoundaryShifts} from the ``AMPSHIFT`` HDU ({} without it)."""
+    from .shifts import BoundaryShifts
+
+    if "AMPSHIFT" not in hdul:
+        return {}
+    table = hdul["AMPSHIFT"].data
+    return {str(name).strip(): BoundaryShifts(np.array(north, dtype=float),
+                                              np.array(east, dtype=float), check=False)
+            for name, north, east in zip(table["AMP"], table["SHIFT_N"], table["SHIFT_E"])}
 
 
 def _grid_hdus(psf):
@@ -163,6 +199,7 @@ def read_psf(path, *, cls=None, **kwargs):
             samples = tuple(BoundaryShifts(north, east, check=False) for north, east in
                             zip(np.array(hdul["SHIFT_N_SAMP"].data, dtype=float),
                                 np.array(hdul["SHIFT_E_SAMP"].data, dtype=float)))
+        amplifier_shifts = _read_amplifier_shifts(hdul)
         grid = None
         if "GRID" in hdul:
             grid = (np.array(hdul["GRID"].data, dtype=float),
@@ -180,10 +217,12 @@ def read_psf(path, *, cls=None, **kwargs):
         psf = GriddedFluxDependentPSF.from_data(grid[0], grid[1], grid[2], shifts, **options)
         psf.calibration = calibration
         psf.shift_samples = samples
+        psf.amplifier_shifts = amplifier_shifts
         return psf
     if options.get("mode") != "table":
         options.pop("bf_table", None)  # an exact-mode override recomputes R
     psf = cls(data, shifts, **options)
     psf.calibration = calibration
     psf.shift_samples = samples
+    psf.amplifier_shifts = amplifier_shifts
     return psf

@@ -335,3 +335,111 @@ def test_photometry_applies_each_amplifiers_gain_and_shifts(tmp_path, capsys):
         np.testing.assert_array_equal(model.shifts.north, back[amplifier.name].shifts.north)
         assert gain == back[amplifier.name].gain
     assert not np.array_equal(back["C00"].shifts.north, back["C01"].shifts.north)
+
+
+def test_reversed_detsec_flips_the_pixels_into_detector_orientation(tmp_path):
+    """Amplifier C01 is read out right to left and C00 top to bottom (DETSEC x1 > x2, y1 > y2):
+    the reader flips their trimmed pixels, so the amplifiers placed at their DETSEC offsets
+    rebuild the detector, and the shared sides are the detector's."""
+    from bfpsf.io.amplifiers import detector_offset, shared_sides
+
+    rng = np.random.default_rng(5)
+    detector = rng.normal(1000.0, 30.0, (16, 24))
+    readout = [detector[::-1, :12], detector[:, 12:][:, ::-1]]  # as each amplifier reads out
+    hdus = amplifier_hdus(readout, ["C00", "C01"], bias_adu=[500.0, 700.0],
+                          overscan_columns=4)
+    hdus["C00"].header["DETSEC"] = "[1:12,16:1]"
+    hdus["C01"].header["DETSEC"] = "[24:13,1:16]"
+    hdus.writeto(tmp_path / "flipped.fits")
+    amplifiers = read_amplifiers(tmp_path / "flipped.fits")
+    rebuilt = np.full(detector.shape, np.nan)
+    for amplifier in amplifiers:
+        x0, y0 = detector_offset(amplifier.layout)
+        ny, nx = amplifier.data.shape
+        rebuilt[y0:y0 + ny, x0:x0 + nx] = amplifier.data
+    np.testing.assert_allclose(rebuilt, detector, atol=1e-9)
+    assert shared_sides([amplifier.layout for amplifier in amplifiers]) == {
+        "C00": {"right"}, "C01": {"left"}}
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_flipped_readout_keeps_the_shift_arrays(axis):
+    """The claim of `bfpsf.io.amplifiers`: with G15's mirror-symmetric shifts (an E2V-like
+    profile), redistributing the flipped image with the same a^N, a^E arrays gives the flip of
+    the redistribution, so a flipped amplifier's shifts need no change. Shifts without that
+    symmetry (a control) do not commute with the flip."""
+    from bfpsf.model.redistribution import redistribute
+    from bfpsf.shifts import BoundaryShifts
+
+    y, x = np.mgrid[0:21, 0:21]
+    # a lopsided star: two Gaussians, so no flip leaves it unchanged
+    image = 5e4 * (np.exp(-((x - 9.3) ** 2 + (y - 10.6) ** 2) / 5.0)
+                   + 0.5 * np.exp(-((x - 12.1) ** 2 + (y - 8.2) ** 2) / 3.0))
+    shifts = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
+    flipped = redistribute(np.flip(image, axis), shifts) - np.flip(image, axis)
+    expected = np.flip(redistribute(image, shifts) - image, axis)
+    np.testing.assert_allclose(flipped, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+    lopsided_north = shifts.north.copy()
+    lopsided_north[:, 5:] *= 1.5  # a^N stronger for charge to the east: not mirror-symmetric
+    lopsided_east = shifts.east.copy()
+    lopsided_east[5:, :] *= 1.5   # a^E stronger for charge to the north
+    lopsided = BoundaryShifts(lopsided_north, lopsided_east, check=False)
+    flipped = redistribute(np.flip(image, axis), lopsided) - np.flip(image, axis)
+    expected = np.flip(redistribute(image, lopsided) - image, axis)
+    assert np.abs(flipped - expected).max() > 1e-3 * np.abs(expected).max()
+
+
+def test_psf_keeps_each_amplifiers_shifts(tmp_path, capsys):
+    """`bfpsf psf` on a two-amplifier file: the product keeps each amplifier's shifts (from the
+    calibration), its main shifts are their star-weighted mean, and `photometry` without
+    --calib evaluates each amplifier with its own (the fit itself: tests/test_psf_fit.py)."""
+    from dataclasses import replace
+
+    import galsim
+
+    from bfpsf.calibration import calibrate_from_ptc
+    from bfpsf.cli.photometry import _amplifier_model
+    from bfpsf.interop.galsim_psf import render_stars
+    from bfpsf.io.cp_pipe import ptc_table_hdu
+    from bfpsf.model.psf import FluxDependentPSF
+    from test_cp_pipe import cp_pipe_table
+
+    a = np.zeros((3, 3))
+    a[0, 0], a[1, 0], a[0, 1] = -3.3e-6, 1.75e-7, 4.16e-7
+    fits.HDUList([fits.PrimaryHDU(), ptc_table_hdu(cp_pipe_table(
+        {"X0": (a, 1.6)}))]).writeto(tmp_path / "ptc.fits")
+    base = calibrate_from_ptc(tmp_path / "ptc.fits", n_monte_carlo=0)
+    base = base["X0"] if isinstance(base, DetectorCalibration) else base
+    shifts = {"C00": base.shifts.scaled(0.6), "C01": base.shifts.scaled(1.4)}
+    detector = DetectorCalibration({name: replace(base, amplifier=name, shifts=one,
+                                                  shifts_north_err=None, shifts_east_err=None)
+                                    for name, one in shifts.items()})
+    detector.write(tmp_path / "cal.fits")
+    rng = np.random.default_rng(4)
+    grid = 30 * (np.arange(4) + 0.5) + 12
+    images = []
+    for name in shifts:
+        xy = np.array([(x, y) for y in grid for x in grid]) + rng.uniform(-0.5, 0.5, (16, 2))
+        charge = render_stars(galsim.Moffat(beta=3.0, fwhm=3.5), xy,
+                              np.exp(rng.uniform(np.log(5e4), np.log(1e6), 16)), (144, 144),
+                              shifts=shifts[name]) + 100.0
+        images.append(rng.poisson(charge).astype(float) / base.gain)
+    write_amplifier_file(tmp_path / "stars.fits", images, list(shifts), bias_adu=[900.0, 1300.0],
+                         read_noise_adu=[2.0, 2.0], exptime=1.0, rng=rng)
+    code = main(["psf", str(tmp_path / "stars.fits"), "--calib", str(tmp_path / "cal.fits"),
+                 "-o", str(tmp_path / "psf.fits"), "--size", "15", "--max-iterations", "8"])
+    assert code == 0, capsys.readouterr().err
+    psf = FluxDependentPSF.read(tmp_path / "psf.fits")
+    assert sorted(psf.amplifier_shifts) == ["C00", "C01"]
+    for name, one in shifts.items():
+        np.testing.assert_allclose(psf.amplifier_shifts[name].north, one.north, rtol=1e-12)
+    # the main shifts: the mean weighted by the stars used (0.6 and 1.4 times one set, 16
+    # stars each: 1.0 times it, 0.05 from it for each star one amplifier lost)
+    nonzero = base.shifts.north != 0
+    factor = psf.shifts.north[nonzero] / base.shifts.north[nonzero]
+    finite = np.isfinite(factor)
+    np.testing.assert_allclose(factor[finite], factor[finite][0], rtol=1e-9)
+    assert abs(factor[finite][0] - 1.0) < 0.06
+    for amplifier in read_amplifiers(tmp_path / "stars.fits"):
+        _, model = _amplifier_model(psf, 1.0, None, amplifier, "stars.fits", None, False)
+        np.testing.assert_allclose(model.shifts.north, shifts[amplifier.name].north, rtol=1e-12)

@@ -159,3 +159,58 @@ def test_exact_mode_fit_agrees_with_the_table_fit(quick_field, quick_fits):
     assert abs(gaussian_size(pixelised_stamp(exact.psf, half_size=10))
                / gaussian_size(pixelised_stamp(table.psf, half_size=10)) - 1) < 2e-4
     assert np.allclose(exact.stars["flux_fit"], table.stars["flux_fit"], rtol=1e-3)
+
+
+def _residual_size_slope(psf, image, stars):
+    """Slope with flux (per 1e6 e-) of the Gaussian-weighted <r^2> of (data - model) / F:
+    zero when the model's BF term matches the stars' at every flux."""
+    half = 8
+    offsets = np.arange(-half, half + 1)
+    sizes = []
+    for x_0, y_0, flux in zip(stars["x_fit"], stars["y_fit"], stars["flux_fit"]):
+        column, row = int(np.rint(x_0)), int(np.rint(y_0))
+        y, x = np.meshgrid(row + offsets, column + offsets, indexing="ij")
+        residual = image[y, x] - psf.evaluate(x, y, flux, x_0, y_0)
+        r2 = (x - x_0) ** 2 + (y - y_0) ** 2
+        sizes.append((residual * r2 * np.exp(-r2 / (2 * 2.5**2))).sum() / flux)
+    return np.polyfit(np.asarray(stars["flux_fit"]) / 1e6, sizes, 1)[0]
+
+
+def test_each_amplifier_has_its_own_shifts_in_the_p0_fit():
+    """Plumbing of per-image (per-amplifier) shifts: two amplifiers whose stars were drawn
+    with 0.6 and 1.4 times E2V-like shifts (bfpsf's own redistribution, so the model is exact
+    and the test checks the plumbing, not the physics). With each amplifier's shifts the
+    fitted P0 is the truth and no amplifier keeps a flux-dependent residual; with their mean
+    (what `bfpsf psf` did before) the fainter- and brighter-BF amplifiers keep residuals of
+    opposite signs."""
+    rng = np.random.default_rng(3)
+    amplifier_shifts = [SHIFTS.scaled(0.6), SHIFTS.scaled(1.4)]
+    images, positions = [], []
+    for shifts in amplifier_shifts:
+        grid = 36 * (np.arange(7) + 0.5)
+        xy = np.array([(x, y) for y in grid for x in grid]) + rng.uniform(-0.5, 0.5, (49, 2))
+        fluxes = np.exp(rng.uniform(np.log(3e3), np.log(1.2e5), 49)) / PEAK_PER_FLUX
+        images.append(render_stars(MOFFAT, xy, fluxes, (7 * 36,) * 2, shifts=shifts))
+        positions.append(xy)
+    truth = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=2, size=21)
+    options = dict(oversampling=2, size=21, read_noise=5.0)
+    own = fit_psf(images, positions, amplifier_shifts, **options)
+    mean = fit_psf(images, positions, SHIFTS, **options)
+    assert own.converged
+    # the returned model carries the star-weighted mean shifts (equal star counts: 1.0 x)
+    np.testing.assert_allclose(own.psf.shifts.north, SHIFTS.north, rtol=1e-12)
+    # P0 recovered as from one amplifier (the single-amplifier test: 2e-4)
+    assert abs(recovered_size(own, truth)) < 2e-4
+    own_slopes, mean_slopes = [], []
+    for index, shifts in enumerate(amplifier_shifts):
+        for result, slopes in ((own, own_slopes), (mean, mean_slopes)):
+            stars = result.stars[result.stars["image"] == index]
+            slopes.append(_residual_size_slope(result.psf.with_shifts(shifts)
+                                               if result is own else result.psf,
+                                               images[index], stars))
+    print(f"residual size slopes, own shifts {own_slopes}, mean shifts {mean_slopes}")
+    scale = np.abs(mean_slopes).max()
+    # the mean shifts: amplifier 0 over-corrected, amplifier 1 under-corrected
+    assert mean_slopes[0] * mean_slopes[1] < 0
+    # each amplifier's own shifts: the residual slope is gone (below 5 % of the mean's)
+    assert np.abs(own_slopes).max() < 0.05 * scale

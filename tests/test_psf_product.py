@@ -115,3 +115,26 @@ def test_exact_mode_override_drops_the_stored_table(base, tmp_path):
     base.write(tmp_path / "psf.fits")
     exact = FluxDependentPSF.read(tmp_path / "psf.fits", mode="exact")
     assert exact.mode == "exact" and exact.bf_table is None
+
+
+def test_per_amplifier_shifts_round_trip_and_evaluate_each_amplifier(base, tmp_path):
+    """A P0 fitted on two amplifiers keeps each one's shifts (AMPSHIFT, schema 5); the model of
+    an amplifier's stars is P0 with its own shifts, the BF term scaling with them."""
+    model = base.with_shifts(SHIFTS)
+    model.amplifier_shifts = {"C00": SHIFTS.scaled(0.6),
+                              "C01": SHIFTS.scaled(1.4).padded(4)}  # another radius
+    model.write(tmp_path / "psf.fits")
+    back = FluxDependentPSF.read(tmp_path / "psf.fits")
+    assert sorted(back.amplifier_shifts) == ["C00", "C01"]
+    np.testing.assert_array_equal(back.amplifier_shifts["C00"].padded(4).north,
+                                  SHIFTS.scaled(0.6).padded(4).north)
+    y, x = np.mgrid[-6:7, -6:7].astype(float)
+    static = FLUX * back.evaluate_base(x, y)
+    bf = {name: back.for_amplifier(name).evaluate(x, y, FLUX, 0.0, 0.0) - static
+          for name in ("C00", "C01")}
+    # G15's first-order BF term is linear in the shifts: 0.6 and 1.4 of one profile
+    np.testing.assert_allclose(bf["C01"] / 1.4, bf["C00"] / 0.6, atol=1e-9 * FLUX)
+    with pytest.raises(ValueError, match="no boundary shifts for amplifier 'C02'"):
+        back.for_amplifier("C02")
+    # a single-amplifier product has none: every amplifier gets the model itself
+    assert base.for_amplifier("C02") is base

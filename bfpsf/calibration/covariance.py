@@ -133,18 +133,27 @@ def _self_consistent_threshold(nsigma):
     return t
 
 
+def _beyond(values, cut, chunk=1 << 20):
+    """Indices of the ``values`` with ``|value| > cut``, a chunk at a time (no full-size
+    temporaries)."""
+    return np.concatenate([np.flatnonzero(np.abs(values[start:start + chunk]) > cut) + start
+                           for start in range(0, values.size, chunk)])
+
+
 def _sigma_clip(values, nsigma, count, max_iterations=50):
     """Iterative sigma clipping of the good pixels of a zero-mean, zero-filled image.
 
-    ``values`` (1-D float64) holds ``count`` good pixels and zeros at the bad ones; since the
-    good pixels average to zero, the fill values always lie inside the cut. Pixels more than
-    ``nsigma`` times the sigma of the kept pixels from their mean are clipped, iterated to
-    convergence. The running sums are updated from a pre-selected tail of candidate outliers,
-    so an iteration costs only the tail, not the whole image.
+    ``values`` (1-D, single or double precision; sums in double) holds ``count`` good pixels
+    and zeros at the bad ones; since the good pixels average to zero, the fill values always
+    lie inside the cut. Pixels more than ``nsigma`` times the sigma of the kept pixels from
+    their mean are clipped, iterated to convergence. The running sums are updated from a
+    pre-selected tail of candidate outliers, so an iteration costs only the tail, not the
+    whole image.
 
     Returns the flat indices of the clipped pixels.
     """
-    total, total2 = values.sum(), np.dot(values, values)
+    total = values.sum(dtype=np.float64)
+    total2 = np.einsum("i,i->", values, values, dtype=np.float64)
     sigma = np.sqrt(max(total2 / count - (total / count) ** 2, 0.0))
     sample = values[:: max(1, values.size // 100_000)]
     robust = 1.4826 * np.median(np.abs(sample - np.median(sample)))
@@ -152,8 +161,8 @@ def _sigma_clip(values, nsigma, count, max_iterations=50):
     if not tail_cut > 0:
         return np.empty(0, dtype=np.intp)  # a constant image: nothing to clip
     for _ in range(40):  # each restart widens the candidate tail by 1 / 0.7
-        tail_index = np.flatnonzero(np.abs(values) > tail_cut)
-        tail = values[tail_index]
+        tail_index = _beyond(values, tail_cut)
+        tail = values[tail_index].astype(np.float64)
         centre = total / count
         sigma = np.sqrt(max(total2 / count - centre * centre, 0.0))
         kept = np.ones(tail.size, dtype=bool)
@@ -222,7 +231,8 @@ def _compress(image, maxlag):
     m = maxlag
     ny, nx = image.shape
 
-    columns = np.concatenate([image[:, :m], image[:, m:nx - m].sum(axis=1, keepdims=True),
+    columns = np.concatenate([image[:, :m],
+                              image[:, m:nx - m].sum(axis=1, keepdims=True, dtype=np.float64),
                               image[:, nx - m:]], axis=1)
     return np.concatenate([columns[:m], columns[m:ny - m].sum(axis=0, keepdims=True),
                            columns[ny - m:]], axis=0)
@@ -479,6 +489,17 @@ def _image_and_name(flat, default):
     return np.asarray(flat, dtype=np.float64), default, np.nan
 
 
+def _difference(image1, image2, factor1, factor2, dtype, rows=128):
+    """``factor1 * image1 - factor2 * image2`` in ``dtype``, computed in double precision a
+    band of ``rows`` rows at a time (no full-size double temporaries)."""
+    diff = np.empty(image1.shape, dtype=dtype)
+    for start in range(0, image1.shape[0], rows):
+        band = slice(start, start + rows)
+        np.subtract(image1[band] * factor1, image2[band] * factor2, out=diff[band],
+                    casting="same_kind")
+    return diff
+
+
 def pair_covariance(flat1, flat2=None, *, mask=None, maxlag=8, clip_nsigma=4.0,
                     precision="single"):
     """Mean, variance and covariances of one flat pair (G15 section 4.2).
@@ -511,7 +532,8 @@ def pair_covariance(flat1, flat2=None, *, mask=None, maxlag=8, clip_nsigma=4.0,
         Clipping threshold of the difference, sigma (at least 2); None for no clipping.
         Default 4.
     precision : {'single', 'double'}, optional
-        FFT precision, see `covariance_map`. Default 'single'.
+        Precision of the difference image and of its FFT, see `covariance_map` (the means and
+        every sum are in double precision). Default 'single'.
 
     Returns
     -------
@@ -558,15 +580,17 @@ def pair_covariance(flat1, flat2=None, *, mask=None, maxlag=8, clip_nsigma=4.0,
     sum2 = total2 - image2.flat[bad_index].sum()
     mean1, mean2 = sum1 / ngood, sum2 / ngood
     mean = 0.5 * (mean1 + mean2)
+    if precision not in _PRECISIONS:
+        msg = f"precision must be 'single' or 'double', got {precision!r}"
+        raise BFPSFValueError(msg, precision)
     if min(mean1, mean2) > 0 and max(mean1, mean2) < 1.5 * min(mean1, mean2):
-        diff = image1 * (mean2 / mean)
-        diff -= image2 * (mean1 / mean)
+        diff = _difference(image1, image2, mean2 / mean, mean1 / mean, _PRECISIONS[precision])
         diff.flat[bad_index] = 0.0  # its good pixels average to zero (up to rounding)
     else:
         # not a flat pair (e.g. bias frames, means ~ 0): the plain difference, centred
-        diff = image1 - image2
+        diff = _difference(image1, image2, 1.0, 1.0, _PRECISIONS[precision])
         diff.flat[bad_index] = 0.0
-        diff -= diff.sum() / ngood
+        diff -= diff.sum(dtype=np.float64) / ngood
         diff.flat[bad_index] = 0.0
 
     n_clipped = 0

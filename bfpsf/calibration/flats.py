@@ -338,9 +338,17 @@ def _robust_sigma(values):
     return 1.4826 * float(np.median(np.abs(values - np.median(values))))
 
 
-def _tile_rows(ny, box):
-    """Row slices of the tile rows of an image with ``ny`` rows."""
-    return [slice(y0, min(y0 + box, ny)) for y0 in range(0, ny, box)]
+def _tile_moments(column_sums, column_squares, column_counts, starts):
+    """Mean and sigma of each tile of a row of tiles, from per-column sums of the values,
+    their squares and the pixel counts (NaN in a tile with fewer than two pixels)."""
+    count = np.add.reduceat(column_counts, starts).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.add.reduceat(column_sums, starts, dtype=np.float64) / count
+        square = np.add.reduceat(column_squares, starts, dtype=np.float64) / count
+        sigma = np.sqrt(np.maximum(square - mean**2, 0.0))
+    unusable = ~(count >= 2) | ~np.isfinite(mean)
+    mean[unusable] = sigma[unusable] = np.nan
+    return mean, sigma
 
 
 def _per_column(per_tile, box, nx):
@@ -348,44 +356,127 @@ def _per_column(per_tile, box, nx):
     return np.repeat(per_tile, box)[:nx].astype(np.float32)
 
 
-def _tile_statistics(image, good, box):
-    """Mean and sigma of the good pixels of each ``box x box`` tile, estimated twice (G15).
+def _band_tests(band, good, box, defect_nsigma, column_clip=5.0):
+    """The column sums and the high pixels of one row of ``box x box`` tiles of an image.
 
-    First over all good pixels of the tile, then over the good pixels within 2 sigma of that
-    first mean (G15 section 4.2.3, footnote). Works one row of tiles at a time, so the
-    temporaries stay small.
+    In each tile the mean and sigma of the good pixels are estimated twice (G15 section
+    4.2.3, footnote): over all of them, then over those within 2 sigma of that first mean.
+    With the second estimate, a good pixel is *high* when more than ``defect_nsigma`` sigma
+    above the mean, and the level of a column is the mean of its good pixels within
+    ``column_clip`` sigma of the mean (so a single defect does not move it).
+
+    Parameters
+    ----------
+    band : ndarray of float32, shape (rows, nx)
+        The tile row, less a constant offset (so that single precision sums over its rows
+        stay exact enough), zero at the bad pixels.
+    good : ndarray of bool or None
+        The good pixels of the band (None: all).
 
     Returns
     -------
-    mean, sigma : ndarray, shape (ntiles_y, ntiles_x)
-        NaN in a tile with fewer than two good pixels.
+    level_sums, level_counts : ndarray, shape (nx,)
+        Sum (in the units of ``band``) and number of the pixels of each column that enter
+        its level.
+    high : ndarray of int
+        Flat indices of the high pixels in the band, increasing.
     """
-    ny, nx = image.shape
+    rows, nx = band.shape
     starts = np.arange(0, nx, box)
-    rows = _tile_rows(ny, box)
-    mean = np.full((len(rows), starts.size), np.nan)
-    sigma = np.full((len(rows), starts.size), np.nan)
-    for row, band in enumerate(rows):
-        values = image[band]
-        kept = good[band].copy()
-        for iteration in range(2):
-            if iteration:
-                centre = _per_column(tile_mean, box, nx)
-                width = _per_column(2.0 * tile_sigma, box, nx)
-                with np.errstate(invalid="ignore"):
-                    kept &= np.abs(values - centre) <= width
-            masked = np.where(kept, values, np.float32(0.0))
-            count = np.add.reduceat(np.count_nonzero(kept, axis=0), starts)
-            total = np.add.reduceat(masked.sum(axis=0, dtype=np.float64), starts)
-            square = np.add.reduceat(np.einsum("ij,ij->j", masked, masked, dtype=np.float64),
-                                     starts)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                tile_mean = total / count
-                tile_sigma = np.sqrt(np.maximum(square / count - tile_mean**2, 0.0))
-            unusable = count < 2
-            tile_mean[unusable] = tile_sigma[unusable] = np.nan
-        mean[row], sigma[row] = tile_mean, tile_sigma
-    return mean, sigma
+    # first estimate: every good pixel (the bad ones are zero and add nothing)
+    column_sums = band.sum(axis=0)
+    counts = np.full(nx, rows) if good is None else good.sum(axis=0, dtype=np.int32)
+    mean, sigma = _tile_moments(column_sums, np.einsum("ij,ij->j", band, band), counts, starts)
+    # second estimate: the good pixels within 2 sigma of the first mean, centred on it
+    centre = _per_column(mean, box, nx)
+    offset = band - centre
+    kept = np.abs(offset) <= _per_column(2.0 * sigma, box, nx)
+    if good is not None:
+        kept &= good
+    masked = offset * kept
+    count_type = np.uint16 if rows < 2**16 else np.int64
+    offset_mean, sigma = _tile_moments(masked.sum(axis=0), np.einsum("ij,ij->j", masked, masked),
+                                       kept.view(np.uint8).sum(axis=0, dtype=count_type), starts)
+    # the tests, with the second estimate, on the offsets from the first mean
+    shift = _per_column(offset_mean, box, nx)  # second mean less the first
+    width = _per_column(sigma, box, nx)
+    is_high = offset > shift + defect_nsigma * width
+    below = offset < shift - column_clip * width
+    if good is not None:
+        is_high &= good
+        below &= good
+    high = np.flatnonzero(is_high)
+    # the column levels: the first pass's sums less the few pixels beyond column_clip sigma
+    above_limit = shift + column_clip * width
+    if column_clip >= defect_nsigma:  # those above are high pixels: look among them
+        above = high[offset.ravel()[high] > above_limit[high % nx]]
+    else:
+        above = np.flatnonzero((offset > above_limit) & (True if good is None else good))
+    index = np.concatenate([above, np.flatnonzero(below) if below.any() else
+                            np.empty(0, dtype=np.intp)])
+    column = index % nx
+    usable = np.isfinite(centre) & np.isfinite(shift) & np.isfinite(width)
+    level_sums = np.where(usable, column_sums - np.bincount(
+        column, weights=band.ravel()[index], minlength=nx), 0.0)
+    level_counts = np.where(usable, counts - np.bincount(column, minlength=nx), 0)
+    return level_sums, level_counts, high
+
+
+def _image_tests(image1, image2, bad, box, defect_nsigma, totals=None):
+    """Column levels and high pixels (`_band_tests`) of two flats and of their difference,
+    one row of tiles at a time.
+
+    The second flat is scaled to the first's mean in the difference (for a pair that is not a
+    flat, means not both positive within a factor 1.5 of each other, e.g. bias frames, the
+    plain difference is taken). ``totals``: the sums of the two images, when known and
+    ``bad`` is None.
+
+    Returns
+    -------
+    levels : list of three ndarray, shape (nx,)
+        Column levels of flat 1, flat 2 and the difference, less their means (NaN for a
+        column without good pixels within the clip).
+    high : list of three ndarray of int
+        Flat indices of their high pixels.
+
+    Notes
+    -----
+    The tests run in single precision on each image less its mean, the sums in single
+    precision over the rows of a tile and in double precision across tiles and tile rows.
+    """
+    ny, nx = image1.shape
+    if bad is None:
+        totals = totals or [image.sum(dtype=np.float64) for image in (image1, image2)]
+        means = [total / image1.size for total in totals]
+    else:
+        means = [image.sum(dtype=np.float64, where=~bad) / np.count_nonzero(~bad)
+                 for image in (image1, image2)]
+    flat_pair = min(means) > 0 and max(means) < 1.5 * min(means)
+    scale = np.float32(means[0] / means[1] if flat_pair else 1.0)
+    level_sums = np.zeros((3, nx))
+    level_counts = np.zeros((3, nx))
+    high = [[], [], []]
+    for y0 in range(0, ny, box):
+        rows = slice(y0, y0 + box)
+        good = None if bad is None or not bad[rows].any() else ~bad[rows]
+        bands = []
+        for image, mean in zip((image1, image2), means):
+            band = np.empty(image[rows].shape, dtype=np.float32)
+            with np.errstate(over="ignore", invalid="ignore"):  # non-finite pixels are bad
+                np.subtract(image[rows], mean, out=band, casting="same_kind")
+            if good is not None:
+                band[~good] = 0.0
+            bands.append(band)
+        # the difference's offset, mean1 - scale * mean2, is zero for a flat pair
+        bands.append(bands[0] - scale * bands[1])
+        for number, band in enumerate(bands):
+            sums, counts, band_high = _band_tests(band, good, box, defect_nsigma)
+            level_sums[number] += sums
+            level_counts[number] += counts
+            high[number].append(band_high + y0 * nx)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        levels = np.where(level_counts > 0, level_sums / level_counts, np.nan)
+    return list(levels), [np.concatenate(parts) for parts in high]
 
 
 def _neighbour_median(values, window):
@@ -400,36 +491,6 @@ def _neighbour_median(values, window):
     windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)
     neighbours = np.delete(windows, half, axis=1)
     return np.median(neighbours, axis=1) + trend
-
-
-def _scan(image, good, mean, sigma, box, defect_nsigma, column_clip=5.0):
-    """One pass over the tile rows of an image for the column and defect tests.
-
-    Returns
-    -------
-    levels : ndarray, shape (nx,)
-        Mean of the good pixels of each column within ``column_clip`` local sigma of the local
-        mean (so a single defect does not move it); NaN for a column without such pixels.
-    high : ndarray of bool, shape (ny, nx)
-        Good pixels more than ``defect_nsigma`` local sigma above the local mean.
-    """
-    ny, nx = image.shape
-    sums = np.zeros(nx)
-    counts = np.zeros(nx, dtype=np.int64)
-    high = np.zeros((ny, nx), dtype=bool)
-    for row, band in enumerate(_tile_rows(ny, box)):
-        values = image[band]
-        centre = _per_column(mean[row], box, nx)
-        width = _per_column(sigma[row], box, nx)
-        deviation = values - centre
-        with np.errstate(invalid="ignore"):
-            kept = good[band] & (np.abs(deviation) <= column_clip * width)
-            high[band] = good[band] & (deviation > defect_nsigma * width)
-        sums += np.where(kept, values, np.float32(0.0)).sum(axis=0, dtype=np.float64)
-        counts += np.count_nonzero(kept, axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        levels = np.where(counts > 0, sums / counts, np.nan)
-    return levels, high
 
 
 def _bad_columns(levels, nsigma, window=31):
@@ -451,20 +512,28 @@ def _bad_columns(levels, nsigma, window=31):
         return usable & (np.abs(residual) > nsigma * sigma)
 
 
-def _clustered(high):
+def _clustered(highs, shape):
     """G15 section 4.2.3: the high pixels with more than two high pixels among their eight
-    neighbours (high pixels are few, so their neighbours are looked up directly)."""
-    ny, nx = high.shape
-    y, x = np.divmod(np.flatnonzero(high), nx)
-    neighbours = np.zeros(y.size, dtype=np.int8)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            if dy or dx:
-                yy, xx = y + dy, x + dx
-                inside = (yy >= 0) & (yy < ny) & (xx >= 0) & (xx < nx)
-                neighbours[inside] += high[yy[inside], xx[inside]]
-    clustered = np.zeros((ny, nx), dtype=bool)
-    clustered[y[neighbours > 2], x[neighbours > 2]] = True
+    neighbours, in each image of a list (``highs``: flat indices of the high pixels of images
+    of ``shape``). High pixels are few, so their neighbours are looked up directly in one
+    image padded by one pixel, cleared between images.
+
+    Returns the flat indices of the clustered pixels of each image.
+    """
+    ny, nx = shape
+    padded = np.zeros((ny + 2) * (nx + 2), dtype=np.int8)
+    clustered = []
+    for high in highs:
+        y, x = np.divmod(high, nx)
+        padded_index = (y + 1) * (nx + 2) + (x + 1)
+        padded[padded_index] = 1
+        neighbours = np.zeros(high.size, dtype=np.int8)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dy or dx:
+                    neighbours += padded[padded_index + dy * (nx + 2) + dx]
+        padded[padded_index] = 0
+        clustered.append(high[neighbours > 2])
     return clustered
 
 
@@ -525,7 +594,8 @@ def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma
         msg = f"defect_box must be at least 3 pixels, got {defect_box}"
         raise BFPSFValueError(msg, defect_box)
 
-    if np.isfinite(image1.sum()) and np.isfinite(image2.sum()):
+    totals = [image1.sum(dtype=np.float64), image2.sum(dtype=np.float64)]
+    if np.isfinite(totals).all():
         nonfinite = np.zeros(image1.shape, dtype=bool)
     else:
         nonfinite = ~(np.isfinite(image1) & np.isfinite(image2))
@@ -543,24 +613,12 @@ def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma
     if not good.any():
         msg = "every pixel of the pair is non-finite or saturated"
         raise BFPSFInputError(msg)
-    image1 = image1.astype(np.float32)  # thresholds only: single precision is plenty
-    image2 = image2.astype(np.float32)
-    mean1 = image1.sum(dtype=np.float64, where=good) / np.count_nonzero(good)
-    mean2 = image2.sum(dtype=np.float64, where=good) / np.count_nonzero(good)
-    flat_pair = min(mean1, mean2) > 0 and max(mean1, mean2) < 1.5 * min(mean1, mean2)
-    scale = mean1 / mean2 if flat_pair else 1.0  # bias-like pairs: the plain difference
-    with np.errstate(invalid="ignore"):
-        difference = image2 * np.float32(-scale)
-        difference += image1
-
     box = int(defect_box)
+    bad = mask if mask.any() else None
     bad_columns = np.zeros(image1.shape[1], dtype=bool)
-    high = []
-    for image in (image1, image2, difference):
-        mean, sigma = _tile_statistics(image, good, box)
-        levels, image_high = _scan(image, good, mean, sigma, box, defect_nsigma)
-        bad_columns |= _bad_columns(levels, column_nsigma)
-        high.append(image_high)
+    levels, high = _image_tests(image1, image2, bad, box, defect_nsigma, totals)
+    for image_levels in levels:
+        bad_columns |= _bad_columns(image_levels, column_nsigma)
     columns = np.zeros_like(mask)
     columns[:, bad_columns] = True
     if bad_columns.any():
@@ -569,9 +627,10 @@ def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma
     mask |= columns
     # the defect test runs on the pixels that the column test left
     defects = np.zeros_like(mask)
-    for image_high in high:
-        image_high[:, bad_columns] = False
-        defects |= _clustered(image_high)
+    nx = image1.shape[1]
+    high = [image_high[~bad_columns[image_high % nx]] for image_high in high]
+    for clustered in _clustered(high, image1.shape):
+        defects.ravel()[clustered] = True
     mask |= defects
 
     report = MaskReport(nonfinite=int(nonfinite.sum()), saturated=int(saturated.sum()),

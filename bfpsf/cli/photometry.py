@@ -57,11 +57,12 @@ def add_parser(subparsers):
 
 def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, static):
     """Gain (e-/ADU) and PSF model of one amplifier: with a calibration, its gain (unless
-    --gain) and P0 with that amplifier's boundary shifts; else the PSF product's."""
+    --gain) and P0 with that amplifier's boundary shifts; else the PSF product's, with the
+    amplifier's own shifts where the product has them (`FluxDependentPSF.for_amplifier`)."""
     from ..calibration.product import calibration_of_amplifier
     from ..interop.photutils import static_image_psf
 
-    model = psf
+    model = psf.for_amplifier(amplifier.name) if hasattr(psf, "for_amplifier") else psf
     if calibration is not None:
         one = calibration_of_amplifier(calibration, amplifier.name, str(path))
         gain = one.gain if gain_option is None else float(gain_option)

@@ -62,24 +62,22 @@ def add_parser(subparsers):
 
 
 def _star_weighted(used):
-    """Shifts, gain, read noise and shift samples (`PREDICTION_SAMPLES` at most) of the
-    amplifiers the stars came from: those of the one calibration, or for several amplifiers
-    their averages weighted by the number of stars (the P0 fit takes one set of shifts;
-    photometry with --calib applies each amplifier's). Sample i of the average is the
-    weighted average of the amplifiers' samples i (none unless every amplifier has some)."""
+    """Gain, read noise and shift samples (`PREDICTION_SAMPLES` at most) of the amplifiers
+    the stars came from: those of the one calibration, or for several amplifiers their
+    averages weighted by the number of stars (the P0 fit applies each amplifier's own shifts
+    to its stars; the product keeps them all). Sample i of the average is the weighted
+    average of the amplifiers' samples i (none unless every amplifier has some)."""
     from ..shifts import BoundaryShifts
 
     calibrations = {id(one): one for one, _ in used}
     if len(calibrations) == 1:
         one = used[0][0]
-        return (one.shifts, float(one.gain), float(one.noise_e),
+        return (float(one.gain), float(one.noise_e),
                 tuple(one.shift_samples(limit=PREDICTION_SAMPLES)))
     weights = np.array([count for _, count in used], dtype=float)
     if weights.sum() == 0:
         weights[:] = 1.0
     weights /= weights.sum()
-    north = sum(weight * one.shifts.north for (one, _), weight in zip(used, weights))
-    east = sum(weight * one.shifts.east for (one, _), weight in zip(used, weights))
     gain = float(sum(weight * one.gain for (one, _), weight in zip(used, weights)))
     noise = float(sum(weight * one.noise_e for (one, _), weight in zip(used, weights)))
     per_entry = [one.shift_samples(limit=PREDICTION_SAMPLES) for one, _ in used]
@@ -89,7 +87,7 @@ def _star_weighted(used):
                        sum(weight * entry[i].east for entry, weight in zip(per_entry, weights)),
                        check=False)
         for i in range(count))
-    return BoundaryShifts(north, east, check=False), gain, noise, samples
+    return gain, noise, samples
 
 
 def run(args):
@@ -147,9 +145,11 @@ def run(args):
                               "n_detected": int(n_detected), "n_isolated": int(len(xy)),
                               "n_amp_boundary": int(np.sum(boundary)),
                               "background_e": float(background)})
-    shifts, gain, noise, samples = _star_weighted(used)
+    gain, noise, samples = _star_weighted(used)
     buildup = refinement.get("buildup_steps")
-    result = fit_psf(images, positions, shifts, oversampling=args.oversampling,
+    # each star gets the BF term of its amplifier's shifts
+    result = fit_psf(images, positions, [one.shifts for one, _ in used],
+                     oversampling=args.oversampling,
                      size=args.size, read_noise=noise,
                      sky_e=skies, include_bf=args.include_bf,
                      max_iterations=args.max_iterations, flux_unit="electron", gain=gain,
@@ -158,6 +158,10 @@ def run(args):
     psf = result.psf
     psf.calibration = Path(args.calib).name
     psf.shift_samples = samples
+    amplifier_shifts = {entry["amplifier"]: one.shifts
+                        for entry, (one, _) in zip(per_image, used)}
+    if len(amplifier_shifts) > 1:
+        psf.amplifier_shifts = amplifier_shifts
     psf.write(args.output, meta={"NSTARS": int(np.sum(result.stars["flags"] == 0)),
                                  "CONVERGD": bool(result.converged),
                                  "BFTERM": bool(args.include_bf)},

@@ -14,8 +14,16 @@ Each amplifier HDU may carry IRAF-style sections, 1-based and inclusive, ``[x1:x
   the overscan columns of each row, or the sigma-clipped mean) and subtracted from the row
   before trimming (requires DATASEC);
 * ``DETSEC``: where the trimmed pixels sit on the detector, so that a star can be assigned to
-  the amplifier it falls on. A reversed range (x1 > x2) says the amplifier is read out in the
-  other direction; it is kept in `Amplifier.flip_x` / `flip_y`.
+  the amplifier it falls on. A reversed range (x1 > x2, or y1 > y2) says the amplifier is read
+  out in the other direction: its trimmed pixels are flipped into detector orientation (as
+  IRAF and LSST assembly do; the section keeps ``flip_x`` / ``flip_y``), so every amplifier's
+  pixels, positions and sides are in detector orientation.
+
+Boundary shifts under a flip: a^X(dx, dy) is measured in readout orientation. Flipping x swaps
+the E and W boundaries and dx -> -dx; the G15 shifts are mirror-symmetric (a^N even in dx,
+a^W(dx, dy) = -a^E(-dx, dy), which `BoundaryShifts.west` builds), so the redistribution of the
+flipped image with the same shift arrays is the flip of the redistribution: the arrays are used
+unchanged (likewise for y, N and S). Tested in ``tests/test_amplifiers.py``.
 
 Header-only HDUs (an empty primary) and a ``CATALOG`` table (colours of simulated stars) are
 allowed; anything else the package cannot interpret (a cube, another table, several images
@@ -361,6 +369,11 @@ def read_amplifiers(path, amps=None, *, overscan="median", what="FITS file"):
 def _amplifier(layout, hdus, overscan):
     hdu = hdus[layout.hdu]
     data, level = _pixels(layout, hdu, overscan)
+    if layout.detsec is not None and layout.detsec.flip_x:
+        data = data[:, ::-1]  # readout order -> detector orientation
+    if layout.detsec is not None and layout.detsec.flip_y:
+        data = data[::-1]
+        level = None if level is None else level[::-1]
     header = hdu.header.copy()
     if "EXPTIME" not in header and "EXPTIME" in hdus[0].header:
         header["EXPTIME"] = hdus[0].header["EXPTIME"]
@@ -394,14 +407,15 @@ def shared_sides(layouts):
             theirs = other.detsec
             rows = box.y.start < theirs.y.stop and theirs.y.start < box.y.stop
             columns = box.x.start < theirs.x.stop and theirs.x.start < box.x.stop
+            # the pixels are in detector orientation (flips undone on reading)
             if rows and theirs.x.stop == box.x.start:
-                sides[layout.name].add("right" if box.flip_x else "left")
+                sides[layout.name].add("left")
             if rows and theirs.x.start == box.x.stop:
-                sides[layout.name].add("left" if box.flip_x else "right")
+                sides[layout.name].add("right")
             if columns and theirs.y.stop == box.y.start:
-                sides[layout.name].add("top" if box.flip_y else "bottom")
+                sides[layout.name].add("bottom")
             if columns and theirs.y.start == box.y.stop:
-                sides[layout.name].add("bottom" if box.flip_y else "top")
+                sides[layout.name].add("top")
     return sides
 
 
@@ -424,8 +438,8 @@ def near_shared_side(x, y, shape, sides, margin):
 
 def detector_offset(layout):
     """(x0, y0): add to the trimmed amplifier's pixel coordinates for detector coordinates
-    (0 without DETSEC; readout flips are not undone, the positions stay in the amplifier's
-    own pixel order)."""
+    (0 without DETSEC; the pixels of a reversed DETSEC are flipped into detector orientation
+    on reading, so this offset is all there is)."""
     if layout.detsec is None:
         return 0, 0
     return layout.detsec.x.start, layout.detsec.y.start

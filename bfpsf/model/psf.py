@@ -294,6 +294,9 @@ class FluxDependentPSF(Fittable2DModel):
         #: Shifts drawn from the calibration's uncertainty (`Calibration.shift_samples`):
         #: predictions made with this model propagate them (``bfpsf slope --psf``).
         self.shift_samples = tuple(shifts.shift_samples()) if hasattr(shifts, "shift_samples") else ()
+        #: Boundary shifts of each amplifier the model was fitted on, {EXTNAME: BoundaryShifts}
+        #: (``bfpsf psf`` on several amplifiers; empty otherwise): `for_amplifier`.
+        self.amplifier_shifts = {}
         x = np.arange(self.data.shape[1])
         y = np.arange(self.data.shape[0])
         self._base_spline = RectBivariateSpline(x, y, self.data.T, kx=3, ky=3, s=0)
@@ -413,6 +416,7 @@ class FluxDependentPSF(Fittable2DModel):
         new = self.__class__(self.data, self.shifts, **options)
         new.calibration = self.calibration
         new.shift_samples = self.shift_samples
+        new.amplifier_shifts = dict(self.amplifier_shifts)
         return new
 
     # -- shapes ----------------------------------------------------------------------------
@@ -461,6 +465,18 @@ class FluxDependentPSF(Fittable2DModel):
         new = self.__class__(self.data, shifts, density_profile=self.density_profile, **options)
         new.calibration = self.calibration
         return new
+
+    def for_amplifier(self, name):
+        """The model of the stars of amplifier ``name`` (EXTNAME): P0 with that amplifier's
+        boundary shifts (`with_shifts`) when the model has per-amplifier shifts
+        (``amplifier_shifts``, from ``bfpsf psf`` on several amplifiers), else this model."""
+        if not self.amplifier_shifts:
+            return self
+        if name not in self.amplifier_shifts:
+            msg = (f"the PSF has no boundary shifts for amplifier {name!r} (it has "
+                   f"{', '.join(sorted(self.amplifier_shifts))})")
+            raise BFPSFValueError(msg, name)
+        return self.with_shifts(self.amplifier_shifts[name])
 
     @property
     def half_size(self):

@@ -39,7 +39,7 @@ from astropy.table import Table
 from scipy.interpolate import make_interp_spline
 
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
-from ..shifts import as_shifts
+from ..shifts import BoundaryShifts, as_shifts
 from .gridded import GriddedFluxDependentPSF, bilinear_weights, grid_node_positions
 from .psf import FluxDependentPSF
 
@@ -216,14 +216,18 @@ def _project(rows, grid, columns):
 
 
 class _Grid:
-    """The node P0s being fitted, their node models, and each star's interpolation weights."""
+    """The node P0s being fitted, their node models for each set of shifts (one per
+    amplifier), and each star's interpolation weights and set of shifts."""
 
-    def __init__(self, data, x_nodes, y_nodes, shifts, oversampling, psf_kwargs):
+    def __init__(self, data, x_nodes, y_nodes, shift_sets, star_set, oversampling, psf_kwargs):
         self.data = data                    # (K, M, M)
         self.x_nodes, self.y_nodes = x_nodes, y_nodes
-        self.shifts, self.oversampling, self.psf_kwargs = shifts, oversampling, psf_kwargs
-        self.nodes = [FluxDependentPSF(node, shifts, oversampling=oversampling, **psf_kwargs)
-                      for node in data]
+        self.oversampling, self.psf_kwargs = oversampling, psf_kwargs
+        self.star_set = star_set            # (N,) index into shift_sets
+        self.set_nodes = [[FluxDependentPSF(node, shifts, oversampling=oversampling,
+                                            **psf_kwargs) for node in data]
+                          for shifts in shift_sets]
+        self.nodes = self.set_nodes[0]
         self.table = self.nodes[0].mode == "table"
 
     def per_star(self, cube, weights):
@@ -231,6 +235,13 @@ class _Grid:
         if len(cube) == 1:
             return cube
         return (weights @ cube.reshape(len(cube), -1)).reshape((-1,) + cube.shape[1:])
+
+    def star_tables(self, weights):
+        """Each star's BF table (its amplifier's shifts, its bilinear mix of the nodes)."""
+        cube = np.array([[node.bf_table for node in nodes] for nodes in self.set_nodes])
+        if len(cube) == 1:
+            return self.per_star(cube[0], weights)
+        return np.einsum("nk,nkab->nab", weights, cube[self.star_set])
 
 
 
@@ -250,7 +261,7 @@ def _exact_bf_terms(grid, weights, stars):
     for star in range(len(stars.data)):
         y, x = np.meshgrid(rows[star], columns[star], indexing="ij")
         flux, x_0, y_0 = stars.flux[star], stars.x_0[star], stars.y_0[star]
-        for node, weight in zip(grid.nodes, weights[star]):
+        for node, weight in zip(grid.set_nodes[grid.star_set[star]], weights[star]):
             if weight > 0:
                 terms[star] += weight * (node.evaluate(x, y, flux, x_0, y_0)
                                          - flux * node.evaluate_base(x - x_0, y - y_0))
@@ -269,7 +280,7 @@ def _star_models(grid, weights, stars, free_positions):
     base = _project(ys.matrix, p0, xs.matrix)
     flux = stars.flux[:, None, None]
     if grid.table:
-        tables = grid.per_star(np.array([node.bf_table for node in grid.nodes]), weights)
+        tables = grid.star_tables(weights)
         bf_unit = _project(ys.matrix, tables, xs.matrix)
         bf = flux * np.abs(flux) * bf_unit
         d_flux = base + 2 * np.abs(flux) * bf_unit
@@ -412,8 +423,11 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         the grid covers the image).
     positions : (N, 2) array_like of (x, y), or a sequence of them (one per image)
         Approximate star centres, pixels. Stars must be isolated within ``size`` pixels.
-    shifts : BoundaryShifts or Calibration
-        Boundary shifts a^X, 1/e- (G15 eq. def-a).
+    shifts : BoundaryShifts or Calibration, or a sequence of them (one per image)
+        Boundary shifts a^X, 1/e- (G15 eq. def-a). With one per image (e.g. the amplifiers of
+        a detector, each an image with its own calibration), each star's BF term uses the
+        shifts of its image; the returned model then carries their mean weighted by the
+        stars used (evaluate an amplifier with ``psf.with_shifts(its shifts)``).
     oversampling : int, optional
         Oversampling of P0. Default 2: with 144 noisy stars (peaks 3-120 ke-) it recovers
         the P0 size to 0.05 %; use 4 only with several hundred stars per node.
@@ -474,7 +488,6 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
     """
     from tqdm import tqdm
 
-    shifts = as_shifts(shifts)
     if psf_kwargs.get("flux_unit", "electron") != "electron":
         msg = (f"fit_psf works on images in e-: flux_unit must be 'electron', got "
                f"{psf_kwargs['flux_unit']!r} (convert the fitted model with with_flux_unit)")
@@ -501,9 +514,11 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
         n_usable = 0 if stars is None else len(stars.data)
         msg = f"need at least 3 usable stars to fit a PSF, got {n_usable} of {len(flags)}"
         raise BFPSFInputError(msg, n_usable)
+    shift_sets, image_set = _shift_sets(shifts, len(images))
     if not include_bf:
-        shifts = shifts.scaled(0.0)
-    star_images = image_index[flags == 0]
+        shift_sets = [shift_sets[0].scaled(0.0)]
+        image_set = np.zeros(len(images), dtype=int)
+    star_set = image_set[image_index[flags == 0]]
     node_indices, node_weights = bilinear_weights(stars.x_0, stars.y_0, x_nodes, y_nodes)
     dense_weights = _dense_weights(node_indices, node_weights, n_nodes)
 
@@ -527,7 +542,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
             raise BFPSFValueError(msg, data.shape)
         data = data.reshape((n_nodes,) + shape)
     data = np.array([_normalise(node, (over, over)) for node in data])
-    fitted = _Grid(data, x_nodes, y_nodes, shifts, over, psf_kwargs)
+    fitted = _Grid(data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs)
     fitted.cardinal = cardinal
     changes = []
     converged = False
@@ -561,7 +576,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
                            for new, old in zip(new_data, fitted.data)))
         changes.append(change)
         bar.set_postfix(change=f"{change:.2e}")
-        fitted = _Grid(new_data, x_nodes, y_nodes, shifts, over, psf_kwargs)
+        fitted = _Grid(new_data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs)
         fitted.cardinal = cardinal
         if free_positions:
             free_iterations += 1
@@ -575,18 +590,53 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=
                f"{changes[-1]:.3g} of the peak, tolerance {tolerance:.3g})")
         raise BFPSFConvergenceError(msg)
     fitted = _Grid(np.array([_recentred(node, over) for node in fitted.data]), x_nodes,
-                   y_nodes, shifts, over, psf_kwargs)
+                   y_nodes, shift_sets, star_set, over, psf_kwargs)
     fitted.cardinal = cardinal
     for _ in range(3):  # final positions and fluxes with the final P0
         stars.flags[:] = 0
         model, jacobian, _, _ = _star_models(fitted, dense_weights, stars, True)
         variance = np.clip(model, 0.0, None) + stars.floor[:, None, None]
         _gauss_newton(stars, model, jacobian, variance, usable)
+    if len(shift_sets) > 1:  # the model carries the mean of the stars' shifts
+        fitted = _Grid(fitted.data, x_nodes, y_nodes,
+                       [_mean_shifts(shift_sets, star_set[(stars.flags & 8) == 0])],
+                       np.zeros_like(star_set), over, psf_kwargs)
     psf = (fitted.nodes[0] if grid is None
            else GriddedFluxDependentPSF(fitted.nodes, x_nodes, y_nodes))
     return PSFFitResult(psf=psf, stars=_star_table(flags, image_index, positions, stars,
                                                    variance),
                         iterations=len(changes), converged=converged, changes=np.array(changes))
+
+
+def _shift_sets(shifts, n_images):
+    """The distinct sets of shifts and the set of each image (`fit_psf`'s ``shifts``)."""
+    if not isinstance(shifts, (list, tuple)):
+        return [as_shifts(shifts)], np.zeros(n_images, dtype=int)
+    if len(shifts) != n_images:
+        msg = f"got {len(shifts)} sets of shifts for {n_images} images (one per image, or one)"
+        raise BFPSFValueError(msg, len(shifts))
+    sets, image_set = [], []
+    for one in shifts:
+        one = as_shifts(one)
+        same = [index for index, known in enumerate(sets)
+                if known.radius == one.radius and np.array_equal(known.north, one.north)
+                and np.array_equal(known.east, one.east)]
+        if not same:
+            same = [len(sets)]
+            sets.append(one)
+        image_set.append(same[0])
+    return sets, np.array(image_set, dtype=int)
+
+
+def _mean_shifts(shift_sets, star_set):
+    """Mean of the shift sets weighted by their stars (every set alike when none)."""
+    counts = np.bincount(star_set, minlength=len(shift_sets)).astype(float)
+    weights = counts / counts.sum() if counts.sum() else np.full(len(shift_sets),
+                                                                 1.0 / len(shift_sets))
+    radius = max(one.radius for one in shift_sets)
+    padded = [one.padded(radius) for one in shift_sets]
+    return BoundaryShifts(sum(w * one.north for w, one in zip(weights, padded)),
+                          sum(w * one.east for w, one in zip(weights, padded)), check=False)
 
 
 def _grid_nodes(grid, images):
