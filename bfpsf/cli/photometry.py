@@ -26,7 +26,9 @@ def add_parser(subparsers):
                         help="fit only this amplifier (EXTNAME); repeatable")
     parser.add_argument("--calib", metavar="CALIB.fits",
                         help="per-amplifier gains and boundary shifts (needed for images of "
-                             "several amplifiers; default: the PSF product's)")
+                             "several amplifiers; default: the PSF product's), and the "
+                             "linearity correction of a calibration refined by "
+                             "'bfpsf diagnose --output-calib'")
     parser.add_argument("--psf", required=True, metavar="PSF.fits",
                         help="PSF product written by 'bfpsf psf'")
     parser.add_argument("-o", "--output", required=True, metavar="PHOT.ecsv",
@@ -56,19 +58,24 @@ def add_parser(subparsers):
 
 
 def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, static):
-    """Gain (e-/ADU) and PSF model of one amplifier: with a calibration, its gain (unless
-    --gain) and P0 with that amplifier's boundary shifts; else the PSF product's, with the
-    amplifier's own shifts where the product has them (`FluxDependentPSF.for_amplifier`)."""
+    """Gain (e-/ADU), PSF model and linearity correction of one amplifier: with a
+    calibration, its gain (unless --gain), P0 with that amplifier's boundary shifts and, for a
+    calibration refined by ``bfpsf diagnose --output-calib``, its linearity correction
+    (``linearity_c_per_1e5``, applied to the image on input as ``bfpsf psf`` does); else the
+    PSF product's, with the amplifier's own shifts where the product has them
+    (`FluxDependentPSF.for_amplifier`) and no correction."""
     from ..calibration.product import calibration_of_amplifier
     from ..interop.photutils import static_image_psf
 
     model = psf.for_amplifier(amplifier.name) if hasattr(psf, "for_amplifier") else psf
+    linearity_c = 0.0
     if calibration is not None:
         one = calibration_of_amplifier(calibration, amplifier.name, str(path))
         gain = one.gain if gain_option is None else float(gain_option)
         if one.shifts is not None and one.shifts is not psf.shifts:
             model = psf.with_shifts(one.shifts)
-    return float(gain), (static_image_psf(model) if static else model)
+        linearity_c = float(one.refinement.get("linearity_c_per_1e5") or 0.0)
+    return float(gain), (static_image_psf(model) if static else model), linearity_c
 
 
 def run(args):
@@ -101,9 +108,14 @@ def run(args):
             raise BFPSFInputError(msg, args.psf)
         sides = shared_sides([amplifier.layout for amplifier in amplifiers])
         for amplifier in amplifiers:
-            amp_gain, model = _amplifier_model(psf, gain, calibration, amplifier, path,
-                                               args.gain, args.static)
-            table = psf_photometry(amplifier.data * amp_gain, model,
+            amp_gain, model, linearity_c = _amplifier_model(psf, gain, calibration, amplifier,
+                                                            path, args.gain, args.static)
+            image_e = amplifier.data * amp_gain
+            if linearity_c:
+                from ..diagnosis.refine import linearise
+
+                image_e = linearise(image_e, linearity_c)
+            table = psf_photometry(image_e, model,
                                    read_noise_e=args.read_noise, fit_shape=args.fit_shape,
                                    background_e=(None if args.background is None
                                                  else args.background * amp_gain),
@@ -117,7 +129,8 @@ def run(args):
             table.add_column(str(path), name="image", index=0)
             tables.append(table)
             per_image.append({"image": str(path), "amplifier": amplifier.name,
-                              "gain": amp_gain, "n_stars": len(table),
+                              "gain": amp_gain, "linearity_c_per_1e5": linearity_c,
+                              "n_stars": len(table),
                               "n_flagged": int(np.sum(table["flags"] != 0)),
                               "n_amp_boundary": int(np.sum(table["amp_boundary"])),
                               "background_e": table.meta["background_e"],
