@@ -219,3 +219,28 @@ def test_cli_psf_grid(varying_field, tmp_path):
     widths = summary["grid"]["fwhm_pixels"]
     assert widths[0] < widths[1] < widths[2]
     assert isinstance(FluxDependentPSF.read(tmp_path / "psf.fits"), GriddedFluxDependentPSF)
+
+
+def test_gridded_model_of_each_amplifier(fits, tmp_path):
+    """Per-amplifier shifts on a grid: `for_amplifier` gives every node that amplifier's
+    shifts (the model photometry uses for its stars), the product keeps them."""
+    psf = fits[0].psf.with_shifts(SHIFTS)  # new node models: the fixture's stay untouched
+    weak, strong = SHIFTS.scaled(0.6), SHIFTS.scaled(1.4)
+    assert psf.for_amplifier("C00") is psf  # no per-amplifier shifts: the model itself
+    psf.amplifier_shifts = {"C00": weak, "C01": strong}
+    one = psf.for_amplifier("C01")
+    assert all(node.shifts == strong for node in one.nodes)
+    assert one.amplifier_shifts == psf.amplifier_shifts
+    y, x = np.mgrid[60:80, 140:160]
+    star = (x, y, 8e5, 150.2, 70.1)
+    node_level = sum(weight * psf.nodes[k].with_shifts(strong).evaluate(*star)
+                     for k, weight in zip(*psf.weights(150.2, 70.1)))
+    np.testing.assert_allclose(one.evaluate(*star), node_level, rtol=1e-12, atol=1e-12)
+    # the BF term scales with the shifts: the strong amplifier's differs from the weak one's
+    assert not np.allclose(one.evaluate(*star), psf.for_amplifier("C00").evaluate(*star))
+    with pytest.raises(BFPSFValueError, match="no boundary shifts for amplifier 'C02'"):
+        psf.for_amplifier("C02")
+    psf.write(tmp_path / "amps.fits")
+    back = GriddedFluxDependentPSF.read(tmp_path / "amps.fits")
+    assert set(back.amplifier_shifts) == {"C00", "C01"}
+    assert back.amplifier_shifts["C01"] == strong

@@ -210,6 +210,30 @@ class GriddedFluxDependentPSF(Fittable2DModel):
         for node in self.nodes:
             node.shift_samples = tuple(samples)
 
+    @property
+    def amplifier_shifts(self):
+        """Boundary shifts of each amplifier the grid was fitted on (held by every node, so
+        shared with the copies, which share the nodes; empty for one amplifier), as
+        `FluxDependentPSF.amplifier_shifts`."""
+        return self.nodes[0].amplifier_shifts
+
+    @amplifier_shifts.setter
+    def amplifier_shifts(self, shifts):
+        for node in self.nodes:
+            node.amplifier_shifts = dict(shifts)
+
+    def with_shifts(self, shifts):
+        """The same node P0s and options with other boundary shifts (every node's
+        `FluxDependentPSF.with_shifts`); the per-amplifier shifts are kept."""
+        new = self.__class__([node.with_shifts(shifts) for node in self.nodes], self.x_nodes,
+                             self.y_nodes)
+        new.calibration = self.calibration
+        new.amplifier_shifts = self.amplifier_shifts
+        return new
+
+    # the stars of one amplifier: with_shifts of that amplifier's shifts (the same generic code)
+    for_amplifier = FluxDependentPSF.for_amplifier
+
     # -- astropy model interface -------------------------------------------------------------
     # the parameter values copied, the node models shared (as FluxDependentPSF shares arrays)
     copy = FluxDependentPSF.copy
