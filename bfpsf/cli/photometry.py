@@ -58,30 +58,29 @@ def add_parser(subparsers):
 
 
 def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, static):
-    """Gain (e-/ADU), PSF model and linearity correction of one amplifier: with a
-    calibration, its gain (unless --gain), P0 with that amplifier's boundary shifts and, for a
-    calibration refined by ``bfpsf diagnose --output-calib``, its linearity correction
-    (``linearity_c_per_1e5``, applied to the image on input as ``bfpsf psf`` does); else the
-    PSF product's, with the amplifier's own shifts where the product has them
-    (`FluxDependentPSF.for_amplifier`) and no correction."""
+    """Gain (e-/ADU), PSF model and calibration of one amplifier: with a calibration, its
+    gain (unless --gain), P0 with that amplifier's boundary shifts, and the amplifier's
+    calibration (whose refined linearity correction is undone on input, as ``bfpsf psf``
+    does); else the PSF product's, with the amplifier's own shifts where the product has them
+    (`FluxDependentPSF.for_amplifier`), and None."""
     from ..calibration.product import calibration_of_amplifier
     from ..interop.photutils import static_image_psf
 
-    model = psf.for_amplifier(amplifier.name) if hasattr(psf, "for_amplifier") else psf
-    linearity_c = 0.0
+    model = psf.for_amplifier(amplifier.name)
+    one = None
     if calibration is not None:
         one = calibration_of_amplifier(calibration, amplifier.name, str(path))
         gain = one.gain if gain_option is None else float(gain_option)
         if one.shifts is not None and one.shifts is not psf.shifts:
             model = psf.with_shifts(one.shifts)
-        linearity_c = float(one.refinement.get("linearity_c_per_1e5") or 0.0)
-    return float(gain), (static_image_psf(model) if static else model), linearity_c
+    return float(gain), (static_image_psf(model) if static else model), one
 
 
 def run(args):
     from astropy.table import vstack
 
     from ..calibration.product import read_calibration
+    from ..diagnosis.refine import undo_refined_linearity
     from ..errors import BFPSFInputError
     from ..io.amplifiers import shared_sides
     from ..measure.photometry import psf_photometry
@@ -108,13 +107,11 @@ def run(args):
             raise BFPSFInputError(msg, args.psf)
         sides = shared_sides([amplifier.layout for amplifier in amplifiers])
         for amplifier in amplifiers:
-            amp_gain, model, linearity_c = _amplifier_model(psf, gain, calibration, amplifier,
-                                                            path, args.gain, args.static)
-            image_e = amplifier.data * amp_gain
-            if linearity_c:
-                from ..diagnosis.refine import linearise
-
-                image_e = linearise(image_e, linearity_c)
+            amp_gain, model, one = _amplifier_model(psf, gain, calibration, amplifier, path,
+                                                    args.gain, args.static)
+            image_e, linearity_c = amplifier.data * amp_gain, 0.0
+            if one is not None:
+                image_e, linearity_c = undo_refined_linearity(image_e, one)
             table = psf_photometry(image_e, model,
                                    read_noise_e=args.read_noise, fit_shape=args.fit_shape,
                                    background_e=(None if args.background is None

@@ -14,6 +14,7 @@ import numpy as np
 from ..errors import BFPSFInputError
 from ..files import check_outputs, refuse_duplicates, write_json
 from ..measure.sources import DETECTION_THRESHOLD, isolated_stars
+from ..model.psf_fit import DEFAULT_SIZE
 from ._files import read_image
 
 
@@ -38,7 +39,7 @@ def add_parser(subparsers):
                         help="PSF product to write (FITS)")
     parser.add_argument("--oversampling", type=int, default=2,
                         help="oversampling of P0 (default 2; 4 needs several hundred stars)")
-    parser.add_argument("--size", type=int, default=25,
+    parser.add_argument("--size", type=int, default=DEFAULT_SIZE,
                         help="support of P0 and star cutouts, pixels, odd (default 25)")
     parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
@@ -94,6 +95,7 @@ def run(args):
     from astropy.stats import sigma_clipped_stats
 
     from ..calibration.product import calibration_of_amplifier, read_calibration
+    from ..diagnosis.refine import undo_refined_linearity
     from ..io.amplifiers import near_shared_side, shared_sides
     from ..model.psf_fit import fit_psf
 
@@ -118,11 +120,7 @@ def run(args):
             # a calibration refined by `bfpsf diagnose --output-calib`: its linearity
             # correction on input and its build-up (the shifts are already refined)
             refinement.update(one.refinement)
-            linearity_c = float(one.refinement.get("linearity_c_per_1e5") or 0.0)
-            if linearity_c:
-                from ..diagnosis.refine import linearise
-
-                image_e = linearise(image_e, linearity_c)
+            image_e, _ = undo_refined_linearity(image_e, one)
             if args.background is None:
                 _, background, _ = sigma_clipped_stats(image_e[np.isfinite(image_e)],
                                                        sigma=3.0)

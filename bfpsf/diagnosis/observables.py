@@ -487,10 +487,6 @@ def interleaved(n, fraction):
     return np.floor((index + 1) * fraction) > np.floor(index * fraction)
 
 
-#: Side of P0's support and of the star cutouts in the loop's P0 fit (`bfpsf psf`'s default).
-PSF_SIZE = 25
-
-
 def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=10, gain=None,
                             calibration=None, fit_b=True, amp=None, holdout_fraction=0.5,
                             n_monte_carlo=30, background=None, progress=False):
@@ -524,7 +520,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     from ..calibration.product import Calibration
     from ..io.amplifiers import read_amplifiers
     from ..measure.sources import isolated_stars, measure_sources
-    from ..model.psf_fit import fit_psf
+    from ..model.psf_fit import DEFAULT_SIZE, fit_psf
     from .star_residual import stacked_star_residual
 
     cal = calibration or calibrate(list(flats), maxlag=maxlag, n_monte_carlo=n_monte_carlo,
@@ -569,12 +565,12 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     fitted = np.unique(sizes.exposure)
     if holdout_fraction and fitted.size >= 2:
         fitted = fitted[~interleaved(fitted.size, holdout_fraction)]
-    stars = [isolated_stars(pixels[index], PSF_SIZE)[0] for index in fitted]
+    stars = [isolated_stars(pixels[index], DEFAULT_SIZE)[0] for index in fitted]
     if sum(len(xy) for xy in stars) < 10:
         msg = (f"only {sum(len(xy) for xy in stars)} isolated stars in the fitted exposures: "
                "too few to fit P0")
         raise BFPSFInputError(msg)
-    fit = fit_psf([pixels[index] for index in fitted], stars, cal.shifts, size=PSF_SIZE,
+    fit = fit_psf([pixels[index] for index in fitted], stars, cal.shifts,
                   read_noise=float(cal.noise_e), flux_unit="electron", gain=float(gain),
                   progress=progress)
     psf = fit.psf

@@ -31,7 +31,7 @@ from .catalogue import add_shifts, quadrupole_shifts
 from .loop import json_ready
 from .spot_model import FLUX_SCALE
 
-__all__ = ["refine_calibration", "linearise", "BUILDUP_STEPS"]
+__all__ = ["refine_calibration", "linearise", "undo_refined_linearity", "BUILDUP_STEPS"]
 
 #: Build-up steps the PSF integrates when the loop found a second-order term.
 BUILDUP_STEPS = 16
@@ -74,6 +74,26 @@ def linearise(image_e, c_per_1e5):
         raise BFPSFValueError(msg, c_per_1e5)
     # 2 v / (1 + sqrt(1 + 4 k v)): the stable form of (-1 + sqrt(1 + 4 k v)) / (2 k)
     return 2.0 * image / (1.0 + np.sqrt(discriminant))
+
+
+def undo_refined_linearity(image_e, calibration):
+    """The image with the linearity correction of a refined calibration undone on input
+    (`linearise`), and that correction c per 1e5 e- (0 and the image itself when the
+    calibration holds none): what ``bfpsf psf`` and ``bfpsf photometry`` apply.
+
+    Parameters
+    ----------
+    image_e : ndarray
+        Measured values, e-.
+    calibration : Calibration
+        One amplifier's calibration (``refinement['linearity_c_per_1e5']``).
+
+    Returns
+    -------
+    (ndarray, float)
+    """
+    c = float(calibration.refinement.get("linearity_c_per_1e5") or 0.0)
+    return (linearise(image_e, c) if c else image_e), c
 
 
 def refine_calibration(calibration, result, *, provenance=None):

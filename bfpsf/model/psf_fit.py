@@ -43,7 +43,10 @@ from ..shifts import BoundaryShifts, as_shifts
 from .gridded import GriddedFluxDependentPSF, bilinear_weights, grid_node_positions
 from .psf import FluxDependentPSF
 
-__all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS"]
+__all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS", "DEFAULT_SIZE"]
+
+#: Default side of P0's support and of the star cutouts, pixels (``bfpsf psf --size``).
+DEFAULT_SIZE = 25
 
 #: Per-star flags of `fit_psf` (bit values).
 STAR_FLAGS = {
@@ -409,7 +412,7 @@ def _recentred(data, oversampling):
     return _normalise(shifted, (oversampling, oversampling))
 
 
-def fit_psf(images_e, positions, shifts, *, oversampling=2, size=25, read_noise=0.0,
+def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, read_noise=0.0,
             sky_e=0.0, include_bf=True, grid=None, initial=None, hold_positions=5,
             damping=1.0, max_iterations=40, tolerance=3e-4, strict=False, progress=False,
             **psf_kwargs):
