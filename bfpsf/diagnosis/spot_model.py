@@ -239,8 +239,3 @@ class SpotForwardModel:
         self._cache[key] = value
         return value
 
-    def sizes_without_bf(self):
-        """(sigma_x, sigma_y) of the unit spot without redistribution, pixels."""
-        zero = self.shifts.scaled(0.0)
-        return self.sizes([self.peak_fraction], shifts=zero)
-
