@@ -225,3 +225,18 @@ def test_photometry_carries_the_blend_flags_of_the_detection():
     near_pair = np.hypot(result["x_fit"] - 92.7, result["y_fit"] - 41.5) < 6
     assert near_pair.sum() >= 1 and np.all(blended[near_pair])
     assert not blended[~near_pair].any()
+
+
+@pytest.mark.parametrize("command", ["psf", "photometry", "diagnose"])
+def test_background_must_be_finite(command, capsys):
+    """--background nan or inf is refused before any work, in one line (argparse's exit 2)."""
+    arguments = {"psf": ["x.fits", "--calib", "c.fits", "-o", "p.fits"],
+                 "photometry": ["x.fits", "--psf", "p.fits", "-o", "p.ecsv"],
+                 "diagnose": ["--flats", "f.fits", "--images", "x.fits"]}[command]
+    for value in ("nan", "inf", "sky"):
+        with pytest.raises(SystemExit) as exit_info:
+            main([command, *arguments, "--background", value])
+        assert exit_info.value.code == 2
+        assert capsys.readouterr().err.splitlines()[-1] == (
+            f"bfpsf {command}: error: argument --background: expected a finite sky level in "
+            f"ADU, got '{value}'")

@@ -12,6 +12,7 @@ codes), ``-v`` / ``-q`` (logging to stderr: warnings by default, ``-v`` info, ``
 import argparse
 import importlib
 import logging
+import math
 import os
 import sys
 
@@ -35,6 +36,18 @@ def maxlag_option(text):
         value = 0
     if value < 1:
         msg = f"expected 'auto' or a positive integer, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
+def background_option(text):
+    """``--background``: a finite sky level (ADU per pixel)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not math.isfinite(value):
+        msg = f"expected a finite sky level in ADU, got {text!r}"
         raise argparse.ArgumentTypeError(msg)
     return value
 

@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from ..errors import BFPSFInputError
-from . import maxlag_option
+from . import background_option, maxlag_option
 
 __all__ = ["add_parser", "run"]
 
@@ -42,7 +42,7 @@ def add_parser(subparsers):
                       help="Moffat index of the profile that gives the exact boundary density "
                            "(default: Gaussian); the spot model itself is the P0 fitted from "
                            "the stars")
-    data.add_argument("--background", type=float, default=None, metavar="ADU",
+    data.add_argument("--background", type=background_option, default=None, metavar="ADU",
                       help="sky level of the images, ADU per pixel (0 for sky-subtracted "
                            "images); default the sigma-clipped median of each image")
     data.add_argument("--maxlag", type=maxlag_option, default="auto", metavar="auto|N",

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..files import check_outputs, write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD
+from . import background_option
 from ._files import place_stars, read_image
 
 
@@ -38,7 +39,7 @@ def add_parser(subparsers):
     parser.add_argument("--read-noise", type=float, default=0.0, metavar="E",
                         help="read noise, e- rms, for the pixel errors (with --background 0 "
                              "on sky-subtracted images: include the sky's noise; default 0)")
-    parser.add_argument("--background", type=float, default=None, metavar="ADU",
+    parser.add_argument("--background", type=background_option, default=None, metavar="ADU",
                         help="sky level of the images, ADU per pixel (0 for sky-subtracted "
                              "images); default the sigma-clipped median of each image, which "
                              "the wings of dense bright stars bias high")

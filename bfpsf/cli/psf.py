@@ -14,6 +14,7 @@ import numpy as np
 from ..errors import BFPSFInputError
 from ..files import check_outputs, refuse_duplicates, write_json
 from ..measure.sources import DETECTION_THRESHOLD, isolated_stars
+from . import background_option
 from ..model.psf_fit import DEFAULT_SIZE
 from ._files import read_image
 
@@ -44,7 +45,7 @@ def add_parser(subparsers):
     parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")
-    parser.add_argument("--background", type=float, default=None, metavar="ADU",
+    parser.add_argument("--background", type=background_option, default=None, metavar="ADU",
                         help="sky level of the images, ADU per pixel (0 for sky-subtracted "
                              "images); default the sigma-clipped median of each image, which "
                              "the wings of dense bright stars bias high")
