@@ -8,9 +8,10 @@ detector, so a focal plane is one flat list of tasks. `parallel_map` runs them
 * on a `distributed.LocalCluster` of ``workers`` single-threaded worker processes; or
 * on an existing cluster, ``scheduler='tcp://host:8786'``.
 
-Tasks stream: at most ``max_in_flight`` (default two per worker) are submitted at a time and
-the next one goes in as one completes (`distributed.as_completed`), so the memory in use is a
-few tasks per worker, never the whole set. The tasks themselves should carry file references,
+Tasks stream: at most ``max_in_flight`` (default four per worker) are in flight at a time;
+they are submitted in batches (one `distributed.Client.map` each) as half the window
+completes (`distributed.as_completed`), so the memory in use is a few tasks per worker, never
+the whole set. The tasks themselves should carry file references,
 not pixels (`bfpsf.calibration.flats.read_flats(..., lazy=True)`), so each worker reads only
 the pair it measures. Results come back in the order of the inputs, identical to the
 in-process ones (the same function runs on the same inputs).
@@ -69,6 +70,13 @@ def _in_process(function, items, bar):
 WORKER_ENVIRON_DROPPED = ("MALLOC_TRIM_THRESHOLD_",)
 
 
+#: Dask's statistical profiler samples each worker's task thread every 10 ms (it takes the GIL
+#: to read the stack): a worker measured the same 1024^2 pairs with 1.5 times the CPU time of
+#: this process with it on (issue 12). Off for the local workers; a cluster given by address
+#: keeps its own settings.
+WORKER_PROFILER = False
+
+
 def _client(workers, scheduler):
     import dask
     from distributed import Client, LocalCluster
@@ -78,7 +86,8 @@ def _client(workers, scheduler):
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
     for name in WORKER_ENVIRON_DROPPED:
         environ.pop(name, None)
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
+                          "distributed.worker.profile.enabled": WORKER_PROFILER}):
         # no dashboard; the scheduler's HTTP routes on a free local port (the default 8787
         # may be taken by another cluster, and Dask then warns)
         cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
@@ -91,28 +100,36 @@ def _on_dask(client, function, items, max_in_flight, bar):
     from distributed import as_completed
 
     n_workers = max(1, len(client.scheduler_info()["workers"]))
-    limit = max_in_flight or 2 * n_workers
+    limit = max(1, max_in_flight or 4 * n_workers)
     results = [None] * len(items)
-    pending = iter(enumerate(items))
     index_of = {}
+    stream = as_completed()
+    submitted = 0
 
-    def submit():
-        for index, item in pending:
-            future = client.submit(function, item, pure=False)
-            index_of[future.key] = index
-            return future
-        return None
+    def submit(count):
+        # one client.map per batch: a message per batch, not per task (a task submitted
+        # alone cost the client and scheduler 4 ms of CPU, a core's share on a 2-core machine)
+        nonlocal submitted
+        chunk = items[submitted:submitted + count]
+        futures = client.map(function, chunk, pure=False)
+        for offset, future in enumerate(futures):
+            index_of[future.key] = submitted + offset
+        submitted += len(chunk)
+        stream.update(futures)
 
-    first = [future for future in (submit() for _ in range(limit)) if future is not None]
-    stream = as_completed(first)
-    for future in stream:
-        results[index_of.pop(future.key)] = future.result()
-        future.release()
-        if bar is not None:
-            bar.update(1)
-        following = submit()
-        if following is not None:
-            stream.add(following)
+    submit(limit)
+    free = 0
+    for batch in stream.batches():
+        for future in batch:
+            results[index_of.pop(future.key)] = future.result()
+            future.release()
+            free += 1
+            if bar is not None:
+                bar.update(1)
+        # refill when half the window is free: at most ``limit`` tasks in flight
+        if submitted < len(items) and (free >= (limit + 1) // 2 or not index_of):
+            submit(free)
+            free = 0
     return results
 
 
@@ -186,7 +203,7 @@ def parallel_map(function, items, *, workers=1, scheduler=None, max_in_flight=No
     scheduler : str, optional
         Address of an existing Dask scheduler (then ``workers`` is ignored).
     max_in_flight : int, optional
-        Tasks submitted at once. Default two per worker.
+        Tasks in flight at once. Default four per worker.
     progress : bool, optional
         Show a tqdm progress bar. Default False.
     description : str, optional
