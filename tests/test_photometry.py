@@ -254,6 +254,9 @@ def test_cli_psf_and_photometry(cli_files):
     assert abs(np.median(ratio) - 1) < 1e-2
     phot_summary = json.loads((directory / "phot.json").read_text())
     assert phot_summary["n_stars"] == len(table)
+    # psf and photometry subtract the same sky (`bfpsf.measure.sources.sky_level`)
+    sky = phot_summary["images"][0]["background_e"]
+    assert summary["images"][0]["background_e"] == pytest.approx(sky, rel=1e-12)
     # Outputs are never overwritten without --overwrite.
     assert main(["photometry", image, "--psf", psf_path, "-o", phot_path]) == 1
     with pytest.raises(BFPSFFileExistsError):

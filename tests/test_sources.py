@@ -6,7 +6,8 @@ from scipy.spatial import cKDTree
 
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
 from bfpsf.measure.moments import adaptive_moments
-from bfpsf.measure.sources import STAR_COLUMNS, SourceFlag, measure_sources, source_flag_string
+from bfpsf.measure.sources import (STAR_COLUMNS, SourceFlag, measure_sources, sky_level,
+                                   source_flag_string)
 from bfpsf.validation.simulate_spots import simulate_star_field
 
 galsim = pytest.importorskip("galsim")
@@ -91,6 +92,33 @@ def test_saturated_blended_and_edge_sources_are_flagged_not_dropped():
     assert len(near_pair) >= 1
     assert all(table["flags"][index] & SourceFlag.BLENDED for index in near_pair)
     assert source_flag_string(SourceFlag.BLENDED | SourceFlag.SATURATED) == "saturated|blended"
+
+
+def test_sky_level_of_a_flat_sky_with_bright_stars_and_bad_pixels():
+    """The clipped median is the sky within its noise; NaN and inf pixels are left out."""
+    from scipy.stats import truncnorm
+
+    rng = np.random.default_rng(0)
+    sky, read_noise = 100.0, 5.0
+    canvas = galsim.ImageD(256, 256, xmin=0, ymin=0)
+    # 20 Gaussian stars of peak 55 ke-: 9 % of the pixels hold more than 1 e- of star light
+    star = galsim.Gaussian(fwhm=4.0).withFlux(1e6)
+    for x, y in rng.uniform(10.0, 246.0, (20, 2)):
+        star.drawImage(image=canvas, center=(x, y), add_to_image=True)
+    image = sky + canvas.array + rng.normal(0.0, np.sqrt(sky + canvas.array + read_noise**2))
+    image[:20] = np.nan
+    image[100, 100:110] = np.inf
+    level, rms = sky_level(image)
+    noise = np.sqrt(sky + read_noise**2)
+    # error of the median of ~60000 pixels: 1.25 noise / sqrt(N) = 0.06 e-; 3 of them. The
+    # unclipped median is 0.37 e- high (the stars' cores), the mean 140 e-
+    median_error = 1.2533 * noise / np.sqrt(np.isfinite(image).sum())
+    assert abs(level - sky) < 3 * median_error
+    # the standard deviation of a normal clipped at +-3 sigma: 0.987 of it
+    assert rms == pytest.approx(noise * truncnorm(-3.0, 3.0).std(), rel=0.015)
+    assert (level, rms) == sky_level(image[np.isfinite(image)])
+    with pytest.raises(BFPSFInputError, match="image has no finite pixel: no sky level"):
+        sky_level(np.full((8, 8), np.nan))
 
 
 def test_empty_image_gives_an_empty_table():

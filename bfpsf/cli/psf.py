@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError
 from ..files import check_outputs, refuse_duplicates, write_json
-from ..measure.sources import DETECTION_THRESHOLD, isolated_stars
+from ..measure.sources import DETECTION_THRESHOLD, isolated_stars, sky_level
 from . import background_option
 from ..model.psf_fit import DEFAULT_SIZE
 from ._files import read_image
@@ -93,8 +93,6 @@ def _star_weighted(used):
 
 
 def run(args):
-    from astropy.stats import sigma_clipped_stats
-
     from ..calibration.product import calibration_of_amplifier, read_calibration
     from ..diagnosis.refine import undo_refined_linearity
     from ..io.amplifiers import near_shared_side, shared_sides
@@ -123,8 +121,7 @@ def run(args):
             refinement.update(one.refinement)
             image_e, _ = undo_refined_linearity(image_e, one)
             if args.background is None:
-                _, background, _ = sigma_clipped_stats(image_e[np.isfinite(image_e)],
-                                                       sigma=3.0)
+                background, _ = sky_level(image_e)
             else:
                 background = float(args.background) * gain
             image_e = image_e - background

@@ -514,12 +514,10 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     and the stacked residual of the stars against that P(F) (`stacked_star_residual`, in
     ``meta['star_residual']``, with the stacked image in ``meta['residual_images']``).
     """
-    from astropy.stats import sigma_clipped_stats
-
     from ..calibration import calibrate
     from ..calibration.product import Calibration
     from ..io.amplifiers import read_amplifiers
-    from ..measure.sources import isolated_stars, measure_sources
+    from ..measure.sources import isolated_stars, measure_sources, sky_level
     from ..model.psf_fit import DEFAULT_SIZE, fit_psf
     from .star_residual import stacked_star_residual
 
@@ -545,7 +543,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         data = np.asarray(amplifiers[0].data, float) * gain
         table = measure_sources(data)
         # the sky left in the image (level and noise), for the stacked residual
-        _, sky, noise = sigma_clipped_stats(data, sigma=3.0, maxiters=10)
+        sky, noise = sky_level(data)
         if background is not None:
             sky = float(background) * gain
         pixels.append(data - sky)

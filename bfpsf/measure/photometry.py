@@ -12,19 +12,12 @@ from astropy.table import Table
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import make_psf_photometry
-from .sources import DETECTION_THRESHOLD, measure_sources
+from .sources import DETECTION_THRESHOLD, measure_sources, sky_level
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 
 #: Columns every photometry table holds (the ``bfpsf photometry`` contract), plus photutils'.
 PHOTOMETRY_COLUMNS = ["x_fit", "y_fit", "flux_fit", "flux_err", "flags"]
-
-
-def _background(image):
-    from astropy.stats import sigma_clipped_stats
-
-    _, median, _ = sigma_clipped_stats(image, sigma=3.0, maxiters=10)
-    return float(median)
 
 
 def _initial_positions(image_e, detection_threshold):
@@ -206,7 +199,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         msg = f"weights must be 'model' or 'data', got {weights!r}"
         raise BFPSFValueError(msg, weights)
     if background_e is None:
-        background_e = _background(image[finite])
+        background_e, _ = sky_level(image)
     variance = np.clip(np.where(finite, image, 0.0), 0.0, None) + read_noise_e**2
     error = np.sqrt(np.where(variance > 0, variance, 1.0))
     data = image - background_e

@@ -1,4 +1,5 @@
-"""Source measurement: detection, stamps, local background, peak, flux and adaptive moments.
+"""Source measurement: global sky level, detection, stamps, local background, peak, flux and
+adaptive moments.
 
 The star table feeding the size-colour correction and the brighter-fatter slopes (G15
 sections 3.2-3.3). Sources are detected with photutils image segmentation on the smoothed,
@@ -15,7 +16,8 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from .moments import MomentsFlag, adaptive_moments_batch, moment_errors
 from .shapes import distortion
 
-__all__ = ["SourceFlag", "measure_sources", "isolated_stars", "source_flag_string", "STAR_COLUMNS"]
+__all__ = ["SourceFlag", "measure_sources", "isolated_stars", "sky_level", "source_flag_string",
+           "STAR_COLUMNS"]
 
 #: columns every star table holds (the ``bfpsf measure`` contract)
 STAR_COLUMNS = ["x", "y", "flux_e", "peak_e", "mxx", "myy", "mxy", "sigma_x", "sigma_y", "iq",
@@ -47,6 +49,43 @@ def source_flag_string(flags):
         return "|".join(name for bit, name in SourceFlag.NAMES.items() if value & bit)
     return np.array([source_flag_string(value) for value in flags_array.ravel()],
                     dtype=object).reshape(flags_array.shape)
+
+
+def sky_level(image):
+    """Global sky level of an image and its noise per pixel.
+
+    The 3-sigma clipped median and standard deviation of the finite pixels
+    (`astropy.stats.sigma_clipped_stats`, at most 10 clipping iterations): stars, cosmic rays
+    and hot pixels are clipped, NaN and inf pixels left out. The wings of the stars are not
+    clipped, so a dense field of bright stars biases the level high; pass the known sky where
+    it matters (``--background`` of ``bfpsf psf``, ``photometry`` and ``diagnose``).
+
+    Parameters
+    ----------
+    image : array_like
+        Image, e- per pixel (or ADU: the level and noise come in the image's unit).
+
+    Returns
+    -------
+    level : float
+        Sky level, e- per pixel.
+    rms : float
+        Clipped standard deviation, e- per pixel: the noise of the sky, read noise included.
+
+    Raises
+    ------
+    BFPSFInputError
+        If the image has no finite pixel.
+    """
+    from astropy.stats import sigma_clipped_stats
+
+    pixels = np.asarray(image)
+    pixels = pixels[np.isfinite(pixels)]
+    if pixels.size == 0:
+        msg = "image has no finite pixel: no sky level"
+        raise BFPSFInputError(msg, np.shape(image))
+    _, level, rms = sigma_clipped_stats(pixels, sigma=3.0, maxiters=10)
+    return float(level), float(rms)
 
 
 def _cutouts(image, x_centres, y_centres, size):
@@ -202,6 +241,8 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
             colour_columns = [name for name in colour.colnames if name not in ("x", "y")]
     colour_columns = list(colour_columns or [])
 
+    # the detection pedestal: as `sky_level` but with astropy's 5 clipping iterations, not 10
+    # (10 moves the pedestal, and with it the detections and centroids, by up to a few e-)
     _, median, _ = sigma_clipped_stats(image[~bad], sigma=3.0)
     data = np.where(bad, np.nan, image - median)
     kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
