@@ -7,7 +7,8 @@ import pytest
 from astropy.io import fits
 
 from bfpsf.calibration.covariance import pair_covariance
-from bfpsf.calibration.flats import Flat, FlatPair, pair_flats, pair_mask, read_flats
+from bfpsf.calibration.flats import (Flat, FlatPair, _band_tests, pair_flats, pair_mask,
+                                    read_flats)
 from bfpsf.errors import BFPSFInputError
 
 LEVEL = 10_000.0  # ADU
@@ -189,3 +190,46 @@ def test_mask_follows_a_smooth_illumination_gradient():
     flat2 = gaussian_flat(rng, (256, 256)) * ramp
     _, report = pair_mask(flat1, flat2)
     assert report.columns == 0
+
+
+def _reference_band_tests(band, good, box, defect_nsigma, column_clip=5.0):
+    """G15's two-step tile estimate written plainly, tile by tile, in double precision."""
+    rows, nx = band.shape
+    level_sums, level_counts, high = np.zeros(nx), np.zeros(nx), []
+    for start in range(0, nx, box):
+        tile, tile_good = band[:, start:start + box].astype(float), good[:, start:start + box]
+        values = tile[tile_good]
+        if values.size < 2:
+            continue
+        kept = values[np.abs(values - values.mean()) <= 2 * values.std()]
+        if kept.size < 2:
+            continue
+        mean, sigma = kept.mean(), kept.std()
+        rows_high, columns_high = np.nonzero(tile_good & (tile > mean + defect_nsigma * sigma))
+        high.extend(rows_high * nx + columns_high + start)
+        inside = tile_good & (np.abs(tile - mean) <= column_clip * sigma)
+        level_sums[start:start + box] = np.where(inside, tile, 0).sum(axis=0)
+        level_counts[start:start + box] = inside.sum(axis=0)
+    return level_sums, level_counts, np.sort(high)
+
+
+@pytest.mark.parametrize("with_bad", [False, True])
+def test_compiled_band_tests_match_the_plain_reference(with_bad):
+    """The compiled tile tests (numba) give G15's estimate: the same high pixels and column
+    levels as a plain per-tile implementation, with bad pixels, defects, a tile of another
+    level and a last tile narrower than the box."""
+    rng = np.random.default_rng(12)
+    band = rng.normal(0.0, 200.0, (64, 300)).astype(np.float32)
+    band[:, 128:256] += 900.0                   # a tile at another level
+    band[10:13, 40:43] += 1500.0                # a defect cluster
+    band[:, 280] += 700.0                       # a bright column in the narrow last tile
+    good = rng.random(band.shape) > (0.05 if with_bad else 0.0)
+    if with_bad:
+        good[:, 295:] = False                   # columns without a good pixel
+    band[~good] = 0.0
+    level_sums, level_counts, high = _band_tests(band, None if good.all() else good, 64, 3.0)
+    ref_sums, ref_counts, ref_high = _reference_band_tests(band, good, 64, 3.0)
+    assert high.size > 50  # the 2.6-sigma tail and the cluster
+    np.testing.assert_array_equal(high, ref_high)
+    np.testing.assert_array_equal(level_counts, ref_counts)
+    np.testing.assert_allclose(level_sums, ref_sums, rtol=1e-5, atol=1e-2)

@@ -19,6 +19,7 @@ forward FFT of the masked difference suffices.
 import logging
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
@@ -133,36 +134,88 @@ def _self_consistent_threshold(nsigma):
     return t
 
 
-def _beyond(values, cut, chunk=1 << 20):
-    """Indices of the ``values`` with ``|value| > cut``, a chunk at a time (no full-size
-    temporaries)."""
-    return np.concatenate([np.flatnonzero(np.abs(values[start:start + chunk]) > cut) + start
-                           for start in range(0, values.size, chunk)])
+#: Floating-point flags of the compiled kernels: sums may be reassociated (so they vectorise);
+#: NaN and inf keep their meaning.
+_KERNEL_FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
 
 
-def _sigma_clip(values, nsigma, count, max_iterations=50):
+@numba.njit(cache=True, nogil=True, fastmath=_KERNEL_FASTMATH)
+def _difference_kernel(image1, image2, factor1, factor2, out):
+    """``out[:] = factor1 * image1 - factor2 * image2`` (computed in double precision, stored
+    in ``out``'s precision); returns the sum and the sum of squares of the stored values."""
+    ny, nx = image1.shape
+    total = 0.0
+    total2 = 0.0
+    for i in range(ny):
+        row1, row2, row = image1[i], image2[i], out[i]
+        row_sum = 0.0
+        row_sum2 = 0.0
+        for j in range(nx):
+            row[j] = factor1 * row1[j] - factor2 * row2[j]
+            value = row[j]  # as stored
+            row_sum += value
+            row_sum2 += value * value
+        total += row_sum
+        total2 += row_sum2
+    return total, total2
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_KERNEL_FASTMATH)
+def _beyond_kernel(image, cut, out):
+    """Writes the flat indices (row-major over ``image``) of the values with |value| > cut to
+    ``out``; returns their number. A vectorised comparison fills a byte row and only the
+    flagged 8-byte words are looked at."""
+    ny, nx = image.shape
+    flags = np.zeros(8 * ((nx + 7) // 8), dtype=np.uint8)
+    words = flags.view(np.uint64)
+    count = 0
+    for i in range(ny):
+        row = image[i]
+        for j in range(nx):
+            flags[j] = abs(row[j]) > cut
+        for word in range(words.size):
+            if words[word] == 0:
+                continue
+            for j in range(8 * word, min(nx, 8 * word + 8)):
+                if flags[j]:
+                    out[count] = i * nx + j
+                    count += 1
+    return count
+
+
+def _beyond(image, cut):
+    """Flat indices (over ``image``, row-major) of the values with ``|value| > cut``."""
+    out = np.empty(image.size, dtype=np.int64)
+    return out[:_beyond_kernel(image, image.dtype.type(cut), out)].copy()
+
+
+def _sigma_clip(image, nsigma, count, total, total2, max_iterations=50):
     """Iterative sigma clipping of the good pixels of a zero-mean, zero-filled image.
 
-    ``values`` (1-D, single or double precision; sums in double) holds ``count`` good pixels
-    and zeros at the bad ones; since the good pixels average to zero, the fill values always
-    lie inside the cut. Pixels more than ``nsigma`` times the sigma of the kept pixels from
-    their mean are clipped, iterated to convergence. The running sums are updated from a
-    pre-selected tail of candidate outliers, so an iteration costs only the tail, not the
-    whole image.
+    ``image`` (2-D, single or double precision, possibly a view into a larger buffer; sums
+    in double) holds ``count`` good pixels and zeros at the bad ones, whose sum and sum of
+    squares are ``total`` and ``total2``; since the good pixels average to zero, the fill
+    values always lie inside the cut. Pixels more than ``nsigma`` times the sigma of the kept
+    pixels from their mean are clipped, iterated to convergence. The running sums are
+    updated from a pre-selected tail of candidate outliers, so an iteration costs only the
+    tail, not the whole image.
 
-    Returns the flat indices of the clipped pixels.
+    Returns the flat (row-major over ``image``) indices of the clipped pixels.
     """
-    total = values.sum(dtype=np.float64)
-    total2 = np.einsum("i,i->", values, values, dtype=np.float64)
     sigma = np.sqrt(max(total2 / count - (total / count) ** 2, 0.0))
-    sample = values[:: max(1, values.size // 100_000)]
+    step = max(1, int(np.sqrt(image.size / 100_000)))
+    sample = image[::step, ::step].ravel()
     robust = 1.4826 * np.median(np.abs(sample - np.median(sample)))
     tail_cut = 0.8 * nsigma * (robust if robust > 0 else sigma)
     if not tail_cut > 0:
         return np.empty(0, dtype=np.intp)  # a constant image: nothing to clip
+    flat_index = image.ravel() if image.flags.c_contiguous else None
     for _ in range(40):  # each restart widens the candidate tail by 1 / 0.7
-        tail_index = _beyond(values, tail_cut)
-        tail = values[tail_index].astype(np.float64)
+        tail_index = _beyond(image, tail_cut)
+        if flat_index is not None:
+            tail = flat_index[tail_index].astype(np.float64)
+        else:
+            tail = image[np.divmod(tail_index, image.shape[1])].astype(np.float64)
         centre = total / count
         sigma = np.sqrt(max(total2 / count - centre * centre, 0.0))
         kept = np.ones(tail.size, dtype=bool)
@@ -307,7 +360,6 @@ def _bad_pair_sums_direct(values, bad_y, bad_x, lags):
     ny, nx = values.shape
     is_bad = np.zeros(values.size, dtype=bool)
     is_bad[bad_y * nx + bad_x] = True
-    flat_values = np.ascontiguousarray(values).ravel()
     partner_x = bad_x[:, None] - lags[None, :]  # [bad, kx]
     column_inside = (partner_x >= 0) & (partner_x < nx)
     both_bad = np.empty((lags.size, lags.size))
@@ -317,7 +369,7 @@ def _bad_pair_sums_direct(values, bad_y, bad_x, lags):
         inside = column_inside & ((partner_y >= 0) & (partner_y < ny))[:, None]
         partner = np.where(inside, partner_y[:, None] * nx + partner_x, 0)
         both_bad[row] = np.count_nonzero(is_bad[partner] & inside, axis=0)
-        partner_values[row] = np.where(inside, flat_values[partner], 0.0).sum(axis=0)
+        partner_values[row] = np.where(inside, values[np.divmod(partner, nx)], 0.0).sum(axis=0)
     return both_bad, partner_values
 
 
@@ -389,34 +441,41 @@ def covariance_map(diff, weights, maxlag, *, precision="single", sparse=None):
     if ngood < 2:
         msg = f"only {ngood} good pixels: cannot compute covariances"
         raise BFPSFInputError(msg, ngood)
-    centred = diff.copy()
-    centred.flat[bad_index] = 0.0
-    centred -= centred.sum() / ngood  # C(k) is invariant under an offset: improves precision
-    centred.flat[bad_index] = 0.0
-    return _masked_covariances(centred, bad_index, maxlag, precision, sparse)
+    padded, centred = _fft_buffer(diff.shape, maxlag, precision)
+    values = np.where(good, diff, 0.0)
+    # C(k) is invariant under an offset: centring (in double precision) improves precision
+    centred[...] = np.where(good, values - values.sum() / ngood, 0.0)
+    return _masked_covariances(padded, diff.shape, bad_index, maxlag, sparse)
 
 
-def _masked_covariances(centred, bad_index, maxlag, precision="single", sparse=None):
-    """`covariance_map` of an image that is zero at the bad pixels (flat ``bad_index``) and
-    close to zero mean over the good ones."""
-    from scipy import fft
-
+def _fft_buffer(image_shape, maxlag, precision):
+    """A zeroed array of the padded FFT shape for lags up to ``maxlag`` and its
+    ``image_shape`` corner (a view), where the image is written."""
     if precision not in _PRECISIONS:
         msg = f"precision must be 'single' or 'double', got {precision!r}"
         raise BFPSFValueError(msg, precision)
-    real_dtype = _PRECISIONS[precision]
+    ny, nx = image_shape
+    padded = np.zeros((_fast_length(ny + maxlag), _fast_length(nx + maxlag)),
+                      dtype=_PRECISIONS[precision])
+    return padded, padded[:ny, :nx]
+
+
+def _masked_covariances(padded, image_shape, bad_index, maxlag, sparse=None):
+    """`covariance_map` of an image written in the corner of ``padded`` (`_fft_buffer`), zero
+    at the bad pixels (flat ``bad_index``) and close to zero mean over the good ones."""
+    from scipy import fft
+
+    real_dtype = padded.dtype.type
     m = maxlag
-    ny, nx = centred.shape
+    ny, nx = image_shape
+    centred = padded[:ny, :nx]
     if sparse is None:
         sparse = bad_index.size * (2 * m + 1) ** 2 <= 2 * centred.size
-    shape = (_fast_length(ny + m), _fast_length(nx + m))
+    shape = padded.shape
     lags = np.arange(-m, m + 1)
     half = np.arange(0, m + 1)  # C(-k) = C(k): the upper half-plane is enough for auto terms
 
-    padded = np.zeros(shape, dtype=real_dtype)
-    padded[:ny, :nx] = centred
     spectrum = fft.rfft2(padded, workers=1)
-    del padded
     if sparse:
         npix, near = _pair_sums(centred, bad_index, m)
         # the spectrum is not needed again: square its parts in place
@@ -487,17 +546,6 @@ def _image_and_name(flat, default):
     if isinstance(flat, Flat):
         return flat.data, flat.name, flat.exptime
     return np.asarray(flat, dtype=np.float64), default, np.nan
-
-
-def _difference(image1, image2, factor1, factor2, dtype, rows=128):
-    """``factor1 * image1 - factor2 * image2`` in ``dtype``, computed in double precision a
-    band of ``rows`` rows at a time (no full-size double temporaries)."""
-    diff = np.empty(image1.shape, dtype=dtype)
-    for start in range(0, image1.shape[0], rows):
-        band = slice(start, start + rows)
-        np.subtract(image1[band] * factor1, image2[band] * factor2, out=diff[band],
-                    casting="same_kind")
-    return diff
 
 
 def pair_covariance(flat1, flat2=None, *, mask=None, maxlag=8, clip_nsigma=4.0,
@@ -580,18 +628,22 @@ def pair_covariance(flat1, flat2=None, *, mask=None, maxlag=8, clip_nsigma=4.0,
     sum2 = total2 - image2.flat[bad_index].sum()
     mean1, mean2 = sum1 / ngood, sum2 / ngood
     mean = 0.5 * (mean1 + mean2)
-    if precision not in _PRECISIONS:
-        msg = f"precision must be 'single' or 'double', got {precision!r}"
-        raise BFPSFValueError(msg, precision)
-    if min(mean1, mean2) > 0 and max(mean1, mean2) < 1.5 * min(mean1, mean2):
-        diff = _difference(image1, image2, mean2 / mean, mean1 / mean, _PRECISIONS[precision])
-        diff.flat[bad_index] = 0.0  # its good pixels average to zero (up to rounding)
-    else:
+    # the difference goes straight into the FFT's zero-padded buffer, its sums on the way
+    padded, diff = _fft_buffer(image1.shape, maxlag, precision)
+    flat_pair = min(mean1, mean2) > 0 and max(mean1, mean2) < 1.5 * min(mean1, mean2)
+    factors = (mean2 / mean, mean1 / mean) if flat_pair else (1.0, 1.0)
+    total, total2 = _difference_kernel(image1, image2, *factors, diff)
+    if n_masked:
+        at_bad = diff.flat[bad_index].astype(np.float64)
+        total, total2 = total - at_bad.sum(), total2 - np.dot(at_bad, at_bad)
+        diff.flat[bad_index] = 0.0
+    if not flat_pair:
         # not a flat pair (e.g. bias frames, means ~ 0): the plain difference, centred
-        diff = _difference(image1, image2, 1.0, 1.0, _PRECISIONS[precision])
+        offset = total / ngood
+        diff -= diff.dtype.type(offset)
         diff.flat[bad_index] = 0.0
-        diff -= diff.sum(dtype=np.float64) / ngood
-        diff.flat[bad_index] = 0.0
+        total, total2 = 0.0, total2 - offset * offset * ngood
+    # a flat pair's good pixels average to zero (up to rounding)
 
     n_clipped = 0
     clip_factor = 1.0
@@ -600,7 +652,7 @@ def pair_covariance(flat1, flat2=None, *, mask=None, maxlag=8, clip_nsigma=4.0,
             # below sqrt(3) iterative clipping collapses onto the centre
             msg = f"clip_nsigma must be at least 2 (or None for no clipping), got {clip_nsigma}"
             raise BFPSFValueError(msg, clip_nsigma)
-        clipped_index = _sigma_clip(diff.ravel(), clip_nsigma, ngood)
+        clipped_index = _sigma_clip(diff, clip_nsigma, ngood, total, total2)
         n_clipped = int(clipped_index.size)
         if n_clipped:
             diff.flat[clipped_index] = 0.0
@@ -610,7 +662,7 @@ def pair_covariance(flat1, flat2=None, *, mask=None, maxlag=8, clip_nsigma=4.0,
     else:
         clip_nsigma = np.inf
 
-    cov_map, npix_map = _masked_covariances(diff, bad_index, maxlag, precision)
+    cov_map, npix_map = _masked_covariances(padded, image1.shape, bad_index, maxlag)
     cov, npix = fold_quadrants(cov_map, npix_map)
     cov = cov / 2.0 / clip_factor**2
     cov[0, 0] *= clip_factor

@@ -13,6 +13,7 @@ import logging
 import os
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
@@ -338,32 +339,119 @@ def _robust_sigma(values):
     return 1.4826 * float(np.median(np.abs(values - np.median(values))))
 
 
-def _tile_moments(column_sums, column_squares, column_counts, starts):
-    """Mean and sigma of each tile of a row of tiles, from per-column sums of the values,
-    their squares and the pixel counts (NaN in a tile with fewer than two pixels)."""
-    count = np.add.reduceat(column_counts, starts).astype(np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.add.reduceat(column_sums, starts, dtype=np.float64) / count
-        square = np.add.reduceat(column_squares, starts, dtype=np.float64) / count
-        sigma = np.sqrt(np.maximum(square - mean**2, 0.0))
-    unusable = ~(count >= 2) | ~np.isfinite(mean)
-    mean[unusable] = sigma[unusable] = np.nan
-    return mean, sigma
+#: Floating-point flags of the mask kernel: reductions may be reassociated (so they vectorise);
+#: NaN and inf keep their meaning (no 'nnan' / 'ninf').
+_KERNEL_FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
 
 
-def _per_column(per_tile, box, nx):
-    """Expand one row of per-tile values to one value per column."""
-    return np.repeat(per_tile, box)[:nx].astype(np.float32)
+@numba.njit(cache=True, nogil=True, fastmath=_KERNEL_FASTMATH)
+def _tile_sums(band, good, j0, j1, centre, cut):
+    """Sum, sum of squares and number of the good values of columns ``j0:j1`` of ``band``
+    within ``cut`` of ``centre``, as offsets from it (``good`` empty: every pixel is good).
+    Single precision along a row of the tile, double precision across rows."""
+    use_good = good.shape[0] > 0
+    centre = np.float32(centre)
+    cut = np.float32(cut)
+    total = 0.0
+    total2 = 0.0
+    kept = 0.0
+    for i in range(band.shape[0]):
+        row = band[i, j0:j1]
+        row_sum = np.float32(0.0)
+        row_sum2 = np.float32(0.0)
+        row_kept = np.float32(0.0)
+        if use_good:
+            row_good = good[i, j0:j1]
+            for j in range(row.size):
+                offset = row[j] - centre
+                inside = np.float32((abs(offset) <= cut) & row_good[j])
+                offset = offset * inside
+                row_sum += offset
+                row_sum2 += offset * offset
+                row_kept += inside
+        else:
+            for j in range(row.size):
+                offset = row[j] - centre
+                inside = np.float32(abs(offset) <= cut)
+                offset = offset * inside
+                row_sum += offset
+                row_sum2 += offset * offset
+                row_kept += inside
+        total += row_sum
+        total2 += row_sum2
+        kept += row_kept
+    return total, total2, kept
 
 
-def _band_tests(band, good, box, defect_nsigma, column_clip=5.0):
+@numba.njit(cache=True, nogil=True, fastmath=_KERNEL_FASTMATH)
+def _tile_row_kernel(band, good, box, defect_nsigma, column_clip, usable, high, excluded_sums,
+                     excluded_counts):
+    """The tests of `_band_tests` on each tile of a row of tiles, compiled.
+
+    Per tile: the first mean and sigma (every good pixel), the second (the good pixels within
+    2 sigma of the first mean), then one pass that flags the pixels beyond the lowest
+    threshold into a byte row and looks only at the flagged 8-byte words: high pixels go to
+    ``high`` (the count is returned), pixels beyond ``column_clip`` sigma to the per-column
+    ``excluded_sums`` / ``excluded_counts``. ``usable[tile]`` is set where both estimates
+    exist.
+    """
+    rows, nx = band.shape
+    use_good = good.shape[0] > 0
+    n_high = 0
+    flags = np.zeros(8 * ((box + 7) // 8), dtype=np.uint8)
+    for tile in range((nx + box - 1) // box):
+        j0 = tile * box
+        j1 = min(nx, j0 + box)
+        total, total2, count = _tile_sums(band, good, j0, j1, 0.0, np.inf)
+        if count < 2:
+            continue
+        mean = total / count
+        if not np.isfinite(mean):
+            continue
+        cut = 2.0 * np.sqrt(max(total2 / count - mean * mean, 0.0))
+        total, total2, kept = _tile_sums(band, good, j0, j1, mean, cut)
+        if kept < 2:
+            continue
+        shift = total / kept
+        if not np.isfinite(shift):
+            continue
+        width = np.sqrt(max(total2 / kept - shift * shift, 0.0))
+        usable[tile] = True
+        high_limit = np.float32(mean + shift + defect_nsigma * width)
+        upper = np.float32(mean + shift + column_clip * width)
+        lower = np.float32(mean + shift - column_clip * width)
+        lowest = min(high_limit, upper)
+        for i in range(rows):
+            row = band[i, j0:j1]
+            for j in range(row.size):
+                flags[j] = (row[j] > lowest) | (row[j] < lower)
+            words = flags.view(np.uint64)
+            for word in range(words.size):
+                if words[word] == 0:
+                    continue
+                for j in range(8 * word, min(row.size, 8 * word + 8)):
+                    if not flags[j] or (use_good and not good[i, j0 + j]):
+                        continue
+                    value = row[j]
+                    if value > high_limit:
+                        high[n_high] = i * nx + j0 + j
+                        n_high += 1
+                    if value > upper or value < lower:
+                        excluded_sums[j0 + j] += value
+                        excluded_counts[j0 + j] += 1.0
+    return n_high
+
+
+def _band_tests(band, good, box, defect_nsigma, column_clip=5.0, buffer=None):
     """The column sums and the high pixels of one row of ``box x box`` tiles of an image.
 
     In each tile the mean and sigma of the good pixels are estimated twice (G15 section
     4.2.3, footnote): over all of them, then over those within 2 sigma of that first mean.
     With the second estimate, a good pixel is *high* when more than ``defect_nsigma`` sigma
     above the mean, and the level of a column is the mean of its good pixels within
-    ``column_clip`` sigma of the mean (so a single defect does not move it).
+    ``column_clip`` sigma of the mean (so a single defect does not move it). The per-tile
+    work is compiled (`_tile_row_kernel`, numba): three passes over the band instead of
+    fifteen array operations.
 
     Parameters
     ----------
@@ -372,6 +460,9 @@ def _band_tests(band, good, box, defect_nsigma, column_clip=5.0):
         stay exact enough), zero at the bad pixels.
     good : ndarray of bool or None
         The good pixels of the band (None: all).
+    buffer : ndarray of int64, optional
+        Scratch space for the high pixels' indices, at least ``band.size`` long (reused
+        across the bands of an image).
 
     Returns
     -------
@@ -382,44 +473,22 @@ def _band_tests(band, good, box, defect_nsigma, column_clip=5.0):
         Flat indices of the high pixels in the band, increasing.
     """
     rows, nx = band.shape
-    starts = np.arange(0, nx, box)
-    # first estimate: every good pixel (the bad ones are zero and add nothing)
-    column_sums = band.sum(axis=0)
-    counts = np.full(nx, rows) if good is None else good.sum(axis=0, dtype=np.int32)
-    mean, sigma = _tile_moments(column_sums, np.einsum("ij,ij->j", band, band), counts, starts)
-    # second estimate: the good pixels within 2 sigma of the first mean, centred on it
-    centre = _per_column(mean, box, nx)
-    offset = band - centre
-    kept = np.abs(offset) <= _per_column(2.0 * sigma, box, nx)
-    if good is not None:
-        kept &= good
-    masked = offset * kept
-    count_type = np.uint16 if rows < 2**16 else np.int64
-    offset_mean, sigma = _tile_moments(masked.sum(axis=0), np.einsum("ij,ij->j", masked, masked),
-                                       kept.view(np.uint8).sum(axis=0, dtype=count_type), starts)
-    # the tests, with the second estimate, on the offsets from the first mean
-    shift = _per_column(offset_mean, box, nx)  # second mean less the first
-    width = _per_column(sigma, box, nx)
-    is_high = offset > shift + defect_nsigma * width
-    below = offset < shift - column_clip * width
-    if good is not None:
-        is_high &= good
-        below &= good
-    high = np.flatnonzero(is_high)
-    # the column levels: the first pass's sums less the few pixels beyond column_clip sigma
-    above_limit = shift + column_clip * width
-    if column_clip >= defect_nsigma:  # those above are high pixels: look among them
-        above = high[offset.ravel()[high] > above_limit[high % nx]]
-    else:
-        above = np.flatnonzero((offset > above_limit) & (True if good is None else good))
-    index = np.concatenate([above, np.flatnonzero(below) if below.any() else
-                            np.empty(0, dtype=np.intp)])
-    column = index % nx
-    usable = np.isfinite(centre) & np.isfinite(shift) & np.isfinite(width)
-    level_sums = np.where(usable, column_sums - np.bincount(
-        column, weights=band.ravel()[index], minlength=nx), 0.0)
-    level_counts = np.where(usable, counts - np.bincount(column, minlength=nx), 0)
-    return level_sums, level_counts, high
+    band = np.ascontiguousarray(band, dtype=np.float32)
+    column_sums = band.sum(axis=0).astype(np.float64)  # single precision over the rows
+    counts = (np.full(nx, float(rows)) if good is None
+              else good.sum(axis=0, dtype=np.int32).astype(np.float64))
+    usable = np.zeros((nx + box - 1) // box, dtype=bool)
+    high = np.empty(band.size, dtype=np.int64) if buffer is None else buffer
+    excluded_sums = np.zeros(nx)
+    excluded_counts = np.zeros(nx)
+    no_mask = np.empty((0, 0), dtype=bool)
+    n_high = _tile_row_kernel(band, no_mask if good is None else np.ascontiguousarray(good),
+                              int(box), float(defect_nsigma), float(column_clip), usable, high,
+                              excluded_sums, excluded_counts)
+    usable = np.repeat(usable, box)[:nx]
+    level_sums = np.where(usable, column_sums - excluded_sums, 0.0)
+    level_counts = np.where(usable, counts - excluded_counts, 0.0)
+    return level_sums, level_counts, np.sort(high[:n_high])
 
 
 def _image_tests(image1, image2, bad, box, defect_nsigma, totals=None):
@@ -456,6 +525,7 @@ def _image_tests(image1, image2, bad, box, defect_nsigma, totals=None):
     level_sums = np.zeros((3, nx))
     level_counts = np.zeros((3, nx))
     high = [[], [], []]
+    buffer = np.empty(box * nx, dtype=np.int64)
     for y0 in range(0, ny, box):
         rows = slice(y0, y0 + box)
         good = None if bad is None or not bad[rows].any() else ~bad[rows]
@@ -470,7 +540,8 @@ def _image_tests(image1, image2, bad, box, defect_nsigma, totals=None):
         # the difference's offset, mean1 - scale * mean2, is zero for a flat pair
         bands.append(bands[0] - scale * bands[1])
         for number, band in enumerate(bands):
-            sums, counts, band_high = _band_tests(band, good, box, defect_nsigma)
+            sums, counts, band_high = _band_tests(band, good, box, defect_nsigma,
+                                                  buffer=buffer)
             level_sums[number] += sums
             level_counts[number] += counts
             high[number].append(band_high + y0 * nx)
@@ -594,47 +665,45 @@ def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma
         msg = f"defect_box must be at least 3 pixels, got {defect_box}"
         raise BFPSFValueError(msg, defect_box)
 
+    # Each cause keeps a full-size array only when it flags something: on a clean pair the
+    # bookkeeping costs one mask, not five.
     totals = [image1.sum(dtype=np.float64), image2.sum(dtype=np.float64)]
-    if np.isfinite(totals).all():
-        nonfinite = np.zeros(image1.shape, dtype=bool)
-    else:
-        nonfinite = ~(np.isfinite(image1) & np.isfinite(image2))
-    mask = nonfinite.copy()
-    if nonfinite.any():
-        log.info("masked %d non-finite pixels", np.count_nonzero(nonfinite))
-
-    saturated = np.zeros_like(mask)
+    bad = None
+    n_nonfinite = n_saturated = 0
+    if not np.isfinite(totals).all():
+        bad = ~(np.isfinite(image1) & np.isfinite(image2))
+        n_nonfinite = int(np.count_nonzero(bad))
+        log.info("masked %d non-finite pixels", n_nonfinite)
     if saturation is not None:
         with np.errstate(invalid="ignore"):
             saturated = (image1 >= saturation) | (image2 >= saturation)
-        mask |= saturated
-
-    good = ~mask
-    if not good.any():
+        n_saturated = int(np.count_nonzero(saturated))
+        if n_saturated:
+            bad = saturated if bad is None else bad | saturated
+    if bad is not None and not bad.any():
+        bad = None
+    if bad is not None and bad.all():
         msg = "every pixel of the pair is non-finite or saturated"
         raise BFPSFInputError(msg)
     box = int(defect_box)
-    bad = mask if mask.any() else None
     bad_columns = np.zeros(image1.shape[1], dtype=bool)
     levels, high = _image_tests(image1, image2, bad, box, defect_nsigma, totals)
     for image_levels in levels:
         bad_columns |= _bad_columns(image_levels, column_nsigma)
-    columns = np.zeros_like(mask)
-    columns[:, bad_columns] = True
     if bad_columns.any():
         log.info("masked %d hot/dark columns: %s", np.count_nonzero(bad_columns),
                  np.flatnonzero(bad_columns).tolist())
-    mask |= columns
     # the defect test runs on the pixels that the column test left
-    defects = np.zeros_like(mask)
     nx = image1.shape[1]
     high = [image_high[~bad_columns[image_high % nx]] for image_high in high]
-    for clustered in _clustered(high, image1.shape):
-        defects.ravel()[clustered] = True
-    mask |= defects
+    defects = np.unique(np.concatenate(_clustered(high, image1.shape)))
+    mask = np.zeros(image1.shape, dtype=bool) if bad is None else bad.copy()
+    mask[:, bad_columns] = True
+    mask.ravel()[defects] = True
 
-    report = MaskReport(nonfinite=int(nonfinite.sum()), saturated=int(saturated.sum()),
-                        columns=int(columns.sum()), defects=int(defects.sum()),
-                        total=int(mask.sum()), npix=int(mask.size))
+    report = MaskReport(nonfinite=n_nonfinite, saturated=n_saturated,
+                        columns=int(np.count_nonzero(bad_columns)) * image1.shape[0],
+                        defects=int(defects.size), total=int(np.count_nonzero(mask)),
+                        npix=int(mask.size))
     log.info("%s", report)
     return mask, report
