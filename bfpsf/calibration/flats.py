@@ -442,6 +442,26 @@ def _tile_row_kernel(band, good, box, defect_nsigma, column_clip, usable, high, 
     return n_high
 
 
+@numba.njit(cache=True, nogil=True, fastmath=_KERNEL_FASTMATH)
+def _fill_bands(rows1, rows2, good, mean1, mean2, scale, bands):
+    """The three images the tests run on, for a band of rows of a pair, in single precision:
+    each flat less its mean, and their difference ``(flat1 - mean1) - scale (flat2 -
+    mean2)``; zero at the bad pixels (``good`` empty: none), whatever their values."""
+    use_good = good.shape[0] > 0
+    for i in range(rows1.shape[0]):
+        row1, row2 = rows1[i], rows2[i]
+        first, second, difference = bands[0, i], bands[1, i], bands[2, i]
+        for j in range(row1.size):
+            value1 = np.float32(row1[j] - mean1)
+            value2 = np.float32(row2[j] - mean2)
+            if use_good and not good[i, j]:
+                value1 = np.float32(0.0)
+                value2 = np.float32(0.0)
+            first[j] = value1
+            second[j] = value2
+            difference[j] = value1 - scale * value2
+
+
 def _band_tests(band, good, box, defect_nsigma, column_clip=5.0, buffer=None):
     """The column sums and the high pixels of one row of ``box x box`` tiles of an image.
 
@@ -526,19 +546,14 @@ def _image_tests(image1, image2, bad, box, defect_nsigma, totals=None):
     level_counts = np.zeros((3, nx))
     high = [[], [], []]
     buffer = np.empty(box * nx, dtype=np.int64)
+    band_buffer = np.empty((3, box, nx), dtype=np.float32)
+    no_mask = np.empty((0, 0), dtype=bool)
     for y0 in range(0, ny, box):
         rows = slice(y0, y0 + box)
         good = None if bad is None or not bad[rows].any() else ~bad[rows]
-        bands = []
-        for image, mean in zip((image1, image2), means):
-            band = np.empty(image[rows].shape, dtype=np.float32)
-            with np.errstate(over="ignore", invalid="ignore"):  # non-finite pixels are bad
-                np.subtract(image[rows], mean, out=band, casting="same_kind")
-            if good is not None:
-                band[~good] = 0.0
-            bands.append(band)
-        # the difference's offset, mean1 - scale * mean2, is zero for a flat pair
-        bands.append(bands[0] - scale * bands[1])
+        bands = band_buffer[:, :image1[rows].shape[0]]
+        _fill_bands(image1[rows], image2[rows], no_mask if good is None else good, means[0],
+                    means[1], scale, bands)
         for number, band in enumerate(bands):
             sums, counts, band_high = _band_tests(band, good, box, defect_nsigma,
                                                   buffer=buffer)
