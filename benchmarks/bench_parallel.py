@@ -67,12 +67,16 @@ def focal_plane(directory, *, detectors, amplifiers, pairs, size, seed=0):
 
 
 def _import_bfpsf():
-    """What a worker imports at its first pair (run on each worker before the timing)."""
+    """What a worker loads at its first pair (run on each worker before the timing): the
+    modules, and the compiled kernels of the mask and covariances (numba's cache)."""
     import astropy.io.fits  # noqa: F401
-    import scipy.fft  # noqa: F401
 
-    import bfpsf.calibration.covariance  # noqa: F401
-    import bfpsf.calibration.ptc  # noqa: F401
+    from bfpsf.calibration.covariance import pair_covariance
+    from bfpsf.calibration.flats import pair_mask
+
+    rng = np.random.default_rng(0)
+    flats = [rng.normal(1e4, 100.0, (64, 64)) for _ in range(2)]
+    pair_covariance(*flats, mask=pair_mask(*flats)[0], maxlag=2)
     return os.environ.get("OMP_NUM_THREADS")
 
 
