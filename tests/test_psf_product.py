@@ -136,5 +136,9 @@ def test_per_amplifier_shifts_round_trip_and_evaluate_each_amplifier(base, tmp_p
     np.testing.assert_allclose(bf["C01"] / 1.4, bf["C00"] / 0.6, atol=1e-9 * FLUX)
     with pytest.raises(ValueError, match="no boundary shifts for amplifier 'C02'"):
         back.for_amplifier("C02")
+    # an amplifier's model keeps them (as the gridded model does): chaining gives the same
+    chained = back.for_amplifier("C00").for_amplifier("C01")
+    np.testing.assert_allclose(chained.evaluate(x, y, FLUX, 0.0, 0.0) - static, bf["C01"],
+                               atol=1e-12 * FLUX)
     # a single-amplifier product has none: every amplifier gets the model itself
     assert base.for_amplifier("C02") is base

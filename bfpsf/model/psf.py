@@ -459,11 +459,13 @@ class FluxDependentPSF(Fittable2DModel):
 
     def with_shifts(self, shifts):
         """The same P0 and options with other boundary shifts (a new model; the BF table, if
-        any, is recomputed from the new shifts, a custom ``bf_table`` is not carried over)."""
+        any, is recomputed from the new shifts, a custom ``bf_table`` is not carried over);
+        the per-amplifier shifts are kept, so ``for_amplifier`` works on the result too."""
         options = self.options
         options.pop("bf_table", None)
         new = self.__class__(self.data, shifts, density_profile=self.density_profile, **options)
         new.calibration = self.calibration
+        new.amplifier_shifts = dict(self.amplifier_shifts)
         return new
 
     def for_amplifier(self, name):
