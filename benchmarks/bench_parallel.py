@@ -61,7 +61,7 @@ def focal_plane(directory, *, detectors, amplifiers, pairs, size, seed=0):
             write_amplifier_file(folder / f"flat{number:03d}.fits", images, list(amplifiers),
                                  bias_adu=[1000.0] * len(amplifiers),
                                  read_noise_adu=[3.0] * len(amplifiers), exptime=level / 1e3,
-                                 rng=rng)
+                                 rng=rng, dtype=np.uint16)  # whole ADU, as controllers write
         folders[folder.name] = sorted(str(path) for path in folder.glob("*.fits"))
     return folders
 

@@ -66,6 +66,21 @@ def test_read_amplifiers_recovers_each_image(tmp_path):
     assert only.name == "C01"
 
 
+def test_integer_raw_files_read_as_whole_adu_less_the_overscan(tmp_path):
+    """A controller's 16-bit raw file (FITS BZERO-scaled uint16): each pixel is the whole ADU
+    of image plus bias, less its row's overscan median."""
+    rng = np.random.default_rng(3)
+    image = rng.normal(1000.0, 30.0, (16, 12))
+    write_amplifier_file(tmp_path / "raw.fits", [image], ["C00"], bias_adu=[900.4],
+                         read_noise_adu=[2.0], rng=rng, dtype=np.uint16)
+    with fits.open(tmp_path / "raw.fits") as hdus:
+        assert hdus["C00"].header["BITPIX"] == 16 and hdus["C00"].header["BZERO"] == 32768
+        overscan = hdus["C00"].data[:, 12:].astype(float)
+    (amplifier,) = read_amplifiers(tmp_path / "raw.fits")
+    expected = np.rint(image + 900.4) - np.median(overscan, axis=1)[:, None]
+    np.testing.assert_array_equal(amplifier.data, expected)
+
+
 # -- malformed inputs: one-line errors naming file and HDU -----------------------------------
 def test_cube_is_refused(tmp_path):
     path = tmp_path / "cube.fits"

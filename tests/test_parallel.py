@@ -50,6 +50,27 @@ def test_dask_map_streams_and_keeps_the_order():
     assert parallel_map(_square, items, workers=2, max_in_flight=3) == [i * i for i in items]
 
 
+def _joined(values):
+    return "".join(str(value) for value in values)
+
+
+@pytest.mark.parametrize("workers", [1, pytest.param(2, marks=pytest.mark.skipif(
+    not dask_available(), reason="dask.distributed is not installed"))])
+def test_map_groups_follow_up_sees_its_items_in_order(workers):
+    """Each key's follow-up gets its own items' results in input order (on Dask it starts while
+    other items run), keys in order of first appearance; the same in process and on Dask."""
+    items = list(range(10))
+    keys = ["b", "a", "b", "c", "a", "b", "c", "c", "a", "b"]
+    with parallel_session(workers=workers, max_in_flight=3) as session:
+        results, grouped = session.map_groups(_square, items, keys,
+                                              lambda key, values: [key, *values], _joined)
+        with pytest.raises(ValueError, match="one key per item: 2 keys for 10 items"):
+            session.map_groups(_square, items, keys[:2], None, _joined)
+    assert results == [i * i for i in items]
+    assert list(grouped) == ["b", "a", "c"]
+    assert grouped == {"b": "b042581", "a": "a11664", "c": "c93649"}
+
+
 def _profiler_enabled():
     import dask
 

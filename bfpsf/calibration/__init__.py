@@ -124,7 +124,8 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="f
                         progress=False, amps=None, overscan="median", workers=1,
                         scheduler=None):
     """Calibrate several detectors: every pair of every amplifier of every detector in one
-    map (`bfpsf.parallel.parallel_map`), then one fit per amplifier.
+    map (`bfpsf.parallel.ParallelSession.map_groups`), and one fit per amplifier, started as
+    soon as its pairs are measured.
 
     Parameters
     ----------
@@ -165,19 +166,22 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="f
                 tasks.append(PairTask(pair, saturation, measured_lag, clip_nsigma,
                                       mean_tolerance, overscan))
                 owners.append((detector, amplifier))
+    names = {}
+    for owner, task in zip(owners, tasks):
+        names.setdefault(owner, []).append(task.pair.names)
+
+    def fit_task(owner, measured):
+        entries = [(pair_names, covariance, report)
+                   for pair_names, (covariance, report) in zip(names[owner], measured)]
+        return FitTask(owner[1], entries, dict(parameters), options)
+
+    # each amplifier is fitted as soon as its pairs are measured, while the others' are
     with parallel_session(workers, scheduler) as session:
-        measured = session.map(measure_pair, tasks, progress=progress,
-                               description="flat pairs")
-        groups = {}
-        for owner, task, (covariance, report) in zip(owners, tasks, measured):
-            groups.setdefault(owner, []).append((task.pair.names, covariance, report))
-        fits = session.map(fit_measured_pairs,
-                           [FitTask(owner[1], entries, dict(parameters), options)
-                            for owner, entries in groups.items()],
-                           progress=progress, description="amplifier fits")
+        _, fits = session.map_groups(measure_pair, tasks, owners, fit_task, fit_measured_pairs,
+                                     progress=progress, description="flat pairs")
     results = {}
     for detector in detectors:
-        fitted = {owner[1]: fit for owner, fit in zip(groups, fits) if owner[0] == detector}
+        fitted = {owner[1]: fit for owner, fit in fits.items() if owner[0] == detector}
         results[detector] = (next(iter(fitted.values())) if len(fitted) == 1 else
                              DetectorCalibration(fitted, detector=detector))
     return results

@@ -15,7 +15,7 @@ __all__ = ["amplifier_hdus", "write_amplifier_file"]
 
 
 def amplifier_hdus(images, names, *, bias_adu, overscan_columns=20, read_noise_adu=None,
-                   exptime=None, header=None, rng=None):
+                   exptime=None, header=None, rng=None, dtype=np.float64):
     """An HDUList: an empty primary, then one image HDU per amplifier.
 
     Parameters
@@ -37,6 +37,9 @@ def amplifier_hdus(images, names, *, bias_adu, overscan_columns=20, read_noise_a
         More primary-header keywords.
     rng : numpy.random.Generator, optional
         Source of the overscan noise.
+    dtype : numpy dtype, optional
+        Pixel type written. Default float64; an integer type (``np.uint16``, as most CCD
+        controllers write) rounds to whole ADU, as an ADC does.
 
     Returns
     -------
@@ -60,7 +63,9 @@ def amplifier_hdus(images, names, *, bias_adu, overscan_columns=20, read_noise_a
         raw[:, :nx] = image + bias
         noise = 0.0 if read_noise_adu is None else read_noise_adu[index]
         raw[:, nx:] = bias + rng.normal(0.0, 1.0, (ny, overscan_columns)) * noise
-        hdu = fits.ImageHDU(raw, name=name)
+        if np.issubdtype(dtype, np.integer):
+            raw = np.rint(raw)
+        hdu = fits.ImageHDU(raw.astype(dtype), name=name)
         hdu.header["DATASEC"] = f"[1:{nx},1:{ny}]"
         if overscan_columns:
             hdu.header["BIASSEC"] = f"[{nx + 1}:{nx + overscan_columns},1:{ny}]"
