@@ -16,11 +16,12 @@ machine the numbers are noisy; run it when the machine is quiet.
 
 Each worker is a process with one thread (OMP/MKL/OpenBLAS threads 1, Dask's nanny default)
 and without Dask's statistical profiler (bfpsf.parallel.WORKER_PROFILER), so the GIL and nested
-threading play no part; tasks go to the scheduler in batches. The larger ``--size``, the
-smaller the share of the per-task scheduling and file opening. Measured on the shared 2-core
-machine (issue 12, best of 3 rounds, load average about 1): 2 workers over 1, 1.70x at 2048^2
-(0.22 s of work per pair), 1.69x at 1024^2 (0.06 s), 1.31x at 512^2 (0.02 s: the client and
-scheduler, on the same two cores, cost a few ms per task).
+threading play no part; tasks go to the scheduler in batches and each amplifier's fit starts
+when its pairs are done. The files are whole-ADU uint16, as CCD controllers write them. The
+larger ``--size``, the smaller the share of the per-task scheduling and file opening. Measured
+on the shared 2-core machine (issue 12, best of 3 rounds each): 2 workers over 1, 1.53-1.62x at
+1024^2 (4 runs), 1.58-1.73x at 2048^2 (3 runs); two workers together use 5-10 % more CPU than
+one (shared L3 cache and memory bandwidth).
 """
 
 import argparse
