@@ -20,7 +20,7 @@ threading play no part; tasks go to the scheduler in batches and each amplifier'
 when its pairs are done. The files are whole-ADU uint16, as CCD controllers write them. The
 larger ``--size``, the smaller the share of the per-task scheduling and file opening. Measured
 on the shared 2-core machine (issue 12, best of 3 rounds each): 2 workers over 1, 1.53-1.62x at
-1024^2 (3 runs), 1.58-1.73x at 2048^2 (3 runs); two workers together use 5-10 % more CPU than
+1024^2 (3 runs), 1.63-1.73x at 2048^2 (3 runs); two workers together use 5-10 % more CPU than
 one (shared L3 cache and memory bandwidth).
 """
 
