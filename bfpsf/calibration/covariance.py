@@ -543,8 +543,9 @@ def _validate_maxlag(maxlag, shape):
 
 
 def _image_and_name(flat, default):
+    # native-order double precision (a FITS image is big-endian: the compiled difference needs it)
     if isinstance(flat, Flat):
-        return flat.data, flat.name, flat.exptime
+        return np.asarray(flat.data, dtype=np.float64), flat.name, flat.exptime
     return np.asarray(flat, dtype=np.float64), default, np.nan
 
 

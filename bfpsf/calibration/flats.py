@@ -671,8 +671,9 @@ def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma
     the defect threshold is about 2.6 Gaussian sigma as G15 apply it; a clean flat still has
     almost no false detections, since a pixel needs three neighbours above the threshold too.
     """
-    image1 = flat1.data if isinstance(flat1, Flat) else np.asarray(flat1, dtype=np.float64)
-    image2 = flat2.data if isinstance(flat2, Flat) else np.asarray(flat2, dtype=np.float64)
+    # native-order double precision (a FITS image is big-endian: the compiled tests need it)
+    image1 = np.asarray(flat1.data if isinstance(flat1, Flat) else flat1, dtype=np.float64)
+    image2 = np.asarray(flat2.data if isinstance(flat2, Flat) else flat2, dtype=np.float64)
     if image1.ndim != 2 or image1.shape != image2.shape:
         msg = f"flats of a pair must be 2-D images of one shape, got {image1.shape} and {image2.shape}"
         raise BFPSFInputError(msg, (image1.shape, image2.shape))
