@@ -24,6 +24,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from .flats import Flat, FlatPair
+from .kernels import FASTMATH, flag_row, flagged_positions
 
 __all__ = ["PairCovariance", "pair_covariance", "covariance_map", "fold_quadrants",
            "clip_variance_factor"]
@@ -134,12 +135,7 @@ def _self_consistent_threshold(nsigma):
     return t
 
 
-#: Floating-point flags of the compiled kernels: sums may be reassociated (so they vectorise);
-#: NaN and inf keep their meaning.
-_KERNEL_FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
-
-
-@numba.njit(cache=True, nogil=True, fastmath=_KERNEL_FASTMATH)
+@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
 def _difference_kernel(image1, image2, factor1, factor2, out):
     """``out[:] = factor1 * image1 - factor2 * image2`` (computed in double precision, stored
     in ``out``'s precision); returns the sum and the sum of squares of the stored values."""
@@ -160,26 +156,21 @@ def _difference_kernel(image1, image2, factor1, factor2, out):
     return total, total2
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_KERNEL_FASTMATH)
+@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
 def _beyond_kernel(image, cut, out):
     """Writes the flat indices (row-major over ``image``) of the values with |value| > cut to
-    ``out``; returns their number. A vectorised comparison fills a byte row and only the
-    flagged 8-byte words are looked at."""
+    ``out``; returns their number (a vectorised flag row per image row, `flagged_positions`)."""
     ny, nx = image.shape
-    flags = np.zeros(8 * ((nx + 7) // 8), dtype=np.uint8)
-    words = flags.view(np.uint64)
+    flags = flag_row(nx)
+    positions = np.empty(nx, dtype=np.int64)
     count = 0
     for i in range(ny):
         row = image[i]
         for j in range(nx):
             flags[j] = abs(row[j]) > cut
-        for word in range(words.size):
-            if words[word] == 0:
-                continue
-            for j in range(8 * word, min(nx, 8 * word + 8)):
-                if flags[j]:
-                    out[count] = i * nx + j
-                    count += 1
+        for k in range(flagged_positions(flags, nx, positions)):
+            out[count] = i * nx + positions[k]
+            count += 1
     return count
 
 
@@ -209,11 +200,11 @@ def _sigma_clip(image, nsigma, count, total, total2, max_iterations=50):
     tail_cut = 0.8 * nsigma * (robust if robust > 0 else sigma)
     if not tail_cut > 0:
         return np.empty(0, dtype=np.intp)  # a constant image: nothing to clip
-    flat_index = image.ravel() if image.flags.c_contiguous else None
+    flat_values = image.ravel() if image.flags.c_contiguous else None
     for _ in range(40):  # each restart widens the candidate tail by 1 / 0.7
         tail_index = _beyond(image, tail_cut)
-        if flat_index is not None:
-            tail = flat_index[tail_index].astype(np.float64)
+        if flat_values is not None:
+            tail = flat_values[tail_index].astype(np.float64)
         else:
             tail = image[np.divmod(tail_index, image.shape[1])].astype(np.float64)
         centre = total / count

@@ -17,6 +17,7 @@ import numba
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from .kernels import FASTMATH, flag_row, flagged_positions
 
 __all__ = ["Flat", "FlatPair", "MaskReport", "read_flats", "group_amplifiers", "pair_flats",
            "check_pair", "pair_mask"]
@@ -339,12 +340,7 @@ def _robust_sigma(values):
     return 1.4826 * float(np.median(np.abs(values - np.median(values))))
 
 
-#: Floating-point flags of the mask kernel: reductions may be reassociated (so they vectorise);
-#: NaN and inf keep their meaning (no 'nnan' / 'ninf').
-_KERNEL_FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
-
-
-@numba.njit(cache=True, nogil=True, fastmath=_KERNEL_FASTMATH)
+@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
 def _tile_sums(band, good, j0, j1, centre, cut):
     """Sum, sum of squares and number of the good values of columns ``j0:j1`` of ``band``
     within ``cut`` of ``centre``, as offsets from it (``good`` empty: every pixel is good).
@@ -383,22 +379,23 @@ def _tile_sums(band, good, j0, j1, centre, cut):
     return total, total2, kept
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_KERNEL_FASTMATH)
+@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
 def _tile_row_kernel(band, good, box, defect_nsigma, column_clip, usable, high, excluded_sums,
                      excluded_counts):
     """The tests of `_band_tests` on each tile of a row of tiles, compiled.
 
     Per tile: the first mean and sigma (every good pixel), the second (the good pixels within
     2 sigma of the first mean), then one pass that flags the pixels beyond the lowest
-    threshold into a byte row and looks only at the flagged 8-byte words: high pixels go to
-    ``high`` (the count is returned), pixels beyond ``column_clip`` sigma to the per-column
-    ``excluded_sums`` / ``excluded_counts``. ``usable[tile]`` is set where both estimates
-    exist.
+    threshold into a byte row and visits only the flagged ones (`flagged_positions`): high
+    pixels go to ``high`` (the count is returned), pixels beyond ``column_clip`` sigma to the
+    per-column ``excluded_sums`` / ``excluded_counts``. ``usable[tile]`` is set where both
+    estimates exist.
     """
     rows, nx = band.shape
     use_good = good.shape[0] > 0
     n_high = 0
-    flags = np.zeros(8 * ((box + 7) // 8), dtype=np.uint8)
+    flags = flag_row(box)
+    positions = np.empty(box, dtype=np.int64)
     for tile in range((nx + box - 1) // box):
         j0 = tile * box
         j1 = min(nx, j0 + box)
@@ -425,24 +422,21 @@ def _tile_row_kernel(band, good, box, defect_nsigma, column_clip, usable, high, 
             row = band[i, j0:j1]
             for j in range(row.size):
                 flags[j] = (row[j] > lowest) | (row[j] < lower)
-            words = flags.view(np.uint64)
-            for word in range(words.size):
-                if words[word] == 0:
+            for k in range(flagged_positions(flags, row.size, positions)):
+                j = positions[k]
+                if use_good and not good[i, j0 + j]:
                     continue
-                for j in range(8 * word, min(row.size, 8 * word + 8)):
-                    if not flags[j] or (use_good and not good[i, j0 + j]):
-                        continue
-                    value = row[j]
-                    if value > high_limit:
-                        high[n_high] = i * nx + j0 + j
-                        n_high += 1
-                    if value > upper or value < lower:
-                        excluded_sums[j0 + j] += value
-                        excluded_counts[j0 + j] += 1.0
+                value = row[j]
+                if value > high_limit:
+                    high[n_high] = i * nx + j0 + j
+                    n_high += 1
+                if value > upper or value < lower:
+                    excluded_sums[j0 + j] += value
+                    excluded_counts[j0 + j] += 1.0
     return n_high
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_KERNEL_FASTMATH)
+@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
 def _fill_bands(rows1, rows2, good, mean1, mean2, scale, bands):
     """The three images the tests run on, for a band of rows of a pair, in single precision:
     each flat less its mean, and their difference ``(flat1 - mean1) - scale (flat2 -
