@@ -51,12 +51,12 @@ def source_flag_string(flags):
                     dtype=object).reshape(flags_array.shape)
 
 
-def sky_level(image):
+def sky_level(image, *, maxiters=10):
     """Global sky level of an image and its noise per pixel.
 
     The 3-sigma clipped median and standard deviation of the finite pixels
-    (`astropy.stats.sigma_clipped_stats`, at most 10 clipping iterations): stars, cosmic rays
-    and hot pixels are clipped, NaN and inf pixels left out. The wings of the stars are not
+    (`astropy.stats.sigma_clipped_stats`, at most ``maxiters`` clipping iterations): stars,
+    cosmic rays and hot pixels are clipped, NaN and inf pixels left out. The wings of the stars are not
     clipped, so a dense field of bright stars biases the level high; pass the known sky where
     it matters (``--background`` of ``bfpsf psf``, ``photometry`` and ``diagnose``).
 
@@ -64,6 +64,9 @@ def sky_level(image):
     ----------
     image : array_like
         Image, e- per pixel (or ADU: the level and noise come in the image's unit).
+    maxiters : int, optional
+        Clipping iterations at most. Default 10 (`measure_sources`' detection pedestal keeps
+        astropy's 5: 10 would move its detections and centroids).
 
     Returns
     -------
@@ -84,7 +87,7 @@ def sky_level(image):
     if pixels.size == 0:
         msg = "image has no finite pixel: no sky level"
         raise BFPSFInputError(msg, np.shape(image))
-    _, level, rms = sigma_clipped_stats(pixels, sigma=3.0, maxiters=10)
+    _, level, rms = sigma_clipped_stats(pixels, sigma=3.0, maxiters=maxiters)
     return float(level), float(rms)
 
 
@@ -241,9 +244,9 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
             colour_columns = [name for name in colour.colnames if name not in ("x", "y")]
     colour_columns = list(colour_columns or [])
 
-    # the detection pedestal: as `sky_level` but with astropy's 5 clipping iterations, not 10
-    # (10 moves the pedestal, and with it the detections and centroids, by up to a few e-)
-    _, median, _ = sigma_clipped_stats(image[~bad], sigma=3.0)
+    # the detection pedestal, with astropy's 5 clipping iterations (10 moves the pedestal, and
+    # with it the detections and centroids, by up to a few e-)
+    median, _ = sky_level(image, maxiters=5)
     data = np.where(bad, np.nan, image - median)
     kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
     convolved = convolve(np.where(bad, 0.0, data), kernel, normalize_kernel=True)
