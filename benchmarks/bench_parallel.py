@@ -67,17 +67,12 @@ def focal_plane(directory, *, detectors, amplifiers, pairs, size, seed=0):
     return folders
 
 
-def _import_bfpsf():
-    """What a worker loads at its first pair (run on each worker before the timing): the
-    modules, and the compiled kernels of the mask and covariances (numba's cache)."""
-    import astropy.io.fits  # noqa: F401
-
-    from bfpsf.calibration.covariance import pair_covariance
-    from bfpsf.calibration.flats import pair_mask
-
-    rng = np.random.default_rng(0)
-    flats = [rng.normal(1e4, 100.0, (64, 64)) for _ in range(2)]
-    pair_covariance(*flats, mask=pair_mask(*flats)[0], maxlag=2)
+def _warm_up(files):
+    """What a worker does once, at its first tasks (run on each worker before the timing, as
+    in process the first round does it): import the modules, load the compiled kernels of the
+    mask and covariances (numba's cache), open a file of the set, and measure and fit one
+    amplifier's pairs. A long run amortises it."""
+    calibrate_detectors({"warm-up": files}, workers=1, amps=AMPLIFIERS[0], **OPTIONS)
     return os.environ.get("OMP_NUM_THREADS")
 
 
@@ -94,11 +89,11 @@ def timed(detectors, workers, scheduler_mode):
         return time.perf_counter() - start, time.process_time() - start_cpu, result
     from bfpsf.parallel import _client
 
-    # the cluster (started as bfpsf starts it) and the workers' first imports are outside the
+    # the cluster (started as bfpsf starts it) and the workers' warm-up are outside the
     # timing: a long run amortises them
     client, cluster = _client(workers, None)
     try:
-        client.run(_import_bfpsf)
+        client.run(_warm_up, next(iter(detectors.values())))
         cpu_before = sum(client.run(time.process_time).values())
         start = time.perf_counter()
         result = calibrate_detectors(detectors, scheduler=cluster.scheduler_address, **OPTIONS)

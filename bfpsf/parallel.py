@@ -8,15 +8,20 @@ detector, so a focal plane is one flat list of tasks. `parallel_map` runs them
 * on a `distributed.LocalCluster` of ``workers`` single-threaded worker processes; or
 * on an existing cluster, ``scheduler='tcp://host:8786'``.
 
-Tasks stream: at most ``max_in_flight`` (default eight per worker) are in flight at a time;
-they are submitted in batches (one `distributed.Client.map` each) as half the window
-completes (`distributed.as_completed`), and their results gathered a batch at a time, so the
-memory in use is a few tasks per worker, never the whole set (a task that carries file
-references holds no pixels until it runs). Per task this costs the client and scheduler about
-2 ms of CPU (4 ms one by one), on the same cores as the workers of a local cluster. The tasks themselves should carry file references,
-not pixels (`bfpsf.calibration.flats.read_flats(..., lazy=True)`), so each worker reads only
-the pair it measures. Results come back in the order of the inputs, identical to the
-in-process ones (the same function runs on the same inputs).
+Tasks stream: the items go in chunks, one task each, cut by guided self-scheduling (a chunk
+is a quarter of what remains on two workers, never across two keys of `map_groups`, so the
+last chunks hold one item and the workers finish together); at most ``max_in_flight`` chunks
+(default eight per worker) are in flight at a time; they are submitted in batches (one
+`distributed.Client.map` each) as half the window completes (`distributed.as_completed`), and
+their results gathered a batch at a time, so the memory in use is a few tasks per worker,
+never the whole set (a task that carries file references holds no pixels until it runs). A
+chunk that holds all of a key's items runs the key's follow-up too (`map_groups`). Each task
+costs the client, the scheduler and the worker's event loop about 10 ms of CPU, on the same
+cores as the workers of a local cluster: chunks keep that a small share (issue 12). The tasks
+themselves should carry file references, not pixels
+(`bfpsf.calibration.flats.read_flats(..., lazy=True)`), so each worker reads only the pair it
+measures. Results come back in the order of the inputs, identical to the in-process ones (the
+same function runs on the same inputs).
 """
 
 import logging
@@ -108,65 +113,126 @@ def _group_positions(keys):
     return positions
 
 
+#: Chunks cut per worker from the items still to submit (guided self-scheduling: a chunk is
+#: 1 / (CHUNKS_PER_WORKER x workers) of what remains, never across two keys). Each task costs
+#: the client, the scheduler and the worker's event loop about 10 ms of CPU on the cores of a
+#: local cluster (issue 12: 80 one-pair tasks of a 4 x 4 x 4 focal plane of 1024^2 pairs took
+#: 1.1 s of it, against 3.3 s of measuring), so the first chunks hold several items; the last
+#: ones hold one, so the workers finish together.
+CHUNKS_PER_WORKER = 2
+
+
+def _apply(function, items):
+    """One task: ``[function(item) for item in items]`` (a chunk)."""
+    return [function(item) for item in items]
+
+
+def _apply_with_follow_up(function, items, key, make_task, group_function):
+    """One task for all of a key's items and its follow-up: (results, follow-up result)."""
+    results = _apply(function, items)
+    return results, group_function(make_task(key, results))
+
+
+class _Chunks:
+    """The item positions, cut into chunks as they are submitted (`CHUNKS_PER_WORKER`)."""
+
+    def __init__(self, count, keys, workers):
+        runs = (_group_positions(keys).values() if keys is not None
+                else [list(range(count))] if count else [])
+        self.runs = [list(run) for run in runs][::-1]  # popped from the end
+        self.remaining = count
+        self.workers = max(1, int(workers))
+
+    def __bool__(self):
+        return self.remaining > 0
+
+    def next(self):
+        """The next chunk: positions of one key, in input order."""
+        size = -(-self.remaining // (CHUNKS_PER_WORKER * self.workers))
+        run = self.runs[-1]
+        chunk, self.runs[-1] = run[:size], run[size:]
+        if not self.runs[-1]:
+            self.runs.pop()
+        self.remaining -= len(chunk)
+        return chunk
+
+
 def _on_dask(client, function, items, max_in_flight, bar, groups=None):
     """`ParallelSession.map` (``groups`` None) or `ParallelSession.map_groups` on Dask.
 
-    ``groups``: (keys, make_task, group_function). When every item of a key is done, its
-    follow-up ``group_function(make_task(key, results))`` is submitted at once, so a key's
-    follow-up runs while the other items are still being measured (no barrier between the
-    two stages).
+    The items go in chunks (`_Chunks`), each one task.
+    ``groups``: (keys, make_task, group_function). A chunk that holds all of a key's items
+    runs its follow-up ``group_function(make_task(key, results))`` in the same task, on the
+    worker; otherwise the follow-up is submitted when the key's last chunk is done. Either way
+    it runs while the other items are still being measured (no barrier between the two
+    stages).
     """
     from distributed import as_completed
 
     n_workers = max(1, len(client.scheduler_info()["workers"]))
     limit = max(1, max_in_flight or 8 * n_workers)
+    chunks = _Chunks(len(items), None if groups is None else groups[0], n_workers)
     results = [None] * len(items)
-    index_of, group_of = {}, {}
+    positions_of, group_of = {}, {}
     if groups is not None:
         keys, make_task, group_function = groups
         positions = _group_positions(keys)
         waiting = {key: len(indices) for key, indices in positions.items()}
-    group_results = {}
+    group_results, fused = {}, set()
     stream = as_completed()
-    submitted = 0
+
+    def whole_key(chunk):
+        return groups is not None and len(chunk) == len(positions[keys[chunk[0]]])
 
     def submit(count):
-        # one client.map per batch: a message per batch, not per task (a task submitted
-        # alone cost the client and scheduler 4 ms of CPU, a core's share on a 2-core machine)
-        nonlocal submitted
-        chunk = items[submitted:submitted + count]
-        futures = client.map(function, chunk, pure=False)
-        for offset, future in enumerate(futures):
-            index_of[future.key] = submitted + offset
-        submitted += len(chunk)
+        # one client.map per batch of chunks (and kind): a message per batch, not per task
+        batch = [chunks.next() for _ in range(count) if chunks]
+        parts = [chunk for chunk in batch if not whole_key(chunk)]
+        wholes = [chunk for chunk in batch if whole_key(chunk)]
+        futures = []
+        if parts:
+            futures += client.map(_apply, [function] * len(parts),
+                                  [[items[i] for i in chunk] for chunk in parts], pure=False)
+        if wholes:
+            # a key's items and its follow-up in one task (one round trip, not two)
+            futures += client.map(_apply_with_follow_up, [function] * len(wholes),
+                                  [[items[i] for i in chunk] for chunk in wholes],
+                                  [keys[chunk[0]] for chunk in wholes],
+                                  make_task=make_task, group_function=group_function,
+                                  pure=False)
+            fused.update(future.key for future in futures[len(parts):])
+        for chunk, future in zip(parts + wholes, futures):
+            positions_of[future.key] = chunk
         stream.update(futures)
 
     submit(limit)
-    free = 0
     for batch in stream.batches():
         # one gather per batch (a result() per future is a round trip through the client)
+        free = 0
         for future, result in zip(batch, client.gather(batch)):
             future.release()
             if future.key in group_of:
                 group_results[group_of.pop(future.key)] = result
                 continue
-            index = index_of.pop(future.key)
-            results[index] = result
+            chunk = positions_of.pop(future.key)
+            if future.key in fused:
+                fused.discard(future.key)
+                result, group_results[keys[chunk[0]]] = result
+            for index, value in zip(chunk, result):
+                results[index] = value
             free += 1
             if bar is not None:
-                bar.update(1)
+                bar.update(len(chunk))
             if groups is not None:
-                key = keys[index]
-                waiting[key] -= 1
-                if not waiting[key]:
+                key = keys[chunk[0]]
+                waiting[key] -= len(chunk)
+                if not waiting[key] and key not in group_results:
                     task = make_task(key, [results[i] for i in positions[key]])
                     follow_up = client.submit(group_function, task, pure=False)
                     group_of[follow_up.key] = key
                     stream.add(follow_up)
-        # refill when half the window is free: at most ``limit`` items in flight
-        if submitted < len(items) and (free >= (limit + 1) // 2 or not index_of):
-            submit(free)
-            free = 0
+        # the next chunks, cut now from what remains: at most ``limit`` in flight
+        submit(free)
     return results, group_results
 
 
@@ -211,9 +277,10 @@ class ParallelSession:
         (one per item) ``group_function(make_task(key, [its items' results, in order]))``.
 
         On Dask a key's follow-up starts as soon as its last item is done, while the other
-        items run (e.g. an amplifier's fit while the next amplifiers' pairs are measured);
-        ``make_task`` runs in this process. Returns ``(results, {key: follow-up result})``,
-        keys in order of first appearance.
+        items run (e.g. an amplifier's fit while the next amplifiers' pairs are measured): in
+        the same task as the items when one chunk holds them all, so ``make_task`` and
+        ``group_function`` must pickle (cloudpickle: closures and lambdas do). Returns
+        ``(results, {key: follow-up result})``, keys in order of first appearance.
         """
         items, keys = list(items), list(keys)
         if len(keys) != len(items):
@@ -265,7 +332,7 @@ def parallel_map(function, items, *, workers=1, scheduler=None, max_in_flight=No
     scheduler : str, optional
         Address of an existing Dask scheduler (then ``workers`` is ignored).
     max_in_flight : int, optional
-        Tasks in flight at once. Default eight per worker.
+        Tasks (chunks of items) in flight at once. Default eight per worker.
     progress : bool, optional
         Show a tqdm progress bar. Default False.
     description : str, optional

@@ -10,7 +10,7 @@ from astropy.io import fits
 from bfpsf.calibration import calibrate_detectors
 from bfpsf.calibration.product import Calibration, read_calibration
 from bfpsf.cli import main
-from bfpsf.parallel import dask_available, parallel_map, parallel_session
+from bfpsf.parallel import _Chunks, dask_available, parallel_map, parallel_session
 from bfpsf.validation.simulate_camera import write_amplifier_file
 
 AMPS = ("C00", "C01")
@@ -69,6 +69,39 @@ def test_map_groups_follow_up_sees_its_items_in_order(workers):
     assert results == [i * i for i in items]
     assert list(grouped) == ["b", "a", "c"]
     assert grouped == {"b": "b042581", "a": "a11664", "c": "c93649"}
+
+
+def test_chunks_are_guided_and_never_cross_keys():
+    """Guided self-scheduling: the first chunks are whole keys (several items, one task), the
+    last ones single items, each chunk one key's positions in input order, every item once."""
+    keys = [f"amp{number // 4}" for number in range(64)]  # 16 keys of 4, as a focal plane
+    chunks = _Chunks(len(keys), keys, workers=2)
+    cut = []
+    while chunks:
+        cut.append(chunks.next())
+    assert sorted(index for chunk in cut for index in chunk) == list(range(64))
+    for chunk in cut:
+        assert len({keys[index] for index in chunk}) == 1 and chunk == sorted(chunk)
+    sizes = [len(chunk) for chunk in cut]
+    assert sizes[:13] == [4] * 13 and sizes[-4:] == [1] * 4
+    # one key of 100 items on 4 workers: 1/8 of what remains each time, rounded up
+    chunks = _Chunks(100, None, workers=4)
+    assert [chunks.next() for _ in range(3)] == [list(range(13)), list(range(13, 24)),
+                                                 list(range(24, 34))]
+
+
+@pytest.mark.skipif(not dask_available(), reason="dask.distributed is not installed")
+def test_split_key_and_whole_key_follow_ups_on_dask():
+    """A key cut into several chunks gets its follow-up after its last chunk; a key in one
+    chunk runs it in the same task: both see their items' results in order."""
+    items = list(range(24))
+    keys = ["long"] * 20 + ["short"] * 2 + ["long"] * 2
+    with parallel_session(workers=2, max_in_flight=2) as session:
+        results, grouped = session.map_groups(_square, items, keys,
+                                              lambda key, values: [key, *values], _joined)
+    assert results == [i * i for i in items]
+    assert grouped == {"long": "long" + "".join(str(i * i) for i in [*range(20), 22, 23]),
+                       "short": "short400441"}
 
 
 def _profiler_enabled():
