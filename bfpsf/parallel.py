@@ -60,13 +60,26 @@ def _progress_bar(total, description, enabled):
     return tqdm(total=total, desc=description, unit="task")
 
 
-def _in_process(function, items, bar):
+def _in_process(function, blocks, bar, follow_up):
+    """`_on_dask` in this process: every block read first (a bad input stops the run before
+    any work), then the items, then the follow-ups."""
+    chunks = _Blocks(blocks, 1)
+    while chunks.read():
+        pass
+    if bar is not None:
+        bar.total = len(chunks.items)
+        bar.refresh()
     results = []
-    for item in items:
+    for item in chunks.items:
         results.append(function(item))
         if bar is not None:
             bar.update(1)
-    return results
+    grouped = {}
+    if follow_up is not None:
+        make_task, group_function = follow_up
+        grouped = {key: group_function(make_task(key, [results[i] for i in positions]))
+                   for key, positions in chunks.positions.items()}
+    return results, grouped, chunks.positions
 
 
 #: Environment variables of Dask's worker defaults left out of the local workers. Dask sets
@@ -105,14 +118,6 @@ def _client(workers, scheduler):
     return Client(cluster), cluster
 
 
-def _group_positions(keys):
-    """Key -> the positions of its items, keys in order of first appearance."""
-    positions = {}
-    for index, key in enumerate(keys):
-        positions.setdefault(key, []).append(index)
-    return positions
-
-
 #: Chunks cut per worker from the items still to submit (guided self-scheduling: a chunk is
 #: 1 / (CHUNKS_PER_WORKER x workers) of what remains, never across two keys). Each task costs
 #: the client, the scheduler and the worker's event loop about 10 ms of CPU on the cores of a
@@ -133,71 +138,123 @@ def _apply_with_follow_up(function, items, key, make_task, group_function):
     return results, group_function(make_task(key, results))
 
 
-class _Chunks:
-    """The item positions, cut into chunks as they are submitted (`CHUNKS_PER_WORKER`)."""
+class _Blocks:
+    """The items of a map, read a block at a time, and cut into chunks as they are submitted.
 
-    def __init__(self, count, keys, workers):
-        runs = (_group_positions(keys).values() if keys is not None
-                else [list(range(count))] if count else [])
-        self.runs = [list(run) for run in runs][::-1]  # popped from the end
-        self.remaining = count
+    ``blocks``: an iterable of (items, keys) (keys None for a plain map); a key's items are all
+    in one block. `read` takes the next block (the caller decides when: on Dask, while the
+    workers measure the blocks before). A chunk is 1 / (`CHUNKS_PER_WORKER` x workers) of the
+    items known and not yet submitted, never across two keys; while blocks remain unread, no
+    key is cut (what remains is not known yet), so the last chunks of the last blocks hold one
+    item each and the workers finish together.
+    """
+
+    def __init__(self, blocks, workers, description=None):
+        self.blocks = iter(blocks)
         self.workers = max(1, int(workers))
+        self.items, self.keys = [], []
+        self.positions = {}  # key -> positions of its items (the whole key: one block)
+        self.runs = []  # positions still to submit, one list per key, the next one last
+        self.remaining = 0
+        self.exhausted = False
+
+    def read(self):
+        """Take the next block; False when there is none."""
+        if self.exhausted:
+            return False
+        try:
+            items, keys = next(self.blocks)
+        except StopIteration:
+            self.exhausted = True
+            return False
+        items = list(items)
+        keys = [None] * len(items) if keys is None else list(keys)
+        if len(keys) != len(items):
+            msg = f"give one key per item: {len(keys)} keys for {len(items)} items"
+            raise BFPSFValueError(msg, (len(keys), len(items)))
+        start = len(self.items)
+        self.items += items
+        self.keys += keys
+        runs = {}
+        for offset, key in enumerate(keys):
+            runs.setdefault(key, []).append(start + offset)
+        if keys and keys[0] is not None:
+            repeated = [key for key in runs if key in self.positions]
+            if repeated:
+                msg = f"key {repeated[0]!r} is in two blocks; give each key's items in one block"
+                raise BFPSFValueError(msg, repeated[0])
+            self.positions.update(runs)
+        self.runs = [list(run) for run in runs.values()][::-1] + self.runs
+        self.remaining += len(items)
+        return True
 
     def __bool__(self):
+        """True while items read are still to submit."""
         return self.remaining > 0
 
     def next(self):
-        """The next chunk: positions of one key, in input order."""
-        size = -(-self.remaining // (CHUNKS_PER_WORKER * self.workers))
+        """The next chunk: positions of one key, in input order (call when true)."""
         run = self.runs[-1]
+        size = -(-self.remaining // (CHUNKS_PER_WORKER * self.workers))
+        if not self.exhausted:
+            size = max(size, len(run))
         chunk, self.runs[-1] = run[:size], run[size:]
         if not self.runs[-1]:
             self.runs.pop()
         self.remaining -= len(chunk)
         return chunk
 
+    def whole_key(self, chunk):
+        key = self.keys[chunk[0]]
+        return key is not None and len(chunk) == len(self.positions[key])
 
-def _on_dask(client, function, items, max_in_flight, bar, groups=None):
-    """`ParallelSession.map` (``groups`` None) or `ParallelSession.map_groups` on Dask.
 
-    The items go in chunks (`_Chunks`), each one task.
-    ``groups``: (keys, make_task, group_function). A chunk that holds all of a key's items
-    runs its follow-up ``group_function(make_task(key, results))`` in the same task, on the
-    worker; otherwise the follow-up is submitted when the key's last chunk is done. Either way
-    it runs while the other items are still being measured (no barrier between the two
-    stages).
+def _on_dask(client, function, blocks, max_in_flight, bar, follow_up=None):
+    """`ParallelSession.map_groups` (or ``map``, ``follow_up`` None) on Dask.
+
+    The items go in chunks (`_Blocks`), each one task. ``follow_up``: (make_task,
+    group_function). A chunk that holds all of a key's items runs its follow-up
+    ``group_function(make_task(key, results))`` in the same task, on the worker; otherwise the
+    follow-up is submitted when the key's last chunk is done. Either way it runs while the
+    other items are still being measured (no barrier between the two stages). The blocks are
+    read one per batch of results, while the workers measure (two before the first).
     """
     from distributed import as_completed
 
     n_workers = max(1, len(client.scheduler_info()["workers"]))
     limit = max(1, max_in_flight or 8 * n_workers)
-    chunks = _Chunks(len(items), None if groups is None else groups[0], n_workers)
-    results = [None] * len(items)
-    positions_of, group_of = {}, {}
-    if groups is not None:
-        keys, make_task, group_function = groups
-        positions = _group_positions(keys)
-        waiting = {key: len(indices) for key, indices in positions.items()}
-    group_results, fused = {}, set()
+    chunks = _Blocks(blocks, n_workers)
+    results, group_results = {}, {}
+    positions_of, group_of, fused, waiting = {}, {}, set(), {}
     stream = as_completed()
+    if follow_up is not None:
+        make_task, group_function = follow_up
 
-    def whole_key(chunk):
-        return groups is not None and len(chunk) == len(positions[keys[chunk[0]]])
+    def grow_bar():
+        if bar is not None and bar.total != len(chunks.items):
+            bar.total = len(chunks.items)
+            bar.refresh()
 
     def submit(count):
         # one client.map per batch of chunks (and kind): a message per batch, not per task
+        while not chunks and not positions_of and chunks.read():
+            pass  # nothing in flight and nothing read to submit: read on
         batch = [chunks.next() for _ in range(count) if chunks]
-        parts = [chunk for chunk in batch if not whole_key(chunk)]
-        wholes = [chunk for chunk in batch if whole_key(chunk)]
+        grow_bar()
+        parts = [chunk for chunk in batch
+                 if follow_up is None or not chunks.whole_key(chunk)]
+        wholes = [chunk for chunk in batch
+                  if follow_up is not None and chunks.whole_key(chunk)]
         futures = []
         if parts:
             futures += client.map(_apply, [function] * len(parts),
-                                  [[items[i] for i in chunk] for chunk in parts], pure=False)
+                                  [[chunks.items[i] for i in chunk] for chunk in parts],
+                                  pure=False)
         if wholes:
             # a key's items and its follow-up in one task (one round trip, not two)
             futures += client.map(_apply_with_follow_up, [function] * len(wholes),
-                                  [[items[i] for i in chunk] for chunk in wholes],
-                                  [keys[chunk[0]] for chunk in wholes],
+                                  [[chunks.items[i] for i in chunk] for chunk in wholes],
+                                  [chunks.keys[chunk[0]] for chunk in wholes],
                                   make_task=make_task, group_function=group_function,
                                   pure=False)
             fused.update(future.key for future in futures[len(parts):])
@@ -205,6 +262,10 @@ def _on_dask(client, function, items, max_in_flight, bar, groups=None):
             positions_of[future.key] = chunk
         stream.update(futures)
 
+    # two blocks before the first submission: with one block (one detector), it is then
+    # known to be the last, and its keys are cut from the start
+    chunks.read()
+    chunks.read()
     submit(limit)
     for batch in stream.batches():
         # one gather per batch (a result() per future is a round trip through the client)
@@ -217,23 +278,24 @@ def _on_dask(client, function, items, max_in_flight, bar, groups=None):
             chunk = positions_of.pop(future.key)
             if future.key in fused:
                 fused.discard(future.key)
-                result, group_results[keys[chunk[0]]] = result
-            for index, value in zip(chunk, result):
-                results[index] = value
+                result, group_results[chunks.keys[chunk[0]]] = result
+            results.update(zip(chunk, result))
             free += 1
             if bar is not None:
                 bar.update(len(chunk))
-            if groups is not None:
-                key = keys[chunk[0]]
-                waiting[key] -= len(chunk)
-                if not waiting[key] and key not in group_results:
-                    task = make_task(key, [results[i] for i in positions[key]])
-                    follow_up = client.submit(group_function, task, pure=False)
-                    group_of[follow_up.key] = key
-                    stream.add(follow_up)
-        # the next chunks, cut now from what remains: at most ``limit`` in flight
+            key = chunks.keys[chunk[0]]
+            if follow_up is not None and key not in group_results:
+                waiting[key] = waiting.get(key, len(chunks.positions[key])) - len(chunk)
+                if not waiting[key]:
+                    task = make_task(key, [results[i] for i in chunks.positions[key]])
+                    follow = client.submit(group_function, task, pure=False)
+                    group_of[follow.key] = key
+                    stream.add(follow)
+        # the next block, read while the workers measure; then the next chunks, cut now from
+        # what remains (at most ``limit`` in flight)
+        chunks.read()
         submit(free)
-    return results, group_results
+    return [results[i] for i in range(len(chunks.items))], group_results, chunks.positions
 
 
 class ParallelSession:
@@ -269,43 +331,44 @@ class ParallelSession:
 
     def map(self, function, items, *, progress=False, description="tasks"):
         """``[function(item) for item in items]``; see `parallel_map`."""
-        return self._run(function, list(items), None, progress, description)[0]
+        items = list(items)
+        if self.on_dask and len(items) > 1:
+            return self._run(function, [(items, None)], None, progress, description)[0]
+        return self._run(function, [(items, None)], None, progress, description, dask=False)[0]
 
-    def map_groups(self, function, items, keys, make_task, group_function, *, progress=False,
+    def map_groups(self, function, blocks, make_task, group_function, *, progress=False,
                    description="tasks"):
-        """``results = [function(item) for item in items]``, then for each key of ``keys``
-        (one per item) ``group_function(make_task(key, [its items' results, in order]))``.
+        """For each block (items, keys) of ``blocks``, ``results = [function(item) for item in
+        items]``, then for each key (one per item) ``group_function(make_task(key, [its
+        items' results, in order]))``.
+
+        ``blocks`` may be a generator: on Dask it is read one block at a time while the workers
+        measure the blocks before (e.g. a detector's file headers while the pairs of the
+        detectors before are measured). A key's items must all be in one block.
 
         On Dask a key's follow-up starts as soon as its last item is done, while the other
         items run (e.g. an amplifier's fit while the next amplifiers' pairs are measured): in
         the same task as the items when one chunk holds them all, so ``make_task`` and
         ``group_function`` must pickle (cloudpickle: closures and lambdas do). Returns
-        ``(results, {key: follow-up result})``, keys in order of first appearance.
+        ``(results, {key: follow-up result})``, results in the order of the items, keys in
+        order of first appearance.
         """
-        items, keys = list(items), list(keys)
-        if len(keys) != len(items):
-            msg = f"give one key per item: {len(keys)} keys for {len(items)} items"
-            raise BFPSFValueError(msg, (len(keys), len(items)))
-        results, grouped = self._run(function, items, (keys, make_task, group_function),
-                                     progress, description)
-        return results, {key: grouped[key] for key in _group_positions(keys)}
+        results, grouped, positions = self._run(function, blocks, (make_task, group_function),
+                                                progress, description)
+        return results, {key: grouped[key] for key in positions}
 
-    def _run(self, function, items, groups, progress, description):
-        bar = _progress_bar(len(items), description, progress)
+    def _run(self, function, blocks, follow_up, progress, description, dask=None):
+        bar = _progress_bar(None, description, progress)
         try:
-            if self.on_dask and len(items) > 1:
+            if self.on_dask if dask is None else dask:
                 if self._client is None:  # started at the first map that needs it
                     self._client, self._cluster = _client(self.workers, self.scheduler)
-                return _on_dask(self._client, function, items, self.max_in_flight, bar, groups)
-            results = _in_process(function, items, bar)
+                return _on_dask(self._client, function, blocks, self.max_in_flight, bar,
+                                follow_up)
+            return _in_process(function, blocks, bar, follow_up)
         finally:
             if bar is not None:
                 bar.close()
-        if groups is None:
-            return results, {}
-        keys, make_task, group_function = groups
-        return results, {key: group_function(make_task(key, [results[i] for i in indices]))
-                         for key, indices in _group_positions(keys).items()}
 
 
 def parallel_session(workers=1, scheduler=None, max_in_flight=None):

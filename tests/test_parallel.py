@@ -10,7 +10,7 @@ from astropy.io import fits
 from bfpsf.calibration import calibrate_detectors
 from bfpsf.calibration.product import Calibration, read_calibration
 from bfpsf.cli import main
-from bfpsf.parallel import _Chunks, dask_available, parallel_map, parallel_session
+from bfpsf.parallel import _Blocks, dask_available, parallel_map, parallel_session
 from bfpsf.validation.simulate_camera import write_amplifier_file
 
 AMPS = ("C00", "C01")
@@ -58,24 +58,45 @@ def _joined(values):
     not dask_available(), reason="dask.distributed is not installed"))])
 def test_map_groups_follow_up_sees_its_items_in_order(workers):
     """Each key's follow-up gets its own items' results in input order (on Dask it starts while
-    other items run), keys in order of first appearance; the same in process and on Dask."""
+    other items run), keys in order of first appearance, blocks read from a generator; the
+    same in process and on Dask."""
     items = list(range(10))
     keys = ["b", "a", "b", "c", "a", "b", "c", "c", "a", "b"]
     with parallel_session(workers=workers, max_in_flight=3) as session:
-        results, grouped = session.map_groups(_square, items, keys,
+        results, grouped = session.map_groups(_square, [(items, keys)],
                                               lambda key, values: [key, *values], _joined)
         with pytest.raises(ValueError, match="one key per item: 2 keys for 10 items"):
-            session.map_groups(_square, items, keys[:2], None, _joined)
+            session.map_groups(_square, [(items, keys[:2])], None, _joined)
     assert results == [i * i for i in items]
     assert list(grouped) == ["b", "a", "c"]
     assert grouped == {"b": "b042581", "a": "a11664", "c": "c93649"}
+
+
+@pytest.mark.parametrize("workers", [1, pytest.param(2, marks=pytest.mark.skipif(
+    not dask_available(), reason="dask.distributed is not installed"))])
+def test_map_groups_reads_blocks_from_a_generator(workers):
+    """Blocks (a detector's pairs each) come from a generator, read as the map goes: results
+    in block order, each key's follow-up from its block; a key in two blocks is refused."""
+    blocks = [(list(range(start, start + 6)), [f"{name}{i % 2}" for i in range(6)])
+              for start, name in ((0, "R0"), (6, "R1"), (12, "R2"))]
+    with parallel_session(workers=workers, max_in_flight=2) as session:
+        results, grouped = session.map_groups(_square, (block for block in blocks),
+                                              lambda key, values: [key, *values], _joined)
+        with pytest.raises(ValueError, match="key 'R00' is in two blocks"):
+            session.map_groups(_square, [blocks[0], blocks[0]], lambda key, values: values,
+                               _joined)
+    assert results == [i * i for i in range(18)]
+    assert list(grouped) == ["R00", "R01", "R10", "R11", "R20", "R21"]
+    assert grouped["R11"] == "R11" + "4981121"
+    assert grouped["R20"] == "R20" + "144196256"
 
 
 def test_chunks_are_guided_and_never_cross_keys():
     """Guided self-scheduling: the first chunks are whole keys (several items, one task), the
     last ones single items, each chunk one key's positions in input order, every item once."""
     keys = [f"amp{number // 4}" for number in range(64)]  # 16 keys of 4, as a focal plane
-    chunks = _Chunks(len(keys), keys, workers=2)
+    chunks = _Blocks([(range(64), keys)], workers=2)
+    assert chunks.read() and not chunks.read()  # one block: now known to be the last
     cut = []
     while chunks:
         cut.append(chunks.next())
@@ -85,9 +106,13 @@ def test_chunks_are_guided_and_never_cross_keys():
     sizes = [len(chunk) for chunk in cut]
     assert sizes[:13] == [4] * 13 and sizes[-4:] == [1] * 4
     # one key of 100 items on 4 workers: 1/8 of what remains each time, rounded up
-    chunks = _Chunks(100, None, workers=4)
+    chunks = _Blocks([(range(100), None)], workers=4)
+    assert chunks.read() and not chunks.read()
     assert [chunks.next() for _ in range(3)] == [list(range(13)), list(range(13, 24)),
                                                  list(range(24, 34))]
+    # while blocks remain unread, no key is cut (what remains is not known yet)
+    chunks = _Blocks([(range(8), ["a"] * 8), (range(8), ["b"] * 8)], workers=2)
+    assert chunks.read() and chunks.next() == list(range(8)) and not chunks
 
 
 @pytest.mark.skipif(not dask_available(), reason="dask.distributed is not installed")
@@ -97,7 +122,7 @@ def test_split_key_and_whole_key_follow_ups_on_dask():
     items = list(range(24))
     keys = ["long"] * 20 + ["short"] * 2 + ["long"] * 2
     with parallel_session(workers=2, max_in_flight=2) as session:
-        results, grouped = session.map_groups(_square, items, keys,
+        results, grouped = session.map_groups(_square, [(items, keys)],
                                               lambda key, values: [key, *values], _joined)
     assert results == [i * i for i in items]
     assert grouped == {"long": "long" + "".join(str(i * i) for i in [*range(20), 22, 23]),

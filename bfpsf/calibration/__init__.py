@@ -7,6 +7,7 @@ pedestal (`pedestal`), fit the photon transfer curve and the area coefficients a
 (`coefficients`), and return a `~bfpsf.calibration.product.Calibration`.
 """
 
+import functools
 import os
 from dataclasses import dataclass
 
@@ -152,33 +153,31 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="f
         solve_shifts=solve_shifts, shift_method=shift_method, thickness=thickness,
         n_monte_carlo=n_monte_carlo, seed=seed)
     exptimes = exptimes or {}
-    tasks, owners = [], []
-    for detector, sources in detectors.items():
-        if not isinstance(sources, (str, os.PathLike, np.ndarray)):
-            refuse_duplicates([source for source in sources
-                               if isinstance(source, (str, os.PathLike))], "flat")
-        flats = read_flats(sources, exptimes.get(detector), amps=amps, lazy=True,
-                           overscan=overscan)
-        measured_lag = _measured_lag(flats, parameters["maxlag"])
-        for amplifier, amplifier_flats in group_amplifiers(flats).items():
-            pairs = pair_flats(amplifier_flats, mean_tolerance=mean_tolerance)
-            for pair in pairs:
-                tasks.append(PairTask(pair, saturation, measured_lag, clip_nsigma,
-                                      mean_tolerance, overscan))
-                owners.append((detector, amplifier))
-    names = {}
-    for owner, task in zip(owners, tasks):
-        names.setdefault(owner, []).append(task.pair.names)
 
-    def fit_task(owner, measured):
-        entries = [(pair_names, covariance, report)
-                   for pair_names, (covariance, report) in zip(names[owner], measured)]
-        return FitTask(owner[1], entries, dict(parameters), options)
+    def blocks():
+        # one detector at a time: its headers are read while the workers measure the pairs
+        # of the detectors before
+        for detector, sources in detectors.items():
+            if not isinstance(sources, (str, os.PathLike, np.ndarray)):
+                refuse_duplicates([source for source in sources
+                                   if isinstance(source, (str, os.PathLike))], "flat")
+            flats = read_flats(sources, exptimes.get(detector), amps=amps, lazy=True,
+                               overscan=overscan)
+            measured_lag = _measured_lag(flats, parameters["maxlag"])
+            tasks, owners = [], []
+            for amplifier, amplifier_flats in group_amplifiers(flats).items():
+                for pair in pair_flats(amplifier_flats, mean_tolerance=mean_tolerance):
+                    tasks.append(PairTask(pair, saturation, measured_lag, clip_nsigma,
+                                          mean_tolerance, overscan))
+                    owners.append((detector, amplifier))
+            yield tasks, owners
 
     # each amplifier is fitted as soon as its pairs are measured, while the others' are
     with parallel_session(workers, scheduler) as session:
-        _, fits = session.map_groups(measure_pair, tasks, owners, fit_task, fit_measured_pairs,
-                                     progress=progress, description="flat pairs")
+        _, fits = session.map_groups(measure_pair, blocks(),
+                                     functools.partial(_fit_task, parameters, options),
+                                     fit_measured_pairs, progress=progress,
+                                     description="flat pairs")
     results = {}
     for detector in detectors:
         fitted = {owner[1]: fit for owner, fit in fits.items() if owner[0] == detector}
@@ -315,7 +314,8 @@ def measure_pair(task):
 
     Returns
     -------
-    (PairCovariance, MaskReport)
+    ((str, str), PairCovariance, MaskReport)
+        The names of the two flats and their measurements: an entry of `FitTask`.
     """
     from .covariance import pair_covariance
     from .flats import check_pair, pair_mask
@@ -338,7 +338,7 @@ def measure_pair(task):
         msg = (f"flats {flat1.name} and {flat2.name} are identical (their difference "
                "has zero variance): a pair needs two exposures")
         raise BFPSFInputError(msg, (flat1.name, flat2.name))
-    return covariance, report
+    return task.pair.names, covariance, report
 
 
 def _measured_lag(flats, maxlag):
@@ -362,6 +362,11 @@ def _check_size(flat, maxlag):
         msg = (f"flat {flat.name} ({nx} x {ny} pixels) is too small for maxlag {maxlag}: "
                f"give maxlag < {min(ny, nx) // 2}")
         raise BFPSFInputError(msg, flat.name)
+
+
+def _fit_task(parameters, options, owner, measured):
+    """The `FitTask` of amplifier ``owner`` = (detector, amplifier) from its measured pairs."""
+    return FitTask(owner[1], list(measured), dict(parameters), options)
 
 
 @dataclass(frozen=True, eq=False)
