@@ -144,12 +144,12 @@ class _Blocks:
     ``blocks``: an iterable of (items, keys) (keys None for a plain map); a key's items are all
     in one block. `read` takes the next block (the caller decides when: on Dask, while the
     workers measure the blocks before). A chunk is 1 / (`CHUNKS_PER_WORKER` x workers) of the
-    items known and not yet submitted, never across two keys; while blocks remain unread, no
-    key is cut (what remains is not known yet), so the last chunks of the last blocks hold one
-    item each and the workers finish together.
+    items read and not yet submitted, never across two keys, and while blocks remain unread
+    (what remains is not known yet) at least that share of all the items read; so the last
+    chunks of the last block hold one item each and the workers finish together.
     """
 
-    def __init__(self, blocks, workers, description=None):
+    def __init__(self, blocks, workers):
         self.blocks = iter(blocks)
         self.workers = max(1, int(workers))
         self.items, self.keys = [], []
@@ -195,9 +195,10 @@ class _Blocks:
     def next(self):
         """The next chunk: positions of one key, in input order (call when true)."""
         run = self.runs[-1]
-        size = -(-self.remaining // (CHUNKS_PER_WORKER * self.workers))
-        if not self.exhausted:
-            size = max(size, len(run))
+        share = CHUNKS_PER_WORKER * self.workers
+        size = -(-self.remaining // share)
+        if not self.exhausted:  # more may come: not below the share of all the items read
+            size = max(size, -(-len(self.items) // share))
         chunk, self.runs[-1] = run[:size], run[size:]
         if not self.runs[-1]:
             self.runs.pop()

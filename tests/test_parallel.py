@@ -110,9 +110,15 @@ def test_chunks_are_guided_and_never_cross_keys():
     assert chunks.read() and not chunks.read()
     assert [chunks.next() for _ in range(3)] == [list(range(13)), list(range(13, 24)),
                                                  list(range(24, 34))]
-    # while blocks remain unread, no key is cut (what remains is not known yet)
-    chunks = _Blocks([(range(8), ["a"] * 8), (range(8), ["b"] * 8)], workers=2)
-    assert chunks.read() and chunks.next() == list(range(8)) and not chunks
+    # while blocks remain unread, a chunk is at least 1/4 of all the items read (two workers)
+    chunks = _Blocks([(range(8), ["a"] * 8), (range(8), ["b"] * 8), (range(9), ["c"] * 9)],
+                     workers=2)
+    assert chunks.read() and chunks.next() == [0, 1]
+    assert chunks.read() and chunks.next() == [2, 3, 4, 5]  # 16 read, 14 left
+    assert chunks.read() and chunks.next() == [6, 7]  # the rest of a
+    assert chunks.next() == list(range(8, 15))  # 25 read: 25/4 rounded up
+    assert not chunks.read()  # all read: 1/4 of what remains
+    assert [chunks.next() for _ in range(4)] == [[15], [16, 17, 18], [19, 20], [21]]
 
 
 @pytest.mark.skipif(not dask_available(), reason="dask.distributed is not installed")
