@@ -16,12 +16,16 @@ machine the numbers are noisy; run it when the machine is quiet.
 
 Each worker is a process with one thread (OMP/MKL/OpenBLAS threads 1, Dask's nanny default)
 and without Dask's statistical profiler (bfpsf.parallel.WORKER_PROFILER), so the GIL and nested
-threading play no part; tasks go to the scheduler in batches and each amplifier's fit starts
-when its pairs are done. The files are whole-ADU uint16, as CCD controllers write them. The
-larger ``--size``, the smaller the share of the per-task scheduling and file opening. Measured
-on the shared 2-core machine (issue 12, best of 3 rounds each): 2 workers over 1, 1.53-1.62x at
-1024^2 (3 runs), 1.63-1.73x at 2048^2 (3 runs); two workers together use 5-10 % more CPU than
-one (shared L3 cache and memory bandwidth).
+threading play no part. The pairs go in chunks (guided self-scheduling, bfpsf.parallel), an
+amplifier whose pairs are all in one chunk is fitted in the same task, and each detector's
+headers are read while the workers measure the detectors before. Each worker is warmed up
+with one amplifier before the timing (imports, compiled kernels, a first file and fit), as a
+long run amortises it. The files are whole-ADU uint16, as CCD controllers write them. The
+speed-up is printed best over best and for each round (the three runs of a round alternate,
+so a busy spell of the shared host hits them alike). Measured on the shared 2-core machine
+(issue 12, ``--repeat 5``): 2 workers over 1, 1.77x, 1.78x, 1.69x, 1.81x and 1.59x at 1024^2
+(the last in a busy spell: the two workers then took 10-20 % more CPU than one), 1.84x at
+512^2, 1.86x at 2048^2.
 """
 
 import argparse
@@ -113,7 +117,7 @@ def speed(args):
         print(f"focal plane: 4 detectors x {len(AMPLIFIERS)} amplifiers x {args.pairs} pairs "
               f"of {args.size}^2 = {tasks} pair tasks; {os.cpu_count()} CPUs, load average "
               f"{load_average():.2f} before; {args.repeat} rounds, best wall time of each")
-        best, results = {}, {}
+        best, results, ratios = {}, {}, []
         for round_number in range(args.repeat):
             # the three runs alternate, so a busy spell of the shared machine hits them alike
             for label, workers, mode in (("in process", 1, "in-process"),
@@ -121,6 +125,10 @@ def speed(args):
                                          ("Dask, 2 workers", 2, "dask")):
                 seconds, cpu, result = timed(detectors, workers, mode)
                 results.setdefault(label, result)
+                if label == "Dask, 1 worker":
+                    one_worker = seconds
+                elif label == "Dask, 2 workers":
+                    ratios.append(one_worker / seconds)
                 if seconds < best.get(label, (np.inf,))[0]:
                     best[label] = (seconds, cpu)
                 print(f"  round {round_number + 1}: {label:16s} {seconds:7.2f} s wall, "
@@ -135,8 +143,9 @@ def speed(args):
             and result[detector][amp].gain == reference[detector][amp].gain
             for result in results.values() for detector in reference for amp in AMPLIFIERS)
         print(f"  speed-up, 2 workers over 1: "
-              f"{best['Dask, 1 worker'][0] / best['Dask, 2 workers'][0]:.2f}x; "
-              f"gains and a(dx, dy) identical in all runs: {identical}")
+              f"{best['Dask, 1 worker'][0] / best['Dask, 2 workers'][0]:.2f}x (best over best); "
+              f"in each round {', '.join(f'{ratio:.2f}' for ratio in ratios)}; gains and "
+              f"a(dx, dy) identical in all runs: {identical}")
 
 
 def one_memory_run(directory, workers):
