@@ -12,10 +12,11 @@ Tasks stream: the items go in chunks, one task each, cut by guided self-scheduli
 is a quarter of what remains on two workers, never across two keys of `map_groups`, so the
 last chunks hold one item and the workers finish together); at most ``max_in_flight`` chunks
 (default eight per worker) are in flight at a time; they are submitted in batches (one
-`distributed.Client.map` each) as half the window completes (`distributed.as_completed`), and
-their results gathered a batch at a time, so the memory in use is a few tasks per worker,
+`distributed.Client.map` each) as chunks complete (`distributed.as_completed`), and their
+results gathered a batch at a time, so the memory in use is a few tasks per worker,
 never the whole set (a task that carries file references holds no pixels until it runs). A
-chunk that holds all of a key's items runs the key's follow-up too (`map_groups`). Each task
+chunk that holds all of a key's items runs the key's follow-up too (`map_groups`), whose items
+come in blocks (one detector's pairs), read while the workers measure the blocks before. Each task
 costs the client, the scheduler and the worker's event loop about 10 ms of CPU, on the same
 cores as the workers of a local cluster: chunks keep that a small share (issue 12). The tasks
 themselves should carry file references, not pixels
@@ -333,9 +334,8 @@ class ParallelSession:
     def map(self, function, items, *, progress=False, description="tasks"):
         """``[function(item) for item in items]``; see `parallel_map`."""
         items = list(items)
-        if self.on_dask and len(items) > 1:
-            return self._run(function, [(items, None)], None, progress, description)[0]
-        return self._run(function, [(items, None)], None, progress, description, dask=False)[0]
+        return self._run(function, [(items, None)], None, progress, description,
+                         dask=self.on_dask and len(items) > 1)[0]
 
     def map_groups(self, function, blocks, make_task, group_function, *, progress=False,
                    description="tasks"):
@@ -359,7 +359,7 @@ class ParallelSession:
         return results, {key: grouped[key] for key in positions}
 
     def _run(self, function, blocks, follow_up, progress, description, dask=None):
-        bar = _progress_bar(None, description, progress)
+        bar = _progress_bar(None, description, progress)  # its total grows as blocks are read
         try:
             if self.on_dask if dask is None else dask:
                 if self._client is None:  # started at the first map that needs it
