@@ -117,31 +117,30 @@ def speed(args):
         print(f"focal plane: 4 detectors x {len(AMPLIFIERS)} amplifiers x {args.pairs} pairs "
               f"of {args.size}^2 = {tasks} pair tasks; {os.cpu_count()} CPUs, load average "
               f"{load_average():.2f} before; {args.repeat} rounds, best wall time of each")
-        best, results, ratios = {}, {}, []
+        best, results, ratios = {}, [], []
         for round_number in range(args.repeat):
             # the three runs alternate, so a busy spell of the shared machine hits them alike
+            wall = {}
             for label, workers, mode in (("in process", 1, "in-process"),
                                          ("Dask, 1 worker", 1, "dask"),
                                          ("Dask, 2 workers", 2, "dask")):
                 seconds, cpu, result = timed(detectors, workers, mode)
-                results.setdefault(label, result)
-                if label == "Dask, 1 worker":
-                    one_worker = seconds
-                elif label == "Dask, 2 workers":
-                    ratios.append(one_worker / seconds)
+                results.append(result)
+                wall[label] = seconds
                 if seconds < best.get(label, (np.inf,))[0]:
                     best[label] = (seconds, cpu)
                 print(f"  round {round_number + 1}: {label:16s} {seconds:7.2f} s wall, "
                       f"{cpu:7.2f} s CPU; load average {load_average():.2f} after")
+            ratios.append(wall["Dask, 1 worker"] / wall["Dask, 2 workers"])
         print("  best of the rounds (CPU: this process in process, the sum over the workers on "
               "Dask; near the wall time times the workers means each had a core):")
         for label, (seconds, cpu) in best.items():
             print(f"  {label:16s} {seconds:7.2f} s wall, {cpu:7.2f} s CPU")
-        reference = results["in process"]
+        reference = results[0]  # the first round in process
         identical = all(
             np.array_equal(result[detector][amp].a, reference[detector][amp].a)
             and result[detector][amp].gain == reference[detector][amp].gain
-            for result in results.values() for detector in reference for amp in AMPLIFIERS)
+            for result in results for detector in reference for amp in AMPLIFIERS)
         print(f"  speed-up, 2 workers over 1: "
               f"{best['Dask, 1 worker'][0] / best['Dask, 2 workers'][0]:.2f}x (best over best); "
               f"in each round {', '.join(f'{ratio:.2f}' for ratio in ratios)}; gains and "

@@ -61,15 +61,20 @@ def _progress_bar(total, description, enabled):
     return tqdm(total=total, desc=description, unit="task")
 
 
+def _grow_bar(bar, total):
+    """Set the progress bar's total (it grows as the blocks of a map are read)."""
+    if bar is not None and bar.total != total:
+        bar.total = total
+        bar.refresh()
+
+
 def _in_process(function, blocks, bar, follow_up):
     """`_on_dask` in this process: every block read first (a bad input stops the run before
     any work), then the items, then the follow-ups."""
     chunks = _Blocks(blocks, 1)
     while chunks.read():
         pass
-    if bar is not None:
-        bar.total = len(chunks.items)
-        bar.refresh()
+    _grow_bar(bar, len(chunks.items))
     results = []
     for item in chunks.items:
         results.append(function(item))
@@ -232,21 +237,14 @@ def _on_dask(client, function, blocks, max_in_flight, bar, follow_up=None):
     if follow_up is not None:
         make_task, group_function = follow_up
 
-    def grow_bar():
-        if bar is not None and bar.total != len(chunks.items):
-            bar.total = len(chunks.items)
-            bar.refresh()
-
     def submit(count):
         # one client.map per batch of chunks (and kind): a message per batch, not per task
         while not chunks and not positions_of and chunks.read():
             pass  # nothing in flight and nothing read to submit: read on
-        batch = [chunks.next() for _ in range(count) if chunks]
-        grow_bar()
-        parts = [chunk for chunk in batch
-                 if follow_up is None or not chunks.whole_key(chunk)]
-        wholes = [chunk for chunk in batch
-                  if follow_up is not None and chunks.whole_key(chunk)]
+        _grow_bar(bar, len(chunks.items))
+        parts, wholes = [], []  # a plain map's items have no key: never whole
+        for chunk in (chunks.next() for _ in range(count) if chunks):
+            (wholes if chunks.whole_key(chunk) else parts).append(chunk)
         futures = []
         if parts:
             futures += client.map(_apply, [function] * len(parts),
@@ -278,14 +276,14 @@ def _on_dask(client, function, blocks, max_in_flight, bar, follow_up=None):
                 group_results[group_of.pop(future.key)] = result
                 continue
             chunk = positions_of.pop(future.key)
+            key = chunks.keys[chunk[0]]
             if future.key in fused:
                 fused.discard(future.key)
-                result, group_results[chunks.keys[chunk[0]]] = result
+                result, group_results[key] = result
             results.update(zip(chunk, result))
             free += 1
             if bar is not None:
                 bar.update(len(chunk))
-            key = chunks.keys[chunk[0]]
             if follow_up is not None and key not in group_results:
                 waiting[key] = waiting.get(key, len(chunks.positions[key])) - len(chunk)
                 if not waiting[key]:
@@ -335,7 +333,7 @@ class ParallelSession:
         """``[function(item) for item in items]``; see `parallel_map`."""
         items = list(items)
         return self._run(function, [(items, None)], None, progress, description,
-                         dask=self.on_dask and len(items) > 1)[0]
+                         self.on_dask and len(items) > 1)[0]
 
     def map_groups(self, function, blocks, make_task, group_function, *, progress=False,
                    description="tasks"):
@@ -355,13 +353,13 @@ class ParallelSession:
         order of first appearance.
         """
         results, grouped, positions = self._run(function, blocks, (make_task, group_function),
-                                                progress, description)
+                                                progress, description, self.on_dask)
         return results, {key: grouped[key] for key in positions}
 
-    def _run(self, function, blocks, follow_up, progress, description, dask=None):
+    def _run(self, function, blocks, follow_up, progress, description, on_dask):
         bar = _progress_bar(None, description, progress)  # its total grows as blocks are read
         try:
-            if self.on_dask if dask is None else dask:
+            if on_dask:
                 if self._client is None:  # started at the first map that needs it
                     self._client, self._cluster = _client(self.workers, self.scheduler)
                 return _on_dask(self._client, function, blocks, self.max_in_flight, bar,

@@ -340,6 +340,10 @@ def _robust_sigma(values):
     return 1.4826 * float(np.median(np.abs(values - np.median(values))))
 
 
+#: The ``good`` argument of the compiled kernels when every pixel is good.
+_NO_MASK = np.empty((0, 0), dtype=bool)
+
+
 @numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
 def _tile_sums(band, good, j0, j1, centre, cut):
     """Sum, sum of squares and number of the good values of columns ``j0:j1`` of ``band``
@@ -495,8 +499,7 @@ def _band_tests(band, good, box, defect_nsigma, column_clip=5.0, buffer=None):
     high = np.empty(band.size, dtype=np.int64) if buffer is None else buffer
     excluded_sums = np.zeros(nx)
     excluded_counts = np.zeros(nx)
-    no_mask = np.empty((0, 0), dtype=bool)
-    n_high = _tile_row_kernel(band, no_mask if good is None else np.ascontiguousarray(good),
+    n_high = _tile_row_kernel(band, _NO_MASK if good is None else np.ascontiguousarray(good),
                               int(box), float(defect_nsigma), float(column_clip), usable, high,
                               excluded_sums, excluded_counts)
     usable = np.repeat(usable, box)[:nx]
@@ -541,12 +544,11 @@ def _image_tests(image1, image2, bad, box, defect_nsigma, totals=None):
     high = [[], [], []]
     buffer = np.empty(box * nx, dtype=np.int64)
     band_buffer = np.empty((3, box, nx), dtype=np.float32)
-    no_mask = np.empty((0, 0), dtype=bool)
     for y0 in range(0, ny, box):
         rows = slice(y0, y0 + box)
         good = None if bad is None or not bad[rows].any() else ~bad[rows]
         bands = band_buffer[:, :image1[rows].shape[0]]
-        _fill_bands(image1[rows], image2[rows], no_mask if good is None else good, means[0],
+        _fill_bands(image1[rows], image2[rows], _NO_MASK if good is None else good, means[0],
                     means[1], scale, bands)
         for number, band in enumerate(bands):
             sums, counts, band_high = _band_tests(band, good, box, defect_nsigma,
