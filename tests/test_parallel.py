@@ -196,6 +196,19 @@ def test_detector_directories_write_one_product_each_with_amplifier_json(tmp_pat
         assert calibration["C01"].gain == entry["amplifiers"][1]["gain"]
 
 
+def test_unpaired_flat_in_a_later_detector_stops_the_run_and_writes_nothing(tmp_path, capsys):
+    folders = _focal_plane(tmp_path, detectors=2)
+    (folders[1] / "flat11.fits").unlink()  # its partner flat10.fits is left alone
+    out = tmp_path / "calibs"
+    code = main(["calibrate", *map(str, folders), "-o", str(out), "--maxlag", "2",
+                 "--n-monte-carlo", "0", "--workers", "1"])
+    error = capsys.readouterr().err.strip().splitlines()
+    assert code != 0
+    assert error[-1] == (f"bfpsf calibrate: error: {folders[1] / 'flat10.fits'}[C00] "
+                         "(EXPTIME=80 s) has no partner: flats are paired by equal EXPTIME")
+    assert not out.exists()
+
+
 def test_one_amplifier_selected_reads_as_a_single_calibration(tmp_path, capsys):
     (folder,) = _focal_plane(tmp_path, detectors=1)
     files = sorted(map(str, folder.glob("*.fits")))

@@ -157,8 +157,6 @@ def run(args):
         raise BFPSFInputError(msg, args.plots)
     check_outputs([*outputs.values(), args.json, args.export_ptc], args.overwrite,
                   directories=[args.plots, args.output if len(detectors) > 1 else None])
-    if len(detectors) > 1:
-        Path(args.output).mkdir(parents=True, exist_ok=True)
 
     if args.from_ptc:
         from ..calibration import calibrate_from_ptc
@@ -176,6 +174,8 @@ def run(args):
             scheduler=args.scheduler)
     for calibration in calibrations.values():
         check_outputs(_plot_paths(args, calibration), args.overwrite, directories=[args.plots])
+    if len(detectors) > 1:  # made once the work has succeeded: a failed run leaves nothing
+        Path(args.output).mkdir(parents=True, exist_ok=True)
     summaries = []
     for detector, calibration in calibrations.items():
         calibration.write(outputs[detector], overwrite=args.overwrite)
