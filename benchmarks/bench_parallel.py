@@ -23,7 +23,7 @@ with one amplifier before the timing (imports, compiled kernels, a first file an
 long run amortises it. The files are whole-ADU uint16, as CCD controllers write them. The
 speed-up is printed best over best and for each round (the three runs of a round alternate,
 so a busy spell of the shared host hits them alike). Measured on the shared 2-core machine
-(issue 12, ``--repeat 5``): 2 workers over 1, 1.77x, 1.78x, 1.69x, 1.81x and 1.59x at 1024^2
+(issue 12, ``--repeat 5``): 2 workers over 1, 1.77x, 1.78x, 1.69x, 1.81x, 1.66x and 1.59x at 1024^2
 (the last in a busy spell: the two workers then took 10-20 % more CPU than one), 1.84x at
 512^2, 1.86x at 2048^2.
 """
