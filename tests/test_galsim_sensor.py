@@ -13,6 +13,7 @@ from bfpsf.errors import BFPSFValueError  # noqa: E402
 from bfpsf.interop.cdmodel import shifts_from_cdmodel, shifts_to_cdmodel  # noqa: E402
 from bfpsf.interop.galsim_sensor import BFSensor, draw_with_bf  # noqa: E402
 from bfpsf.interop.silicon_truth import (  # noqa: E402
+    landing_under,
     silicon_area_coefficients,
     silicon_boundary_shifts,
 )
@@ -271,6 +272,68 @@ def test_silicon_boundary_shifts_symmetries_and_area(itl_shifts):
     for k in (1, 2, 3):
         block = slice(m - k, m + k + 1)
         assert area[block, block].sum() == pytest.approx(full[block, block].sum(), rel=0.01)
+
+
+def e2v_star(fwhm, g1=0.0, offset=(0.0, 0.0)):
+    from bfpsf.interop.silicon_truth import silicon_diffusion_sigma
+
+    profile = galsim.Convolve(galsim.Moffat(fwhm=fwhm, beta=3.5).shear(g1=g1),
+                              galsim.Gaussian(sigma=silicon_diffusion_sigma("lsst_e2v_50_8")))
+    return profile.drawImage(nx=25, ny=25, scale=1.0, offset=offset).array
+
+
+@pytest.fixture(scope="module")
+def e2v_single():
+    return silicon_boundary_shifts("lsst_e2v_50_8", photons_per_boundary=10000)
+
+
+def test_landing_under_a_charged_pixel_is_the_strip_measurement(e2v_single):
+    """On one charged pixel (0.02 px at its nearest boundary, 29 ke-), the block counts of
+    `landing_under` give the single-pixel shifts that the strips of `silicon_boundary_shifts`
+    measure at 1 ke-, boundary by boundary. (Strips alone at that charge would not: photons
+    leaving a strip sideways through the moving east boundaries are taken for crossings,
+    which puts a^N(+-1, 0) 30 % low.)"""
+    image = np.zeros((13, 13))
+    image[6, 6] = 1.0
+    under = landing_under("lsst_e2v_50_8", image, e2v_single, radius=4,
+                          photons_per_boundary=10000)
+    assert under.factors == pytest.approx((1.0, 1.0), abs=0.02)
+    centre = 6 + 4 + 3  # the padded image's centre
+    largest = np.abs(e2v_single.north).max()
+    for measured, table in ((under.measured_north, e2v_single.north),
+                            (under.measured_east, e2v_single.east)):
+        # pixel (0, 0) of a^X(dx, dy) sits at -(dx, dy) from the charge
+        window = measured[centre - 4:centre + 5, centre - 4:centre + 5][::-1, ::-1]
+        seen = np.isfinite(window)
+        # 2 % of the largest shift: GalSim's random placing of unfound photons adds to the
+        # strip precision (0.15 % of it at 10000 photons per boundary)
+        assert np.abs(window[seen] - table[seen]).max() <= 0.02 * largest
+
+
+def test_landing_under_a_star_is_not_the_sum_of_single_pixel_shifts(e2v_single):
+    """GalSim's landing is not additive: under a star's charge its N boundaries sit about 3 %
+    further out than the sum of the single-pixel landing shifts, E about 1 %, the same for any
+    star (FWHM, ellipticity, sub-pixel offset within 0.3 %). Additive landing would give
+    factors of 1 within the measurement (1e-3)."""
+    factors = [landing_under("lsst_e2v_50_8", e2v_star(*args), e2v_single,
+                             photons_per_boundary=10000).factors
+               for args in ((3.45,), (3.0, 0.04, (0.3, 0.2)), (4.5, -0.04))]
+    for north, east in factors:
+        assert north == pytest.approx(1.029, abs=0.005)
+        assert east == pytest.approx(1.008, abs=0.005)
+    spread = np.ptp(np.array(factors), axis=0)
+    assert np.all(spread <= 0.003)
+    scaled = silicon_boundary_shifts("lsst_e2v_50_8", photons_per_boundary=10000,
+                                     under=e2v_star(3.45))
+    np.testing.assert_allclose(scaled.north, e2v_single.north * factors[0][0], rtol=1e-12)
+    np.testing.assert_allclose(scaled.east, e2v_single.east * factors[0][1], rtol=1e-12)
+
+
+def test_landing_under_bad_image(e2v_single):
+    with pytest.raises(BFPSFValueError, match="2-D charge image"):
+        landing_under("lsst_e2v_50_8", np.zeros((9, 9)), e2v_single)
+    with pytest.raises(BFPSFValueError, match="radius must be between"):
+        landing_under("lsst_e2v_50_8", np.ones((5, 5)), e2v_single, radius=4)
 
 
 def test_silicon_boundary_shifts_bad_arguments():

@@ -3,7 +3,25 @@ lateral diffusion.
 
 GalSim's `galsim.SiliconSensor` simulates brighter-fatter from Poisson_CCD pixel-boundary
 solutions, physics independent of G15, so bfpsf validates against it (DESIGN.md).
+
+GalSim has two rules, and they differ at the percent level that PSF ellipticity needs:
+
+* Pixel areas (`silicon_area_coefficients`, ``calculate_pixel_areas``) are the areas of its
+  pixel polygons. Flat fields are built from them (`bfpsf.validation.simulate_flats`, as in
+  GalSim's own tests): photon-shooting a flat is too slow.
+* Stars are drawn by landing photons (``accumulate``), which tests each photon against the
+  polygons of its nominal pixel first. The landing response to one charged pixel
+  (`silicon_boundary_shifts`) differs from the polygon areas by up to 40 % for the nearest
+  neighbours, and it is not additive: under a star's charge the boundaries sit where the sum
+  of the single-pixel responses does not put them (`landing_under`).
+
+Measured for ``lsst_e2v_50_8`` (tests/test_silicon_shapes.py): a P(F) given the single-pixel
+landing shifts leaves 14 % of a star's BF change of e1; scaled to the landing under a star,
+3 %; the electrostatic solver on the polygon areas (what flats of infinite statistics can
+know) 17 %.
 """
+
+from typing import NamedTuple
 
 import numpy as np
 import galsim
@@ -16,6 +34,8 @@ __all__ = [
     "silicon_sensor_names",
     "silicon_area_coefficients",
     "silicon_boundary_shifts",
+    "landing_under",
+    "LandingUnder",
     "silicon_diffusion_sigma",
 ]
 
@@ -65,11 +85,12 @@ def silicon_area_coefficients(sensor="lsst_itl_50_8", *, charge=1000.0, maxlag=4
 
     Notes
     -----
-    These are the areas of GalSim's pixel polygons. Where photons land
-    (`SiliconSensor.accumulate`) differs from them for the nearest neighbours, by about
-    20 % for a(1, 0) and a(1, 1) of lsst_itl_50_8, because neighbouring polygons do not share
-    their boundaries exactly and a photon is given to its nominal pixel first; sums over
-    square blocks centred on the charge agree (see `silicon_boundary_shifts`).
+    These are the areas of GalSim's pixel polygons, from which flats are built. Where photons
+    land (`SiliconSensor.accumulate`, which draws stars) differs from them for the nearest
+    neighbours: by about 20 % for a(1, 0) and a(1, 1) of lsst_itl_50_8, +44 % and -31 % for
+    lsst_e2v_50_8, because a photon is tested against the polygon of its nominal pixel first
+    (module notes); sums over square blocks centred on the charge agree (see
+    `silicon_boundary_shifts`).
     """
     if charge <= 0:
         msg = f"charge must be positive, got {charge}"
@@ -89,8 +110,9 @@ def silicon_area_coefficients(sensor="lsst_itl_50_8", *, charge=1000.0, maxlag=4
 
 
 # -- boundary shifts of a SiliconSensor ----------------------------------------------------------
-def _measurement_sensor(sensor, sensor_kwargs):
-    """A SiliconSensor like ``sensor`` with diffusion off, no tree rings, no recalculation."""
+def _measurement_sensor(sensor, sensor_kwargs, seed=0):
+    """A SiliconSensor like ``sensor`` with diffusion off, no tree rings, no recalculation, and
+    its own random numbers (where it places a photon found in no pixel) seeded from ``seed``."""
     if isinstance(sensor, str):
         params = dict(name=sensor, **sensor_kwargs)
     elif isinstance(sensor, galsim.SiliconSensor):
@@ -104,7 +126,7 @@ def _measurement_sensor(sensor, sensor_kwargs):
         msg = f"sensor must be a name or a galsim.SiliconSensor, got {type(sensor).__name__}"
         raise BFPSFValueError(msg, sensor)
     # nrecalc=0: the boundaries are computed once from the image given to accumulate.
-    params.update(diffusion_factor=0.0, nrecalc=0)
+    params.update(diffusion_factor=0.0, nrecalc=0, rng=galsim.BaseDeviate(int(seed) + 1))
     return galsim.SiliconSensor(**params)
 
 
@@ -159,7 +181,7 @@ def _measure_displacements(sensor, charge, strips, widths, ncol, nrow, size, cen
 
 
 def silicon_boundary_shifts(sensor="lsst_itl_50_8", *, charge=1000.0, radius=4,
-                            photons_per_boundary=40000, symmetrize=True, seed=0,
+                            photons_per_boundary=40000, symmetrize=True, seed=0, under=None,
                             **sensor_kwargs):
     """Boundary shifts a^N, a^E of a GalSim SiliconSensor, measured by landing photons.
 
@@ -182,8 +204,10 @@ def silicon_boundary_shifts(sensor="lsst_itl_50_8", *, charge=1000.0, radius=4,
         Sensor name or instance (its name, strength, qdist and transpose are used; tree rings
         are not part of brighter-fatter and are left out).
     charge : float, optional
-        Electrons in the source pixel. GalSim's boundaries move linearly with the charge, so
-        the result depends on it only through second-order corner effects. Default 1000.
+        Electrons in the source pixel. GalSim's boundaries move linearly with the charge; keep
+        it small, because a strip that a moving side boundary cuts loses photons sideways,
+        which are then taken for crossings (a^N(+-1, 0) of lsst_e2v_50_8 is 30 % low at
+        29 ke-; `landing_under` counts crossings without that error). Default 1000.
     radius : int, optional
         Offsets -radius..radius. Default 4: with GalSim's default qdist=3 the boundaries
         between pixels 3 and 4 away are the last that move.
@@ -196,6 +220,14 @@ def silicon_boundary_shifts(sensor="lsst_itl_50_8", *, charge=1000.0, radius=4,
         Default True; with False the raw measurement is returned (``check=False``).
     seed : int, optional
         Seed of the sub-row offsets.
+    under : array_like, optional
+        A charge image (e.g. a star, any amplitude) the shifts are meant for. GalSim's landing
+        is not additive: the boundaries under a star's charge sit where the sum of the
+        single-pixel shifts does not put them. With ``under``, the boundaries within ``radius``
+        of the image's centre are measured with its charge present (`landing_under`) and
+        a^N and a^E are each scaled by one factor, the least-squares ratio of the measured to
+        the predicted displacements (`LandingUnder.factors`). Default None: single-pixel
+        shifts.
     **sensor_kwargs
         Passed to `galsim.SiliconSensor` when ``sensor`` is a name.
 
@@ -207,7 +239,7 @@ def silicon_boundary_shifts(sensor="lsst_itl_50_8", *, charge=1000.0, radius=4,
         a(0, 0) and for sums over square blocks centred on the charge, while the individual
         nearest neighbours differ by up to ~20 % (see the notes there).
     """
-    sensor = _measurement_sensor(sensor, sensor_kwargs)
+    sensor = _measurement_sensor(sensor, sensor_kwargs, seed)
     if charge <= 0:
         msg = f"charge must be positive, got {charge}"
         raise BFPSFValueError(msg, charge)
@@ -258,12 +290,131 @@ def silicon_boundary_shifts(sensor="lsst_itl_50_8", *, charge=1000.0, radius=4,
         for (label, iy, ix), displacement in zip(offsets, value):
             (north if label == "N" else east)[iy, ix] = displacement / charge
     if not symmetrize:
-        return BoundaryShifts(north, east, check=False)
-    mirrored_north = np.zeros_like(north)
-    mirrored_north[1:, :] = north[::-1, ::-1][:-1, :]
-    mirrored_east = np.zeros_like(east)
-    mirrored_east[:, 1:] = east[::-1, ::-1][:, :-1]
-    return BoundaryShifts(0.5 * (north - mirrored_north), 0.5 * (east - mirrored_east))
+        shifts = BoundaryShifts(north, east, check=False)
+    else:
+        mirrored_north = np.zeros_like(north)
+        mirrored_north[1:, :] = north[::-1, ::-1][:-1, :]
+        mirrored_east = np.zeros_like(east)
+        mirrored_east[:, 1:] = east[::-1, ::-1][:, :-1]
+        shifts = BoundaryShifts(0.5 * (north - mirrored_north), 0.5 * (east - mirrored_east))
+    if under is None:
+        return shifts
+    factor_north, factor_east = landing_under(sensor, under, shifts, radius=m,
+                                              photons_per_boundary=photons_per_boundary,
+                                              seed=seed).factors
+    return BoundaryShifts(shifts.north * factor_north, shifts.east * factor_east,
+                          check=symmetrize)
+
+
+class LandingUnder(NamedTuple):
+    """Boundary displacements of a SiliconSensor under a charge image (`landing_under`).
+
+    ``measured_north[y, x]`` is the displacement (px, positive up) of the boundary between
+    pixels (x, y) and (x, y + 1) of the padded image, ``measured_east[y, x]`` that between
+    (x, y) and (x + 1, y) (positive right); NaN where not measured. ``predicted_*`` are the
+    sums of the single-pixel shifts over the charge (G15's linear superposition) and
+    ``factors`` the least-squares ratios (north, east) of measured to predicted.
+    """
+
+    measured_north: np.ndarray
+    measured_east: np.ndarray
+    predicted_north: np.ndarray
+    predicted_east: np.ndarray
+    factors: tuple
+
+
+def landing_under(sensor, image, shifts, *, radius=4, photons_per_boundary=40000, seed=0):
+    """Where SiliconSensor's photons land with a charge image present, against the sum of shifts.
+
+    GalSim moves its pixel boundaries linearly with the charge, but where a photon lands also
+    depends on which pixel polygons it is tested against first, and that part is not additive:
+    under a star's charge the boundaries of ``lsst_e2v_50_8`` sit 2.9 % (N) and 0.8 % (E)
+    further out than the sum of its single-pixel landing shifts puts them, the same for any
+    star shape and amplitude (FWHM 3-4.5 px, e1 -0.04..+0.04, any sub-pixel offset: within
+    0.1 %). On a uniform flat-field level the response to a small extra charge is erratic:
+    +1 % to +4 % (N) and -12 % to +2 % (E) against the single-pixel shifts, depending on the
+    level and the size of the extra charge (measured with 10-100 ke- levels and 0.5-3 ke-
+    charges). This measures it.
+
+    Parameters
+    ----------
+    sensor : str or galsim.SiliconSensor
+        Sensor name or instance (diffusion off and no recalculation, as in
+        `silicon_boundary_shifts`).
+    image : array_like
+        Charge, electrons, any amplitude: it is rescaled so that the largest predicted
+        displacement is 0.02 px (the response scales with the charge).
+    shifts : BoundaryShifts
+        The single-pixel shifts whose sum is compared (`silicon_boundary_shifts`).
+    radius : int, optional
+        Boundaries of the pixels within ``radius`` of the image centre are measured.
+    photons_per_boundary : int, optional
+        Photons per strip: one boundary's error is about 14 / photons_per_boundary of the
+        largest displacement, plus GalSim's random placing of photons it finds in no pixel.
+    seed : int, optional
+        Seed of the strips' sub-row offsets and of the sensor's random numbers.
+
+    Returns
+    -------
+    LandingUnder
+
+    Notes
+    -----
+    Strips of photons are laid across the boundaries as in `silicon_boundary_shifts`, three
+    columns and four rows apart (north; the transpose for east). A crossing is counted as the
+    change of the photon count in the rows above the boundary within its strip's three columns,
+    so that a photon leaving sideways through a moving east boundary is not taken for one.
+    """
+    from scipy.signal import correlate
+
+    image = np.asarray(image, dtype=float)
+    if image.ndim != 2 or not np.all(np.isfinite(image)) or np.any(image < 0) or image.max() <= 0:
+        msg = f"image must be a 2-D charge image >= 0 with some charge, got shape {image.shape}"
+        raise BFPSFValueError(msg, image.shape)
+    r = int(radius)
+    if not 1 <= r <= min(image.shape) // 2:
+        msg = f"radius must be between 1 and half the image size, got {radius}"
+        raise BFPSFValueError(msg, radius)
+    padded = np.pad(image, shifts.radius + 3)
+    # G15's superposition: the boundary of pixel p moves by sum_d a^X(d) Q(p + d)
+    predicted = (correlate(padded, shifts.north, mode="same"),
+                 correlate(padded, shifts.east, mode="same"))
+    scale = 0.02 / max(np.abs(predicted[0]).max(), np.abs(predicted[1]).max())
+    padded = padded * scale
+    predicted = tuple(p * scale for p in predicted)
+    sensor = _measurement_sensor(sensor, {}, seed)
+    cy, cx = (size // 2 for size in padded.shape)
+    width = 0.06  # three times the largest displacement
+    ncol = 64
+    nrow = max(int(photons_per_boundary) // ncol, 4)
+    rng = np.random.default_rng(seed)
+    measured = (np.full(padded.shape, np.nan), np.full(padded.shape, np.nan))
+    for axis, label in enumerate(("N", "E")):
+        along, across = (3, 4) if label == "N" else (4, 3)  # strip spacing in x, y
+        for ox in range(along):
+            for oy in range(across):
+                strips = [(px, py, label) for py in range(cy - r, cy + r + 1)
+                          for px in range(cx - r, cx + r + 1)
+                          if (px - ox) % along == 0 and (py - oy) % across == 0]
+                x, y = _strip_photons(strips, [width] * len(strips), ncol, nrow, rng)
+                photons = galsim.PhotonArray(len(x), x=x, y=y, flux=np.ones(len(x)))
+                target = galsim.ImageD(padded.copy(), xmin=0, ymin=0)
+                sensor.accumulate(photons, target)
+                gained = target.array - padded
+                np.add.at(gained, (np.floor(y + 0.5).astype(int),
+                                   np.floor(x + 0.5).astype(int)), -1.0)
+                for px, py, _ in strips:
+                    beyond = (gained[py + 1:py + 3, px - 1:px + 2] if label == "N"
+                              else gained[py - 1:py + 2, px + 1:px + 3])
+                    # photon density per_strip / (2 w): d = -2 w (net photons beyond) / n
+                    measured[axis][py, px] = -2.0 * width * beyond.sum() / (ncol * nrow)
+    factors = []
+    for axis in range(2):
+        seen = np.isfinite(measured[axis])
+        model = predicted[axis][seen]
+        factors.append(float((measured[axis][seen] * model).sum() / (model * model).sum()))
+    return LandingUnder(measured[0] / scale, measured[1] / scale, predicted[0] / scale,
+                        predicted[1] / scale, tuple(factors))
 
 
 def silicon_diffusion_sigma(sensor="lsst_itl_50_8", *, diffusion_factor=None):
