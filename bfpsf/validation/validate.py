@@ -9,7 +9,7 @@ by side:
    the slope predicted from the boundary shifts (G15 section 6.3: the faint-spot model scaled
    and redistributed), for the shifts of the flats calibration (with the error propagated from
    the a errors by re-solving 20 draws) and for SiliconSensor's own shifts
-   (`silicon_boundary_shifts`);
+   (`silicon_boundary_shifts`, scaled to its landing under a spot: a diagnostic);
 3. the residual slope after the flux-dependent PSF P(F) (`bfpsf.model.psf_fit.fit_psf`):
    measured sizes minus the sizes of P(F) at each spot's flux and phase, percent of the raw
    slope. Every spot is also drawn as a BF-free twin (same photons, diffusion and noise through
@@ -43,7 +43,7 @@ __all__ = ["ValidationConfig", "QUICK", "FULL", "validate", "FLATS_LABEL", "TRUT
 
 #: How the two sources of boundary shifts are named in every result and table.
 FLATS_LABEL = "flats calibration"
-TRUTH_LABEL = "SiliconSensor landing truth (diagnostic)"
+TRUTH_LABEL = "SiliconSensor landing under a spot (diagnostic)"
 
 _MAG = 2.5 / np.log(10.0)
 
@@ -240,8 +240,26 @@ def _stage_truth(config, cal):
             out["recovered"].append(value)
             out["recovered_err"].append(error)
             out["pull"].append((value - truth[dy, dx]) / error if error > 0 else None)
-    shifts = interop.silicon_boundary_shifts(config.sensor, radius=config.maxlag)
+    # GalSim's landing is not additive: the shifts its spots see are the single-pixel landing
+    # shifts scaled to where the boundaries sit under a spot's charge (`landing_under`)
+    shifts = interop.silicon_boundary_shifts(config.sensor, radius=config.maxlag,
+                                             under=_spot_charge(config))
     return out, truth, shifts
+
+
+def _spot_profile(config):
+    """The spots' charge profile: the Moffat blurred by SiliconSensor's diffusion."""
+    import galsim
+
+    from ..interop.silicon_truth import silicon_diffusion_sigma
+
+    return galsim.Convolve(galsim.Moffat(fwhm=config.fwhm, beta=config.beta),
+                           galsim.Gaussian(sigma=silicon_diffusion_sigma(config.sensor)))
+
+
+def _spot_charge(config):
+    size = int(config.stamp_size) | 1
+    return _spot_profile(config).drawImage(nx=size, ny=size, scale=1.0).array
 
 
 def _phase_grid(n, seed):
@@ -266,15 +284,10 @@ def _stage_spots(config):
 
 
 def _stage_prediction(config, spots, measured, shift_sets, cal=None, n_draws=20):
-    import galsim
-
     from ..diagnosis.spot_model import SpotForwardModel
 
-    from ..interop.silicon_truth import silicon_diffusion_sigma
-
     # the spots BF acts on are the optical Moffat blurred by SiliconSensor's charge diffusion
-    profile = galsim.Convolve(galsim.Moffat(fwhm=config.fwhm, beta=config.beta),
-                              galsim.Gaussian(sigma=silicon_diffusion_sigma(config.sensor)))
+    profile = _spot_profile(config)
     out = {"available": True, "rows": []}
     peaks = np.asarray(config.peaks_e, float)
 
