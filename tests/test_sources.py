@@ -134,3 +134,28 @@ def test_bad_input_raises():
         measure_sources(np.full((20, 20), np.nan))
     with pytest.raises(BFPSFValueError, match="stamp_size must be an integer >= 8"):
         measure_sources(np.zeros((20, 20)), stamp_size=4)
+
+
+def test_aperture_fraction_is_the_aperture_flux_of_measure_sources():
+    """`aperture_fraction` of a PSF model equals flux_e / total flux of noiseless stars of that
+    profile measured by `measure_sources` (0.1 %: the annulus background holds a little of
+    the stars' own wings), and a Moffat's wings keep it well below 1 (without the correction,
+    P(F) is evaluated 1 % too faint)."""
+    import galsim
+
+    from bfpsf.measure.sources import aperture_fraction, total_flux
+    from bfpsf.model.psf import FluxDependentPSF
+    from bfpsf.shifts import BoundaryShifts
+
+    profile = galsim.Moffat(fwhm=3.45, beta=3.5)
+    shifts = BoundaryShifts.from_radial_profile(lambda r: 1e-7 * np.exp(-r), 3)
+    psf = FluxDependentPSF.from_galsim(profile, shifts, oversampling=2, size=25)
+    fraction = aperture_fraction(psf)
+    image = np.full((200, 200), 100.0)
+    for x, y in ((40.3, 40.7), (120.1, 50.4), (60.6, 140.2), (150.5, 150.5)):
+        image += profile.withFlux(1e5).drawImage(nx=200, ny=200, scale=1.0,
+                                                 offset=(x - 99.5, y - 99.5)).array
+    measured = np.asarray(measure_sources(image)["flux_e"]) / 1e5
+    np.testing.assert_allclose(measured, fraction, atol=2e-3)
+    assert 0.98 < fraction < 0.995
+    np.testing.assert_allclose(total_flux(psf, measured * 1e5), 1e5, rtol=2e-3)

@@ -505,7 +505,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     defaults, the calibrated shifts) from the isolated stars of the exposures the loop fits
     (all but the held-out ones of a ``holdout_fraction`` split, or all for 0): what the loop
     finds is then what P(F) needs, and the held-out exposures stay unseen. The model is
-    evaluated at the stars' measured fluxes (`flux_of_peak`), as ``bfpsf slope --psf``
+    evaluated at the stars' measured fluxes (`flux_of_peak`), aperture-corrected to total
+    fluxes with P0 (`bfpsf.measure.sources.aperture_fraction`), as ``bfpsf slope --psf``
     evaluates P(F). ``beta`` shapes the
     GalSim profile that only gives the exact boundary density (a Moffat, or a Gaussian).
 
@@ -517,7 +518,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     from ..calibration import calibrate
     from ..calibration.product import Calibration
     from ..io.amplifiers import read_amplifiers
-    from ..measure.sources import isolated_stars, measure_sources, sky_level
+    from ..measure.sources import aperture_fraction, isolated_stars, measure_sources, sky_level
     from ..model.psf_fit import DEFAULT_SIZE, fit_psf
     from .star_residual import stacked_star_residual
 
@@ -572,13 +573,16 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
                   read_noise=float(cal.noise_e), flux_unit="electron", gain=float(gain),
                   progress=progress)
     psf = fit.psf
+    # the model's flux is the total flux: the aperture fluxes miss the PSF's wings
+    fraction = aperture_fraction(psf)
+    total = fluxes / fraction
     linearity, correlations = flat_observables(cal)
     meta = {"flats": len(list(flats)), "images": len(list(images)), "gain": float(gain),
             "n_sources": int(peaks.size), "calibration": cal,
             "image_paths": [str(path) for path in images],
             "p0_exposures": [int(index) for index in fitted],
             "p0_stars": int(np.sum(fit.stars["flags"] == 0)),
-            "p0_converged": bool(fit.converged)}
+            "p0_converged": bool(fit.converged), "aperture_fraction": fraction}
     try:
         ptc = ptc_observable(cal)
     except (BFPSFInputError, BFPSFValueError) as error:
@@ -589,7 +593,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
                                          shift_draws=cal.shift_samples(), beta=beta,
                                          linearity=linearity, correlations=correlations,
                                          meta=meta, ptc=ptc, base_psf=psf,
-                                         peak_to_flux=flux_of_peak(peaks, fluxes))
+                                         peak_to_flux=flux_of_peak(peaks, total))
     # sky-subtracted images; the noise per pixel is the sky's (read noise included)
     star = stacked_star_residual(pixels, tables, psf, half_size=min(psf.half_size, 7),
                                  noise_e=float(np.median(sky_noise)))

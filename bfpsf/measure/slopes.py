@@ -375,8 +375,12 @@ def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors
         ``slope`` and ``slope_err`` (pixels per 100 ke- of peak; the error is that of the
         calibration, NaN without samples).
     """
+    from .sources import total_flux
+
+    flux = total_flux(psf, table["flux_e"])  # P(F) takes total fluxes, flux_e is an aperture's
+
     def slopes_of(model):
-        increments = model_size_increments(model, table["flux_e"])
+        increments = model_size_increments(model, flux)
         predicted = table.copy()
         for key, column, _ in _AXES:
             predicted[column] = increments[key]

@@ -17,6 +17,7 @@ from .moments import MomentsFlag, adaptive_moments_batch, moment_errors
 from .shapes import distortion
 
 __all__ = ["SourceFlag", "measure_sources", "isolated_stars", "sky_level", "source_flag_string",
+           "aperture_fraction", "total_flux",
            "STAR_COLUMNS"]
 
 #: columns every star table holds (the ``bfpsf measure`` contract)
@@ -157,6 +158,57 @@ def _empty_table(colour_columns):
 #: Default detection threshold of every bfpsf command and function, in units of the RMS of the
 #: smoothed background-subtracted image.
 DETECTION_THRESHOLD = 5.0
+
+
+def _aperture_flux(stamps, radius2, sigma, aperture_nsigma):
+    """Sum of each stamp within ``aperture_nsigma`` adaptive sigmas of its centroid (pixel
+    centres; 2 px where sigma failed): ``flux_e`` of `measure_sources`."""
+    radius = aperture_nsigma * np.where(np.isfinite(sigma), sigma, 2.0)
+    inside = (radius2 <= radius[:, None, None]**2) & np.isfinite(stamps)
+    return np.sum(np.where(inside, stamps, 0.0), axis=(1, 2))
+
+
+def aperture_fraction(psf, *, aperture_nsigma=5.0, phases=4, size=32):
+    """Fraction of a star's total flux that the ``flux_e`` aperture of `measure_sources` holds,
+    from a PSF model: its aperture correction.
+
+    ``flux_e`` sums the pixels within ``aperture_nsigma`` adaptive sigmas of the centroid,
+    which misses the PSF's outer wings (0.8 % for a Moffat of beta 3.5 and FWHM 3.45 px at
+    5 sigma). A model of total flux F evaluated at ``flux_e`` is evaluated 0.8 % too faint,
+    and its BF term 0.8 % too weak; ``flux_e / aperture_fraction(psf)`` is the total flux.
+
+    Parameters
+    ----------
+    psf : FluxDependentPSF or GriddedFluxDependentPSF
+        Any model with ``evaluate(x, y, flux, x_0, y_0)``; evaluated at unit flux, where its BF
+        term is negligible.
+    aperture_nsigma : float, optional
+        As in `measure_sources` (default 5).
+    phases : int, optional
+        Sub-pixel phases per axis averaged over (default 4).
+    size : int, optional
+        Stamp side, pixels (default 32, `measure_sources`' default stamp).
+
+    Returns
+    -------
+    float
+    """
+    offsets = (np.arange(phases) + 0.5) / phases - 0.5
+    yy, xx = np.mgrid[:size, :size]
+    centre = (size - 1) / 2.0
+    stamps = np.array([psf.evaluate(xx, yy, 1.0, centre + dx, centre + dy)
+                       for dy in offsets for dx in offsets])
+    moments = adaptive_moments_batch(stamps)
+    radius2 = (xx[None] - moments.x[:, None, None])**2 + (yy[None] - moments.y[:, None, None])**2
+    total = stamps.sum(axis=(1, 2))
+    return float(np.mean(_aperture_flux(stamps, radius2, moments.sigma, aperture_nsigma) / total))
+
+
+def total_flux(psf, flux_e, *, aperture_nsigma=5.0):
+    """The total fluxes of stars whose `measure_sources` aperture fluxes are ``flux_e``, e-:
+    the fluxes at which a PSF model of total flux F is to be evaluated (`aperture_fraction`)."""
+    return np.asarray(flux_e, dtype=float) / aperture_fraction(psf,
+                                                              aperture_nsigma=aperture_nsigma)
 
 
 def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp_size=32, saturation=None,
@@ -309,9 +361,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     near = (radius2 <= 4.0) & np.isfinite(stamps)
     peak = np.max(np.where(near, stamps, -np.inf), axis=(1, 2))
     peak[~np.isfinite(peak)] = np.nan
-    aperture_radius = aperture_nsigma * np.where(np.isfinite(moments.sigma), moments.sigma, 2.0)
-    in_aperture = (radius2 <= aperture_radius[:, None, None]**2) & np.isfinite(stamps)
-    aperture_flux = np.sum(np.where(in_aperture, stamps, 0.0), axis=(1, 2))
+    aperture_flux = _aperture_flux(stamps, radius2, moments.sigma, aperture_nsigma)
 
     from astropy.table import Table
 
