@@ -159,3 +159,12 @@ def test_aperture_fraction_is_the_aperture_flux_of_measure_sources():
     np.testing.assert_allclose(measured, fraction, atol=2e-3)
     assert 0.98 < fraction < 0.995
     np.testing.assert_allclose(total_flux(psf, measured * 1e5), 1e5, rtol=2e-3)
+    # a PSF varying over the field is taken at its grid's centre (there, the mean of the nodes)
+    from bfpsf.model.gridded import GriddedFluxDependentPSF
+
+    nodes = [FluxDependentPSF.from_galsim(galsim.Moffat(fwhm=fwhm, beta=3.5), shifts,
+                                          oversampling=2, size=25) for fwhm in (3.0, 3.9)]
+    gridded = GriddedFluxDependentPSF.from_data(np.array([nodes[0].data, nodes[1].data] * 2),
+                                                [0, 400], [0, 400], shifts, oversampling=2)
+    centre = FluxDependentPSF(0.5 * (nodes[0].data + nodes[1].data), shifts, oversampling=2)
+    assert aperture_fraction(gridded) == pytest.approx(aperture_fraction(centre), abs=1e-9)

@@ -181,7 +181,8 @@ def aperture_fraction(psf, *, aperture_nsigma=5.0, phases=4, size=32):
     ----------
     psf : FluxDependentPSF or GriddedFluxDependentPSF
         Any model with ``evaluate(x, y, flux, x_0, y_0)``; evaluated at unit flux, where its BF
-        term is negligible.
+        term is negligible, and a gridded one at the centre of its grid (the fraction changes
+        by 0.1 % between FWHM 3 and 3.9 px).
     aperture_nsigma : float, optional
         As in `measure_sources` (default 5).
     phases : int, optional
@@ -196,7 +197,11 @@ def aperture_fraction(psf, *, aperture_nsigma=5.0, phases=4, size=32):
     offsets = (np.arange(phases) + 0.5) / phases - 0.5
     yy, xx = np.mgrid[:size, :size]
     centre = (size - 1) / 2.0
-    stamps = np.array([psf.evaluate(xx, yy, 1.0, centre + dx, centre + dy)
+    # a PSF that varies over the field (GriddedFluxDependentPSF) is taken at its grid's centre
+    x_field = float(np.mean(psf.x_nodes)) - centre if hasattr(psf, "x_nodes") else 0.0
+    y_field = float(np.mean(psf.y_nodes)) - centre if hasattr(psf, "y_nodes") else 0.0
+    stamps = np.array([psf.evaluate(xx + x_field, yy + y_field, 1.0, centre + x_field + dx,
+                                    centre + y_field + dy)
                        for dy in offsets for dx in offsets])
     moments = adaptive_moments_batch(stamps)
     radius2 = (xx[None] - moments.x[:, None, None])**2 + (yy[None] - moments.y[:, None, None])**2
