@@ -154,6 +154,18 @@ def _strip_photons(strips, widths, ncol, nrow, rng):
     return np.concatenate(xs), np.concatenate(ys)
 
 
+def _landing_gain(sensor, x, y, charge_image):
+    """Photons of flux 1 at (x, y) landed on ``charge_image`` (e-, pixel (0, 0) at the origin;
+    with nrecalc=0 they do not move the boundaries): the count each pixel received minus the
+    count of its square nominal pixel."""
+    photons = galsim.PhotonArray(len(x), x=x, y=y, flux=np.ones(len(x)))
+    target = galsim.ImageD(np.array(charge_image, dtype=float), xmin=0, ymin=0)
+    sensor.accumulate(photons, target)
+    gained = target.array - charge_image
+    np.add.at(gained, (np.floor(y + 0.5).astype(int), np.floor(x + 0.5).astype(int)), -1.0)
+    return gained
+
+
 def _measure_displacements(sensor, charge, strips, widths, ncol, nrow, size, centre, rng):
     """Boundary displacement (px, outward for the lower/left pixel) of each strip's boundary.
 
@@ -162,15 +174,9 @@ def _measure_displacements(sensor, charge, strips, widths, ncol, nrow, size, cen
     of square pixels give the area swept by each boundary.
     """
     x, y = _strip_photons(strips, widths, ncol, nrow, rng)
-    photons = galsim.PhotonArray(len(x), x=x, y=y, flux=np.ones(len(x)))
-    image = galsim.ImageD(size, size, xmin=0, ymin=0)
-    image.array[centre, centre] = charge
-    sensor.accumulate(photons, image)
-    landed = image.array.copy()
-    landed[centre, centre] -= charge
-    nominal = np.zeros_like(landed)
-    np.add.at(nominal, (np.floor(y + 0.5).astype(int), np.floor(x + 0.5).astype(int)), 1.0)
-    gained = landed - nominal
+    charge_image = np.zeros((size, size))
+    charge_image[centre, centre] = charge
+    gained = _landing_gain(sensor, x, y, charge_image)
     per_strip = ncol * nrow
     displacements = []
     for (px, py, label), width in zip(strips, widths):
@@ -397,12 +403,7 @@ def landing_under(sensor, image, shifts, *, radius=4, photons_per_boundary=40000
                           for px in range(cx - r, cx + r + 1)
                           if (px - ox) % along == 0 and (py - oy) % across == 0]
                 x, y = _strip_photons(strips, [width] * len(strips), ncol, nrow, rng)
-                photons = galsim.PhotonArray(len(x), x=x, y=y, flux=np.ones(len(x)))
-                target = galsim.ImageD(padded.copy(), xmin=0, ymin=0)
-                sensor.accumulate(photons, target)
-                gained = target.array - padded
-                np.add.at(gained, (np.floor(y + 0.5).astype(int),
-                                   np.floor(x + 0.5).astype(int)), -1.0)
+                gained = _landing_gain(sensor, x, y, padded)
                 for px, py, _ in strips:
                     beyond = (gained[py + 1:py + 3, px - 1:px + 2] if label == "N"
                               else gained[py - 1:py + 2, px + 1:px + 3])
