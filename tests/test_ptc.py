@@ -76,7 +76,7 @@ def test_full_model_errors_cover_the_scatter(e2v_area, seed):
 def test_exponential_model_recovers_its_own_curve():
     a00, gain, noise_e2 = -2.2e-6, 1.3, 30.0
     mean_adu = np.linspace(1e3, 1.2e5, 15) / gain
-    variance = ptc._exponential_variance(mean_adu, a00, gain, noise_e2)
+    variance = ptc.exponential_variance(mean_adu, a00, gain, noise_e2)
     fit = ptc.fit_exponential_ptc(mean_adu, variance, variance * 1e-3)
     assert fit["gain"] == pytest.approx(gain, rel=1e-6)
     assert fit["a00"] == pytest.approx(a00, rel=1e-5)

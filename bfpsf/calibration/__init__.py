@@ -193,7 +193,8 @@ def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsig
     from .boundary_shifts import SHIFT_METHODS
     from .linearity import DEFAULT_LINEARITY_THRESHOLD
     from .maxlag import check_maxlag
-    from .ptc import PTC_MODELS, _b_mask
+    from .ptc import PTC_MODELS
+    from .ptc_full import b_term_mask
 
     maxlag = check_maxlag(maxlag)
     if ptc_model not in PTC_MODELS:
@@ -204,7 +205,7 @@ def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsig
                f"as (maxlag + 1)^6 ({8 * (maxlag + 1) ** 6 / 2**30:.3g} GiB here); use maxlag "
                f"<= {MAX_FULL_MODEL_MAXLAG} or the exponential PTC model")
         raise BFPSFValueError(msg, maxlag)
-    _b_mask(fit_b, 1)  # validates fit_b before the work
+    b_term_mask(fit_b, 1)  # validates fit_b before the work
     if shift_method not in SHIFT_METHODS:
         msg = f"shift_method must be one of {SHIFT_METHODS}, got {shift_method!r}"
         raise BFPSFValueError(msg, shift_method)
