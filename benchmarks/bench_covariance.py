@@ -25,7 +25,7 @@ import numpy as np  # noqa: E402
 from scipy.fft import next_fast_len  # noqa: E402
 
 from bfpsf.calibration.covariance import pair_covariance  # noqa: E402
-from bfpsf.calibration.flats import pair_mask  # noqa: E402
+from bfpsf.calibration.flat_mask import pair_mask  # noqa: E402
 
 
 def plain_numpy(flat1, flat2, mask, maxlag):

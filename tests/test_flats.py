@@ -7,8 +7,8 @@ import pytest
 from astropy.io import fits
 
 from bfpsf.calibration.covariance import pair_covariance
-from bfpsf.calibration.flats import (Flat, FlatPair, _band_tests, pair_flats, pair_mask,
-                                    read_flats)
+from bfpsf.calibration.flat_mask import _band_tests, pair_mask
+from bfpsf.calibration.flats import Flat, FlatPair, pair_flats, read_flats
 from bfpsf.errors import BFPSFInputError
 
 LEVEL = 10_000.0  # ADU
@@ -125,7 +125,7 @@ def test_nonfinite_pixels_are_masked_counted_and_reported(caplog):
     flat1[10, 10] = np.inf
     flat2[3, 4] = np.nan  # the same pixel in both counts once
     flat2[20, 30] = -np.inf
-    with caplog.at_level(logging.INFO, logger="bfpsf.calibration.flats"):
+    with caplog.at_level(logging.INFO, logger="bfpsf.calibration.flat_mask"):
         mask, report = pair_mask(flat1, flat2)
     assert report.nonfinite == 3
     assert mask[3, 4] and mask[10, 10] and mask[20, 30]

@@ -319,7 +319,8 @@ def measure_pair(task):
         The names of the two flats and their measurements: an entry of `FitTask`.
     """
     from .covariance import pair_covariance
-    from .flats import check_pair, pair_mask
+    from .flat_mask import pair_mask
+    from .flats import check_pair
 
     flat1 = task.pair.flat1.load(overscan=task.overscan)
     flat2 = task.pair.flat2.load(overscan=task.overscan)

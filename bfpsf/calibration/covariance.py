@@ -564,7 +564,7 @@ def pair_covariance(flat1, flat2=None, *, mask=None, maxlag=8, clip_nsigma=4.0,
     flat2 : Flat or ndarray, optional
         Second flat of the same exposure time, ADU.
     mask : ndarray of bool, optional
-        True for bad pixels (from `bfpsf.calibration.flats.pair_mask`), applied to both flats.
+        True for bad pixels (from `bfpsf.calibration.flat_mask.pair_mask`), applied to both flats.
         Non-finite pixels are always masked.
     maxlag : int, optional
         Largest lag. Default 8.
