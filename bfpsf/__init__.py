@@ -23,7 +23,7 @@ _EXPORTS = {
     "redistribute": "bfpsf.model.redistribution",
     "correct": "bfpsf.model.inverse",
     "adaptive_moments": "bfpsf.measure.moments",
-    "Moments": "bfpsf.measure.moments",
+    "Moments": "bfpsf.measure.moments_result",
     "FluxDependentPSF": "bfpsf.model.psf",
     "GriddedFluxDependentPSF": "bfpsf.model.gridded",
     "solve_boundary_shifts": "bfpsf.calibration.boundary_shifts",

@@ -6,7 +6,8 @@ import pytest
 
 from bfpsf.errors import BFPSFValueError
 from bfpsf.interop.galsim_psf import to_galsim
-from bfpsf.measure.moments import adaptive_moments_batch, moment_errors
+from bfpsf.measure.moment_errors import moment_errors
+from bfpsf.measure.moments import adaptive_moments_batch
 from bfpsf.measure.shapes import distortion
 from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.shifts import BoundaryShifts

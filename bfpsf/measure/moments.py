@@ -81,169 +81,12 @@ S/N <= 30, checks bias + 3 sigma < 1e-3). No correction
 is applied; below S/N ~ 15 the bias exceeds 1e-3 and should be calibrated by simulation.
 """
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
+from .moments_result import Moments, MomentsFlag, flag_string
 
-__all__ = [
-    "Moments",
-    "MomentsFlag",
-    "adaptive_moments",
-    "adaptive_moments_batch",
-    "flag_string",
-    "moment_errors",
-    "moments_from_hsm",
-]
-
-
-class MomentsFlag:
-    """Bit flags of an adaptive-moments measurement (combine with ``|``).
-
-    ``NO_CONVERGENCE`` : not converged within ``max_iter`` iterations (values are those of the
-    last iteration). ``EDGE`` : the 3-sigma ellipse of the matched Gaussian crosses the stamp
-    edge, or the centroid left the stamp. ``NONPOSITIVE_FLUX`` : the weighted flux ``A`` is not
-    positive (empty or negative stamp). ``SATURATED`` : a pixel inside the 3-sigma ellipse is at
-    or above ``saturation``. ``TOO_FEW_PIXELS`` : fewer than 6 usable pixels (6 parameters:
-    amplitude, centroid, three moments). ``BAD_PIXELS`` : the stamp holds non-finite pixels
-    (they are masked, the measurement uses the others). ``NOT_POSITIVE_DEFINITE`` : the moment
-    matrix became non-positive-definite, grew beyond the stamp, or collapsed below the pixel
-    scale (an undersampled object without adaptive-moment solution; measurement failed).
-    """
-
-    NO_CONVERGENCE = 1
-    EDGE = 2
-    NONPOSITIVE_FLUX = 4
-    SATURATED = 8
-    TOO_FEW_PIXELS = 16
-    BAD_PIXELS = 32
-    NOT_POSITIVE_DEFINITE = 64
-
-    #: flags after which the moments are NaN (no measurement at all)
-    FATAL = NONPOSITIVE_FLUX | TOO_FEW_PIXELS | NOT_POSITIVE_DEFINITE
-
-    NAMES = {
-        1: "no_convergence",
-        2: "edge",
-        4: "nonpositive_flux",
-        8: "saturated",
-        16: "too_few_pixels",
-        32: "bad_pixels",
-        64: "not_positive_definite",
-    }
-
-
-def flag_string(flags):
-    """Readable form of moment flags: names joined by ``'|'``, ``'ok'`` for 0.
-
-    Parameters
-    ----------
-    flags : int or array of int
-
-    Returns
-    -------
-    str or ndarray of str
-    """
-    flags_array = np.asarray(flags)
-    if flags_array.ndim == 0:
-        value = int(flags_array)
-        if value == 0:
-            return "ok"
-        names = [name for bit, name in MomentsFlag.NAMES.items() if value & bit]
-        unknown = value & ~sum(MomentsFlag.NAMES)
-        if unknown:
-            names.append(f"unknown({unknown})")
-        return "|".join(names)
-    return np.array([flag_string(value) for value in flags_array.ravel()],
-                    dtype=object).reshape(flags_array.shape)
-
-
-@dataclass(frozen=True)
-class Moments:
-    """Adaptive moments of one stamp (scalars) or of a stack (arrays of equal length).
-
-    Attributes
-    ----------
-    mxx, myy, mxy : float or ndarray
-        Second moments of the matched elliptical Gaussian, pixel^2 (x = column, y = row).
-    x, y : float or ndarray
-        Centroid, pixels, 0-based stamp coordinates with pixel centres at integers.
-    amplitude : float or ndarray
-        Central value of the matched Gaussian, ``flux / (2 pi sigma^2)``, stamp units per pixel.
-    flux : float or ndarray
-        Total flux of the matched Gaussian, ``2 sum w I`` (HSM's ``moments_amp``), stamp units.
-    sigma : float or ndarray
-        ``(Mxx Myy - Mxy^2)^(1/4)``, pixels: G15's image quality IQ.
-    n_iter : int or ndarray
-        Iterations used.
-    flags : int or ndarray
-        `MomentsFlag` bits; 0 is a clean measurement.
-    """
-
-    mxx: object
-    myy: object
-    mxy: object
-    x: object
-    y: object
-    amplitude: object
-    flux: object
-    sigma: object
-    n_iter: object
-    flags: object
-
-    @property
-    def flag_string(self):
-        """Readable flags (`flag_string`)."""
-        return flag_string(self.flags)
-
-    @property
-    def sigma_x(self):
-        """sqrt(Mxx), pixels: the width along x (G15 section 3.2)."""
-        return np.sqrt(self.mxx)
-
-    @property
-    def sigma_y(self):
-        """sqrt(Myy), pixels: the width along y (G15 section 3.2)."""
-        return np.sqrt(self.myy)
-
-    @property
-    def ok(self):
-        """True where no flag is set."""
-        return np.asarray(self.flags) == 0
-
-    def __getitem__(self, index):
-        """Select objects of a batch result (index, slice or mask)."""
-        return Moments(**{name: np.asarray(getattr(self, name))[index]
-                          for name in self.__dataclass_fields__})
-
-    def __len__(self):
-        return np.size(self.flags)
-
-
-def moments_from_hsm(shape_data, bounds_origin=(1, 1)):
-    """Convert a `galsim.hsm.ShapeData` to ``(mxx, myy, mxy, x, y)`` in bfpsf conventions.
-
-    Parameters
-    ----------
-    shape_data : galsim.hsm.ShapeData
-        Output of ``galsim.hsm.FindAdaptiveMom``.
-    bounds_origin : tuple of int, optional
-        ``(xmin, ymin)`` of the GalSim image measured (default (1, 1), GalSim's default for an
-        image made from a numpy array).
-
-    Returns
-    -------
-    tuple of float
-        ``mxx, myy, mxy`` (pixel^2) and ``x, y`` (0-based pixels).
-    """
-    sigma = shape_data.moments_sigma
-    e1 = shape_data.observed_shape.e1
-    e2 = shape_data.observed_shape.e2
-    scale = sigma**2 / np.sqrt(1.0 - e1**2 - e2**2)
-    return (scale * (1.0 + e1), scale * (1.0 - e1), scale * e2,
-            shape_data.moments_centroid.x - bounds_origin[0],
-            shape_data.moments_centroid.y - bounds_origin[1])
+__all__ = ["adaptive_moments", "adaptive_moments_batch", "validate_stack"]
 
 
 # ------------------------------------------------------------------------------------------
@@ -255,7 +98,7 @@ def _validate_positive(name, value):
         raise BFPSFValueError(msg, value)
 
 
-def _validate_stack(stamps, name="stamps"):
+def validate_stack(stamps, name="stamps"):
     try:
         stack = np.asarray(stamps, dtype=float)
     except (TypeError, ValueError):
@@ -421,7 +264,7 @@ def adaptive_moments_batch(stamps, *, guess_sigma=None, centroid=None, weight=No
         Fields are arrays of length n; moments of stamps with a `MomentsFlag.FATAL` flag are
         NaN.
     """
-    stack = _validate_stack(stamps)
+    stack = validate_stack(stamps)
     _validate_positive("tolerance", tolerance)
     n_stamps, ny, nx = stack.shape
     if n_stamps > _CHUNK:
@@ -643,107 +486,3 @@ def adaptive_moments(stamp, *, guess_sigma=None, centroid=None, weight=None, sat
         value = np.asarray(getattr(result, name))[0]
         values[name] = int(value) if name in ("n_iter", "flags") else float(value)
     return Moments(**values)
-
-
-def moment_errors(stamps, moments, *, background_variance=0.0, source_variance=True):
-    """Statistical errors of adaptive moments by linear error propagation.
-
-    The estimator solves ``psi(theta; I) = sum_p I_p w_p(theta) g_p(theta) = 0`` with
-    ``g = (dx, dy, dx^2 - Mxx/2, dy^2 - Myy/2, dx dy - Mxy/2)`` and
-    ``theta = (x0, y0, Mxx, Myy, Mxy)`` (module docstring). To linear order in the pixel noise
-    ``d theta = -H^-1 sum_p w_p g_p dI_p`` with ``H = d psi / d theta`` (computed analytically on
-    the measured stamp), so ``Cov(theta) = H^-1 S H^-T``, ``S = sum_p w_p^2 g_p g_p^T V_p``.
-    The pixel variance is ``V = background_variance + max(I, 0)`` (Poisson noise of the source
-    in electrons plus background). No profile is assumed: on Moffat spots these errors match
-    the scatter of noise realisations to a few percent
-    (``tests/test_moments.py::test_moment_errors_match_scatter``).
-
-    Parameters
-    ----------
-    stamps : array_like, shape (n, ny, nx) or (ny, nx)
-        The stamps measured, electrons (background subtracted).
-    moments : Moments
-        Their result from `adaptive_moments_batch` (or `adaptive_moments`).
-    background_variance : float or array_like of shape (n,), optional
-        Pixel variance of the background (sky Poisson and read noise), electrons^2.
-    source_variance : bool, optional
-        Include the source's Poisson variance ``max(I, 0)`` (default True).
-
-    Returns
-    -------
-    dict of ndarray
-        ``mxx_err, myy_err, mxy_err`` (pixel^2), ``sigma_x_err, sigma_y_err, sigma_err``
-        (pixels), ``e1_err, e2_err`` (of the distortion, `bfpsf.measure.shapes.distortion`);
-        NaN where the moments are NaN.
-    """
-    stack = np.asarray(stamps, dtype=float)
-    stack = _validate_stack(stack[None] if stack.ndim == 2 else stack)
-    n_stamps, ny, nx = stack.shape
-    fields = [np.atleast_1d(np.asarray(getattr(moments, name), dtype=float))
-              for name in ("x", "y", "mxx", "myy", "mxy")]
-    if any(value.size != n_stamps for value in fields):
-        msg = f"moments hold {fields[0].size} objects for {n_stamps} stamps"
-        raise BFPSFInputError(msg, fields[0].size)
-    background = np.broadcast_to(np.asarray(background_variance, dtype=float), (n_stamps,))
-    good = np.all(np.isfinite(fields), axis=0)
-    errors = {name: np.full(n_stamps, np.nan) for name in
-              ("mxx_err", "myy_err", "mxy_err", "sigma_x_err", "sigma_y_err", "sigma_err",
-               "e1_err", "e2_err")}
-    if not np.any(good):
-        return errors
-    x0, y0, mxx, myy, mxy = (value[good] for value in fields)
-    image = stack[good]
-    usable = np.isfinite(image)
-    image = np.where(usable, image, 0.0)
-    det = mxx * myy - mxy**2
-    p_xx, p_yy, p_xy = ((myy / det)[:, None, None], (mxx / det)[:, None, None],
-                        (-mxy / det)[:, None, None])
-    dx = np.broadcast_to(np.arange(nx)[None, None, :] - x0[:, None, None], image.shape)
-    dy = np.broadcast_to(np.arange(ny)[None, :, None] - y0[:, None, None], image.shape)
-    pd_x = p_xx * dx + p_xy * dy
-    pd_y = p_xy * dx + p_yy * dy
-    weight = np.exp(-0.5 * (dx * pd_x + dy * pd_y)) * usable
-    n_good = len(x0)
-    g = np.stack([dx, dy, dx**2 - 0.5 * mxx[:, None, None], dy**2 - 0.5 * myy[:, None, None],
-                  dx * dy - 0.5 * mxy[:, None, None]], axis=-1).reshape(n_good, ny * nx, 5)
-    # d log(w) / d theta for theta = (x0, y0, Mxx, Myy, Mxy)
-    dlogw = np.stack([pd_x, pd_y, 0.5 * pd_x**2, 0.5 * pd_y**2, pd_x * pd_y],
-                     axis=-1).reshape(n_good, ny * nx, 5)
-    intensity_weight = (image * weight).reshape(n_good, ny * nx)
-    hessian = np.einsum("np,npk,npj->nkj", intensity_weight, g, dlogw)
-    # plus sum I w d g_k / d theta_j (few non-zero terms)
-    total = intensity_weight.sum(axis=1)
-    sum_dx = np.einsum("np,np->n", intensity_weight, dx.reshape(n_good, -1))
-    sum_dy = np.einsum("np,np->n", intensity_weight, dy.reshape(n_good, -1))
-    hessian[:, 0, 0] -= total
-    hessian[:, 1, 1] -= total
-    hessian[:, 2, 0] -= 2.0 * sum_dx
-    hessian[:, 4, 0] -= sum_dy
-    hessian[:, 3, 1] -= 2.0 * sum_dy
-    hessian[:, 4, 1] -= sum_dx
-    for index in (2, 3, 4):
-        hessian[:, index, index] -= 0.5 * total
-    variance = background[good][:, None, None] + (np.maximum(image, 0.0) if source_variance
-                                                  else 0.0)
-    wg = weight.reshape(n_good, ny * nx, 1) * g
-    scatter = np.einsum("npi,np,npj->nij", wg, variance.reshape(n_good, -1), wg)
-    inverse = np.linalg.inv(hessian)
-    covariance = inverse @ scatter @ np.swapaxes(inverse, 1, 2)
-    var_xx, var_yy, var_xy = covariance[:, 2, 2], covariance[:, 3, 3], covariance[:, 4, 4]
-    sigma = det**0.25
-    gradient = np.stack([sigma * myy / (4 * det), sigma * mxx / (4 * det),
-                         -sigma * mxy / (2 * det)], axis=1)
-    var_sigma = np.einsum("ni,nij,nj->n", gradient, covariance[:, 2:, 2:], gradient)
-    errors["mxx_err"][good] = np.sqrt(var_xx)
-    errors["myy_err"][good] = np.sqrt(var_yy)
-    errors["mxy_err"][good] = np.sqrt(var_xy)
-    errors["sigma_x_err"][good] = np.sqrt(var_xx) / (2.0 * np.sqrt(mxx))
-    errors["sigma_y_err"][good] = np.sqrt(var_yy) / (2.0 * np.sqrt(myy))
-    errors["sigma_err"][good] = np.sqrt(var_sigma)
-    trace = mxx + myy
-    for name, gradient in (("e1_err", np.stack([2 * myy, -2 * mxx, 0 * mxy], axis=1)),
-                           ("e2_err", np.stack([-2 * mxy, -2 * mxy, 2 * trace], axis=1))):
-        gradient = gradient / trace[:, None]**2
-        errors[name][good] = np.sqrt(np.einsum("ni,nij,nj->n", gradient,
-                                               covariance[:, 2:, 2:], gradient))
-    return errors

@@ -42,7 +42,7 @@ class PSFShape:
     flux : float
         The flux the model was rendered at, in its ``flux_unit``.
     flags : int
-        `bfpsf.measure.moments.MomentsFlag` bits; 0 is a clean measurement.
+        `bfpsf.measure.moments_result.MomentsFlag` bits; 0 is a clean measurement.
     """
 
     sigma: float
@@ -69,7 +69,7 @@ def fourth_moment(stamps, moments):
     Parameters
     ----------
     stamps : ndarray (n, ny, nx)
-    moments : bfpsf.measure.moments.Moments
+    moments : bfpsf.measure.moments_result.Moments
         Their batch result.
 
     Returns

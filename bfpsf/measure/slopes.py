@@ -244,7 +244,7 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
         and ``'e2'`` (the same straight line fitted to the distortion against peak: slope per
         100 ke- of peak, intercept dimensionless) when the table has those columns.
     """
-    from .moments import MomentsFlag
+    from .moments_result import MomentsFlag
 
     missing = [name for name in ("peak_e", "sigma_x", "sigma_y", "iq") if name not in
                table.colnames]

@@ -13,7 +13,9 @@ import warnings
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
-from .moments import MomentsFlag, adaptive_moments_batch, moment_errors
+from .moment_errors import moment_errors
+from .moments import adaptive_moments_batch
+from .moments_result import MomentsFlag
 from .shapes import distortion
 
 __all__ = ["SourceFlag", "measure_sources", "isolated_stars", "sky_level", "source_flag_string",
