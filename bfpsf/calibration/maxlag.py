@@ -20,9 +20,9 @@ The chosen maxlag is the last ring before the first one below `RING_NSIGMA`, bou
   from GalSim's noise-free areas the electrostatic fit's a^N(0, 0), a^E(0, 0) are, against
   the landing truth, 0.95 / 1.13 (E2V) and 0.99 / 1.01 (ITL) at maxlag 2, 1.02 / 1.03 and
   1.00 / 1.00 at 3, 0.96 / 1.13 and 0.96 / 1.07 at 4 and 6;
-- the lags measured (the image size and `bfpsf.calibration.MAX_FULL_MODEL_MAXLAG`, the
+- the lags measured (the image size and `bfpsf.calibration.ptc_full.MAX_FULL_MODEL_MAXLAG`, the
   memory and time of the full model);
-- for the full model with fewer pairs than `bfpsf.calibration.MIN_PAIRS_FULL_MODEL` (at most
+- for the full model with fewer pairs than `bfpsf.calibration.ptc_full.MIN_PAIRS_FULL_MODEL` (at most
   a few points per lag against its three parameters per lag), `HELD_FULL_MODEL_MAXLAG`: the
   gain and the read noise come first.
 """
@@ -43,7 +43,7 @@ RING_NSIGMA = 3.0
 #: Smallest maxlag `choose_maxlag` returns (when the flats allow it).
 MIN_AUTO_MAXLAG = 2
 
-#: The maxlag of the full PTC model on fewer than `bfpsf.calibration.MIN_PAIRS_FULL_MODEL` pairs.
+#: The maxlag of the full PTC model on fewer than `bfpsf.calibration.ptc_full.MIN_PAIRS_FULL_MODEL` pairs.
 HELD_FULL_MODEL_MAXLAG = 2
 
 
@@ -125,7 +125,7 @@ def choose_maxlag(mean_adu, cov_adu, npix, *, model="full", min_pairs_full_model
         PTC model; the full model with fewer than ``min_pairs_full_model`` pairs is held to
         `HELD_FULL_MODEL_MAXLAG`.
     min_pairs_full_model : int, optional
-        Default 8 (`bfpsf.calibration.MIN_PAIRS_FULL_MODEL`).
+        Default 8 (`bfpsf.calibration.ptc_full.MIN_PAIRS_FULL_MODEL`).
     nsigma : float, optional
         Significance a ring needs. Default `RING_NSIGMA`.
 
