@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from bfpsf.calibration.boundary_shifts import solve_boundary_shifts, split_fraction
-from bfpsf.calibration.coefficients import solve_ei_shifts
+from bfpsf.calibration.shifts_ei import solve_ei_shifts
 from bfpsf.calibration.measured import read_measured_area
 from bfpsf.data import measured_path
 

@@ -14,7 +14,7 @@ rms for the pedestal); a null data set selects nothing.
 import numpy as np
 import pytest
 
-from bfpsf.calibration.coefficients import solve_ei_shifts
+from bfpsf.calibration.shifts_ei import solve_ei_shifts
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
 from bfpsf.measure.moments import adaptive_moments_batch
 from bfpsf.model.density import exact_boundary_density

@@ -66,7 +66,7 @@ def residual_fractions(spots, psf):
 
 @pytest.fixture(scope="module")
 def flats_limit_shifts():
-    from bfpsf.calibration.coefficients import solve_ei_shifts
+    from bfpsf.calibration.shifts_ei import solve_ei_shifts
     from bfpsf.interop.silicon_truth import silicon_area_coefficients
 
     area = silicon_area_coefficients(SENSOR, maxlag=4)
@@ -133,7 +133,7 @@ def test_residual_slope_through_simulated_flats():
     import galsim
 
     from bfpsf.calibration import calibrate
-    from bfpsf.calibration.coefficients import solve_ei_shifts
+    from bfpsf.calibration.shifts_ei import solve_ei_shifts
     from bfpsf.interop.silicon_truth import silicon_diffusion_sigma
     from bfpsf.validation.simulate_flats import simulate_flats
 

@@ -6,7 +6,7 @@ Two solvers are available:
   the sensor (Astier & Regnault 2023) fitted to every measured lag with the covariance of a.
   Every boundary, the nearest ones included, has the physical sign by construction, and the
   N/E split of a(0, 0), which flat-field areas do not see, is fixed by the physics.
-* ``'ei'`` (G15 section 6.1, `bfpsf.calibration.coefficients`): the Ei smoothing model of the
+* ``'ei'`` (G15 section 6.1, `bfpsf.calibration.shifts_ei`): the Ei smoothing model of the
   far lags plus an exact linear solve. It reproduces every measured a, but its N/E split of
   a(0, 0) follows the far lags' radial profile, which finite flats measure poorly: on 150
   small E2V flats it moved the E/W boundaries of a charged pixel outward.
@@ -60,7 +60,7 @@ def solve_boundary_shifts(area, area_err=None, *, area_cov=None, method="electro
     Returns
     -------
     `~bfpsf.calibration.shifts_electrostatic.ElectrostaticFit` or
-    `~bfpsf.calibration.coefficients.ShiftSolution`
+    `~bfpsf.calibration.shifts_ei.ShiftSolution`
     """
     if method == "electrostatic":
         from .shifts_electrostatic import fit_electrostatic
@@ -68,7 +68,7 @@ def solve_boundary_shifts(area, area_err=None, *, area_cov=None, method="electro
         return fit_electrostatic(area, area_err, area_cov=area_cov, thickness=thickness,
                                  n_samples=n_samples, seed=seed)
     if method == "ei":
-        from .coefficients import solve_ei_shifts
+        from .shifts_ei import solve_ei_shifts
 
         return solve_ei_shifts(area, area_err, area_cov=area_cov, n_monte_carlo=n_samples,
                                seed=seed)

@@ -125,7 +125,7 @@ def observables_from_tables(correlations, sizes, *, kind=None, gain=None, measur
     Observables
         With ``meta`` holding ``area``, ``area_err``, ``shift_solution`` and the inputs.
     """
-    from ..calibration.coefficients import solve_ei_shifts
+    from ..calibration.shifts_ei import solve_ei_shifts
     from ..calibration.measured import read_measured_area
 
     measured = read_measured_area(correlations)
@@ -157,9 +157,9 @@ def observables_from_tables(correlations, sizes, *, kind=None, gain=None, measur
 
 def _area_shift_draws(area, area_err, n_draws=8, seed=0):
     """Shifts of a(dx, dy) drawn within their errors (lags independent), each solved as the
-    table's own shifts are (`bfpsf.calibration.coefficients.solve_ei_shifts`); draws the
+    table's own shifts are (`bfpsf.calibration.shifts_ei.solve_ei_shifts`); draws the
     solver rejects are left out. A measured table carries errors, not bootstrap samples."""
-    from ..calibration.coefficients import solve_ei_shifts
+    from ..calibration.shifts_ei import solve_ei_shifts
     from ..errors import BFPSFError
 
     area, area_err = np.asarray(area, float), np.asarray(area_err, float)

@@ -36,7 +36,7 @@ def plot_radial_profile(solution, ax=None):
 
     Parameters
     ----------
-    solution : `~bfpsf.calibration.coefficients.ShiftSolution`
+    solution : `~bfpsf.calibration.shifts_ei.ShiftSolution`
     ax : sequence of two matplotlib Axes, optional
         Where to draw; a new figure with two panels is made when None.
 
@@ -46,7 +46,7 @@ def plot_radial_profile(solution, ax=None):
     """
     import matplotlib.pyplot as plt
 
-    from ..calibration.coefficients import non_nearest_mask, smoothing_model_area
+    from ..calibration.shifts_ei import non_nearest_mask, smoothing_model_area
 
     if ax is None:
         fig, (ax_area, ax_shift) = plt.subplots(1, 2, figsize=(10, 4), layout="constrained")

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.special import expi
 
-from bfpsf.calibration.coefficients import (_layout, _unit_east, _unit_north, fit_smoothing_model,
+from bfpsf.calibration.shifts_ei import (_layout, _unit_east, _unit_north, fit_smoothing_model,
                                             non_nearest_mask, solve_ei_shifts)
 from bfpsf.calibration.measured import read_measured_area
 from bfpsf.data import measured_path
