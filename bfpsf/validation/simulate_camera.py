@@ -9,7 +9,7 @@ by side along x on the detector. Used by the tests and benchmarks of `bfpsf.io.a
 import numpy as np
 
 from ..errors import BFPSFValueError
-from ..files import refuse_overwrite
+from ..files import write_fits
 
 __all__ = ["amplifier_hdus", "write_amplifier_file"]
 
@@ -75,6 +75,6 @@ def amplifier_hdus(images, names, *, bias_adu, overscan_columns=20, read_noise_a
 
 
 def write_amplifier_file(path, images, names, *, overwrite=False, **options):
-    """Write `amplifier_hdus` to ``path`` (never over an existing file unless ``overwrite``)."""
-    refuse_overwrite(path, overwrite)
-    amplifier_hdus(images, names, **options).writeto(path, overwrite=overwrite)
+    """Write `amplifier_hdus` to ``path`` atomically (never over an existing file unless
+    ``overwrite``)."""
+    return write_fits(amplifier_hdus(images, names, **options), path, overwrite=overwrite)
