@@ -161,3 +161,82 @@ def test_full_model_sums_the_exact_build_up(e2v_area):
     # far below its shot noise (C(1, 0) / V ~ 1e-2 measured to ~1e-3 per Mpix pair)
     np.testing.assert_allclose(series[:, :3, :3], exact[:, :3, :3], rtol=2e-3)
     assert np.abs(printed / exact - 1)[-1, 0, 0] > 5e-4
+
+
+def _full_plane(quadrant):
+    """The full plane of lags (-n..n)^2 of a quadrant-averaged [dy, dx] table (mirror-symmetric)."""
+    n = quadrant.shape[0] - 1
+    index = np.abs(np.arange(-n, n + 1))
+    return quadrant[np.ix_(index, index)]
+
+
+def test_full_model_is_a19_eq20_as_printed(e2v_area):
+    """A+19 eq. 20 written out literally, with its convolutions as 2-D convolutions of the full
+    planes of lags (scipy), independent of the model's convolution tensor and series:
+
+        C = mu/g [delta + a mu g + 2/3 (a*a + ab) (mu g)^2 + 1/6 (2 a*a*a + 5 a*ab) (mu g)^3]
+            + n / g^2
+
+    At ``order=3`` the model is that expression to rounding. The model keeps each power of a
+    to the measured lags (a*a beyond them is not carried into a*a*a), so a is non-zero here
+    only at lags <= 1 of a table to lag 3: no power reaches beyond the table."""
+    from scipy.signal import convolve2d
+
+    rng = np.random.default_rng(11)
+    area = np.zeros((4, 4))
+    area[:2, :2] = e2v_area[:2, :2]
+    b = np.zeros_like(area)
+    b[:2, :2] = rng.uniform(-2e-6, 2e-6, (2, 2))
+    noise = np.zeros_like(area)
+    noise[0, 0], noise[0, 1] = READ_NOISE**2, 3.0
+    n = area.shape[0] - 1
+
+    def quadrant_of(plane):
+        centre = (plane.shape[0] - 1) // 2
+        return plane[centre:centre + n + 1, centre:centre + n + 1]
+
+    full_a, full_ab = _full_plane(area), _full_plane(area * b)
+    a_a = convolve2d(full_a, full_a)
+    a_a_a = convolve2d(a_a, full_a)
+    a_ab = convolve2d(full_a, full_ab)
+    delta = np.zeros_like(area)
+    delta[0, 0] = 1.0
+    mean_e = np.array([2e4, 6e4, 1.2e5])
+    literal = np.array([
+        mu * delta + area * mu**2
+        + 2.0 / 3.0 * (quadrant_of(a_a) + area * b) * mu**3
+        + 1.0 / 6.0 * (2.0 * quadrant_of(a_a_a) + 5.0 * quadrant_of(a_ab)) * mu**4
+        + noise for mu in mean_e]) / GAIN**2
+    model = ptc.full_covariance_model(mean_e / GAIN, area, area * b, noise, GAIN, order=3)
+    np.testing.assert_allclose(model, literal, rtol=1e-12, atol=1e-12 * literal[:, 0, 0].max())
+    # the b part is visible at this precision: 0.5 % of C(1, 0) at 1.2e5 e-
+    without_b = ptc.full_covariance_model(mean_e / GAIN, area, 0 * area, noise, GAIN, order=3)
+    assert np.abs(model - without_b)[-1].max() > 1e-3 * np.abs(model[-1, 0, 1])
+
+
+def test_full_model_jacobian_matches_finite_differences(e2v_area):
+    """The analytic Jacobian of the fit against central differences of the model itself, so
+    a factor changed in one and not the other cannot pass."""
+    from bfpsf.calibration.ptc_full import _full_model_jacobian, b_term_mask
+
+    area = e2v_area[:3, :3]
+    c = area * 1e-6
+    noise = np.zeros_like(area)
+    noise[0, 0] = READ_NOISE**2
+    mean_adu = np.array([1e4, 5e4, 8e4]) / GAIN
+    mask = b_term_mask("all", area.shape[0])
+    jac_a, jac_c, jac_n, jac_g = _full_model_jacobian(mean_adu, area, c, noise, GAIN, mask)
+
+    def model(a=area, c=c, gain=GAIN):
+        return ptc.full_covariance_model(mean_adu, a, c, noise, gain).reshape(len(mean_adu), -1)
+
+    for k in range(area.size):
+        step = np.zeros(area.size)
+        step[k] = 1e-3 * np.abs(area).max()
+        step = step.reshape(area.shape)
+        numeric = (model(a=area + step) - model(a=area - step)) / (2 * step.max())
+        np.testing.assert_allclose(jac_a[:, :, k], numeric, rtol=1e-5,
+                                   atol=1e-6 * np.abs(numeric).max())
+        numeric_c = (model(c=c + step * 1e-6) - model(c=c - step * 1e-6)) / (2e-6 * step.max())
+        np.testing.assert_allclose(jac_c[:, :, k], numeric_c, rtol=1e-5,
+                                   atol=1e-6 * np.abs(numeric_c).max())
