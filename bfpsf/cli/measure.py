@@ -8,7 +8,7 @@ Parse, read the images (ADU, converted to electrons with the gain), call
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import check_outputs, read_table, refuse_duplicates, write_json, write_table
+from ..files import check_outputs, input_files, read_table, refuse_duplicates, write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD
 from ._files import place_stars, read_image
 
@@ -88,7 +88,8 @@ def run(args):
     from ..io.amplifiers import shared_sides
     from ..measure.sources import measure_sources
 
-    check_outputs([args.output, args.json], args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite,
+                  inputs=input_files(args.images, args.calib, args.catalog))
     refuse_duplicates(args.images, "image")
     external = read_table(args.catalog, "catalog") if args.catalog else None
     tables, summary_images = [], []

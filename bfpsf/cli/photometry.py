@@ -8,7 +8,7 @@ PSF), write the table (fluxes in e-) and the JSON summary.
 
 import numpy as np
 
-from ..files import check_outputs, write_json, write_table
+from ..files import check_outputs, input_files, write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD
 from . import background_option
 from ._files import place_stars, read_image
@@ -87,7 +87,8 @@ def run(args):
     from ..measure.photometry import psf_photometry
     from ..model.psf import FluxDependentPSF
 
-    check_outputs([args.output, args.json], args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite,
+                  inputs=input_files(args.images, args.psf, args.calib))
     psf = FluxDependentPSF.read(args.psf)
     if psf.flux_unit != "electron":
         psf = psf.with_flux_unit("electron")  # the images are converted to e- below

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import check_outputs, refuse_duplicates, write_json
+from ..files import check_outputs, input_files, refuse_duplicates, write_json
 from ..measure.sources import DETECTION_THRESHOLD, isolated_stars, sky_level
 from . import background_option
 from ..model.psf_fit import DEFAULT_SIZE
@@ -98,7 +98,8 @@ def run(args):
     from ..io.amplifiers import near_shared_side, shared_sides
     from ..model.psf_fit import fit_psf
 
-    check_outputs([args.output, args.json], args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite,
+                  inputs=input_files(args.images, args.calib))
     refuse_duplicates(args.images, "image")
     calibration = read_calibration(args.calib)
     refinement = {}

@@ -558,6 +558,10 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         exposure.append(np.full(good.sum(), index))
     fluxes, peaks, sigma_x, sigma_y, exposure = (np.concatenate(v) for v in
                                                  (fluxes, peaks, sigma_x, sigma_y, exposure))
+    if fluxes.size < 9:  # the size bins need 3 of 3 stars; no quantile of nothing
+        msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean star(s), too few to "
+               "diagnose (9 or more)")
+        raise BFPSFInputError(msg, fluxes.size)
     sizes = _binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
                           f"{len(images)} images")
     # P0 from the exposures the loop fits (`bfpsf.diagnosis.loop.split_observables`)
