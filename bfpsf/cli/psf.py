@@ -50,7 +50,9 @@ def add_parser(subparsers):
                              "images); default the sigma-clipped median of each image, which "
                              "the wings of dense bright stars bias high")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
-                        help="saturation level, ADU: saturated stars are not used")
+                        help="saturation level, ADU: saturated stars are not used (default "
+                             "the header's SATURATE or a variant; the calibration's linearity "
+                             "turnoff where lower)")
     parser.add_argument("--grid", type=int, nargs=2, metavar=("NX", "NY"), default=None,
                         help="fit P0 on NX x NY nodes over the image (P(F, x, y), bilinear "
                              "between nodes, as photutils GriddedPSFModel); default one P0")
@@ -96,6 +98,7 @@ def run(args):
     from ..calibration.product import calibration_of_amplifier, read_calibration
     from ..diagnosis.refine import undo_refined_linearity
     from ..io.amplifiers import near_shared_side, shared_sides
+    from ..io.saturation import count_saturated_regions, saturation_e
     from ..model.psf_fit import fit_psf
 
     check_outputs([args.output, args.json], args.overwrite,
@@ -126,10 +129,12 @@ def run(args):
             else:
                 background = float(args.background) * gain
             image_e = image_e - background
-            saturation_e = (None if args.saturation is None
-                            else args.saturation * gain - background)
+            # saturated or beyond the turnoff (header SATURATE, --saturation, calibration):
+            # left out of the P0 fit, and counted
+            level = saturation_e(amplifier, gain, args.saturation, one)
+            level = None if level is None else level - background
             xy, n_detected = isolated_stars(image_e, args.size, threshold=args.threshold,
-                                               saturation_e=saturation_e)
+                                               saturation_e=level)
             # a star whose light falls on two amplifiers (two gains) is left out, and counted
             boundary = near_shared_side(xy[:, 0], xy[:, 1], image_e.shape,
                                         sides[amplifier.name], args.size / 2)
@@ -141,6 +146,7 @@ def run(args):
             per_image.append({"image": str(path), "amplifier": amplifier.name, "gain": gain,
                               "n_detected": int(n_detected), "n_isolated": int(len(xy)),
                               "n_amp_boundary": int(np.sum(boundary)),
+                              "n_saturated": count_saturated_regions(image_e, level),
                               "background_e": float(background)})
     gain, noise, samples = _star_weighted(used)
     buildup = refinement.get("buildup_steps")
@@ -170,6 +176,7 @@ def run(args):
                "oversampling": int(args.oversampling), "size": int(args.size),
                "include_bf": bool(args.include_bf), "n_stars": int(len(result.stars)),
                "n_used": int(np.sum(used)), "iterations": int(result.iterations),
+               "n_saturated": sum(entry["n_saturated"] for entry in per_image),
                "converged": bool(result.converged),
                "fwhm_pixels": psf_fwhm(psf if args.grid is None
                                        else psf.nodes[len(psf.nodes) // 2]),
@@ -186,5 +193,6 @@ def run(args):
         write_json(args.json, summary, overwrite=args.overwrite)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "
           f"{len(args.images)} image(s), {result.iterations} iterations "
-          f"({'converged' if result.converged else 'NOT converged'}); wrote {args.output}")
+          f"({'converged' if result.converged else 'NOT converged'}); "
+          f"{summary['n_saturated']} saturated stars left out; wrote {args.output}")
     return 0

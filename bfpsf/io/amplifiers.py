@@ -37,6 +37,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError
 from ..files import check_input, reading
+from .saturation import SATURATION_KEYWORDS
 
 __all__ = ["Amplifier", "AmplifierLayout", "parse_section", "amplifier_layout",
            "read_amplifiers", "read_amplifier", "subtract_overscan", "shared_sides",
@@ -146,7 +147,8 @@ class Amplifier:
     data : ndarray [y, x]
         ADU (float64), overscan-subtracted where the HDU has a BIASSEC.
     header : astropy.io.fits.Header
-        The HDU header (EXPTIME copied from the primary header when only that has it).
+        The HDU header (EXPTIME and the saturation level copied from the primary header when
+        only that has them).
     overscan_adu : ndarray or None
         The level subtracted from each row of the trimmed image, ADU.
     """
@@ -375,8 +377,9 @@ def _amplifier(layout, hdus, overscan):
         data = data[::-1]
         level = None if level is None else level[::-1]
     header = hdu.header.copy()
-    if "EXPTIME" not in header and "EXPTIME" in hdus[0].header:
-        header["EXPTIME"] = hdus[0].header["EXPTIME"]
+    for keyword in ("EXPTIME", *SATURATION_KEYWORDS):  # the primary's, where the HDU has none
+        if keyword not in header and keyword in hdus[0].header:
+            header[keyword] = hdus[0].header[keyword]
     return Amplifier(layout=layout, data=data, header=header, overscan_adu=level)
 
 
