@@ -31,11 +31,20 @@ def maxlag_option(text):
     if text == "auto":
         return text
     try:
+        return positive_int(text)
+    except argparse.ArgumentTypeError:
+        msg = f"expected 'auto' or a positive integer, got {text!r}"
+        raise argparse.ArgumentTypeError(msg) from None
+
+
+def positive_int(text):
+    """An integer option that must be at least 1 (counts, sizes, iterations)."""
+    try:
         value = int(text)
     except ValueError:
         value = 0
     if value < 1:
-        msg = f"expected 'auto' or a positive integer, got {text!r}"
+        msg = f"expected a positive integer, got {text!r}"
         raise argparse.ArgumentTypeError(msg)
     return value
 
@@ -128,7 +137,8 @@ def main(argv=None):
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
-        command = f"bfpsf {args.command}" if args.command else command
+        command = " ".join(filter(None, ("bfpsf", args.command,
+                                          getattr(args, "simulate_target", None))))
         if not hasattr(args, "_run"):
             parser.print_help()
             return 2

@@ -225,6 +225,10 @@ def _layout(path, index, hdu, primary_header):
         if datasec is None:
             msg = f"{where}: BIASSEC without DATASEC; bfpsf cannot tell the pixels from the overscan"
             raise BFPSFInputError(msg, str(path))
+        if _overlap(biassec, datasec):
+            msg = (f"{where}: BIASSEC {header['BIASSEC']} overlaps DATASEC {header['DATASEC']} "
+                   "(the overscan must lie outside the imaging pixels)")
+            raise BFPSFInputError(msg, header["BIASSEC"])
         if biassec.y.start > datasec.y.start or biassec.y.stop < datasec.y.stop:
             msg = (f"{where}: BIASSEC {header['BIASSEC']} does not cover the rows of DATASEC "
                    f"{header['DATASEC']} (the overscan is subtracted row by row)")
@@ -237,6 +241,23 @@ def _layout(path, index, hdu, primary_header):
     exptime = header.get("EXPTIME", primary_header.get("EXPTIME"))
     return AmplifierLayout(path=str(path), hdu=index, name=name, shape=tuple(shape),
                            exptime=exptime, datasec=datasec, biassec=biassec, detsec=detsec)
+
+
+def _overlap(first, second):
+    """True when two sections share a pixel."""
+    return (first.x.start < second.x.stop and second.x.start < first.x.stop
+            and first.y.start < second.y.stop and second.y.start < first.y.stop)
+
+
+def _refuse_overlapping_amplifiers(path, layouts):
+    """Two amplifiers whose DETSECs share detector pixels cannot both be right."""
+    placed = [layout for layout in layouts if layout.detsec is not None]
+    for index, layout in enumerate(placed):
+        for other in placed[index + 1:]:
+            if _overlap(layout.detsec, other.detsec):
+                msg = (f"{path}: the DETSECs of amplifiers {layout.name!r} and {other.name!r} "
+                       "overlap on the detector")
+                raise BFPSFInputError(msg, (layout.name, other.name))
 
 
 def _select(path, layouts, amps):
@@ -281,6 +302,7 @@ def amplifier_layout(path, amps=None, *, what="FITS file"):
         images = _image_hdus(path, hdus)
         primary = hdus[0].header
         layouts = [_layout(path, index, hdu, primary) for index, hdu in images]
+    _refuse_overlapping_amplifiers(path, layouts)
     return _select(path, layouts, amps)
 
 
