@@ -10,6 +10,8 @@ __all__ = [
     "BFPSFValueError",
     "BFPSFInputError",
     "BFPSFFileExistsError",
+    "BFPSFOutputError",
+    "BFPSFResourceError",
     "BFPSFConvergenceError",
     "BFPSFCovarianceError",
     "BFPSFWarning",
@@ -41,7 +43,19 @@ class BFPSFInputError(BFPSFValueError):
     unpaired flat, shape mismatch, non-finite pixels where none are allowed, ..."""
 
 
-class BFPSFFileExistsError(BFPSFError, FileExistsError):
+class _OutputError(BFPSFError):
+    """An error about one output file: ``str(error)`` is exactly the message (without an
+    ``[Errno]`` prefix) and ``.filename`` the output."""
+
+    def __init__(self, message, path=None):
+        super().__init__(message)
+        self.filename = path
+
+    def __str__(self):
+        return self.args[0]
+
+
+class BFPSFFileExistsError(_OutputError, FileExistsError):
     """An output file exists and ``overwrite`` was not requested.
 
     Parameters
@@ -52,12 +66,15 @@ class BFPSFFileExistsError(BFPSFError, FileExistsError):
         The output, kept in ``.filename``.
     """
 
-    def __init__(self, message, path=None):
-        super().__init__(message)
-        self.filename = path
 
-    def __str__(self):
-        return self.args[0]
+class BFPSFOutputError(_OutputError, OSError):
+    """An output could not be written (full disk, no permission, file too large); the
+    previous file, if any, is left as it was. Parameters as `BFPSFFileExistsError`."""
+
+
+class BFPSFResourceError(BFPSFValueError):
+    """The options and inputs would need more memory or time than the limit allows; refused
+    before the work starts. ``.value`` is the estimate (bytes or seconds)."""
 
 
 class BFPSFConvergenceError(BFPSFError, RuntimeError):

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import BFPSFError, BFPSFFileExistsError, BFPSFInputError
+from .errors import BFPSFError, BFPSFFileExistsError, BFPSFInputError, BFPSFOutputError
 
-__all__ = ["refuse_overwrite", "check_outputs", "check_input", "reading", "refuse_duplicates",
+__all__ = ["refuse_overwrite", "check_outputs", "refuse_inputs", "input_files", "check_input", "reading", "refuse_duplicates",
            "read_table",
-           "open_product", "atomic_path", "write_json",
+           "open_product", "atomic_path", "make_directory", "write_json",
            "write_text", "write_fits", "write_table", "save_figure", "json_safe"]
 
 
@@ -43,8 +43,63 @@ def refuse_overwrite(path, overwrite, *, how="overwrite=True (--overwrite)"):
         raise BFPSFFileExistsError(msg, str(path))
 
 
-def check_outputs(paths, overwrite, *, how="--overwrite", directories=()):
-    """Check every output before any work: distinct, in a writable directory, free.
+def input_files(*groups):
+    """The files among ``groups`` (paths, lists of paths or None; a directory stands for the
+    ``*.fits`` files in it), for `check_outputs`' ``inputs``."""
+    files = []
+    for group in groups:
+        if group is None:
+            continue
+        for path in [group] if isinstance(group, (str, os.PathLike)) else group:
+            if not isinstance(path, (str, os.PathLike)):
+                continue  # an array given to a library function, not a file
+            path = Path(path)
+            files.extend(sorted(path.glob("*.fits")) if path.is_dir() else [path])
+    return files
+
+
+def _identity(path):
+    """(device, inode) of an existing file (links and relative paths give the same), else
+    None."""
+    try:
+        status = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return (status.st_dev, status.st_ino)
+
+
+def refuse_inputs(outputs, inputs):
+    """Raise `BFPSFInputError` if an output is one of the inputs.
+
+    Outputs and inputs are compared as files (device and inode), so a symbolic or hard link
+    to an input, or the input under another relative path, counts as the input. This holds
+    with ``overwrite`` too: an overwrite replaces an earlier output, never an input.
+
+    Parameters
+    ----------
+    outputs, inputs : iterable of str, path-like or None
+    """
+    known = {}
+    for path in inputs:
+        if path is None:
+            continue
+        identity = _identity(path)
+        if identity is not None:
+            known.setdefault(identity, path)
+    for path in outputs:
+        if path is None:
+            continue
+        identity = _identity(path)
+        if identity in known:
+            same = "" if str(known[identity]) == str(path) else f" ({known[identity]})"
+            msg = (f"output {path} is an input{same}: give the output another path "
+                   "(--overwrite replaces earlier outputs, never an input)")
+            raise BFPSFInputError(msg, str(path))
+
+
+def check_outputs(paths, overwrite, *, how="--overwrite", directories=(), inputs=()):
+    """Check every output before any work: distinct, not an input, in a writable directory,
+    free.
 
     Parameters
     ----------
@@ -58,15 +113,20 @@ def check_outputs(paths, overwrite, *, how="--overwrite", directories=()):
         Output directories the command creates (e.g. a report folder): they must not be
         files, and their nearest existing parent must be writable. Files inside them are
         checked as if the directory existed.
+    inputs : iterable of str, path-like or None, optional
+        The command's input files: no output may be one of them, even with ``overwrite``
+        (`refuse_inputs`).
 
     Raises
     ------
     BFPSFInputError
-        Two outputs with the same path, a missing or unwritable directory, or an output that
-        is a directory.
+        Two outputs with the same path, an output that is an input, a missing or unwritable
+        directory, or an output that is a directory.
     BFPSFFileExistsError
         An output exists and ``overwrite`` is false.
     """
+    paths = [path for path in paths if path is not None]
+    refuse_inputs(paths, inputs)
     created = []
     for directory in directories:
         if directory is None:
@@ -119,6 +179,9 @@ def check_input(path, what):
     if not path.exists():
         msg = f"{what} {path} does not exist"
         raise BFPSFInputError(msg, str(path))
+    if not os.access(path, os.R_OK):
+        msg = f"{what} {path} is not readable (permission denied)"
+        raise BFPSFInputError(msg, str(path))
     return path
 
 
@@ -148,6 +211,9 @@ def reading(path, what):
             detail = f"no column or extension {detail!r}"
         msg = f"{path} is an incomplete {what} ({str(detail).rstrip('.')})"
         raise BFPSFInputError(msg, str(path)) from None
+    except PermissionError as error:
+        msg = f"cannot read {path}: permission denied"
+        raise BFPSFInputError(msg, str(path)) from error
     except (OSError, ValueError, TypeError, EOFError) as error:  # UnicodeDecodeError included
         raise BFPSFInputError(unreadable, str(path)) from error
     finally:
@@ -246,17 +312,40 @@ def atomic_path(path):
         Where to write.
     """
     path = Path(path)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}",
-                                         dir=path.parent if str(path.parent) else ".")
+    try:
+        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.",
+                                             suffix=f".tmp{path.suffix}",
+                                             dir=path.parent if str(path.parent) else ".")
+    except OSError as error:
+        raise _output_error(path, error) from error
     os.close(handle)
     temporary = Path(temporary)
     try:
         temporary.unlink()  # writers that refuse an existing file (astropy) see none
         yield temporary
         os.replace(temporary, path)
-    except BaseException:
+    except BaseException as error:
         temporary.unlink(missing_ok=True)
+        if isinstance(error, OSError) and not isinstance(error, BFPSFError):
+            raise _output_error(path, error) from error
         raise
+
+
+def _output_error(path, error):
+    """A one-line `BFPSFOutputError` for an OS error while writing ``path`` (full disk,
+    permissions, file too large)."""
+    reason = error.strerror or str(error) or type(error).__name__
+    previous = "; the previous file is unchanged" if Path(path).exists() else ""
+    msg = f"cannot write {path}: {reason}{previous}"
+    return BFPSFOutputError(msg, str(path))
+
+
+def make_directory(directory):
+    """``mkdir -p`` with a one-line `BFPSFOutputError` on failure."""
+    try:
+        Path(directory).mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise _output_error(directory, error) from error
 
 
 def json_safe(value):

@@ -26,6 +26,8 @@ from bfpsf.measure.slopes import bf_slopes, fit_bf_slope, model_size_increments
 SHIFTS = bfpsf.BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
 STAR = galsim.Moffat(beta=3.5, fwhm=3.5)
 SPACING = 40
+#: Photons shot per batch (memory about 100 bytes each).
+PHOTON_BATCH = 2_000_000
 
 
 def scene(n_cells, seed, max_peak_e=1.2e5):
@@ -75,8 +77,10 @@ def main(argv=None):
                                          else scene(12, seed=4))
     sky = 50.0
     rng = galsim.BaseDeviate(7)
+    # photons in batches of PHOTON_BATCH (BFSensor resumes the exposure across them): the
+    # full scene shoots about 1e8 photons, 13 GB in one array
     shot = profile.drawImage(nx=size, ny=size, scale=1.0, method="phot",
-                             sensor=bfpsf.BFSensor(SHIFTS), rng=rng)
+                             sensor=bfpsf.BFSensor(SHIFTS), rng=rng, maxN=PHOTON_BATCH)
     fast = bfpsf.draw_with_bf(profile, SHIFTS, nx=size, ny=size, rng=8)
     noise = np.random.default_rng(9)
     images = {name: image.array + noise.poisson(sky, image.array.shape) - sky

@@ -175,7 +175,7 @@ def test_simulate_unknown_sensor(capsys, tmp_path):
     code, err = run(capsys, "simulate", "flats", "--sensor", "nosuch", "-o",
                     str(tmp_path / "sim"), "--levels", "1000", "--size", "16")
     assert code == 1
-    assert err.startswith("bfpsf simulate: error: unknown GalSim SiliconSensor 'nosuch'; GalSim "
+    assert err.startswith("bfpsf simulate flats: error: unknown GalSim SiliconSensor 'nosuch'; GalSim "
                           "has lsst_e2v_32, ")
     assert "lsst_itl_50_8" in err and err.count("\n") == 1
     assert not (tmp_path / "sim").exists()

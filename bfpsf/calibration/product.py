@@ -574,8 +574,14 @@ def _group_names(hdul):
 
 
 def _table_hdu(table, name):
+    """A binary-table HDU; text columns as UTF-8 bytes (FITS text is ASCII only; astropy
+    reads the bytes back as the same text), so non-ASCII file names survive."""
     from astropy.io import fits
 
+    table = table.copy(copy_data=False)
+    for column in table.colnames:
+        if table[column].dtype.kind == "U":
+            table[column] = np.char.encode(np.asarray(table[column]), "utf-8")
     hdu = fits.table_to_hdu(table)
     hdu.name = name
     return hdu

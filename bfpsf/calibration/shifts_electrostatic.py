@@ -418,7 +418,9 @@ def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
 
     coarse = sorted((fit(start, max_nfev=15, xtol=1e-4, ftol=1e-4) for start in _STARTS),
                     key=lambda result: result.cost)
-    polished = sorted((fit(result.x, xtol=1e-10, ftol=1e-10, gtol=1e-10)
+    # every fit has an evaluation bound (scipy's default, 100 per parameter, can take many
+    # minutes on data the model cannot describe)
+    polished = sorted((fit(result.x, xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=200)
                        for result in coarse[:_POLISHED]), key=lambda result: result.cost)
     best = polished[0]
     vector = best.x
@@ -455,7 +457,7 @@ def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
         for start in minima:
             refit = optimize.least_squares(lambda v: _profile(v, perturbed)[1], start,
                                            bounds=(_LOWER, _UPPER), x_scale="jac",
-                                           xtol=1e-6, ftol=1e-6)
+                                           xtol=1e-6, ftol=1e-6, max_nfev=100)
             refits.append(refit)
         refit = min(refits, key=lambda result: result.cost)
         draw_alpha = _profile(refit.x, perturbed)[0]

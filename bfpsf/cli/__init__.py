@@ -31,11 +31,20 @@ def maxlag_option(text):
     if text == "auto":
         return text
     try:
+        return positive_int(text)
+    except argparse.ArgumentTypeError:
+        msg = f"expected 'auto' or a positive integer, got {text!r}"
+        raise argparse.ArgumentTypeError(msg) from None
+
+
+def positive_int(text):
+    """An integer option that must be at least 1 (counts, sizes, iterations)."""
+    try:
         value = int(text)
     except ValueError:
         value = 0
     if value < 1:
-        msg = f"expected 'auto' or a positive integer, got {text!r}"
+        msg = f"expected a positive integer, got {text!r}"
         raise argparse.ArgumentTypeError(msg)
     return value
 
@@ -115,18 +124,54 @@ def build_parser():
     return parser
 
 
+#: Exit status after an interrupt (SIGINT, Ctrl-C), as shells report 128 + 2.
+EXIT_INTERRUPTED = 130
+
+
 def main(argv=None):
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if not hasattr(args, "_run"):
-        parser.print_help()
-        return 2
+    """Run one command; every failure is one line on stderr and an exit status: 1 for an
+    error, 2 for a usage error (argparse), 130 for an interrupt. Outputs are written
+    atomically, so an interrupted or failed command leaves no partial file."""
+    command = "bfpsf"
+    args = None
     try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        command = " ".join(filter(None, ("bfpsf", args.command,
+                                          getattr(args, "simulate_target", None))))
+        if not hasattr(args, "_run"):
+            parser.print_help()
+            return 2
         _apply_common_options(args)
         return args._run(args) or 0
     except BFPSFError as error:
-        print(f"bfpsf {args.command}: error: {error}", file=sys.stderr)
+        print(f"{command}: error: {_one_line(error)}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print(f"{command}: interrupted; no partial output was left", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except OSError as error:  # an operating-system error no library function turned into ours
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"{command}: error: {where}{_one_line(error.strerror or error)}", file=sys.stderr)
+        return 1
+    except MemoryError:
+        print(f"{command}: error: out of memory; give smaller sizes in the options or fewer "
+              "inputs", file=sys.stderr)
+        return 1
+    except Exception as error:  # noqa: BLE001 -- a bug: one line, the traceback on request
+        if args is not None and getattr(args, "verbose", 0) >= 2:
+            import traceback
+
+            traceback.print_exc()
+        print(f"{command}: internal error: {type(error).__name__}: {_one_line(error)} (a "
+              "bfpsf bug, please report it; -vv prints the traceback)", file=sys.stderr)
+        return 1
+
+
+def _one_line(error):
+    """The first line of an error's message (astropy and numpy append tables and hints)."""
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
 
 
 if __name__ == "__main__":

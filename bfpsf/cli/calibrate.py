@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from ..errors import BFPSFInputError
-from ..files import check_outputs, write_json
+from ..files import check_outputs, input_files, make_directory, write_json
 from . import maxlag_option
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
@@ -155,8 +155,10 @@ def run(args):
     if args.plots and len(detectors) > 1:
         msg = "--plots takes one detector; calibrate the directories one at a time for plots"
         raise BFPSFInputError(msg, args.plots)
+    inputs = input_files(args.flats, args.from_ptc)
     check_outputs([*outputs.values(), args.json, args.export_ptc], args.overwrite,
-                  directories=[args.plots, args.output if len(detectors) > 1 else None])
+                  directories=[args.plots, None if "" in detectors else args.output],
+                  inputs=inputs)
 
     if args.from_ptc:
         from ..calibration import calibrate_from_ptc
@@ -173,9 +175,10 @@ def run(args):
             amps=args.amp, overscan=args.overscan, workers=args.workers,
             scheduler=args.scheduler)
     for calibration in calibrations.values():
-        check_outputs(_plot_paths(args, calibration), args.overwrite, directories=[args.plots])
-    if len(detectors) > 1:  # made once the work has succeeded: a failed run leaves nothing
-        Path(args.output).mkdir(parents=True, exist_ok=True)
+        check_outputs(_plot_paths(args, calibration), args.overwrite, directories=[args.plots],
+                      inputs=inputs)
+    if "" not in detectors:  # made once the work has succeeded: a failed run leaves nothing
+        make_directory(args.output)
     summaries = []
     for detector, calibration in calibrations.items():
         calibration.write(outputs[detector], overwrite=args.overwrite)

@@ -109,7 +109,7 @@ def _observables(args):
 
 def run(args):
     from ..diagnosis.loop import diagnose
-    from ..files import check_outputs, write_json
+    from ..files import check_outputs, input_files, write_json
     from ..validation.report import write_diagnosis_report
 
     if args.list_measured:
@@ -121,7 +121,8 @@ def run(args):
 
     report = Path(args.report) / "report.md" if args.report else None
     check_outputs([args.json, report, args.output_calib], args.overwrite,
-                  directories=[args.report])
+                  directories=[args.report],
+                  inputs=input_files(args.flats, args.images, args.correlations, args.sizes))
     if args.output_calib and not (args.flats and args.images):
         msg = ("--output-calib needs images mode (--flats and --images): it refines their "
                "calibration")

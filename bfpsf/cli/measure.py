@@ -8,7 +8,7 @@ Parse, read the images (ADU, converted to electrons with the gain), call
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import check_outputs, read_table, refuse_duplicates, write_json, write_table
+from ..files import check_outputs, input_files, read_table, refuse_duplicates, write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD
 from ._files import place_stars, read_image
 
@@ -57,7 +57,9 @@ def add_parser(subparsers):
     parser.add_argument("--stamp-size", type=int, default=32,
                         help="measurement stamp side, pixels (default 32)")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
-                        help="saturation level of the raw image, ADU (flags, does not drop)")
+                        help="saturation level of the raw image, ADU (flags, does not drop; "
+                             "default the header's SATURATE or a variant; with --calib, the "
+                             "linearity turnoff where lower)")
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     return parser
@@ -84,11 +86,14 @@ def _gain(args, header, path, calibration, amplifier):
 def run(args):
     from astropy.table import vstack
 
-    from ..calibration.product import read_calibration
+    from ..calibration.product import calibration_of_amplifier, read_calibration
     from ..io.amplifiers import shared_sides
+    from ..io.saturation import saturation_e
+    from ..measure.moments import MomentsFlag
     from ..measure.sources import measure_sources
 
-    check_outputs([args.output, args.json], args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite,
+                  inputs=input_files(args.images, args.calib, args.catalog))
     refuse_duplicates(args.images, "image")
     external = read_table(args.catalog, "catalog") if args.catalog else None
     tables, summary_images = [], []
@@ -104,9 +109,12 @@ def run(args):
         for amplifier in amplifiers:
             header = amplifier.header
             gain = _gain(args, header, path, calibration, amplifier.name)
+            level = saturation_e(amplifier, gain, args.saturation,
+                                 None if calibration is None else calibration_of_amplifier(
+                                     calibration, amplifier.name, str(path)))
             table = measure_sources(
                 amplifier.data * gain, threshold=args.threshold, stamp_size=args.stamp_size,
-                saturation=None if args.saturation is None else args.saturation * gain,
+                saturation=level,
                 colour=_amplifier_colours(colour_table, amplifier) if args.colour else None,
                 colour_columns=args.colour)
             place_stars(table, amplifier, sides, args.stamp_size / 2)
@@ -115,6 +123,9 @@ def run(args):
             summary_images.append({"image": str(path), "amplifier": amplifier.name,
                                    "gain": gain, "n_sources": len(table),
                                    "n_clean": int(np.sum(table["flags"] == 0)),
+                                   "saturation_e": level,
+                                   "n_saturated": int(np.sum(
+                                       (table["flags"] & MomentsFlag.SATURATED) != 0)),
                                    "n_amp_boundary": int(np.sum(table["amp_boundary"])),
                                    "exptime": header.get("EXPTIME")})
     stars = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
@@ -123,9 +134,11 @@ def run(args):
     write_table(stars, args.output, overwrite=args.overwrite)
     summary = {"output": str(args.output), "n_stars": len(stars),
                "n_clean": int(np.sum(stars["flags"] == 0)),
-               "n_flagged": int(np.sum(stars["flags"] != 0)), "images": summary_images}
+               "n_flagged": int(np.sum(stars["flags"] != 0)),
+               "n_saturated": sum(entry["n_saturated"] for entry in summary_images),
+               "images": summary_images}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
-    print(f"{len(stars)} sources ({summary['n_clean']} clean) in {len(args.images)} image(s); "
-          f"wrote {args.output}")
+    print(f"{len(stars)} sources ({summary['n_clean']} clean, {summary['n_saturated']} "
+          f"saturated) in {len(args.images)} image(s); wrote {args.output}")
     return 0

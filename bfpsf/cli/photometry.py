@@ -8,7 +8,7 @@ PSF), write the table (fluxes in e-) and the JSON summary.
 
 import numpy as np
 
-from ..files import check_outputs, write_json, write_table
+from ..files import check_outputs, input_files, write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD
 from . import background_option
 from ._files import place_stars, read_image
@@ -48,6 +48,11 @@ def add_parser(subparsers):
                              f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--fit-shape", type=int, default=None,
                         help="fit box, pixels, odd (default about 3 FWHM)")
+    parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
+                        help="saturation level of the raw images, ADU: stars with a pixel at "
+                             "or above it in the fit box are flagged (column saturated; "
+                             "default the header's SATURATE or a variant; with --calib, the "
+                             "linearity turnoff where lower)")
     parser.add_argument("--static", action="store_true",
                         help="fit the static P0 (no BF term), for comparison")
     parser.add_argument("--no-cross-terms", action="store_true",
@@ -83,11 +88,14 @@ def run(args):
     from ..calibration.product import read_calibration
     from ..diagnosis.refine import undo_refined_linearity
     from ..errors import BFPSFInputError
+    from ..interop.photutils import default_fit_shape
     from ..io.amplifiers import shared_sides
+    from ..io.saturation import saturated_stars, saturation_e
     from ..measure.photometry import psf_photometry
     from ..model.psf import FluxDependentPSF
 
-    check_outputs([args.output, args.json], args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite,
+                  inputs=input_files(args.images, args.psf, args.calib))
     psf = FluxDependentPSF.read(args.psf)
     if psf.flux_unit != "electron":
         psf = psf.with_flux_unit("electron")  # the images are converted to e- below
@@ -119,6 +127,10 @@ def run(args):
                                                  else args.background * amp_gain),
                                    detection_threshold=args.threshold,
                                    cross_terms=not args.no_cross_terms)
+            level = saturation_e(amplifier, amp_gain, args.saturation, one)
+            table["saturated"] = saturated_stars(
+                amplifier.data * amp_gain, level, table["x_fit"], table["y_fit"],
+                args.fit_shape or default_fit_shape(model))
             margin = (args.fit_shape or 2 * psf.half_size + 1) / 2
             place_stars(table, amplifier, sides, margin, x="x_fit", y="y_fit")
             if "x_init" in table.colnames and amplifier.layout.detsec is not None:
@@ -129,7 +141,10 @@ def run(args):
             per_image.append({"image": str(path), "amplifier": amplifier.name,
                               "gain": amp_gain, "linearity_c_per_1e5": linearity_c,
                               "n_stars": len(table),
-                              "n_flagged": int(np.sum(table["flags"] != 0)),
+                              "n_flagged": int(np.sum((table["flags"] != 0)
+                                                      | table["saturated"])),
+                              "saturation_e": level,
+                              "n_saturated": int(np.sum(table["saturated"])),
                               "n_amp_boundary": int(np.sum(table["amp_boundary"])),
                               "background_e": table.meta["background_e"],
                               "n_blended": int(np.sum(table["group_size"] > 1)),
@@ -142,9 +157,11 @@ def run(args):
     write_table(result, args.output, overwrite=args.overwrite)
     summary = {"output": str(args.output), "psf": str(args.psf), "gain": gain,
                "static_psf": bool(args.static), "n_stars": len(result),
-               "n_flagged": int(np.sum(result["flags"] != 0)), "images": per_image}
+               "n_flagged": int(np.sum((result["flags"] != 0) | result["saturated"])),
+               "n_saturated": int(np.sum(result["saturated"])), "images": per_image}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "
-          f"({summary['n_flagged']} flagged); wrote {args.output}")
+          f"({summary['n_flagged']} flagged, {summary['n_saturated']} of them saturated); "
+          f"wrote {args.output}")
     return 0

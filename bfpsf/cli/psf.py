@@ -7,14 +7,15 @@ P0 per node of a grid over the image, `bfpsf.model.gridded.GriddedFluxDependentP
 PSF product and the JSON summary.
 """
 
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import check_outputs, refuse_duplicates, write_json
+from ..files import check_outputs, input_files, refuse_duplicates, write_json
 from ..measure.sources import DETECTION_THRESHOLD, isolated_stars, sky_level
-from . import background_option
+from . import background_option, positive_int
 from ..model.psf_fit import DEFAULT_SIZE
 from ._files import read_image
 
@@ -50,11 +51,13 @@ def add_parser(subparsers):
                              "images); default the sigma-clipped median of each image, which "
                              "the wings of dense bright stars bias high")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
-                        help="saturation level, ADU: saturated stars are not used")
+                        help="saturation level, ADU: saturated stars are not used (default "
+                             "the header's SATURATE or a variant; the calibration's linearity "
+                             "turnoff where lower)")
     parser.add_argument("--grid", type=int, nargs=2, metavar=("NX", "NY"), default=None,
                         help="fit P0 on NX x NY nodes over the image (P(F, x, y), bilinear "
                              "between nodes, as photutils GriddedPSFModel); default one P0")
-    parser.add_argument("--max-iterations", type=int, default=40,
+    parser.add_argument("--max-iterations", type=positive_int, default=40,
                         help="iterations of the P0 fit (default 40)")
     parser.add_argument("--no-bf", dest="include_bf", action="store_false",
                         help="fit a static ePSF (no BF term), for comparison")
@@ -96,10 +99,14 @@ def run(args):
     from ..calibration.product import calibration_of_amplifier, read_calibration
     from ..diagnosis.refine import undo_refined_linearity
     from ..io.amplifiers import near_shared_side, shared_sides
+    from ..io.saturation import count_saturated_regions, saturation_e
     from ..model.psf_fit import fit_psf
+    from ..resources import check_psf_fit, resource_option
 
-    check_outputs([args.output, args.json], args.overwrite)
+    check_outputs([args.output, args.json], args.overwrite,
+                  inputs=input_files(args.images, args.calib))
     refuse_duplicates(args.images, "image")
+    check_psf_fit(0, args.size, args.oversampling, args.grid, args.max_iterations)
     calibration = read_calibration(args.calib)
     refinement = {}
     images, positions, skies, per_image, used = [], [], [], [], []
@@ -125,10 +132,13 @@ def run(args):
             else:
                 background = float(args.background) * gain
             image_e = image_e - background
-            saturation_e = (None if args.saturation is None
-                            else args.saturation * gain - background)
-            xy, n_detected = isolated_stars(image_e, args.size, threshold=args.threshold,
-                                               saturation_e=saturation_e)
+            # saturated or beyond the turnoff (header SATURATE, --saturation, calibration):
+            # left out of the P0 fit, and counted
+            level = saturation_e(amplifier, gain, args.saturation, one)
+            level = None if level is None else level - background
+            with resource_option(f"--size {args.size}"):  # its detection stamps: size + 6
+                xy, n_detected = isolated_stars(image_e, args.size, threshold=args.threshold,
+                                                saturation_e=level)
             # a star whose light falls on two amplifiers (two gains) is left out, and counted
             boundary = near_shared_side(xy[:, 0], xy[:, 1], image_e.shape,
                                         sides[amplifier.name], args.size / 2)
@@ -140,7 +150,10 @@ def run(args):
             per_image.append({"image": str(path), "amplifier": amplifier.name, "gain": gain,
                               "n_detected": int(n_detected), "n_isolated": int(len(xy)),
                               "n_amp_boundary": int(np.sum(boundary)),
+                              "n_saturated": count_saturated_regions(image_e, level),
                               "background_e": float(background)})
+    check_psf_fit(sum(len(xy) for xy in positions), args.size, args.oversampling, args.grid,
+                  args.max_iterations)
     gain, noise, samples = _star_weighted(used)
     buildup = refinement.get("buildup_steps")
     # each star gets the BF term of its amplifier's shifts
@@ -169,6 +182,7 @@ def run(args):
                "oversampling": int(args.oversampling), "size": int(args.size),
                "include_bf": bool(args.include_bf), "n_stars": int(len(result.stars)),
                "n_used": int(np.sum(used)), "iterations": int(result.iterations),
+               "n_saturated": sum(entry["n_saturated"] for entry in per_image),
                "converged": bool(result.converged),
                "fwhm_pixels": psf_fwhm(psf if args.grid is None
                                        else psf.nodes[len(psf.nodes) // 2]),
@@ -183,7 +197,12 @@ def run(args):
                            "fwhm_pixels": [psf_fwhm(node) for node in psf.nodes]}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
+    if not result.converged:  # flagged in the product (CONVERGD) and the JSON too
+        print(f"WARNING: P0 did not converge in {result.iterations} iterations (last change "
+              f"{result.changes[-1]:.3g} of the peak): raise --max-iterations or check the "
+              "stars", file=sys.stderr)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "
           f"{len(args.images)} image(s), {result.iterations} iterations "
-          f"({'converged' if result.converged else 'NOT converged'}); wrote {args.output}")
+          f"({'converged' if result.converged else 'NOT converged'}); "
+          f"{summary['n_saturated']} saturated stars left out; wrote {args.output}")
     return 0

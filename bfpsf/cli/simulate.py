@@ -9,7 +9,7 @@ added to ``TARGETS``).
 
 import argparse
 
-from . import add_common_options
+from . import add_common_options, positive_int
 
 __all__ = ["add_parser", "run", "TARGETS"]
 
@@ -27,11 +27,11 @@ def _add_flats(targets):
                         help="GalSim SiliconSensor name (lsst_itl_50_8, lsst_e2v_50_8, ...)")
     parser.add_argument("--levels", type=float, nargs="+", default=list(DEFAULT_LEVELS_E),
                         metavar="E", help="flat levels, electrons per pixel")
-    parser.add_argument("--pairs", type=int, default=1, help="pairs per level")
-    parser.add_argument("--size", type=int, default=256, help="image side, pixels")
+    parser.add_argument("--pairs", type=positive_int, default=1, help="pairs per level")
+    parser.add_argument("--size", type=positive_int, default=256, help="image side, pixels")
     parser.add_argument("--gain", type=float, default=1.5, help="gain, e-/ADU")
     parser.add_argument("--read-noise", type=float, default=5.0, help="read noise, e- rms")
-    parser.add_argument("--nsteps", type=int, default=20,
+    parser.add_argument("--nsteps", type=positive_int, default=20,
                         help="charge increments per flat (covariance bias ~ 1/nsteps^2)")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
     parser.add_argument("--exptime-per-e", type=float, default=1e-3,
@@ -52,8 +52,12 @@ def _add_flats(targets):
 
 
 def _run_flats(args):
+    from ..resources import check_flat_simulation
     from ..validation.simulate_flats import write_flats
 
+    check_flat_simulation(args.size, 2 * args.pairs * len(args.levels), args.nsteps,
+                          option=f"--size {args.size}, --nsteps {args.nsteps}, "
+                                 f"{len(args.levels)} --levels x --pairs {args.pairs}")
     paths = write_flats(args.output, args.sensor, args.levels, overwrite=args.overwrite,
                         pairs=args.pairs, size=args.size, gain=args.gain,
                         read_noise_e=args.read_noise, nsteps=args.nsteps, seed=args.seed,

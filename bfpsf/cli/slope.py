@@ -17,7 +17,7 @@ with ``slope_err_total``, the statistical and calibration errors combined, and `
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import check_outputs, read_table, save_figure, write_json
+from ..files import check_outputs, input_files, read_table, save_figure, write_json
 
 
 def add_parser(subparsers):
@@ -81,7 +81,8 @@ def run(args):
     from ..measure.colour import correct_size_colour
     from ..measure.slopes import bf_slopes
 
-    check_outputs([args.json, args.plot, args.psf_plot], args.overwrite)
+    check_outputs([args.json, args.plot, args.psf_plot], args.overwrite,
+                  inputs=input_files(args.stars, args.psf))
     if args.psf_plot and not args.psf:
         msg = "--psf-plot needs --psf PSF.fits"
         raise BFPSFInputError(msg, args.psf_plot)

@@ -7,6 +7,8 @@ chain, print the side-by-side table, write the JSON summary and the Markdown rep
 import sys
 from pathlib import Path
 
+from . import positive_int
+
 
 __all__ = ["add_parser", "run"]
 
@@ -25,10 +27,10 @@ def add_parser(subparsers):
     parser.add_argument("--beta", type=float, default=None, help="Moffat index")
     parser.add_argument("--peaks", type=float, nargs="+", default=None, metavar="E",
                         help="spot peak levels, e-")
-    parser.add_argument("--spots-per-level", type=int, default=None, dest="n_per_level",
+    parser.add_argument("--spots-per-level", type=positive_int, default=None, dest="n_per_level",
                         help="spots per peak level (default: the configuration's)")
-    parser.add_argument("--flat-size", type=int, default=None, help="flat side, pixels")
-    parser.add_argument("--flat-pairs", type=int, default=None, help="pairs per flat level")
+    parser.add_argument("--flat-size", type=positive_int, default=None, help="flat side, pixels")
+    parser.add_argument("--flat-pairs", type=positive_int, default=None, help="pairs per flat level")
     parser.add_argument("--flat-levels", type=float, nargs="+", default=None, metavar="E",
                         help="flat levels, electrons (default: the configuration's)")
     parser.add_argument("--model-shifts", choices=("flats", "truth"), default="flats",
@@ -96,12 +98,18 @@ def _print_table(result):
 
 def run(args):
     from ..files import check_outputs, write_json
+    from ..resources import check_flat_simulation
     from ..validation.report import write_validation_report
     from ..validation.validate import validate
 
     report = Path(args.report) / "report.md" if args.report else None
     check_outputs([args.json, report], args.overwrite, directories=[args.report])
-    result = validate(_config(args), progress=args.progress,
+    config = _config(args)
+    check_flat_simulation(config.flat_size, 2 * config.flat_pairs * len(config.flat_levels_e),
+                          config.flat_nsteps,
+                          option=f"--flat-size {config.flat_size}, {len(config.flat_levels_e)} "
+                                 f"--flat-levels x --flat-pairs {config.flat_pairs}")
+    result = validate(config, progress=args.progress,
                       shifts_for_model=args.model_shifts)
     _print_table(result)
     if args.json:

@@ -518,6 +518,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     from ..calibration import calibrate
     from ..calibration.product import Calibration
     from ..io.amplifiers import read_amplifiers
+    from ..io.saturation import saturation_e
     from ..measure.sources import aperture_fraction, isolated_stars, measure_sources, sky_level
     from ..model.psf_fit import DEFAULT_SIZE, fit_psf
     from .star_residual import stacked_star_residual
@@ -542,7 +543,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
                    "choose it with --amp NAME")
             raise BFPSFInputError(msg, str(path))
         data = np.asarray(amplifiers[0].data, float) * gain
-        table = measure_sources(data)
+        # saturated spots (header SATURATE, calibration turnoff) are flagged, not used
+        table = measure_sources(data, saturation=saturation_e(amplifiers[0], gain, None, cal))
         # the sky left in the image (level and noise), for the stacked residual
         sky, noise = sky_level(data)
         if background is not None:
@@ -558,6 +560,10 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         exposure.append(np.full(good.sum(), index))
     fluxes, peaks, sigma_x, sigma_y, exposure = (np.concatenate(v) for v in
                                                  (fluxes, peaks, sigma_x, sigma_y, exposure))
+    if fluxes.size < 9:  # the size bins need 3 of 3 stars; no quantile of nothing
+        msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean star(s), too few to "
+               "diagnose (9 or more)")
+        raise BFPSFInputError(msg, fluxes.size)
     sizes = _binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
                           f"{len(images)} images")
     # P0 from the exposures the loop fits (`bfpsf.diagnosis.loop.split_observables`)

@@ -37,6 +37,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError
 from ..files import check_input, reading
+from .saturation import SATURATION_KEYWORDS
 
 __all__ = ["Amplifier", "AmplifierLayout", "parse_section", "amplifier_layout",
            "read_amplifiers", "read_amplifier", "subtract_overscan", "shared_sides",
@@ -146,7 +147,8 @@ class Amplifier:
     data : ndarray [y, x]
         ADU (float64), overscan-subtracted where the HDU has a BIASSEC.
     header : astropy.io.fits.Header
-        The HDU header (EXPTIME copied from the primary header when only that has it).
+        The HDU header (EXPTIME and the saturation level copied from the primary header when
+        only that has them).
     overscan_adu : ndarray or None
         The level subtracted from each row of the trimmed image, ADU.
     """
@@ -223,6 +225,10 @@ def _layout(path, index, hdu, primary_header):
         if datasec is None:
             msg = f"{where}: BIASSEC without DATASEC; bfpsf cannot tell the pixels from the overscan"
             raise BFPSFInputError(msg, str(path))
+        if _overlap(biassec, datasec):
+            msg = (f"{where}: BIASSEC {header['BIASSEC']} overlaps DATASEC {header['DATASEC']} "
+                   "(the overscan must lie outside the imaging pixels)")
+            raise BFPSFInputError(msg, header["BIASSEC"])
         if biassec.y.start > datasec.y.start or biassec.y.stop < datasec.y.stop:
             msg = (f"{where}: BIASSEC {header['BIASSEC']} does not cover the rows of DATASEC "
                    f"{header['DATASEC']} (the overscan is subtracted row by row)")
@@ -235,6 +241,23 @@ def _layout(path, index, hdu, primary_header):
     exptime = header.get("EXPTIME", primary_header.get("EXPTIME"))
     return AmplifierLayout(path=str(path), hdu=index, name=name, shape=tuple(shape),
                            exptime=exptime, datasec=datasec, biassec=biassec, detsec=detsec)
+
+
+def _overlap(first, second):
+    """True when two sections share a pixel."""
+    return (first.x.start < second.x.stop and second.x.start < first.x.stop
+            and first.y.start < second.y.stop and second.y.start < first.y.stop)
+
+
+def _refuse_overlapping_amplifiers(path, layouts):
+    """Two amplifiers whose DETSECs share detector pixels cannot both be right."""
+    placed = [layout for layout in layouts if layout.detsec is not None]
+    for index, layout in enumerate(placed):
+        for other in placed[index + 1:]:
+            if _overlap(layout.detsec, other.detsec):
+                msg = (f"{path}: the DETSECs of amplifiers {layout.name!r} and {other.name!r} "
+                       "overlap on the detector")
+                raise BFPSFInputError(msg, (layout.name, other.name))
 
 
 def _select(path, layouts, amps):
@@ -279,6 +302,7 @@ def amplifier_layout(path, amps=None, *, what="FITS file"):
         images = _image_hdus(path, hdus)
         primary = hdus[0].header
         layouts = [_layout(path, index, hdu, primary) for index, hdu in images]
+    _refuse_overlapping_amplifiers(path, layouts)
     return _select(path, layouts, amps)
 
 
@@ -375,8 +399,9 @@ def _amplifier(layout, hdus, overscan):
         data = data[::-1]
         level = None if level is None else level[::-1]
     header = hdu.header.copy()
-    if "EXPTIME" not in header and "EXPTIME" in hdus[0].header:
-        header["EXPTIME"] = hdus[0].header["EXPTIME"]
+    for keyword in ("EXPTIME", *SATURATION_KEYWORDS):  # the primary's, where the HDU has none
+        if keyword not in header and keyword in hdus[0].header:
+            header[keyword] = hdus[0].header[keyword]
     return Amplifier(layout=layout, data=data, header=header, overscan_adu=level)
 
 

@@ -146,16 +146,15 @@ def read_ptc_dataset(path):
     BFPSFInputError
         The file is missing, is not a PTC dataset (OBSTYPE), or lacks a needed column.
     """
-    from pathlib import Path
-
     from astropy.table import Table
 
-    if not Path(path).exists():
-        msg = f"PTC dataset {path} does not exist"
-        raise BFPSFInputError(msg, str(path))
+    from ..files import check_input, reading
+
+    path = check_input(path, "PTC dataset")
     try:
-        table = Table.read(path, hdu=1)
-    except (OSError, ValueError, IndexError) as error:
+        with reading(path, "cp_pipe PTC dataset (FITS)"):
+            table = Table.read(path, hdu=1, format="fits")
+    except IndexError as error:
         msg = f"{path}: cannot read a PTC table from HDU 1 ({error})"
         raise BFPSFInputError(msg, str(path)) from error
     obstype = str(table.meta.get("OBSTYPE", "")).strip()
@@ -166,7 +165,9 @@ def read_ptc_dataset(path):
     if missing:
         msg = f"{path}: PTC table lacks column(s) {', '.join(missing)}"
         raise BFPSFInputError(msg, missing)
-    return {amplifier.name: amplifier for amplifier in (_amplifier(row, path) for row in table)}
+    with reading(path, "cp_pipe PTC dataset"):
+        return {amplifier.name: amplifier
+                for amplifier in (_amplifier(row, path) for row in table)}
 
 
 def _flat(matrix):

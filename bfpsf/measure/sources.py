@@ -13,6 +13,7 @@ import warnings
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from ..resources import check_pixels
 from .moment_errors import moment_errors
 from .moments import adaptive_moments_batch
 from .moments_result import MomentsFlag
@@ -336,6 +337,8 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     background[missing] = global_level
     background_rms[missing] = global_rms
 
+    check_pixels(n_sources * float(stamp_size) ** 2, copies=16, option=f"stamp size {stamp_size}",
+                 what=f"measuring {n_sources} sources")
     raw_stamps, x_origin, y_origin, crosses = _cutouts(image, x_detect, y_detect, stamp_size)
     stamps = raw_stamps - background[:, None, None]
     labels, _, _, _ = _cutouts(segments.data.astype(float), x_detect, y_detect, stamp_size)

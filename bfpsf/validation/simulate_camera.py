@@ -69,7 +69,9 @@ def amplifier_hdus(images, names, *, bias_adu, overscan_columns=20, read_noise_a
         hdu.header["DATASEC"] = f"[1:{nx},1:{ny}]"
         if overscan_columns:
             hdu.header["BIASSEC"] = f"[{nx + 1}:{nx + overscan_columns},1:{ny}]"
-        hdu.header["DETSEC"] = f"[{index * nx + 1}:{(index + 1) * nx},1:{ny}]"
+        # side by side: each starts where the one before ends (their widths may differ)
+        start = sum(other.shape[1] for other in images[:index])
+        hdu.header["DETSEC"] = f"[{start + 1}:{start + nx},1:{ny}]"
         hdus.append(hdu)
     return fits.HDUList(hdus)
 

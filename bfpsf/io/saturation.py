@@ -1,0 +1,144 @@
+"""Saturation levels from the headers, the options and the calibration; saturated stars.
+
+A star with a saturated pixel (its charge spilled or clipped), or with a pixel above the
+linearity turnoff of the calibration (where the PTC, hence the brighter-fatter model, no longer
+holds), is mis-measured by every fit: it is flagged and left out of the P0 fit, never silently
+used. The level comes from
+
+* the command's ``--saturation ADU`` option, else
+* the image header: ``SATURATE`` (SExtractor, DECam, Subaru) or a common variant
+  (`SATURATION_KEYWORDS`), in the HDU of the amplifier or in the primary header,
+
+in ADU of the raw pixels. Where the overscan is subtracted, the level in the subtracted
+pixels is the raw level minus the largest overscan level (a star is flagged a little early
+rather than missed). With a calibration whose linearity turnoff was detected, the lower of the
+two (in electrons) applies.
+"""
+
+import numpy as np
+
+from ..errors import BFPSFInputError
+
+__all__ = ["SATURATION_KEYWORDS", "header_saturation", "saturation_adu", "saturation_e",
+           "saturated_stars", "count_saturated_regions"]
+
+#: Header keywords holding the saturation level in ADU, in order of preference.
+SATURATION_KEYWORDS = ("SATURATE", "SATURATN", "SATLEVEL", "SAT_LEVL", "SATLEV", "SATUR",
+                       "SATURAT")
+
+
+def header_saturation(header, *, where=""):
+    """The saturation level of a header (`SATURATION_KEYWORDS`), ADU; None if it has none.
+
+    Raises
+    ------
+    BFPSFInputError
+        The keyword holds something other than a positive finite number.
+    """
+    for keyword in SATURATION_KEYWORDS:
+        if keyword not in header:
+            continue
+        value = header[keyword]
+        try:
+            level = float(value)
+        except (TypeError, ValueError):
+            level = float("nan")
+        if isinstance(value, bool) or not (np.isfinite(level) and level > 0):
+            msg = (f"{where}: header {keyword} = {value!r} is not a saturation level (a "
+                   "positive number of ADU); give --saturation ADU")
+            raise BFPSFInputError(msg, value)
+        return level
+    return None
+
+
+def saturation_adu(amplifier, option=None):
+    """The saturation level in the ADU of ``amplifier.data`` (overscan subtracted), or None.
+
+    Parameters
+    ----------
+    amplifier : bfpsf.io.amplifiers.Amplifier
+    option : float, optional
+        ``--saturation``, raw ADU; overrides the header.
+    """
+    if option is not None:
+        level = float(option)
+        if not (np.isfinite(level) and level > 0):
+            msg = f"--saturation must be a positive number of ADU, got {option!r}"
+            raise BFPSFInputError(msg, option)
+    else:
+        level = header_saturation(amplifier.header, where=amplifier.label)
+    if level is None:
+        return None
+    if amplifier.overscan_adu is not None and np.size(amplifier.overscan_adu):
+        level -= float(np.max(amplifier.overscan_adu))
+    return level
+
+
+def saturation_e(amplifier, gain, option=None, calibration=None):
+    """The level (e-, in ``amplifier.data * gain``) above which a pixel spoils its star: the
+    saturation (`saturation_adu`) or the calibration's linearity turnoff where it was
+    detected, whichever is lower; None if neither is known.
+
+    Parameters
+    ----------
+    amplifier : bfpsf.io.amplifiers.Amplifier
+    gain : float
+        e-/ADU.
+    option : float, optional
+        ``--saturation``, ADU.
+    calibration : bfpsf.Calibration, optional
+        The amplifier's calibration: its ``turnoff_e`` when ``turnoff_detected``.
+    """
+    levels = []
+    adu = saturation_adu(amplifier, option)
+    if adu is not None:
+        levels.append(adu * float(gain))
+    if calibration is not None and getattr(calibration, "turnoff_detected", False):
+        turnoff = float(calibration.turnoff_e)
+        if np.isfinite(turnoff) and turnoff > 0:
+            levels.append(turnoff)
+    return min(levels) if levels else None
+
+
+def saturated_stars(image, level, x, y, box):
+    """True for each star with a pixel at or above ``level`` in its fit box.
+
+    Parameters
+    ----------
+    image : ndarray [y, x]
+    level : float or None
+        In the units of ``image``; None: no star is saturated.
+    x, y : array_like
+        Star centres, pixels of ``image``.
+    box : int
+        Side of the fit box, pixels (clipped at the image edges).
+    """
+    x, y = np.atleast_1d(np.asarray(x, dtype=float)), np.atleast_1d(np.asarray(y, dtype=float))
+    flagged = np.zeros(x.shape, dtype=bool)
+    if level is None:
+        return flagged
+    hot = np.asarray(image) >= level
+    if not hot.any():
+        return flagged
+    # summed-area table: the count of saturated pixels in any box in O(1)
+    counts = np.pad(hot.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    ny, nx = hot.shape
+    half = int(box) // 2
+    finite = np.isfinite(x) & np.isfinite(y)
+    column = np.where(finite, np.rint(x), -10 * (half + 1) - nx).astype(int)
+    row = np.where(finite, np.rint(y), -10 * (half + 1) - ny).astype(int)
+    x0, x1 = np.clip(column - half, 0, nx), np.clip(column + half + 1, 0, nx)
+    y0, y1 = np.clip(row - half, 0, ny), np.clip(row + half + 1, 0, ny)
+    inside = counts[y1, x1] - counts[y0, x1] - counts[y1, x0] + counts[y0, x0]
+    return inside > 0
+
+
+def count_saturated_regions(image, level):
+    """Number of connected groups of pixels at or above ``level`` (saturated stars), 0 for
+    None."""
+    if level is None:
+        return 0
+    from scipy import ndimage
+
+    _, count = ndimage.label(np.asarray(image) >= level)
+    return int(count)
