@@ -140,3 +140,44 @@ def _e1(shapes):
     """e1 = (Mxx - Myy) / (Mxx + Myy) from the reduced shear (g1, g2) of measureShapes."""
     g1, g2 = shapes[:, 4], shapes[:, 5]
     return 2.0 * g1 / (1.0 + g1**2 + g2**2)
+
+
+def fit_exposures(files, *, calib=None, gain=1.5, psf=None):
+    """Fit each exposure with Piff (``piff.process`` of `piff_config`).
+
+    Returns
+    -------
+    fits : list of piff.PSF
+    seconds : float
+        CPU time of the fits (process time: the machine may be shared).
+    """
+    import time
+
+    import piff
+
+    psf = inner_psf_config() if psf is None else psf
+    start = time.process_time()
+    fits = [piff.process(piff_config(image, catalog, psf=psf, gain=gain, calib=calib))
+            for image, catalog in files]
+    return fits, time.process_time() - start
+
+
+def acceptance(files, calib, *, gain=1.5):
+    """Plain Piff and BrighterFatter around it on the same exposures, side by side.
+
+    Returns
+    -------
+    dict
+        ``plain`` and ``bf``: the `residual_slopes` dicts, each with ``seconds`` (CPU time of
+        its fits) and ``fits``; ``size_ratio`` and ``e1_ratio``: BF slope / plain slope;
+        ``time_ratio``: BF fit time / plain fit time.
+    """
+    result = {}
+    for kind, calibration in (("plain", None), ("bf", calib)):
+        fits, seconds = fit_exposures(files, calib=calibration, gain=gain)
+        result[kind] = residual_slopes(fits, gain=gain)
+        result[kind].update(seconds=seconds, fits=fits)
+    for key in ("size", "e1"):
+        result[f"{key}_ratio"] = result["bf"][key].slope / result["plain"][key].slope
+    result["time_ratio"] = result["bf"]["seconds"] / result["plain"]["seconds"]
+    return result
