@@ -6,7 +6,8 @@ import pytest
 from astropy.io import fits
 
 from bfpsf.calibration.covariance import pair_covariance
-from bfpsf.calibration.flats import pair_flats, pair_mask, read_flats
+from bfpsf.calibration.flat_mask import pair_mask
+from bfpsf.calibration.flats import pair_flats, read_flats
 from bfpsf.cli import main
 from bfpsf.errors import BFPSFFileExistsError
 from bfpsf.interop.silicon_truth import silicon_area_coefficients
