@@ -165,7 +165,8 @@ def run(args):
                      grid=args.grid, progress=None,
                      **({"mode": "exact", "buildup_steps": int(buildup)} if buildup else {}))
     psf = result.psf
-    psf.calibration = Path(args.calib).name
+    # a FITS header is ASCII: other characters of the name stored escaped (\xe4, \u20ac)
+    psf.calibration = Path(args.calib).name.encode("ascii", "backslashreplace").decode()
     psf.shift_samples = samples
     amplifier_shifts = {entry["amplifier"]: one.shifts
                         for entry, (one, _) in zip(per_image, used)}
