@@ -22,7 +22,8 @@ import numpy as np
 
 from .errors import BFPSFError, BFPSFFileExistsError, BFPSFInputError, BFPSFOutputError
 
-__all__ = ["refuse_overwrite", "check_outputs", "refuse_inputs", "input_files", "check_input", "reading", "refuse_duplicates",
+__all__ = ["refuse_overwrite", "check_outputs", "refuse_inputs", "input_files", "check_input",
+           "reading", "refuse_duplicates",
            "read_table",
            "open_product", "atomic_path", "make_directory", "write_json",
            "write_text", "write_fits", "write_table", "save_figure", "json_safe"]

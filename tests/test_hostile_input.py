@@ -298,6 +298,9 @@ def test_saturation_header_that_is_not_a_level(workdir, capsys):
      "--size 100000, --nsteps 20, 8 --levels x --pairs 1: simulating a flat would need about"),
     (["validate", "--flat-size", "30000"],
      "--flat-size 30000, 6 --flat-levels x --flat-pairs 2: simulating a flat would need about"),
+    (["validate", "--quick", "--spots-per-level", "1000000"],
+     "--spots-per-level 1000000, 6 --peaks up to 120000: simulating 6000000 spots would need "
+     "about"),
 ])
 def test_memory_guards_refuse_under_a_memory_cap(workdir, argv, option):
     """Under a 4 GiB address-space cap each refuses in one line naming the option, within
