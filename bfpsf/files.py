@@ -22,7 +22,8 @@ import numpy as np
 
 from .errors import BFPSFError, BFPSFFileExistsError, BFPSFInputError, BFPSFOutputError
 
-__all__ = ["refuse_overwrite", "check_outputs", "refuse_inputs", "input_files", "check_input", "reading", "refuse_duplicates",
+__all__ = ["refuse_overwrite", "check_outputs", "refuse_inputs", "input_files", "check_input",
+           "reading", "about", "refuse_duplicates",
            "read_table",
            "open_product", "atomic_path", "make_directory", "write_json",
            "write_text", "write_fits", "write_table", "save_figure", "json_safe"]
@@ -227,6 +228,20 @@ def reading(path, what):
                                        warning.lineno)
     if truncated:
         raise BFPSFInputError(unreadable, str(path))
+
+
+@contextmanager
+def about(path):
+    """Within this block, a `BFPSFInputError` (a problem of the data, not of an option) whose
+    message does not name ``path`` is raised again with ``path: `` in front (library
+    functions on arrays do not know the file)."""
+    try:
+        yield
+    except BFPSFInputError as error:
+        if str(path) in str(error):
+            raise
+        msg = f"{path}: {error}"
+        raise type(error)(msg, error.value) from None
 
 
 def read_table(path, what, *, format=None):  # noqa: A002

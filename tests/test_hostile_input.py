@@ -298,6 +298,9 @@ def test_saturation_header_that_is_not_a_level(workdir, capsys):
      "--size 100000, --nsteps 20, 8 --levels x --pairs 1: simulating a flat would need about"),
     (["validate", "--flat-size", "30000"],
      "--flat-size 30000, 6 --flat-levels x --flat-pairs 2: simulating a flat would need about"),
+    (["validate", "--quick", "--spots-per-level", "1000000"],
+     "--spots-per-level 1000000, 6 --peaks up to 120000: simulating 6000000 spots would need "
+     "about"),
 ])
 def test_memory_guards_refuse_under_a_memory_cap(workdir, argv, option):
     """Under a 4 GiB address-space cap each refuses in one line naming the option, within
@@ -333,3 +336,34 @@ def test_unconverged_psf_fit_is_reported(workdir, capsys):
     assert err.startswith("WARNING: P0 did not converge in 1 iterations (last change ")
     with fits.open("p.fits") as hdul:
         assert hdul[0].header["CONVERGD"] is False
+
+
+def test_non_finite_block_in_a_flat_is_reported(workdir, capsys):
+    """A NaN block is masked (the calibration goes on) and said so, not masked without a
+    word."""
+    with fits.open("f5_1.fits") as hdul:
+        hdul[0].data[10:30, 10:30] = np.nan
+        hdul.writeto("f5_1_nan.fits")
+    flats = [name if name != "f5_1.fits" else "f5_1_nan.fits" for name in FLATS]
+    before = snapshot(workdir)
+    code, err = run(capsys, "calibrate", *flats, "-o", "c.fits", "--workers", "1",
+                    "--n-monte-carlo", "0", "--model", "exponential")
+    assert code == 0, err
+    assert ("WARNING: non-finite pixels masked in 1 flat pair(s), the most (400) in "
+            "f5_1_nan.fits and f5_2.fits\n") in err
+    after = snapshot(workdir)
+    assert {name: after[name] for name in before} == before
+
+
+@pytest.mark.parametrize("setting, limit", [("8G", 8 * 2**30), ("512M", 512 * 2**20),
+                                            ("1000", 1000.0)])
+def test_memory_limit_setting(monkeypatch, setting, limit):
+    from bfpsf.errors import BFPSFResourceError
+    from bfpsf.resources import check_memory, memory_limit
+
+    monkeypatch.setenv("BFPSF_MEMORY_LIMIT", setting)
+    assert memory_limit() == (limit, "BFPSF_MEMORY_LIMIT")
+    check_memory(limit, option="--x 1", what="this")
+    with pytest.raises(BFPSFResourceError, match=r"^--x 2: this would need about .* of memory, "
+                                                 r"more than the .* limit \(BFPSF_MEMORY_LIMIT"):
+        check_memory(limit * 1.01, option="--x 2", what="this")

@@ -2,7 +2,7 @@
 the PTC, pedestal, linearity and boundary shifts of its pairs (`fit_measured_pairs`,
 `fit_amplifier`)."""
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -104,12 +104,20 @@ def fit_measured_pairs(task):
     amplifier, entries, parameters, options = (task.amplifier, task.entries, task.parameters,
                                                task.options)
     covariances = [covariance for _, covariance, _ in entries]
-    return fit_amplifier(
+    result = fit_amplifier(
         stack_pairs(covariances), parameters, amplifier=amplifier,
         names=[names for names, _, _ in entries],
         n_masked=[report.total for _, _, report in entries],
         n_clipped=[int(getattr(covariance, "n_clipped", 0)) for covariance in covariances],
         **options)
+    # non-finite pixels are masked, and said so (a NaN block is a damaged flat, not noise)
+    nonfinite = [(names, report.nonfinite) for names, _, report in entries if report.nonfinite]
+    if nonfinite:
+        (first, second), count = max(nonfinite, key=lambda item: item[1])
+        note = (f"non-finite pixels masked in {len(nonfinite)} flat pair(s), the most ({count}) "
+                f"in {first} and {second}")
+        result = replace(result, warnings=(*result.warnings, note))
+    return result
 
 
 def fit_amplifier(data, parameters, *, amplifier="", names, n_masked, n_clipped, ptc_model,

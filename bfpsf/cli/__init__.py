@@ -37,16 +37,25 @@ def maxlag_option(text):
         raise argparse.ArgumentTypeError(msg) from None
 
 
-def positive_int(text):
-    """An integer option that must be at least 1 (counts, sizes, iterations)."""
+def _integer(text, minimum, expected):
     try:
         value = int(text)
     except ValueError:
-        value = 0
-    if value < 1:
-        msg = f"expected a positive integer, got {text!r}"
+        value = minimum - 1
+    if value < minimum:
+        msg = f"expected {expected}, got {text!r}"
         raise argparse.ArgumentTypeError(msg)
     return value
+
+
+def positive_int(text):
+    """An integer option that must be at least 1 (counts, sizes, iterations)."""
+    return _integer(text, 1, "a positive integer")
+
+
+def non_negative_int(text):
+    """An integer option that may be 0 (e.g. a number of samples)."""
+    return _integer(text, 0, "an integer >= 0")
 
 
 def background_option(text):

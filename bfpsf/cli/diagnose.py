@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from ..errors import BFPSFInputError
-from . import background_option, maxlag_option
+from . import background_option, maxlag_option, positive_int
 
 __all__ = ["add_parser", "run"]
 
@@ -50,7 +50,7 @@ def add_parser(subparsers):
                            "integer")
     data.add_argument("--no-fit-b", dest="fit_b", action="store_false",
                       help="calibrate without the Astier+19 b term (few or small flats)")
-    data.add_argument("--bins", type=int, default=10,
+    data.add_argument("--bins", type=positive_int, default=10,
                       help="peak bins of the measured sizes (default 10)")
     tables = parser.add_argument_group("table mode")
     tables.add_argument("--correlations", metavar="FILE",

@@ -8,7 +8,7 @@ PSF), write the table (fluxes in e-) and the JSON summary.
 
 import numpy as np
 
-from ..files import check_outputs, input_files, write_json, write_table
+from ..files import about, check_outputs, input_files, write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD
 from . import background_option
 from ._files import place_stars, read_image
@@ -121,12 +121,13 @@ def run(args):
             image_e, linearity_c = amplifier.data * amp_gain, 0.0
             if one is not None:
                 image_e, linearity_c = undo_refined_linearity(image_e, one)
-            table = psf_photometry(image_e, model,
-                                   read_noise_e=args.read_noise, fit_shape=args.fit_shape,
-                                   background_e=(None if args.background is None
-                                                 else args.background * amp_gain),
-                                   detection_threshold=args.threshold,
-                                   cross_terms=not args.no_cross_terms)
+            with about(path):
+                table = psf_photometry(image_e, model,
+                                       read_noise_e=args.read_noise, fit_shape=args.fit_shape,
+                                       background_e=(None if args.background is None
+                                                     else args.background * amp_gain),
+                                       detection_threshold=args.threshold,
+                                       cross_terms=not args.no_cross_terms)
             level = saturation_e(amplifier, amp_gain, args.saturation, one)
             table["saturated"] = saturated_stars(
                 amplifier.data * amp_gain, level, table["x_fit"], table["y_fit"],

@@ -152,8 +152,12 @@ def run(args):
                               "n_amp_boundary": int(np.sum(boundary)),
                               "n_saturated": count_saturated_regions(image_e, level),
                               "background_e": float(background)})
-    check_psf_fit(sum(len(xy) for xy in positions), args.size, args.oversampling, args.grid,
-                  args.max_iterations)
+    n_stars = sum(len(xy) for xy in positions)
+    if n_stars < 3:
+        msg = (f"{', '.join(map(str, args.images))}: {n_stars} isolated, unsaturated star(s); "
+               "the P0 fit needs 3 or more")
+        raise BFPSFInputError(msg, n_stars)
+    check_psf_fit(n_stars, args.size, args.oversampling, args.grid, args.max_iterations)
     gain, noise, samples = _star_weighted(used)
     buildup = refinement.get("buildup_steps")
     # each star gets the BF term of its amplifier's shifts
@@ -165,7 +169,8 @@ def run(args):
                      grid=args.grid, progress=None,
                      **({"mode": "exact", "buildup_steps": int(buildup)} if buildup else {}))
     psf = result.psf
-    psf.calibration = Path(args.calib).name
+    # a FITS header is ASCII: other characters of the name stored escaped (\xe4, \u20ac)
+    psf.calibration = Path(args.calib).name.encode("ascii", "backslashreplace").decode()
     psf.shift_samples = samples
     amplifier_shifts = {entry["amplifier"]: one.shifts
                         for entry, (one, _) in zip(per_image, used)}

@@ -30,7 +30,8 @@ def add_parser(subparsers):
     parser.add_argument("--spots-per-level", type=positive_int, default=None, dest="n_per_level",
                         help="spots per peak level (default: the configuration's)")
     parser.add_argument("--flat-size", type=positive_int, default=None, help="flat side, pixels")
-    parser.add_argument("--flat-pairs", type=positive_int, default=None, help="pairs per flat level")
+    parser.add_argument("--flat-pairs", type=positive_int, default=None,
+                        help="pairs per flat level")
     parser.add_argument("--flat-levels", type=float, nargs="+", default=None, metavar="E",
                         help="flat levels, electrons (default: the configuration's)")
     parser.add_argument("--model-shifts", choices=("flats", "truth"), default="flats",
@@ -98,7 +99,7 @@ def _print_table(result):
 
 def run(args):
     from ..files import check_outputs, write_json
-    from ..resources import check_flat_simulation
+    from ..resources import check_flat_simulation, check_spot_simulation
     from ..validation.report import write_validation_report
     from ..validation.validate import validate
 
@@ -109,6 +110,9 @@ def run(args):
                           config.flat_nsteps,
                           option=f"--flat-size {config.flat_size}, {len(config.flat_levels_e)} "
                                  f"--flat-levels x --flat-pairs {config.flat_pairs}")
+    check_spot_simulation(config.n_per_level, config.peaks_e, config.fwhm, config.stamp_size,
+                          option=f"--spots-per-level {config.n_per_level}, "
+                                 f"{len(config.peaks_e)} --peaks up to {max(config.peaks_e):g}")
     result = validate(config, progress=args.progress,
                       shifts_for_model=args.model_shifts)
     _print_table(result)
