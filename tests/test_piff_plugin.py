@@ -9,7 +9,9 @@ slow test is the acceptance on SiliconSensor stars with a calibration from simul
 
 import subprocess
 import sys
+import tomllib
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -160,25 +162,29 @@ def test_get_profile_holds_at_the_pixel_phase_of_its_position(fits):
     assert abs(profile.flux / flux - 1) < 1e-6
 
 
-def test_piff_stats_run_on_the_bf_psf(field, calibration_file, tmp_path):
+def test_example_config_runs_with_piff_stats(field, calibration_file, tmp_path):
+    """examples/piff_config/piff_bf.yaml as a user runs it (piffify), with its stats."""
+    import yaml
+    from astropy.table import Table
+
+    example = Path(__file__).resolve().parents[1] / "examples" / "piff_config" / "piff_bf.yaml"
+    config = yaml.safe_load(example.read_text())
     image, catalog = field[0]
-    config = piff_config(image, catalog, psf=inner_psf_config(), gain=GAIN,
-                         calib=calibration_file)
-    config["output"] = {"file_name": str(tmp_path / "bf.piff"), "stats": [
-        {"type": "Rho", "file_name": str(tmp_path / "rho.png")},
-        {"type": "SizeMag", "file_name": str(tmp_path / "sizemag.png")},
-        {"type": "StarImages", "file_name": str(tmp_path / "stars.png"), "nplot": 4},
-        {"type": "HSMCatalog", "file_name": str(tmp_path / "hsm.fits")}]}
+    config["input"].update(image_file_name=str(image), cat_file_name=str(catalog))
+    config["psf"]["calib"] = str(calibration_file)
+    config["output"]["dir"] = str(tmp_path)
+    config["output"]["stats"].append({"type": "HSMCatalog", "file_name": "hsm.fits"})
+    config["verbose"] = 0
     piff.piffify(config)
     for name in ("bf.piff", "rho.png", "sizemag.png", "stars.png", "hsm.fits"):
         assert (tmp_path / name).stat().st_size > 0, name
-    from astropy.table import Table
-
     table = Table.read(tmp_path / "hsm.fits")
     good = table["flag_data"] == 0
     # HSM sizes of data and model (drawn at each star's flux) agree to 1 % on average
     ratio = np.asarray(table["T_model"][good]) / np.asarray(table["T_data"][good])
     assert abs(np.median(ratio) - 1) < 0.01
+    psf = piff.read(str(tmp_path / "bf.piff"))
+    assert isinstance(psf, bfpsf.piff.BrighterFatterPSF)
 
 
 def test_amplifiers_route_gain_and_shifts_by_position(fits, calibration_file, tmp_path):
@@ -218,10 +224,10 @@ def test_single_chip_and_gsobject_inner_psfs(field, calibration_file, tmp_path):
     """A SingleChip inner PSF (two exposures as two chips) and a GSObject (Moffat) model."""
     images = [str(image) for image, _ in field[:2]]
     catalogs = [str(catalog) for _, catalog in field[:2]]
-    inner = {"type": "SingleChip", "model": {"type": "Moffat", "beta": 3.5},
+    inner = {"type": "SingleChip", "model": {"type": "Moffat", "beta": 3.5, "fastfit": True},
              "interp": {"type": "Polynomial", "order": 1}}
     config = piff_config(images[0], catalogs[0], psf=inner, gain=GAIN, calib=calibration_file)
-    config["input"].update(image_file_name=images, cat_file_name=catalogs)
+    config["input"].update(image_file_name=images, cat_file_name=catalogs, nstars=40)
     psf = piff.process(config)
     assert isinstance(psf.psf, piff.SingleChipPSF) and sorted(psf.psf.psf_by_chip) == [0, 1]
     for chipnum in (0, 1):
@@ -245,8 +251,61 @@ def test_config_errors_are_one_line(calibration_file):
                           "calib": "missing.fits"})
 
 
-def test_bfpsf_works_without_importing_piff():
+def test_bfpsf_works_without_piff():
+    # importing the rest of bfpsf does not import piff
     code = ("import sys, bfpsf, bfpsf.cli, bfpsf.model.psf, bfpsf.interop.galsim_sensor, "
             "bfpsf.galsim, bfpsf.psf_product; bfpsf.FluxDependentPSF; "
             "assert 'piff' not in sys.modules, 'piff imported'")
     subprocess.run([sys.executable, "-c", code], check=True)
+    # with piff not installed (its import blocked), bfpsf runs and only bfpsf.piff fails
+    blocked = ("import sys\nclass Block:\n    def find_spec(self, name, path=None, target=None):"
+               "\n        if name == 'piff' or name.startswith('piff.'):\n"
+               "            raise ImportError('No module named piff')\n"
+               "sys.meta_path.insert(0, Block())\n"
+               "import numpy, bfpsf\nfrom bfpsf.cli import main\n"
+               "image = bfpsf.redistribute(numpy.ones((8, 8)) * 1e4, "
+               "bfpsf.BoundaryShifts(numpy.zeros((3, 3)), numpy.zeros((3, 3))))\n"
+               "try:\n    import bfpsf.piff\nexcept ImportError as error:\n"
+               "    assert 'piff' in str(error)\nelse:\n    raise AssertionError('imported')\n")
+    subprocess.run([sys.executable, "-c", blocked], check=True)
+
+
+def test_extras_name_piff_and_all_holds_every_optional_part():
+    project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml")
+                            .read_text())["project"]
+    extras = project["optional-dependencies"]
+    assert extras["piff"] == ["piff>=1.5"] and "piff>=1.5" in extras["test"]
+    optional = {name for key, names in extras.items() if key not in ("test", "all")
+                for name in names}
+    assert optional <= set(extras["all"])
+
+
+@pytest.mark.slow
+def test_acceptance_on_a_silicon_sensor_field(tmp_path):
+    """Issue 23's targets on the user's path: SiliconSensor flats -> bfpsf calibrate ->
+    Piff on SiliconSensor exposures (PSF varying over the field, 3-120 ke- of peak), plain
+    Piff and BrighterFatter around it, each star's residual minus that of its BF-free twin
+    (same photons and noise: `write_field` with ``control=True``). About 10 minutes on one
+    core; the full-size run (larger flats, 12 exposures) is benchmarks/bench_piff.py."""
+    from bfpsf.interop.silicon_truth import silicon_diffusion_sigma
+    from bfpsf.piff.field import acceptance, carried_errors
+    from bfpsf.validation.simulate_flats import simulate_flats
+
+    flats = simulate_flats("lsst_itl_50_8", np.geomspace(5e3, 1e5, 8), pairs=4, size=256,
+                           nsteps=10, gain=GAIN, read_noise_e=5.0, seed=1031)
+    calibration = calibrate([image for image, _, _ in flats],
+                            exptimes=[time for _, time, _ in flats])
+    calibration.write(tmp_path / "calib.fits")
+    files, controls = write_field(tmp_path / "field", n_exposures=3, sensor="lsst_itl_50_8",
+                                  seed=41, control=True)
+    result = acceptance(files, tmp_path / "calib.fits", gain=GAIN, controls=controls)
+    carried = carried_errors(calibration, diffusion=silicon_diffusion_sigma("lsst_itl_50_8"))
+    assert result["size_plain"].slope > 20 * result["size_plain"].slope_err
+    # size: <= 5 % of plain Piff's BF slope, within 2 sigma of the measurement's error and
+    # the calibration's carried error (its shift samples: the flats' statistics)
+    size_sigma = np.hypot(result["size_ratio_err"], carried["size"])
+    assert abs(result["size_ratio"]) < 0.05 + 2 * size_sigma, (result["size_ratio"], carried)
+    # e1: <= 20 % of plain Piff's, or within 2 sigma (measurement and calibration)
+    e1_sigma = np.hypot(result["e1_ratio_err"], carried["e1"])
+    assert abs(result["e1_ratio"]) < max(0.2, 2 * e1_sigma), (result["e1_ratio"], carried)
+    assert result["time_ratio"] < 2.0

@@ -6,6 +6,12 @@ that hold one (Piff's ``read`` does not import ``modules:``: import this package
 See docs/plugins.md.
 """
 
-from .psf import AmplifierBF, BrighterFatterPSF
+try:
+    import piff  # noqa: F401
+except ImportError as error:  # bfpsf works without Piff; only this plug-in needs it
+    msg = "bfpsf.piff needs Piff: pip install 'bfpsf[piff]' (or piff itself)"
+    raise ImportError(msg) from error
+
+from .psf import AmplifierBF, BrighterFatterPSF  # noqa: E402
 
 __all__ = ["BrighterFatterPSF", "AmplifierBF"]
