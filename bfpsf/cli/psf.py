@@ -170,8 +170,7 @@ def run(args):
                "include_bf": bool(args.include_bf), "n_stars": int(len(result.stars)),
                "n_used": int(np.sum(used)), "iterations": int(result.iterations),
                "converged": bool(result.converged),
-               "fwhm_pixels": psf_fwhm(psf if args.grid is None
-                                       else psf.nodes[len(psf.nodes) // 2]),
+               "fwhm_pixels": psf_fwhm(psf),
                "flux_range_e": [float(np.min(result.stars["flux_fit"][used])),
                                 float(np.max(result.stars["flux_fit"][used]))]
                if np.any(used) else None,
@@ -180,7 +179,8 @@ def run(args):
     if args.grid is not None:
         summary["grid"] = {"nx": int(args.grid[0]), "ny": int(args.grid[1]),
                            "x_nodes": psf.x_nodes.tolist(), "y_nodes": psf.y_nodes.tolist(),
-                           "fwhm_pixels": [psf_fwhm(node) for node in psf.nodes]}
+                           "fwhm_pixels": [psf_fwhm(psf, x, y) for y in psf.y_nodes
+                                           for x in psf.x_nodes]}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "

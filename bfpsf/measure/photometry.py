@@ -12,6 +12,7 @@ from astropy.table import Table
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import make_psf_photometry
+from ..model.base import BFPSFModel
 from .sources import DETECTION_THRESHOLD, measure_sources, sky_level
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
@@ -67,28 +68,29 @@ def _cross_term_image(psf, table, shape):
     density (the cross term itself a few percent off, no spurious term).
     """
     static, own = np.zeros(shape), np.zeros(shape)
-    exact_density = psf.density_profile is not None
+    exact_density = psf.at().density_profile is not None
     if exact_density:
         north, east = np.zeros((shape[0] - 1, shape[1])), np.zeros((shape[0], shape[1] - 1))
     half = psf.half_size + 1
     for x_0, y_0, flux in zip(table["x_fit"], table["y_fit"], table["flux_fit"]):
         if not np.all(np.isfinite((x_0, y_0, flux))):
             continue
+        model = psf.at(x_0, y_0)  # every kind: the single P(F) of this star
         column, row = int(np.rint(x_0)), int(np.rint(y_0))
         x_phase, y_phase = x_0 - column, y_0 - row
         y, x = np.mgrid[row - half:row + half + 1, column - half:column + half + 1]
-        star = flux * psf.evaluate_base(x - x_0, y - y_0)  # F P0, no BF
+        star = flux * model.evaluate_base(x - x_0, y - y_0)  # F P0, no BF
         _add_stamp(static, star, row - half, column - half)
         density = None
         if exact_density:
             density = tuple(abs(flux) * part
-                            for part in psf.boundary_density(x_phase, y_phase, half))
+                            for part in model.boundary_density(x_phase, y_phase, half))
             _add_stamp(north, density[0], row - half, column - half)
             _add_stamp(east, density[1], row - half, column - half)
         # the star's own term with the same operator as the sum: an isolated star gets no
         # cross term even when the model's own term comes from a stored table whose density
         # profile is gone (a table-mode exact-density model read back from its product)
-        _add_stamp(own, psf.charge_delta(star, density), row - half, column - half)
+        _add_stamp(own, model.charge_delta(star, density), row - half, column - half)
     density = (north, east) if exact_density else None
     return psf.charge_delta(static, density) - own
 
@@ -236,7 +238,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         error = np.sqrt(np.maximum(variance, 1.0))
         result = photometry(data, mask=mask, error=error, init_params=_refit_init(init, result))
     n_cross = 0
-    if cross_terms and hasattr(psf, "shifts") and "group_size" in result.colnames:
+    if cross_terms and isinstance(psf, BFPSFModel) and "group_size" in result.colnames:
         blended = np.asarray(result["group_size"]) > 1
         for _ in range(int(cross_terms) if blended.any() else 0):
             # Refit the blended stars on the data minus their BF on each other.

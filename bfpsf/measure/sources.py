@@ -197,9 +197,9 @@ def aperture_fraction(psf, *, aperture_nsigma=5.0, phases=4, size=32):
     offsets = (np.arange(phases) + 0.5) / phases - 0.5
     yy, xx = np.mgrid[:size, :size]
     centre = (size - 1) / 2.0
-    # a PSF that varies over the field (GriddedFluxDependentPSF) is taken at its grid's centre
-    x_field = float(np.mean(psf.x_nodes)) - centre if hasattr(psf, "x_nodes") else 0.0
-    y_field = float(np.mean(psf.y_nodes)) - centre if hasattr(psf, "y_nodes") else 0.0
+    # a PSF that varies over the field (GriddedFluxDependentPSF) is taken at its reference
+    # position (the grid's centre)
+    x_field, y_field = (value - centre for value in psf.reference_position)
     stamps = np.array([psf.evaluate(xx + x_field, yy + y_field, 1.0, centre + x_field + dx,
                                     centre + y_field + dy)
                        for dy in offsets for dx in offsets])
