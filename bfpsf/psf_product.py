@@ -23,8 +23,10 @@ HDU and the option cards then describe the central node (readers of schema 3 see
 Schema 6 adds the metadata every PSF kind carries (`bfpsf.model.base`): ``LINC`` (a refined
 calibration's linearity correction c per 1e5 e-, applied to the images on input; 0 when none),
 ``FLUXCORR`` / ``FLUXCERR`` (total flux over the flux P0 holds in its support, and its error:
-the aperture correction photometry applies; 1 and 0 when not measured). Files of schema <= 5
-read with those defaults.
+the aperture correction photometry applies; 1 and no FLUXCERR when not measured), ``WINGAMP``
+/ ``WINGPOW`` (the power law A r^-p of the wings beyond the support, per pixel per unit flux
+inside it; A = 0 when not measured). Files of
+schema <= 5 read with those defaults.
 """
 
 import numpy as np
@@ -91,7 +93,10 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     header["PIXRESP"] = (True, "pixel response included in P0")
     header["LINC"] = (float(psf.linearity_c_per_1e5), "linearity correction c per 1e5 e-")
     header["FLUXCORR"] = (float(psf.flux_correction), "total flux / flux in the P0 support")
-    header["FLUXCERR"] = (float(psf.flux_correction_err), "error of FLUXCORR")
+    header["WINGAMP"] = (float(psf.wing_amplitude), "wings beyond the support: A of A r^-p")
+    header["WINGPOW"] = (float(psf.wing_power), "wings beyond the support: p of A r^-p")
+    if np.isfinite(psf.flux_correction_err):  # absent: unknown (too few isolated stars)
+        header["FLUXCERR"] = (float(psf.flux_correction_err), "error of FLUXCORR")
     for key, value in (meta or {}).items():
         header[key] = value
     north = fits.ImageHDU(np.asarray(psf.shifts.north), name="SHIFT_N")
@@ -207,7 +212,9 @@ def read_psf(path, *, cls=None, **kwargs):
         metadata = {"calibration": calibration,
                     "linearity_c_per_1e5": float(header.get("LINC", 0.0)),
                     "flux_correction": float(header.get("FLUXCORR", 1.0)),
-                    "flux_correction_err": float(header.get("FLUXCERR", 0.0))}
+                    "flux_correction_err": float(header.get("FLUXCERR", np.nan)),
+                    "wing_amplitude": float(header.get("WINGAMP", 0.0)),
+                    "wing_power": float(header.get("WINGPOW", 4.0))}
         samples = ()
         if "SHIFT_N_SAMP" in hdul:
             samples = tuple(BoundaryShifts(north, east, check=False) for north, east in

@@ -84,9 +84,10 @@ def _gain(args, header, path, calibration, amplifier):
 def run(args):
     from astropy.table import vstack
 
-    from ..calibration.product import read_calibration
+    from ..calibration.product import calibration_of_amplifier, read_calibration
     from ..io.amplifiers import shared_sides
     from ..measure.sources import measure_sources
+    from ..workflow import linearity_of, prepare_image
 
     check_outputs([args.output, args.json], args.overwrite)
     refuse_duplicates(args.images, "image")
@@ -104,8 +105,13 @@ def run(args):
         for amplifier in amplifiers:
             header = amplifier.header
             gain = _gain(args, header, path, calibration, amplifier.name)
+            # the one image preparation: e-, and a refined calibration's linearity undone
+            linearity = 0.0 if calibration is None else linearity_of(
+                calibration_of_amplifier(calibration, amplifier.name, str(path)))
             table = measure_sources(
-                amplifier.data * gain, threshold=args.threshold, stamp_size=args.stamp_size,
+                prepare_image(amplifier.data, gain=gain, linearity_c_per_1e5=linearity,
+                              background_e=0.0).image_e,  # measure_sources' own sky
+                threshold=args.threshold, stamp_size=args.stamp_size,
                 saturation=None if args.saturation is None else args.saturation * gain,
                 colour=_amplifier_colours(colour_table, amplifier) if args.colour else None,
                 colour_columns=args.colour)

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError
 from ..files import check_outputs, refuse_duplicates, write_json
-from ..measure.sources import DETECTION_THRESHOLD, isolated_stars, sky_level
+from ..measure.sources import DETECTION_THRESHOLD
 from . import background_option
 from ..model.psf_fit import DEFAULT_SIZE
 from ._files import read_image
@@ -94,15 +94,14 @@ def _star_weighted(used):
 
 def run(args):
     from ..calibration.product import calibration_of_amplifier, read_calibration
-    from ..diagnosis.refine import undo_refined_linearity
     from ..io.amplifiers import near_shared_side, shared_sides
-    from ..model.psf_fit import fit_psf
+    from ..workflow import linearity_of, prepare_image, psf_from_images
 
     check_outputs([args.output, args.json], args.overwrite)
     refuse_duplicates(args.images, "image")
     calibration = read_calibration(args.calib)
     refinement = {}
-    images, positions, skies, per_image, used = [], [], [], [], []
+    prepared, calibrations, exclude, saturation, per_image = [], [], [], [], []
     for path in args.images:
         amplifiers, _ = read_image(path, args.amp)
         sides = shared_sides([amplifier.layout for amplifier in amplifiers])
@@ -115,44 +114,31 @@ def run(args):
                        "(calibration solved without them)")
                 raise BFPSFInputError(msg, args.calib)
             gain = float(one.gain)
-            image_e = amplifier.data * gain
             # a calibration refined by `bfpsf diagnose --output-calib`: its linearity
             # correction on input and its build-up (the shifts are already refined)
             refinement.update(one.refinement)
-            image_e, _ = undo_refined_linearity(image_e, one)
-            if args.background is None:
-                background, _ = sky_level(image_e)
-            else:
-                background = float(args.background) * gain
-            image_e = image_e - background
-            saturation_e = (None if args.saturation is None
-                            else args.saturation * gain - background)
-            xy, n_detected = isolated_stars(image_e, args.size, threshold=args.threshold,
-                                               saturation_e=saturation_e)
+            prepared.append(prepare_image(
+                amplifier.data, gain=gain, linearity_c_per_1e5=linearity_of(one),
+                background_e=None if args.background is None else args.background * gain))
+            calibrations.append(one)
+            saturation.append(np.nan if args.saturation is None else args.saturation * gain)
             # a star whose light falls on two amplifiers (two gains) is left out, and counted
-            boundary = near_shared_side(xy[:, 0], xy[:, 1], image_e.shape,
-                                        sides[amplifier.name], args.size / 2)
-            xy = xy[~boundary]
-            images.append(image_e)
-            skies.append(max(float(background), 0.0))
-            positions.append(xy)
-            used.append((one, len(xy)))
-            per_image.append({"image": str(path), "amplifier": amplifier.name, "gain": gain,
-                              "n_detected": int(n_detected), "n_isolated": int(len(xy)),
-                              "n_amp_boundary": int(np.sum(boundary)),
-                              "background_e": float(background)})
-    gain, noise, samples = _star_weighted(used)
-    buildup = refinement.get("buildup_steps")
-    # each star gets the BF term of its amplifier's shifts
-    result = fit_psf(images, positions, [one.shifts for one, _ in used],
-                     oversampling=args.oversampling,
-                     size=args.size, read_noise=noise,
-                     sky_e=skies, include_bf=args.include_bf,
-                     max_iterations=args.max_iterations, flux_unit="electron", gain=gain,
-                     grid=args.grid, progress=None,
-                     **({"mode": "exact", "buildup_steps": int(buildup)} if buildup else {}))
-    psf = result.psf
-    psf.calibration = Path(args.calib).name
+            exclude.append(lambda xy, shape, side=sides[amplifier.name]: near_shared_side(
+                xy[:, 0], xy[:, 1], shape, side, args.size / 2))
+            per_image.append({"image": str(path), "amplifier": amplifier.name, "gain": gain})
+    fitted = psf_from_images(prepared, calibrations, size=args.size,
+                             oversampling=args.oversampling, grid=args.grid,
+                             threshold=args.threshold, saturation_e=saturation,
+                             include_bf=args.include_bf, max_iterations=args.max_iterations,
+                             exclude=exclude, calibration_name=Path(args.calib).name)
+    for entry, found in zip(per_image, fitted.images):
+        entry.update(n_detected=found["n_detected"], n_isolated=found["n_isolated"],
+                     n_amp_boundary=found["n_excluded"], background_e=found["background_e"],
+                     sky_slope=found["sky_slope"], sky_method=found["sky_method"])
+    used = [(one, entry["n_isolated"]) for one, entry in zip(calibrations, per_image)]
+    gain, _, samples = _star_weighted(used)
+    result = fitted.fit
+    psf = fitted.psf
     psf.shift_samples = samples
     amplifier_shifts = {entry["amplifier"]: one.shifts
                         for entry, (one, _) in zip(per_image, used)}
@@ -175,6 +161,8 @@ def run(args):
                                 float(np.max(result.stars["flux_fit"][used]))]
                if np.any(used) else None,
                "images": per_image,
+               "flux_correction": psf.flux_correction,
+               "flux_correction_err": psf.flux_correction_err,
                "refinement_applied": sorted(refinement.get("applied", {}))}
     if args.grid is not None:
         summary["grid"] = {"nx": int(args.grid[0]), "ny": int(args.grid[1]),

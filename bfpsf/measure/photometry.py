@@ -13,7 +13,7 @@ from astropy.table import Table
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import make_psf_photometry
 from ..model.base import BFPSFModel
-from .sources import DETECTION_THRESHOLD, measure_sources, sky_level
+from .sources import DETECTION_THRESHOLD, measure_sources
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 
@@ -95,6 +95,16 @@ def _cross_term_image(psf, table, shape):
     return psf.charge_delta(static, density) - own
 
 
+def _glow(psf, table, shape):
+    """The light of the fitted stars beyond the PSF support (the PSF's wing model), e-."""
+    from .total_flux import WingModel, wing_image
+
+    wings = WingModel(psf.wing_amplitude, psf.wing_power, psf.half_size, 0.0, 0.0, 0)
+    return wing_image(wings, np.asarray(table["x_fit"], float),
+                      np.asarray(table["y_fit"], float), np.asarray(table["flux_fit"], float),
+                      shape)
+
+
 #: Largest group of stars fitted together that `psf_photometry` accepts: photutils fits a
 #: group as one model with 3 parameters per star, so a larger one is slow and poorly conditioned.
 MAX_GROUP_SIZE = 25
@@ -129,13 +139,15 @@ def _check_groups(psf, fit_shape, group_separation, init):
 def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background_e=None,
                    fit_shape=None, group_separation=None,
                    detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
-                   **kwargs):
+                   linearity_c_per_1e5=None, **kwargs):
     """Fit every star of an image with the flux-dependent PSF.
 
     Parameters
     ----------
-    image_e : array_like [y, x]
-        Image in electrons (the BF term needs charge); sky included or not.
+    image_e : array_like [y, x] or bfpsf.workflow.PreparedImage
+        Image in electrons (the BF term needs charge), sky included, prepared here
+        (``background_e``, ``linearity_c_per_1e5``); or an image prepared already
+        (`bfpsf.workflow.prepare_image`: its sky and linearity are used as they are).
     psf : FluxDependentPSF or photutils PSF model
         PSF model in electrons (``flux_unit='electron'``; an ADU model is refused). A static photutils model can be passed for
         comparison.
@@ -145,8 +157,11 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     read_noise_e : float, optional
         Read noise, e- rms, for the pixel errors (Poisson noise of the image is included).
     background_e : float, optional
-        Sky level, e- per pixel, subtracted before fitting; default the sigma-clipped median
-        of the image.
+        A known sky level, e- per pixel, subtracted before fitting; default the sky surface
+        of the image (`bfpsf.measure.sky.estimate_sky`: a plane fitted beyond the masked
+        sources, per image), through the one image preparation of every command
+        (`bfpsf.workflow.prepare_image`, which also undoes the PSF's linearity correction,
+        ``psf.linearity_c_per_1e5``, of a refined calibration).
     fit_shape : int, optional
         Fit box, pixels (odd); default about 3 FWHM.
     group_separation : float, optional
@@ -168,6 +183,9 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         quadratic in the summed charge): the cross terms are computed from the previous fit
         and subtracted from the data. Default True (one refit, the effect being second order
         in a); 0 or False: none. Only for a `FluxDependentPSF`.
+    linearity_c_per_1e5 : float, optional
+        Linearity correction undone on input (`bfpsf.workflow.prepare_image`); default the
+        PSF's own (``psf.linearity_c_per_1e5``, 0 for a photutils model).
     **kwargs
         Passed to `photutils.psf.PSFPhotometry`.
 
@@ -175,14 +193,19 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     -------
     astropy.table.Table
         photutils' result table: ``x_fit``, ``y_fit`` (pixels), ``flux_fit``, ``flux_err``
-        (e-), ``flags`` (photutils bit flags, `photutils.psf.decode_psf_flags`) and photutils'
+        (e-; the star's total flux: the flux P0 holds times ``psf.flux_correction``, the
+        light beyond its support), ``sky_e`` (the sky subtracted under each star, e- per
+        pixel), ``flags`` (photutils bit flags, `photutils.psf.decode_psf_flags`) and photutils'
         other columns; ``meta['background_e']`` holds the subtracted sky and
         ``meta['weights']`` the variance model, ``meta['cross_term_refits']`` the refits made.
         With the stars detected here (or ``positions`` a table with a ``source_flags``
         column), ``source_flags`` carries the detection's `bfpsf.measure.sources.SourceFlag`
         bits (``BLENDED``: an unresolved neighbour) to each fitted star.
     """
-    image = np.asarray(image_e, dtype=float)
+    from ..workflow import PreparedImage, prepare_image
+
+    prepared = image_e if isinstance(image_e, PreparedImage) else None
+    image = np.asarray(image_e.image_e if prepared else image_e, dtype=float)
     if image.ndim != 2:
         msg = f"image must be 2-D [y, x], got shape {image.shape}"
         raise BFPSFInputError(msg, image.shape)
@@ -200,11 +223,16 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     if weights not in ("model", "data"):
         msg = f"weights must be 'model' or 'data', got {weights!r}"
         raise BFPSFValueError(msg, weights)
-    if background_e is None:
-        background_e, _ = sky_level(image)
+    bfpsf_model = isinstance(psf, BFPSFModel)
+    if linearity_c_per_1e5 is None:
+        linearity_c_per_1e5 = psf.linearity_c_per_1e5 if bfpsf_model else 0.0
+    if prepared is None:
+        prepared = prepare_image(image, background_e=background_e,
+                                 linearity_c_per_1e5=linearity_c_per_1e5)
+    image, sky = prepared.image_e, prepared.sky
     variance = np.clip(np.where(finite, image, 0.0), 0.0, None) + read_noise_e**2
     error = np.sqrt(np.where(variance > 0, variance, 1.0))
-    data = image - background_e
+    data = prepared.sky_subtracted
     mask = ~finite
     if positions is None:
         init = _initial_positions(np.where(finite, data, 0.0), detection_threshold)
@@ -233,12 +261,17 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         # Refit with the variance the fitted stars and the sky predict: weights computed from
         # the noisy pixels themselves bias every flux low (see ``weights``).
         # The 1 e-**2 floor keeps pixels beyond the PSF support of a sky-free image finite.
+        if bfpsf_model and psf.wing_amplitude > 0 and prepared.glow_e is None:
+            # the sky again, beyond the glow of the fitted stars' wings (which is subtracted
+            # with it): the sky is what is left beyond their total-flux model
+            prepared = prepared.with_glow(_glow(psf, result, data.shape))
+            sky, data = prepared.sky, prepared.sky_subtracted
         model = np.clip(photometry.make_model_image(data.shape), 0.0, None)
-        variance = max(float(background_e), 0.0) + model + read_noise_e**2
+        variance = np.clip(sky.image(), 0.0, None) + model + read_noise_e**2
         error = np.sqrt(np.maximum(variance, 1.0))
         result = photometry(data, mask=mask, error=error, init_params=_refit_init(init, result))
     n_cross = 0
-    if cross_terms and isinstance(psf, BFPSFModel) and "group_size" in result.colnames:
+    if cross_terms and bfpsf_model and "group_size" in result.colnames:
         blended = np.asarray(result["group_size"]) > 1
         for _ in range(int(cross_terms) if blended.any() else 0):
             # Refit the blended stars on the data minus their BF on each other.
@@ -251,7 +284,15 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
             n_cross += 1
     if source_flags is not None:
         result["source_flags"] = source_flags[np.asarray(result["id"], dtype=int) - 1]
-    result.meta["background_e"] = float(background_e)
+    # the total flux: the light beyond P0's support (measured when the PSF was fitted)
+    correction = float(psf.flux_correction) if bfpsf_model else 1.0
+    result["flux_fit"] = result["flux_fit"] * correction
+    result["flux_err"] = result["flux_err"] * correction
+    result["sky_e"] = sky(np.asarray(result["x_fit"], float), np.asarray(result["y_fit"], float))
+    result.meta["flux_correction"] = correction
+    result.meta["background_e"] = sky.level
+    result.meta["sky"] = {"method": sky.method, "degree": sky.degree,
+                          "coefficients": list(sky.coefficients), "rms_e": sky.rms}
     result.meta["cross_term_refits"] = n_cross
     result.meta["weights"] = weights
     result.meta["flux_unit"] = "electron"

@@ -301,10 +301,11 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
             colour_columns = [name for name in colour.colnames if name not in ("x", "y")]
     colour_columns = list(colour_columns or [])
 
-    # the detection pedestal, with astropy's 5 clipping iterations (10 moves the pedestal, and
-    # with it the detections and centroids, by up to a few e-)
-    median, _ = sky_level(image, maxiters=5)
-    data = np.where(bad, np.nan, image - median)
+    # the detection pedestal: the sky surface of every command (a plane beyond the masked
+    # sources, bfpsf.measure.sky), so that a sloped sky leaves the threshold where it is
+    from .sky import estimate_sky
+
+    data = np.where(bad, np.nan, image - estimate_sky(np.where(bad, np.nan, image)).image())
     kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
     convolved = convolve(np.where(bad, 0.0, data), kernel, normalize_kernel=True)
     _, _, smooth_rms = sigma_clipped_stats(convolved[~bad], sigma=3.0)

@@ -26,10 +26,11 @@ Product metadata carried by every kind (kept by the PSF product, `bfpsf.psf_prod
 ``calibration`` (file name), ``shift_samples`` (the calibration's uncertainty),
 ``amplifier_shifts`` ({EXTNAME: BoundaryShifts}), ``linearity_c_per_1e5`` (a refined
 calibration's linearity correction, applied to the images on input by
-`bfpsf.prepare.prepare_image`), and ``flux_correction`` / ``flux_correction_err``: the ratio of
+`bfpsf.workflow.prepare_image`), and ``flux_correction`` / ``flux_correction_err``: the ratio of
 a star's total flux to the flux P0 holds in its support (the wings beyond it), measured from
-the bright isolated stars (`bfpsf.measure.total_flux`), applied by photometry so that
-``flux_fit`` is the total flux.
+the bright isolated stars, applied by photometry so that ``flux_fit`` is the total flux, with
+the power law of those wings, ``wing_amplitude`` and ``wing_power``
+(`bfpsf.measure.total_flux.WingModel`), whose glow the sky estimate leaves out.
 """
 
 import copy
@@ -43,7 +44,8 @@ __all__ = ["BFPSFModel"]
 
 #: Metadata every kind carries (name -> default factory), copied by the derived models.
 _METADATA = {"calibration": str, "linearity_c_per_1e5": float,
-             "flux_correction": lambda: 1.0, "flux_correction_err": float}
+             "flux_correction": lambda: 1.0, "flux_correction_err": lambda: float("nan"),
+             "wing_amplitude": float, "wing_power": lambda: 4.0}
 
 
 class BFPSFModel(Fittable2DModel):
@@ -65,6 +67,10 @@ class BFPSFModel(Fittable2DModel):
     def _init_metadata(self):
         for name, factory in _METADATA.items():
             self.__dict__.setdefault(name, factory())
+
+    def metadata_state(self):
+        """The product metadata as a tuple (value equality)."""
+        return tuple(getattr(self, name) for name in _METADATA)
 
     def copy_metadata_to(self, other, *, shift_samples=False):
         """Give ``other`` this model's product metadata (and shift samples if asked)."""
@@ -215,4 +221,6 @@ def _equal(left, right):
         return len(left) == len(right) and all(_equal(a, b) for a, b in zip(left, right))
     if isinstance(left, np.ndarray) or isinstance(right, np.ndarray):
         return np.shape(left) == np.shape(right) and np.array_equal(left, right)
+    if isinstance(left, float) and isinstance(right, float) and np.isnan(left):
+        return bool(np.isnan(right))  # an unknown error equals an unknown error
     return bool(left == right)

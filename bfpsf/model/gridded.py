@@ -261,8 +261,7 @@ class GriddedFluxDependentPSF(BFPSFModel):
     def _value_state(self):
         return (self.x_nodes, self.y_nodes, [node._value_state() for node in self.nodes],
                 [float(getattr(self, name).value) for name in self.param_names],
-                self.calibration, self.linearity_c_per_1e5, self.flux_correction,
-                self.flux_correction_err)
+                self.metadata_state())
 
     @property
     def bounding_box(self):

@@ -435,8 +435,7 @@ class FluxDependentPSF(BFPSFModel):
         options = self.options
         options.pop("bf_table", None)
         return (self.data, self.bf_table, self.shifts.north, self.shifts.east, options,
-                self.density_profile, self.calibration, self.linearity_c_per_1e5,
-                self.flux_correction, self.flux_correction_err,
+                self.density_profile, self.metadata_state(),
                 {name: (one.north, one.east) for name, one in self.amplifier_shifts.items()},
                 [(one.north, one.east) for one in self.shift_samples])
 
