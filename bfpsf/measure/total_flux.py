@@ -154,10 +154,9 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         pixel, radius, weight, inside = _pairs(np.asarray(x, float), np.asarray(y, float),
                                                np.asarray(flux, float), rows, columns,
                                                half_size)
-        in_ring = np.zeros(rows.size, dtype=bool)
-        in_ring[pixel] = True
-        # a source core not among the fitted stars is left out (a fitted star's wings kept)
-        keep = ~inside & (~core[rows, columns] | in_ring)
+        # the fitted stars' supports and every source's core (a star not fitted, e.g. a
+        # blend, would otherwise put its light in the sky) are left out
+        keep = ~inside & ~core[rows, columns]
         new_index = np.cumsum(keep) - 1
         chosen = keep[pixel]
         pair_sets.append((new_index[pixel[chosen]] + offsets[-1], radius[chosen],
