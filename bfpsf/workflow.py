@@ -180,12 +180,14 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         calibrations = [calibrations] * len(images)
     saturation = np.broadcast_to(np.asarray(saturation_e if saturation_e is not None
                                             else np.nan, dtype=float), (len(images),))
-    positions, per_image = [], []
+    positions, per_image, detections = [], [], []
     for index, prepared in enumerate(images):
         data = prepared.sky_subtracted
         level = None if not np.isfinite(saturation[index]) else float(
             saturation[index] - prepared.sky.level)
-        xy, n_detected = isolated_stars(data, size, threshold=threshold, saturation_e=level)
+        xy, n_detected, sources = isolated_stars(data, size, threshold=threshold,
+                                                 saturation_e=level, return_sources=True)
+        detections.append(sources)
         excluded = np.zeros(len(xy), dtype=bool)
         if exclude is not None and exclude[index] is not None and len(xy):
             excluded = np.asarray(exclude[index](xy, data.shape), dtype=bool)
@@ -218,22 +220,26 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                        **options)
 
     result = fit()
-    from .measure.total_flux import WingModel, fit_sky_and_wings
+    from .measure.total_flux import fit_sky_and_wings
 
-    wings = WingModel.none(size // 2)
-    if all(prepared.sky.method != "known" for prepared in images):
+    known = all(prepared.sky.method == "known" for prepared in images)
+    for _ in range(1 if known else 2):
         # the sky of every image and the stars' wings beyond the support, fitted jointly
         # (the wings' glow biases a sky between the stars; the sky, the wings), then P0
-        # refitted on the images with that sky and glow
-        for _ in range(2):
-            skies, wings = fit_sky_and_wings(
-                [prepared.image_e for prepared in images],
-                _stars_of_images(result.stars, len(images)), half_size=size // 2,
-                degree=images[0].sky.degree)
-            images = [prepared.with_sky(sky, _glow(wings, stars, prepared.image_e.shape))
-                      for prepared, sky, stars in zip(
-                          images, skies, _stars_of_images(result.stars, len(images)))]
-            result = fit()
+        # refitted on the images with that sky and glow; a known sky is subtracted and only
+        # a constant left free (what the wings' glow adds to it is not sky)
+        skies, wings = fit_sky_and_wings(
+            [prepared.image_e - prepared.sky.image() if known else prepared.image_e
+             for prepared in images],
+            _glowing_stars(result.stars, detections), half_size=size // 2,
+            degree=0 if known else images[0].sky.degree)
+        if known:
+            break
+        images = [prepared.with_sky(prepared.sky if prepared.sky.method == "known" else sky,
+                                    _glow(wings, stars, prepared.image_e.shape))
+                  for prepared, sky, stars in zip(
+                      images, skies, _glowing_stars(result.stars, detections))]
+        result = fit()
     for entry, prepared in zip(per_image, images):
         entry.update(background_e=prepared.sky.level, sky_slope=list(prepared.sky.slope),
                      sky_method=prepared.sky.method)
@@ -266,3 +272,22 @@ def _glow(wings, stars, shape):
     from .measure.total_flux import wing_image
 
     return wing_image(wings, *stars, shape)
+
+
+def _glowing_stars(stars, detections):
+    """Per image, (x, y, flux) of every star whose wings glow: the fitted ones (flux inside
+    the support) and every other detection (its aperture flux, 98 % of a Moffat's), so that
+    in a dense field the stars the P0 fit leaves out do not light the sky."""
+    from scipy.spatial import cKDTree
+
+    fitted = _stars_of_images(stars, len(detections))
+    result = []
+    for (x, y, flux), sources in zip(fitted, detections):
+        others = np.column_stack([np.asarray(sources["x"], float),
+                                  np.asarray(sources["y"], float)])
+        other_flux = np.asarray(sources["flux_e"], float)
+        if len(x) and len(others):
+            distance, _ = cKDTree(np.column_stack([x, y])).query(others)
+            others, other_flux = others[distance > 2.0], other_flux[distance > 2.0]
+        result.append((np.r_[x, others[:, 0]], np.r_[y, others[:, 1]], np.r_[flux, other_flux]))
+    return result

@@ -15,9 +15,15 @@ things bias the obvious estimators:
 with sigma clipping, per image. The sources are masked where the smoothed image exceeds twice
 its noise, each out to three times its own radius at that level (`source_mask`), so a bright
 star's wings are masked further than a faint one's; a dense field, where that leaves less than
-15 % of the image, is masked out to fewer radii. Fitting the sky to the image minus a model of
-the fitted stars was tried and rejected: the model ends at P0's support, and the wings beyond
-it, left in the pixels the star masks no longer cover, biased the sky more (0.77 e- against
+15 % of the image, is masked out to fewer radii. No mask removes the wings beyond it: summed
+over a field of bright stars they are a glow (8 e- per pixel for 60 Kolmogorov stars of peaks
+3-120 ke- on 300^2 pixels) that a sky between the stars takes for sky. So the sky is fitted
+beyond the stars' total-flux model: ``bfpsf psf`` fits every image's plane jointly with the
+stars' wings beyond P0's support (`bfpsf.measure.total_flux.fit_sky_and_wings`), and the PSF
+product keeps that wing law; photometry fits the plane, then again beyond the glow of its
+fitted stars' wings (``glow_e``), in its model-weighted refit. Fitting the plane to the image
+minus the stars' models within P0's support alone was tried and rejected: their wings beyond
+the support, left in the pixels the masks no longer cover, biased it more (0.77 e- against
 0.31 e- for 64 bright Moffat stars on a sky of 0, tests/test_gridded.py's field).
 Why a plane and not a local annulus per star (photutils ``LocalBackground``): both
 follow a linear gradient exactly (an annulus symmetric about the star averages a plane to its

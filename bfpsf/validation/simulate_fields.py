@@ -65,8 +65,9 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
 
     Parameters
     ----------
-    profile : galsim.GSObject
-        PSF without the pixel, pixel units.
+    profile : galsim.GSObject or callable
+        PSF without the pixel, pixel units; or ``profile(x, y)`` giving the PSF at an image
+        position (a PSF varying over the field).
     n_images : int, optional
         Exposures (default 2).
     shape : (int, int), optional
@@ -102,9 +103,14 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
 
     rng = np.random.default_rng(seed)
     ny, nx = (int(value) for value in shape)
-    pixelised = galsim.Convolve(profile, galsim.Pixel(1.0))
-    peak_fraction = pixelised.withFlux(1.0).drawImage(nx=1, ny=1, scale=1.0,
-                                                      method="no_pixel").array[0, 0]
+    profile_at = profile if callable(profile) and not isinstance(profile, galsim.GSObject) \
+        else (lambda x, y: profile)
+
+    def peak_fraction(star_profile):
+        pixelised = galsim.Convolve(star_profile, galsim.Pixel(1.0))
+        return pixelised.withFlux(1.0).drawImage(nx=1, ny=1, scale=1.0,
+                                                 method="no_pixel").array[0, 0]
+
     galsim_rng = galsim.BaseDeviate(int(rng.integers(1, 2**31 - 1)))
     sensor_object = None
     if sensor is not None:
@@ -119,7 +125,8 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
             column, row = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
             stamp = galsim.ImageD(galsim.BoundsI(column - STAMP // 2, column + STAMP // 2,
                                                  row - STAMP // 2, row + STAMP // 2), scale=1.0)
-            star = profile.withFlux(float(peak / peak_fraction))
+            star_profile = profile_at(x, y)
+            star = star_profile.withFlux(float(peak / peak_fraction(star_profile)))
             if sensor_object is None:
                 star.drawImage(stamp, center=galsim.PositionD(x, y))
             else:
