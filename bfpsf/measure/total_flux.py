@@ -233,10 +233,12 @@ def wing_image(wings, x, y, flux, shape):
     if wings.amplitude <= 0:
         return image
     half = wings.half_size
-    reach = int(np.ceil(GLOW * (half + 0.5)))
     for x_0, y_0, value in zip(np.ravel(x), np.ravel(y), np.ravel(flux)):
-        if not np.all(np.isfinite((x_0, y_0, value))):
+        if not np.all(np.isfinite((x_0, y_0, value))) or value <= 0:
             continue
+        # out to where the star's glow falls below 1e-3 e- per pixel, at most GLOW
+        reach = int(np.ceil(min(GLOW * (half + 0.5), max(
+            half + 1.0, (value * wings.amplitude / 1e-3) ** (1.0 / wings.power)))))
         column, row = int(np.rint(x_0)), int(np.rint(y_0))
         rows = slice(max(row - reach, 0), min(row + reach + 1, shape[0]))
         columns = slice(max(column - reach, 0), min(column + reach + 1, shape[1]))
