@@ -34,6 +34,10 @@ _EXPORTS = {
     "draw_with_bf": "bfpsf.interop.galsim_sensor",
     # the path of a user's own data: flats -> calibration -> PSF -> photometry and shapes
     "fit_psf": "bfpsf.model.psf_fit",
+    "prepare_image": "bfpsf.workflow",
+    "psf_from_images": "bfpsf.workflow",
+    "estimate_sky": "bfpsf.measure.sky",
+    "BFPSFModel": "bfpsf.model.base",
     "psf_photometry": "bfpsf.measure.photometry",
     "bf_slopes": "bfpsf.measure.slopes",
     "fit_bf_slope": "bfpsf.measure.slopes",

@@ -20,6 +20,13 @@ Schema 4 adds the grid of a `~bfpsf.model.gridded.GriddedFluxDependentPSF`: HDU 
 node P0s (ny_nodes, nx_nodes, n, n) with ``NODESX``/``NODESY``, HDUs ``GRIDX``/``GRIDY`` = the
 node coordinates (pixels) and, in table mode, ``GRIDBFT`` = every node's BF table; the primary
 HDU and the option cards then describe the central node (readers of schema 3 see one P0).
+Schema 6 adds the metadata every PSF kind carries (`bfpsf.model.base`): ``LINC`` (a refined
+calibration's linearity correction c per 1e5 e-, applied to the images on input; 0 when none),
+``FLUXCORR`` / ``FLUXCERR`` (total flux over the flux P0 holds in its support, and its error:
+the aperture correction photometry applies; 1 and no FLUXCERR when not measured), ``WINGAMP``
+/ ``WINGPOW`` (the power law A r^-p of the wings beyond the support, per pixel per unit flux
+inside it; A = 0 when not measured). Files of
+schema <= 5 read with those defaults.
 """
 
 import numpy as np
@@ -32,8 +39,8 @@ __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 #: Version of the PSF product layout written by `write_psf` (2: optional BFTABLE HDU;
 #: 3: every constructor option, FLUXUNIT replacing the ADU meaning of GAIN; 4: optional GRID,
 #: GRIDX, GRIDY, GRIDBFT HDUs of a gridded PSF; 5: optional AMPSHIFT table of per-amplifier
-#: shifts).
-PSF_SCHEMA_VERSION = 5
+#: shifts; 6: LINC, FLUXCORR, FLUXCERR cards).
+PSF_SCHEMA_VERSION = 6
 
 
 def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
@@ -53,14 +60,16 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     """
     from astropy.io import fits
 
+    from .model.gridded import GriddedFluxDependentPSF
+
     refuse_overwrite(path, overwrite)
+    nodes = psf.nodes if isinstance(psf, GriddedFluxDependentPSF) else None
     if psf.mode == "exact" and any(node.density_profile is not None
-                                   for node in getattr(psf, "nodes", [psf])):
+                                   for node in (nodes or [psf])):
         msg = ("a mode='exact' model with a density_profile cannot be stored: the file keeps no "
                "GalSim profile and would read back with G15's mean density; write the same "
                "model in mode='table' (its exact-density table is stored)")
         raise BFPSFValueError(msg, psf.mode)
-    nodes = getattr(psf, "nodes", None)
     single = psf if nodes is None else nodes[len(nodes) // 2]
     options = single.options
     primary = fits.PrimaryHDU(np.asarray(single.data, dtype=np.float64))
@@ -82,6 +91,12 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
         header[key.upper()] = (options[key], f"default {key} parameter")
     header["CALIB"] = (str(calibration or psf.calibration), "calibration of the shifts")
     header["PIXRESP"] = (True, "pixel response included in P0")
+    header["LINC"] = (float(psf.linearity_c_per_1e5), "linearity correction c per 1e5 e-")
+    header["FLUXCORR"] = (float(psf.flux_correction), "total flux / flux in the P0 support")
+    header["WINGAMP"] = (float(psf.wing_amplitude), "wings beyond the support: A of A r^-p")
+    header["WINGPOW"] = (float(psf.wing_power), "wings beyond the support: p of A r^-p")
+    if np.isfinite(psf.flux_correction_err):  # absent: unknown (too few isolated stars)
+        header["FLUXCERR"] = (float(psf.flux_correction_err), "error of FLUXCORR")
     for key, value in (meta or {}).items():
         header[key] = value
     north = fits.ImageHDU(np.asarray(psf.shifts.north), name="SHIFT_N")
@@ -100,7 +115,7 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
         table = fits.ImageHDU(np.asarray(options["bf_table"], dtype=np.float64), name="BFTABLE")
         table.header["BUNIT"] = ("1/(pixel electron)", "R[P0] per unit flux squared")
         hdus.append(table)
-    if getattr(psf, "amplifier_shifts", None):
+    if psf.amplifier_shifts:
         hdus.append(_amplifier_hdu(psf.amplifier_shifts))
     if nodes is not None:
         hdus.extend(_grid_hdus(psf))
@@ -194,6 +209,12 @@ def read_psf(path, *, cls=None, **kwargs):
         if "BFTABLE" in hdul:
             options["bf_table"] = np.array(hdul["BFTABLE"].data, dtype=float)
         calibration = str(header["CALIB"])
+        metadata = {"calibration": calibration,
+                    "linearity_c_per_1e5": float(header.get("LINC", 0.0)),
+                    "flux_correction": float(header.get("FLUXCORR", 1.0)),
+                    "flux_correction_err": float(header.get("FLUXCERR", np.nan)),
+                    "wing_amplitude": float(header.get("WINGAMP", 0.0)),
+                    "wing_power": float(header.get("WINGPOW", 4.0))}
         samples = ()
         if "SHIFT_N_SAMP" in hdul:
             samples = tuple(BoundaryShifts(north, east, check=False) for north, east in
@@ -215,14 +236,19 @@ def read_psf(path, *, cls=None, **kwargs):
         if grid[3] is not None and options.get("mode") == "table":
             options["bf_table"] = grid[3]
         psf = GriddedFluxDependentPSF.from_data(grid[0], grid[1], grid[2], shifts, **options)
-        psf.calibration = calibration
+        _set_metadata(psf, metadata)
         psf.shift_samples = samples
         psf.amplifier_shifts = amplifier_shifts
         return psf
     if options.get("mode") != "table":
         options.pop("bf_table", None)  # an exact-mode override recomputes R
     psf = cls(data, shifts, **options)
-    psf.calibration = calibration
+    _set_metadata(psf, metadata)
     psf.shift_samples = samples
     psf.amplifier_shifts = amplifier_shifts
     return psf
+
+
+def _set_metadata(psf, metadata):
+    for name, value in metadata.items():
+        setattr(psf, name, value)

@@ -92,6 +92,7 @@ def run(args):
     from ..io.saturation import saturation_e
     from ..measure.moments import MomentsFlag
     from ..measure.sources import measure_sources
+    from ..workflow import linearity_of, prepare_image
 
     check_outputs([args.output, args.json], args.overwrite,
                   inputs=input_files(args.images, args.calib, args.catalog))
@@ -110,12 +111,16 @@ def run(args):
         for amplifier in amplifiers:
             header = amplifier.header
             gain = _gain(args, header, path, calibration, amplifier.name)
-            level = saturation_e(amplifier, gain, args.saturation,
-                                 None if calibration is None else calibration_of_amplifier(
-                                     calibration, amplifier.name, str(path)))
+            amplifier_calibration = None if calibration is None else calibration_of_amplifier(
+                calibration, amplifier.name, str(path))
+            level = saturation_e(amplifier, gain, args.saturation, amplifier_calibration)
+            # the one image preparation: e-, and a refined calibration's linearity undone
+            linearity = (0.0 if amplifier_calibration is None
+                         else linearity_of(amplifier_calibration))
             table = measure_sources(
-                amplifier.data * gain, threshold=args.threshold, stamp_size=args.stamp_size,
-                saturation=level,
+                prepare_image(amplifier.data, gain=gain, linearity_c_per_1e5=linearity,
+                              background_e=0.0).image_e,  # measure_sources' own sky
+                threshold=args.threshold, stamp_size=args.stamp_size, saturation=level,
                 colour=_amplifier_colours(colour_table, amplifier) if args.colour else None,
                 colour_columns=args.colour)
             place_stars(table, amplifier, sides, args.stamp_size / 2)

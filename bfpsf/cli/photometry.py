@@ -64,29 +64,32 @@ def add_parser(subparsers):
 
 
 def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, static):
-    """Gain (e-/ADU), PSF model and calibration of one amplifier: with a calibration, its
-    gain (unless --gain), P0 with that amplifier's boundary shifts, and the amplifier's
-    calibration (whose refined linearity correction is undone on input, as ``bfpsf psf``
-    does); else the PSF product's, with the amplifier's own shifts where the product has them
-    (`FluxDependentPSF.for_amplifier`), and None."""
+    """Gain (e-/ADU), the model fitted and the flux-dependent model of one amplifier: with a
+    calibration, its gain (unless --gain), P0 with that amplifier's boundary shifts and the
+    calibration's linearity correction (a calibration refined by 'bfpsf diagnose
+    --output-calib'); else the PSF product's, with the amplifier's own shifts where the
+    product has them (`BFPSFModel.for_amplifier`). With --static the model fitted is the
+    static P0."""
     from ..calibration.product import calibration_of_amplifier
     from ..interop.photutils import static_image_psf
 
+    from ..workflow import linearity_of
+
     model = psf.for_amplifier(amplifier.name)
-    one = None
     if calibration is not None:
         one = calibration_of_amplifier(calibration, amplifier.name, str(path))
         gain = one.gain if gain_option is None else float(gain_option)
         if one.shifts is not None and one.shifts is not psf.shifts:
             model = psf.with_shifts(one.shifts)
-    return float(gain), (static_image_psf(model) if static else model), one
+        model = model.copy()  # the calibration's linearity correction, undone on input
+        model.linearity_c_per_1e5 = linearity_of(one)
+    return float(gain), (static_image_psf(model) if static else model), model
 
 
 def run(args):
     from astropy.table import vstack
 
-    from ..calibration.product import read_calibration
-    from ..diagnosis.refine import undo_refined_linearity
+    from ..calibration.product import calibration_of_amplifier, read_calibration
     from ..errors import BFPSFInputError
     from ..interop.photutils import default_fit_shape
     from ..io.amplifiers import shared_sides
@@ -116,18 +119,19 @@ def run(args):
             raise BFPSFInputError(msg, args.psf)
         sides = shared_sides([amplifier.layout for amplifier in amplifiers])
         for amplifier in amplifiers:
-            amp_gain, model, one = _amplifier_model(psf, gain, calibration, amplifier, path,
-                                                    args.gain, args.static)
-            image_e, linearity_c = amplifier.data * amp_gain, 0.0
-            if one is not None:
-                image_e, linearity_c = undo_refined_linearity(image_e, one)
+            amp_gain, model, bf_model = _amplifier_model(psf, gain, calibration, amplifier,
+                                                         path, args.gain, args.static)
+            # the image preparation (linearity, sky) is psf_photometry's, as in Python
             with about(path):
-                table = psf_photometry(image_e, model,
+                table = psf_photometry(amplifier.data * amp_gain, model,
+                                       linearity_c_per_1e5=bf_model.linearity_c_per_1e5,
                                        read_noise_e=args.read_noise, fit_shape=args.fit_shape,
                                        background_e=(None if args.background is None
                                                      else args.background * amp_gain),
                                        detection_threshold=args.threshold,
                                        cross_terms=not args.no_cross_terms)
+            one = None if calibration is None else calibration_of_amplifier(
+                calibration, amplifier.name, str(path))
             level = saturation_e(amplifier, amp_gain, args.saturation, one)
             table["saturated"] = saturated_stars(
                 amplifier.data * amp_gain, level, table["x_fit"], table["y_fit"],
@@ -140,7 +144,8 @@ def run(args):
             table.add_column(str(path), name="image", index=0)
             tables.append(table)
             per_image.append({"image": str(path), "amplifier": amplifier.name,
-                              "gain": amp_gain, "linearity_c_per_1e5": linearity_c,
+                              "gain": amp_gain,
+                              "linearity_c_per_1e5": bf_model.linearity_c_per_1e5,
                               "n_stars": len(table),
                               "n_flagged": int(np.sum((table["flags"] != 0)
                                                       | table["saturated"])),
@@ -148,6 +153,8 @@ def run(args):
                               "n_saturated": int(np.sum(table["saturated"])),
                               "n_amp_boundary": int(np.sum(table["amp_boundary"])),
                               "background_e": table.meta["background_e"],
+                              "sky": table.meta["sky"],
+                              "flux_correction": table.meta["flux_correction"],
                               "n_blended": int(np.sum(table["group_size"] > 1)),
                               "cross_term_refits": table.meta["cross_term_refits"]})
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]

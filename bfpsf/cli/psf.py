@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import check_outputs, input_files, refuse_duplicates, write_json
-from ..measure.sources import DETECTION_THRESHOLD, isolated_stars, sky_level
+from ..files import about, check_outputs, input_files, refuse_duplicates, write_json
+from ..measure.sources import DETECTION_THRESHOLD
 from . import background_option, positive_int
 from ..model.psf_fit import DEFAULT_SIZE
 from ._files import read_image
@@ -97,11 +97,10 @@ def _star_weighted(used):
 
 def run(args):
     from ..calibration.product import calibration_of_amplifier, read_calibration
-    from ..diagnosis.refine import undo_refined_linearity
     from ..io.amplifiers import near_shared_side, shared_sides
     from ..io.saturation import count_saturated_regions, saturation_e
-    from ..model.psf_fit import fit_psf
     from ..resources import check_psf_fit, resource_option
+    from ..workflow import linearity_of, prepare_image, psf_from_images
 
     check_outputs([args.output, args.json], args.overwrite,
                   inputs=input_files(args.images, args.calib))
@@ -109,7 +108,7 @@ def run(args):
     check_psf_fit(0, args.size, args.oversampling, args.grid, args.max_iterations)
     calibration = read_calibration(args.calib)
     refinement = {}
-    images, positions, skies, per_image, used = [], [], [], [], []
+    prepared, calibrations, exclude, saturation, per_image = [], [], [], [], []
     for path in args.images:
         amplifiers, _ = read_image(path, args.amp)
         sides = shared_sides([amplifier.layout for amplifier in amplifiers])
@@ -122,55 +121,39 @@ def run(args):
                        "(calibration solved without them)")
                 raise BFPSFInputError(msg, args.calib)
             gain = float(one.gain)
-            image_e = amplifier.data * gain
             # a calibration refined by `bfpsf diagnose --output-calib`: its linearity
             # correction on input and its build-up (the shifts are already refined)
             refinement.update(one.refinement)
-            image_e, _ = undo_refined_linearity(image_e, one)
-            if args.background is None:
-                background, _ = sky_level(image_e)
-            else:
-                background = float(args.background) * gain
-            image_e = image_e - background
+            prepared.append(prepare_image(
+                amplifier.data, gain=gain, linearity_c_per_1e5=linearity_of(one),
+                background_e=None if args.background is None else args.background * gain))
+            calibrations.append(one)
             # saturated or beyond the turnoff (header SATURATE, --saturation, calibration):
             # left out of the P0 fit, and counted
             level = saturation_e(amplifier, gain, args.saturation, one)
-            level = None if level is None else level - background
-            with resource_option(f"--size {args.size}"):  # its detection stamps: size + 6
-                xy, n_detected = isolated_stars(image_e, args.size, threshold=args.threshold,
-                                                saturation_e=level)
+            saturation.append(np.nan if level is None else level)
             # a star whose light falls on two amplifiers (two gains) is left out, and counted
-            boundary = near_shared_side(xy[:, 0], xy[:, 1], image_e.shape,
-                                        sides[amplifier.name], args.size / 2)
-            xy = xy[~boundary]
-            images.append(image_e)
-            skies.append(max(float(background), 0.0))
-            positions.append(xy)
-            used.append((one, len(xy)))
+            exclude.append(lambda xy, shape, side=sides[amplifier.name]: near_shared_side(
+                xy[:, 0], xy[:, 1], shape, side, args.size / 2))
             per_image.append({"image": str(path), "amplifier": amplifier.name, "gain": gain,
-                              "n_detected": int(n_detected), "n_isolated": int(len(xy)),
-                              "n_amp_boundary": int(np.sum(boundary)),
-                              "n_saturated": count_saturated_regions(image_e, level),
-                              "background_e": float(background)})
-    n_stars = sum(len(xy) for xy in positions)
-    if n_stars < 3:
-        msg = (f"{', '.join(map(str, args.images))}: {n_stars} isolated, unsaturated star(s); "
-               "the P0 fit needs 3 or more")
-        raise BFPSFInputError(msg, n_stars)
-    check_psf_fit(n_stars, args.size, args.oversampling, args.grid, args.max_iterations)
-    gain, noise, samples = _star_weighted(used)
-    buildup = refinement.get("buildup_steps")
-    # each star gets the BF term of its amplifier's shifts
-    result = fit_psf(images, positions, [one.shifts for one, _ in used],
-                     oversampling=args.oversampling,
-                     size=args.size, read_noise=noise,
-                     sky_e=skies, include_bf=args.include_bf,
-                     max_iterations=args.max_iterations, flux_unit="electron", gain=gain,
-                     grid=args.grid, progress=None,
-                     **({"mode": "exact", "buildup_steps": int(buildup)} if buildup else {}))
-    psf = result.psf
+                              "n_saturated": count_saturated_regions(prepared[-1].image_e,
+                                                                     level)})
     # a FITS header is ASCII: other characters of the name stored escaped (\xe4, \u20ac)
-    psf.calibration = Path(args.calib).name.encode("ascii", "backslashreplace").decode()
+    calibration_name = Path(args.calib).name.encode("ascii", "backslashreplace").decode()
+    with about(", ".join(map(str, args.images))), resource_option(f"--size {args.size}"):
+        fitted = psf_from_images(prepared, calibrations, size=args.size,
+                                 oversampling=args.oversampling, grid=args.grid,
+                                 threshold=args.threshold, saturation_e=saturation,
+                                 include_bf=args.include_bf, max_iterations=args.max_iterations,
+                                 exclude=exclude, calibration_name=calibration_name)
+    for entry, found in zip(per_image, fitted.images):
+        entry.update(n_detected=found["n_detected"], n_isolated=found["n_isolated"],
+                     n_amp_boundary=found["n_excluded"], background_e=found["background_e"],
+                     sky_slope=found["sky_slope"], sky_method=found["sky_method"])
+    used = [(one, entry["n_isolated"]) for one, entry in zip(calibrations, per_image)]
+    gain, _, samples = _star_weighted(used)
+    result = fitted.fit
+    psf = fitted.psf
     psf.shift_samples = samples
     amplifier_shifts = {entry["amplifier"]: one.shifts
                         for entry, (one, _) in zip(per_image, used)}
@@ -189,17 +172,19 @@ def run(args):
                "n_used": int(np.sum(used)), "iterations": int(result.iterations),
                "n_saturated": sum(entry["n_saturated"] for entry in per_image),
                "converged": bool(result.converged),
-               "fwhm_pixels": psf_fwhm(psf if args.grid is None
-                                       else psf.nodes[len(psf.nodes) // 2]),
+               "fwhm_pixels": psf_fwhm(psf),
                "flux_range_e": [float(np.min(result.stars["flux_fit"][used])),
                                 float(np.max(result.stars["flux_fit"][used]))]
                if np.any(used) else None,
                "images": per_image,
+               "flux_correction": psf.flux_correction,
+               "flux_correction_err": psf.flux_correction_err,
                "refinement_applied": sorted(refinement.get("applied", {}))}
     if args.grid is not None:
         summary["grid"] = {"nx": int(args.grid[0]), "ny": int(args.grid[1]),
                            "x_nodes": psf.x_nodes.tolist(), "y_nodes": psf.y_nodes.tolist(),
-                           "fwhm_pixels": [psf_fwhm(node) for node in psf.nodes]}
+                           "fwhm_pixels": [psf_fwhm(psf, x, y) for y in psf.y_nodes
+                                           for x in psf.x_nodes]}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     if not result.converged:  # flagged in the product (CONVERGD) and the JSON too

@@ -50,14 +50,15 @@ def add_parser(subparsers):
 
 def _model_residual(stars, args, colour_fit, psf):
     """Slopes of the sizes measured minus the sizes the flux-dependent PSF predicts."""
-    from ..measure.slopes import bf_slopes, model_size_increments
+    from ..measure.slopes import bf_slopes, model_size_increments, star_positions
     from ..measure.sources import total_flux
 
     if "flux_e" not in stars.colnames:
         msg = f"{args.stars} has no flux_e column: --psf needs each star's flux"
         raise BFPSFInputError(msg, args.stars)
     # P(F) takes the total flux; flux_e is an aperture flux (it misses the PSF's wings)
-    increments = model_size_increments(psf, total_flux(psf, stars["flux_e"]))
+    x, y = star_positions(psf, stars)
+    increments = model_size_increments(psf, total_flux(psf, stars["flux_e"]), x=x, y=y)
     residual = stars.copy()
     for key, column in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "iq"), ("e1", "e1"),
                         ("e2", "e2")):

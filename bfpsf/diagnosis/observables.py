@@ -520,6 +520,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     from ..io.amplifiers import read_amplifiers
     from ..io.saturation import saturation_e
     from ..measure.sources import aperture_fraction, isolated_stars, measure_sources, sky_level
+    from ..workflow import prepare_image
     from ..model.psf_fit import DEFAULT_SIZE, fit_psf
     from .star_residual import stacked_star_residual
 
@@ -542,15 +543,14 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
             msg = (f"{path} holds {len(amplifiers)} amplifiers; the closed loop works on one: "
                    "choose it with --amp NAME")
             raise BFPSFInputError(msg, str(path))
-        data = np.asarray(amplifiers[0].data, float) * gain
+        # the image preparation and sky of every command (bfpsf.workflow.prepare_image)
+        prepared = prepare_image(amplifiers[0].data, gain=gain, background_e=(
+            None if background is None else float(background) * gain))
+        data = prepared.image_e
         # saturated spots (header SATURATE, calibration turnoff) are flagged, not used
         table = measure_sources(data, saturation=saturation_e(amplifiers[0], gain, None, cal))
-        # the sky left in the image (level and noise), for the stacked residual
-        sky, noise = sky_level(data)
-        if background is not None:
-            sky = float(background) * gain
-        pixels.append(data - sky)
-        sky_noise.append(noise)
+        pixels.append(prepared.sky_subtracted)
+        sky_noise.append(prepared.sky.rms if background is None else sky_level(data)[1])
         tables.append(table)
         good = np.asarray(table["flags"]) == 0
         fluxes.append(np.asarray(table["flux_e"], float)[good])

@@ -31,8 +31,9 @@ def to_galsim(psf, flux, *, x_phase=0.0, y_phase=0.0, normalise=True, position=N
     normalise : bool, optional
         True (default): unit flux, i.e. P(F) = p + F R[p]; False: flux F.
     position : (float, float), optional
-        (x, y) of the star on the image, pixels: needed by a `GriddedFluxDependentPSF`
-        (P(F, x, y)), ignored by a `FluxDependentPSF` (the same everywhere).
+        (x, y) of the star on the image, pixels: needed by a model that varies over the
+        field (``psf.varies_over_field``, a `GriddedFluxDependentPSF`); a `FluxDependentPSF`
+        is the same everywhere.
 
     Returns
     -------
@@ -47,14 +48,12 @@ def to_galsim(psf, flux, *, x_phase=0.0, y_phase=0.0, normalise=True, position=N
     if not np.isfinite(flux) or flux <= 0:
         msg = f"flux must be a positive finite number, got {flux!r}"
         raise BFPSFValueError(msg, flux)
-    if hasattr(psf, "nodes"):
-        if position is None:
-            msg = "a gridded PSF varies over the image: give position=(x, y)"
-            raise BFPSFValueError(msg, position)
-        stamp = psf.star_image(flux, x=position[0], y=position[1], x_phase=x_phase,
-                               y_phase=y_phase)
-    else:
-        stamp = psf.star_image(flux, x_phase=x_phase, y_phase=y_phase)
+    if position is None and psf.varies_over_field:
+        msg = "a gridded PSF varies over the image: give position=(x, y)"
+        raise BFPSFValueError(msg, position)
+    x, y = (None, None) if position is None else position
+    # every PSF kind (bfpsf.model.base): a field-varying one is taken at (x, y)
+    stamp = psf.star_image(flux, x, y, x_phase=x_phase, y_phase=y_phase)
     if normalise:
         stamp = stamp / flux
     image = galsim.ImageD(stamp, scale=1.0)

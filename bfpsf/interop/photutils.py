@@ -14,11 +14,12 @@ from ..errors import BFPSFValueError
 __all__ = ["default_fit_shape", "make_psf_photometry", "static_image_psf", "psf_fwhm"]
 
 
-def psf_fwhm(psf):
-    """FWHM of the pixelised P0 along x through its peak, pixels (half-maximum crossing); of
-    a gridded PSF, the largest of its nodes."""
-    if hasattr(psf, "nodes"):
-        return max(psf_fwhm(node) for node in psf.nodes)
+def psf_fwhm(psf, x=None, y=None):
+    """FWHM of the pixelised P0 along x through its peak, pixels (half-maximum crossing), at
+    image position (x, y) (`BFPSFModel.at`; default the model's reference position)."""
+    from ..model.base import BFPSFModel
+
+    psf = psf.at(x, y) if isinstance(psf, BFPSFModel) else psf  # or a photutils ImagePSF
     oy, ox = psf.oversampling
     row = psf.data[int(round(psf.origin[1]))]
     half = row.max() / 2
@@ -33,9 +34,20 @@ def psf_fwhm(psf):
     return float((x_right - x_left) / ox)
 
 
+def largest_fwhm(psf):
+    """The largest `psf_fwhm` over the model's field nodes (any kind), pixels."""
+    from ..model.base import BFPSFModel
+
+    if not isinstance(psf, BFPSFModel):
+        return psf_fwhm(psf)
+    x_nodes, y_nodes = psf.field_nodes
+    return max(psf_fwhm(psf, x, y) for y in y_nodes for x in x_nodes)
+
+
 def default_fit_shape(psf):
-    """Odd fit box of about 3 FWHM (at least 5 pixels), pixels."""
-    size = max(5, int(np.ceil(3 * psf_fwhm(psf))))
+    """Odd fit box of about 3 FWHM (at least 5 pixels; the largest FWHM over the field),
+    pixels."""
+    size = max(5, int(np.ceil(3 * largest_fwhm(psf))))
     return size + 1 - size % 2
 
 
@@ -100,7 +112,7 @@ def make_psf_photometry(psf, *, fit_shape=None, group_separation=None, iterative
         raise BFPSFValueError(msg, group_separation)
     if group_separation > 0:
         kwargs.setdefault("grouper", SourceGrouper(min_separation=group_separation))
-    kwargs.setdefault("aperture_radius", 1.5 * psf_fwhm(psf))
+    kwargs.setdefault("aperture_radius", 1.5 * largest_fwhm(psf))
     _forget_grouped_models(psf)
     if iterative:
         if kwargs.get("finder") is None:
@@ -115,14 +127,17 @@ def static_image_psf(psf, flux=None):
 
     Parameters
     ----------
-    psf : FluxDependentPSF
+    psf : BFPSFModel
+        Any kind; a model varying over the field gives a photutils
+        `~photutils.psf.GriddedPSFModel` of the static models at its ``field_nodes``
+        (photutils interpolates them bilinearly, as the bfpsf grid does).
     flux : float, optional
         Flux at which the shape is frozen (the naive practice freezes it at the flux of the
         bright stars the PSF was built from); default None gives P0 itself.
 
     Returns
     -------
-    photutils.psf.ImagePSF
+    photutils.psf.ImagePSF or photutils.psf.GriddedPSFModel
         Data ``P0 + F R[P0]`` on the oversampled grid (R of each phase, table of
         `~bfpsf.model.psf.bf_response_table`), normalised like P0.
     """
@@ -130,9 +145,24 @@ def static_image_psf(psf, flux=None):
 
     from ..model.psf import bf_response_table
 
+    if psf.varies_over_field:
+        return _static_gridded_psf(psf, flux)
     data = np.array(psf.data)
     if flux is not None:
         table = psf.bf_table if psf.bf_table is not None else bf_response_table(
             psf.data, psf.shifts, psf.oversampling)
         data = data + psf.electrons_per_unit * flux * table
     return ImagePSF(data, origin=tuple(psf.origin), oversampling=tuple(psf.oversampling))
+
+
+def _static_gridded_psf(psf, flux):
+    """photutils GriddedPSFModel of the static models at a field-varying model's nodes."""
+    from astropy.nddata import NDData
+    from photutils.psf import GriddedPSFModel
+
+    x_nodes, y_nodes = psf.field_nodes
+    positions = [(x, y) for y in y_nodes for x in x_nodes]
+    cube = np.array([static_image_psf(psf.at(x, y), flux).data for x, y in positions])
+    oversampling = tuple(int(value) for value in psf.oversampling)
+    return GriddedPSFModel(NDData(cube, meta={"grid_xypos": positions,
+                                              "oversampling": oversampling}))

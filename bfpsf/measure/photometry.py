@@ -12,7 +12,8 @@ from astropy.table import Table
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import make_psf_photometry
-from .sources import DETECTION_THRESHOLD, measure_sources, sky_level
+from ..model.base import BFPSFModel
+from .sources import DETECTION_THRESHOLD, measure_sources
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 
@@ -21,13 +22,35 @@ PHOTOMETRY_COLUMNS = ["x_fit", "y_fit", "flux_fit", "flux_err", "flags"]
 
 
 def _initial_positions(image_e, detection_threshold):
-    """Detections of `bfpsf.measure.sources.measure_sources`, as photutils' initial table."""
+    """Detections of `bfpsf.measure.sources.measure_sources`, as photutils' initial table,
+    plus the companions a merged segment hides: peaks of the smoothed image (those that make
+    `measure_sources` flag a segment ``BLENDED``) more than 2.5 pixels from every detection,
+    flagged ``BLENDED``. A segment is one detection however many stars it holds; fitted as
+    one, a close pair gives one star with both fluxes (a dense field: -250 mmag)."""
+    from scipy.spatial import cKDTree
+
+    from .sources import SourceFlag, smoothed_peaks
+
     sources = measure_sources(image_e, threshold=detection_threshold)
+    x = np.asarray(sources["x"], dtype=float)
+    y = np.asarray(sources["y"], dtype=float)
+    flux = np.asarray(sources["flux_e"], dtype=float)
+    flags = np.asarray(sources["flags"], dtype=np.int64)
+    peaks = smoothed_peaks(image_e, threshold=detection_threshold)
+    if len(peaks) and len(x):
+        distance, _ = cKDTree(np.column_stack([x, y])).query(peaks)
+        peaks = peaks[distance > 2.5]
+    if len(peaks):
+        rows = np.clip(np.rint(peaks[:, 1]).astype(int), 2, image_e.shape[0] - 3)
+        columns = np.clip(np.rint(peaks[:, 0]).astype(int), 2, image_e.shape[1] - 3)
+        boxes = [np.nansum(image_e[row - 2:row + 3, column - 2:column + 3])
+                 for row, column in zip(rows, columns)]
+        x, y = np.r_[x, peaks[:, 0]], np.r_[y, peaks[:, 1]]
+        flux = np.r_[flux, np.maximum(boxes, 1.0)]
+        flags = np.r_[flags, np.full(len(peaks), SourceFlag.BLENDED, dtype=np.int64)]
     table = Table()
-    table["x_init"] = np.asarray(sources["x"], dtype=float)
-    table["y_init"] = np.asarray(sources["y"], dtype=float)
-    table["flux_init"] = np.asarray(sources["flux_e"], dtype=float)
-    table["source_flags"] = np.asarray(sources["flags"], dtype=np.int64)
+    table["x_init"], table["y_init"], table["flux_init"] = x, y, flux
+    table["source_flags"] = flags
     return table
 
 
@@ -67,30 +90,41 @@ def _cross_term_image(psf, table, shape):
     density (the cross term itself a few percent off, no spurious term).
     """
     static, own = np.zeros(shape), np.zeros(shape)
-    exact_density = psf.density_profile is not None
+    exact_density = psf.at().density_profile is not None
     if exact_density:
         north, east = np.zeros((shape[0] - 1, shape[1])), np.zeros((shape[0], shape[1] - 1))
     half = psf.half_size + 1
     for x_0, y_0, flux in zip(table["x_fit"], table["y_fit"], table["flux_fit"]):
         if not np.all(np.isfinite((x_0, y_0, flux))):
             continue
+        model = psf.at(x_0, y_0)  # every kind: the single P(F) of this star
         column, row = int(np.rint(x_0)), int(np.rint(y_0))
         x_phase, y_phase = x_0 - column, y_0 - row
         y, x = np.mgrid[row - half:row + half + 1, column - half:column + half + 1]
-        star = flux * psf.evaluate_base(x - x_0, y - y_0)  # F P0, no BF
+        star = flux * model.evaluate_base(x - x_0, y - y_0)  # F P0, no BF
         _add_stamp(static, star, row - half, column - half)
         density = None
         if exact_density:
             density = tuple(abs(flux) * part
-                            for part in psf.boundary_density(x_phase, y_phase, half))
+                            for part in model.boundary_density(x_phase, y_phase, half))
             _add_stamp(north, density[0], row - half, column - half)
             _add_stamp(east, density[1], row - half, column - half)
         # the star's own term with the same operator as the sum: an isolated star gets no
         # cross term even when the model's own term comes from a stored table whose density
         # profile is gone (a table-mode exact-density model read back from its product)
-        _add_stamp(own, psf.charge_delta(star, density), row - half, column - half)
+        _add_stamp(own, model.charge_delta(star, density), row - half, column - half)
     density = (north, east) if exact_density else None
     return psf.charge_delta(static, density) - own
+
+
+def _glow(psf, table, shape):
+    """The light of the fitted stars beyond the PSF support (the PSF's wing model), e-."""
+    from .total_flux import WingModel, wing_image
+
+    wings = WingModel(psf.wing_amplitude, psf.wing_power, psf.half_size, 0.0, 0.0, 0)
+    return wing_image(wings, np.asarray(table["x_fit"], float),
+                      np.asarray(table["y_fit"], float), np.asarray(table["flux_fit"], float),
+                      shape)
 
 
 #: Largest group of stars fitted together that `psf_photometry` accepts: photutils fits a
@@ -127,13 +161,15 @@ def _check_groups(psf, fit_shape, group_separation, init):
 def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background_e=None,
                    fit_shape=None, group_separation=None,
                    detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
-                   **kwargs):
+                   linearity_c_per_1e5=None, **kwargs):
     """Fit every star of an image with the flux-dependent PSF.
 
     Parameters
     ----------
-    image_e : array_like [y, x]
-        Image in electrons (the BF term needs charge); sky included or not.
+    image_e : array_like [y, x] or bfpsf.workflow.PreparedImage
+        Image in electrons (the BF term needs charge), sky included, prepared here
+        (``background_e``, ``linearity_c_per_1e5``); or an image prepared already
+        (`bfpsf.workflow.prepare_image`: its sky and linearity are used as they are).
     psf : FluxDependentPSF or photutils PSF model
         PSF model in electrons (``flux_unit='electron'``; an ADU model is refused). A static photutils model can be passed for
         comparison.
@@ -143,8 +179,11 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     read_noise_e : float, optional
         Read noise, e- rms, for the pixel errors (Poisson noise of the image is included).
     background_e : float, optional
-        Sky level, e- per pixel, subtracted before fitting; default the sigma-clipped median
-        of the image.
+        A known sky level, e- per pixel, subtracted before fitting; default the sky surface
+        of the image (`bfpsf.measure.sky.estimate_sky`: a plane fitted beyond the masked
+        sources, per image), through the one image preparation of every command
+        (`bfpsf.workflow.prepare_image`, which also undoes the PSF's linearity correction,
+        ``psf.linearity_c_per_1e5``, of a refined calibration).
     fit_shape : int, optional
         Fit box, pixels (odd); default about 3 FWHM.
     group_separation : float, optional
@@ -166,6 +205,9 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         quadratic in the summed charge): the cross terms are computed from the previous fit
         and subtracted from the data. Default True (one refit, the effect being second order
         in a); 0 or False: none. Only for a `FluxDependentPSF`.
+    linearity_c_per_1e5 : float, optional
+        Linearity correction undone on input (`bfpsf.workflow.prepare_image`); default the
+        PSF's own (``psf.linearity_c_per_1e5``, 0 for a photutils model).
     **kwargs
         Passed to `photutils.psf.PSFPhotometry`.
 
@@ -173,14 +215,19 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     -------
     astropy.table.Table
         photutils' result table: ``x_fit``, ``y_fit`` (pixels), ``flux_fit``, ``flux_err``
-        (e-), ``flags`` (photutils bit flags, `photutils.psf.decode_psf_flags`) and photutils'
+        (e-; the star's total flux: the flux P0 holds times ``psf.flux_correction``, the
+        light beyond its support), ``sky_e`` (the sky subtracted under each star, e- per
+        pixel), ``flags`` (photutils bit flags, `photutils.psf.decode_psf_flags`) and photutils'
         other columns; ``meta['background_e']`` holds the subtracted sky and
         ``meta['weights']`` the variance model, ``meta['cross_term_refits']`` the refits made.
         With the stars detected here (or ``positions`` a table with a ``source_flags``
         column), ``source_flags`` carries the detection's `bfpsf.measure.sources.SourceFlag`
         bits (``BLENDED``: an unresolved neighbour) to each fitted star.
     """
-    image = np.asarray(image_e, dtype=float)
+    from ..workflow import PreparedImage, prepare_image
+
+    prepared = image_e if isinstance(image_e, PreparedImage) else None
+    image = np.asarray(image_e.image_e if prepared else image_e, dtype=float)
     if image.ndim != 2:
         msg = f"image must be 2-D [y, x], got shape {image.shape}"
         raise BFPSFInputError(msg, image.shape)
@@ -198,11 +245,16 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     if weights not in ("model", "data"):
         msg = f"weights must be 'model' or 'data', got {weights!r}"
         raise BFPSFValueError(msg, weights)
-    if background_e is None:
-        background_e, _ = sky_level(image)
+    bfpsf_model = isinstance(psf, BFPSFModel)
+    if linearity_c_per_1e5 is None:
+        linearity_c_per_1e5 = psf.linearity_c_per_1e5 if bfpsf_model else 0.0
+    if prepared is None:
+        prepared = prepare_image(image, background_e=background_e,
+                                 linearity_c_per_1e5=linearity_c_per_1e5)
+    image, sky = prepared.image_e, prepared.sky
     variance = np.clip(np.where(finite, image, 0.0), 0.0, None) + read_noise_e**2
     error = np.sqrt(np.where(variance > 0, variance, 1.0))
-    data = image - background_e
+    data = prepared.sky_subtracted
     mask = ~finite
     if positions is None:
         init = _initial_positions(np.where(finite, data, 0.0), detection_threshold)
@@ -231,12 +283,17 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         # Refit with the variance the fitted stars and the sky predict: weights computed from
         # the noisy pixels themselves bias every flux low (see ``weights``).
         # The 1 e-**2 floor keeps pixels beyond the PSF support of a sky-free image finite.
+        if bfpsf_model and psf.wing_amplitude > 0 and prepared.glow_e is None:
+            # the sky again, beyond the glow of the fitted stars' wings (which is subtracted
+            # with it): the sky is what is left beyond their total-flux model
+            prepared = prepared.with_glow(_glow(psf, result, data.shape))
+            sky, data = prepared.sky, prepared.sky_subtracted
         model = np.clip(photometry.make_model_image(data.shape), 0.0, None)
-        variance = max(float(background_e), 0.0) + model + read_noise_e**2
+        variance = np.clip(sky.image(), 0.0, None) + model + read_noise_e**2
         error = np.sqrt(np.maximum(variance, 1.0))
         result = photometry(data, mask=mask, error=error, init_params=_refit_init(init, result))
     n_cross = 0
-    if cross_terms and hasattr(psf, "shifts") and "group_size" in result.colnames:
+    if cross_terms and bfpsf_model and "group_size" in result.colnames:
         blended = np.asarray(result["group_size"]) > 1
         for _ in range(int(cross_terms) if blended.any() else 0):
             # Refit the blended stars on the data minus their BF on each other.
@@ -249,7 +306,15 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
             n_cross += 1
     if source_flags is not None:
         result["source_flags"] = source_flags[np.asarray(result["id"], dtype=int) - 1]
-    result.meta["background_e"] = float(background_e)
+    # the total flux: the light beyond P0's support (measured when the PSF was fitted)
+    correction = float(psf.flux_correction) if bfpsf_model else 1.0
+    result["flux_fit"] = result["flux_fit"] * correction
+    result["flux_err"] = result["flux_err"] * correction
+    result["sky_e"] = sky(np.asarray(result["x_fit"], float), np.asarray(result["y_fit"], float))
+    result.meta["flux_correction"] = correction
+    result.meta["background_e"] = sky.level
+    result.meta["sky"] = {"method": sky.method, "degree": sky.degree,
+                          "coefficients": list(sky.coefficients), "rms_e": sky.rms}
     result.meta["cross_term_refits"] = n_cross
     result.meta["weights"] = weights
     result.meta["flux_unit"] = "electron"

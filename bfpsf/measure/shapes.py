@@ -110,12 +110,14 @@ def psf_shape(psf, flux, *, x=None, y=None):
     if not (np.isfinite(flux) and flux > 0):
         msg = f"flux must be a positive finite number, got {flux!r}"
         raise BFPSFValueError(msg, flux)
-    x_phase = 0.0 if x is None else float(x - np.floor(x + 0.5))
-    y_phase = 0.0 if y is None else float(y - np.floor(y + 0.5))
+    # every PSF kind (bfpsf.model.base): a field-varying one is evaluated at (x, y) itself,
+    # by default at its reference position (the grid's centre), never at the stamp's corner
+    x, y = psf.position_or_reference(x, y)
+    column0, row0 = np.floor(x + 0.5), np.floor(y + 0.5)
     half = psf.half_size
     rows, columns = np.mgrid[:2 * half + 1, :2 * half + 1]
     # The model as a fitter sees it (mode 'table': the stored table; 'exact': R at the phase).
-    stamp = psf.evaluate(columns, rows, flux, half + x_phase, half + y_phase) / flux
+    stamp = psf.evaluate(columns + column0 - half, rows + row0 - half, flux, x, y) / flux
     moments = adaptive_moments_batch(stamp[None])
     e1, e2 = distortion(moments.mxx, moments.myy, moments.mxy)
     rho4 = fourth_moment(stamp[None], moments)

@@ -319,21 +319,26 @@ def _add_colour_errors(result, table, clean, colour_fit, min_peak_e, max_peak_e,
                                                          / fit.slope_err))
 
 
-def model_size_increments(psf, flux_e, *, n_grid=24):
+def model_size_increments(psf, flux_e, *, x=None, y=None, n_grid=24):
     """Growth of sigma_x, sigma_y, IQ (and change of e1, e2) that a flux-dependent PSF predicts at each flux, pixels.
 
-    The PSF's star image at flux F (`bfpsf.model.psf.FluxDependentPSF.star_image`, phase 0) is
-    measured with `~bfpsf.measure.moments.adaptive_moments_batch` on a grid of fluxes spanning
-    ``flux_e``; the sizes at F = 0 are subtracted and the increments interpolated (linear) to
-    each star's flux. Subtracting them from measured sizes leaves the size-vs-flux relation the
-    model does not explain (the ``model_residual`` of ``bfpsf slope --psf``).
+    The PSF's star image at flux F (``psf.star_image``, phase 0) is measured with
+    `~bfpsf.measure.moments.adaptive_moments_batch` on a grid of fluxes spanning ``flux_e``;
+    the sizes at F = 0 are subtracted and the increments interpolated (linear) to each star's
+    flux. A model that varies over the field (``psf.varies_over_field``) is measured at each of
+    its ``field_nodes`` and the increments interpolated bilinearly to each star's position
+    (the model's own interpolation). Subtracting them from measured sizes leaves the
+    size-vs-flux relation the model does not explain (``model_residual`` of ``bfpsf slope
+    --psf``).
 
     Parameters
     ----------
-    psf : bfpsf.model.psf.FluxDependentPSF
-        The model, in electrons.
+    psf : bfpsf.model.base.BFPSFModel
+        The model (any kind), in electrons.
     flux_e : array_like
         Total fluxes of the stars, e-.
+    x, y : array_like, optional
+        Image positions of the stars, pixels; default the model's reference position.
     n_grid : int, optional
         Fluxes on which the model is measured. Default 24.
 
@@ -347,17 +352,44 @@ def model_size_increments(psf, flux_e, *, n_grid=24):
 
     from .shapes import distortion
 
+    from ..model.gridded import bilinear_weights
+
     flux_e = np.asarray(flux_e, dtype=float)
     finite = np.isfinite(flux_e)
     top = float(np.max(flux_e[finite], initial=0.0))
     grid = np.linspace(0.0, max(top, 1.0), n_grid)
-    # F = 0 renders nothing: measure the shape at unit flux (BF term ~1e-6 of it) and scale.
-    stamps = np.array([psf.star_image(max(flux, 1.0)) / max(flux, 1.0) for flux in grid])
-    moments = adaptive_moments_batch(stamps)
-    sizes = {"x": np.sqrt(moments.mxx), "y": np.sqrt(moments.myy), "iq": moments.sigma}
-    sizes["e1"], sizes["e2"] = distortion(moments.mxx, moments.myy, moments.mxy)
-    return {key: np.interp(flux_e, grid, value - value[0], left=np.nan, right=np.nan)
-            for key, value in sizes.items()}
+    x_nodes, y_nodes = psf.field_nodes
+    increments = []  # per field node, row-major [y, x]
+    for y_node in y_nodes:
+        for x_node in x_nodes:
+            model = psf.at(x_node, y_node)
+            # F = 0 renders nothing: the shape at unit flux (BF term ~1e-6 of it), scaled
+            stamps = np.array([model.star_image(max(flux, 1.0)) / max(flux, 1.0)
+                               for flux in grid])
+            moments = adaptive_moments_batch(stamps)
+            sizes = {"x": np.sqrt(moments.mxx), "y": np.sqrt(moments.myy), "iq": moments.sigma}
+            sizes["e1"], sizes["e2"] = distortion(moments.mxx, moments.myy, moments.mxy)
+            increments.append({key: np.interp(flux_e, grid, value - value[0], left=np.nan,
+                                              right=np.nan) for key, value in sizes.items()})
+    x_ref, y_ref = psf.reference_position
+    x = np.broadcast_to(x_ref if x is None else np.asarray(x, dtype=float), flux_e.shape)
+    y = np.broadcast_to(y_ref if y is None else np.asarray(y, dtype=float), flux_e.shape)
+    indices, weights = bilinear_weights(x, y, x_nodes, y_nodes)
+    star = np.arange(flux_e.size).reshape(flux_e.shape)
+    result = {}
+    for key in increments[0]:
+        per_node = np.array([node[key] for node in increments])  # (nodes, stars)
+        result[key] = sum(weights[..., corner] * per_node[indices[..., corner], star]
+                          for corner in range(4))
+    return result
+
+
+def star_positions(psf, table):
+    """(x, y) of a star table's stars for a model varying over the field (None, None for a
+    single P(F) or a table without positions)."""
+    if not psf.varies_over_field or "x" not in table.colnames or "y" not in table.colnames:
+        return None, None
+    return np.asarray(table["x"], dtype=float), np.asarray(table["y"], dtype=float)
 
 
 def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors=True):
@@ -378,9 +410,10 @@ def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors
     from .sources import total_flux
 
     flux = total_flux(psf, table["flux_e"])  # P(F) takes total fluxes, flux_e is an aperture's
+    x, y = star_positions(psf, table)
 
     def slopes_of(model):
-        increments = model_size_increments(model, flux)
+        increments = model_size_increments(model, flux, x=x, y=y)
         predicted = table.copy()
         for key, column, _ in _AXES:
             predicted[column] = increments[key]

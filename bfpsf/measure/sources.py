@@ -163,6 +163,51 @@ def _empty_table(colour_columns):
 DETECTION_THRESHOLD = 5.0
 
 
+def smoothed_peaks(image_e, *, threshold=DETECTION_THRESHOLD, detection_fwhm=3.0):
+    """Peaks of the smoothed sky-subtracted image, (x, y) pixels: maxima of a window of
+    ``2 * detection_fwhm + 1`` pixels at least ``threshold + 3`` RMS of the smoothed image
+    (the peaks `measure_sources` counts to flag a segment ``BLENDED``), centroided on their
+    3 x 3 neighbourhood.
+
+    Parameters
+    ----------
+    image_e : ndarray [y, x]
+        Sky-subtracted image, e-; non-finite pixels count as 0.
+    threshold : float, optional
+        Detection threshold, RMS of the smoothed image (default 5).
+    detection_fwhm : float, optional
+        FWHM of the smoothing, pixels (default 3, as `measure_sources`).
+
+    Returns
+    -------
+    ndarray (N, 2)
+    """
+    from astropy.convolution import convolve
+    from astropy.stats import sigma_clipped_stats
+    from photutils.segmentation import make_2dgaussian_kernel
+    from scipy import ndimage
+
+    image = np.where(np.isfinite(image_e), image_e, 0.0)
+    kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
+    smoothed = convolve(image, kernel, normalize_kernel=True)
+    _, _, rms = sigma_clipped_stats(smoothed, sigma=3.0)
+    size = 2 * int(np.ceil(detection_fwhm)) + 1
+    peaks = (smoothed == ndimage.maximum_filter(smoothed, size=size)) & (
+        smoothed >= (threshold + 3.0) * rms)
+    rows, columns = np.nonzero(peaks)
+    inside = ((rows > 0) & (rows < image.shape[0] - 1) & (columns > 0)
+              & (columns < image.shape[1] - 1))
+    rows, columns = rows[inside], columns[inside]
+    offsets = np.arange(-1, 2)
+    windows = smoothed[rows[:, None, None] + offsets[None, :, None],
+                       columns[:, None, None] + offsets[None, None, :]]
+    windows = np.clip(windows - windows.min(axis=(1, 2), keepdims=True), 0, None)
+    total = np.maximum(windows.sum(axis=(1, 2)), 1e-30)
+    x = columns + np.sum(windows.sum(axis=1) * offsets, axis=1) / total
+    y = rows + np.sum(windows.sum(axis=2) * offsets, axis=1) / total
+    return np.column_stack([x, y])
+
+
 def _aperture_flux(stamps, radius2, sigma, aperture_nsigma):
     """Sum of each stamp within ``aperture_nsigma`` adaptive sigmas of its centroid (pixel
     centres; 2 px where sigma failed): ``flux_e`` of `measure_sources`."""
@@ -200,9 +245,9 @@ def aperture_fraction(psf, *, aperture_nsigma=5.0, phases=4, size=32):
     offsets = (np.arange(phases) + 0.5) / phases - 0.5
     yy, xx = np.mgrid[:size, :size]
     centre = (size - 1) / 2.0
-    # a PSF that varies over the field (GriddedFluxDependentPSF) is taken at its grid's centre
-    x_field = float(np.mean(psf.x_nodes)) - centre if hasattr(psf, "x_nodes") else 0.0
-    y_field = float(np.mean(psf.y_nodes)) - centre if hasattr(psf, "y_nodes") else 0.0
+    # a PSF that varies over the field (GriddedFluxDependentPSF) is taken at its reference
+    # position (the grid's centre)
+    x_field, y_field = (value - centre for value in psf.reference_position)
     stamps = np.array([psf.evaluate(xx + x_field, yy + y_field, 1.0, centre + x_field + dx,
                                     centre + y_field + dy)
                        for dy in offsets for dx in offsets])
@@ -304,10 +349,11 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
             colour_columns = [name for name in colour.colnames if name not in ("x", "y")]
     colour_columns = list(colour_columns or [])
 
-    # the detection pedestal, with astropy's 5 clipping iterations (10 moves the pedestal, and
-    # with it the detections and centroids, by up to a few e-)
-    median, _ = sky_level(image, maxiters=5)
-    data = np.where(bad, np.nan, image - median)
+    # the detection pedestal: the sky surface of every command (a plane beyond the masked
+    # sources, bfpsf.measure.sky), so that a sloped sky leaves the threshold where it is
+    from .sky import estimate_sky
+
+    data = np.where(bad, np.nan, image - estimate_sky(np.where(bad, np.nan, image)).image())
     kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
     convolved = convolve(np.where(bad, 0.0, data), kernel, normalize_kernel=True)
     _, _, smooth_rms = sigma_clipped_stats(convolved[~bad], sigma=3.0)
@@ -415,7 +461,8 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     return table
 
 
-def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None):
+def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None,
+                   return_sources=False):
     """Clean, unsaturated detections isolated within ``size`` pixels: the stars a P0 fit
     (`bfpsf.model.psf_fit.fit_psf`) takes.
 
@@ -436,12 +483,19 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
         (x, y) of the stars, pixels.
     n_detected : int
         All detections, flagged ones included.
+    sources : astropy.table.Table
+        With ``return_sources=True``: every detection (`measure_sources`).
     """
-    sources = measure_sources(image_e, threshold=threshold, blend_radius=size / 2 + 2,
+    # a neighbour beyond the cutout still reaches into it with its core (FWHM 3-4 px): no
+    # detection within half the cutout plus 8 pixels (in a dense field, a neighbour 15 px
+    # away put its light in P0 and every flux came out 30 % high)
+    sources = measure_sources(image_e, threshold=threshold, blend_radius=size / 2 + 8,
                               saturation=saturation_e, stamp_size=size + 6)
     clean = np.asarray(sources["flags"]) == 0
     positions = np.column_stack([np.asarray(sources["x"], dtype=float)[clean],
                                  np.asarray(sources["y"], dtype=float)[clean]])
+    if return_sources:
+        return positions, len(sources), sources
     return positions, len(sources)
 
 

@@ -24,10 +24,11 @@ tables of neighbouring nodes.
 
 
 import numpy as np
-from astropy.modeling import Fittable2DModel, Parameter
+from astropy.modeling import Parameter
 
 from ..errors import BFPSFValueError
-from .psf import FluxDependentPSF
+from .base import BFPSFModel
+from .psf import FluxDependentPSF, star_phases
 
 __all__ = ["GriddedFluxDependentPSF", "bilinear_weights", "grid_node_positions"]
 
@@ -88,7 +89,7 @@ def bilinear_weights(x, y, x_nodes, y_nodes):
     return indices, weights
 
 
-class GriddedFluxDependentPSF(Fittable2DModel):
+class GriddedFluxDependentPSF(BFPSFModel):
     r"""A flux-dependent PSF that varies over the image, interpolated between grid nodes.
 
     .. math:: M(x, y) = \sum_k w_k(x_0, y_0)\,[F\,p_k(x - x_0, y - y_0)
@@ -116,6 +117,9 @@ class GriddedFluxDependentPSF(Fittable2DModel):
     with one copy for all stars; ``copy()`` shares the node models.
     """
 
+    kind = "a grid"
+    reads_any_kind = False
+
     flux = Parameter(default=1, description="Total flux of the star (image unit)")
     x_0 = Parameter(default=0, description="x position of the star centre (pixels)")
     y_0 = Parameter(default=0, description="y position of the star centre (pixels)")
@@ -142,8 +146,9 @@ class GriddedFluxDependentPSF(Fittable2DModel):
                        "boundary shifts")
                 raise BFPSFValueError(msg, node)
         self.nodes = tuple(nodes)
-        #: Name of the calibration file the shifts come from (product metadata).
-        self.calibration = ""
+        #: Product metadata (`bfpsf.model.base`): ``calibration`` (file name of the shifts),
+        #: ``linearity_c_per_1e5``, ``flux_correction`` and its error.
+        self._init_metadata()
         super().__init__(flux, x_0, y_0, **kwargs)
 
     @staticmethod
@@ -197,8 +202,20 @@ class GriddedFluxDependentPSF(Fittable2DModel):
     shifts = property(lambda self: self.nodes[0].shifts, doc="Boundary shifts a^X, 1/e-")
     mode = property(lambda self: self.nodes[0].mode, doc="BF term mode of the nodes")
     gain = property(lambda self: self.nodes[0].gain, doc="e- per image unit")
+    flux_unit = property(lambda self: self.nodes[0].flux_unit, doc="'electron' or 'adu'")
+    buildup_steps = property(lambda self: self.nodes[0].buildup_steps,
+                             doc="build-up steps of the BF term (None: G15's one step)")
     fill_value = property(lambda self: self.nodes[0].fill_value, doc="value outside the data")
     half_size = property(lambda self: self.nodes[0].half_size, doc="stamp half-width, pixels")
+
+    varies_over_field = True
+    field_nodes = property(lambda self: (self.x_nodes, self.y_nodes),
+                           doc="(x_nodes, y_nodes), pixels")
+
+    @property
+    def reference_position(self):
+        """(x, y) of the grid's centre, pixels: the position taken when none is given."""
+        return (float(np.mean(self.x_nodes)), float(np.mean(self.y_nodes)))
 
     @property
     def shift_samples(self):
@@ -227,17 +244,24 @@ class GriddedFluxDependentPSF(Fittable2DModel):
         `FluxDependentPSF.with_shifts`); the per-amplifier shifts are kept."""
         new = self.__class__([node.with_shifts(shifts) for node in self.nodes], self.x_nodes,
                              self.y_nodes)
-        new.calibration = self.calibration
-        new.amplifier_shifts = self.amplifier_shifts
-        return new
+        return self.copy_metadata_to(new)
 
-    # the stars of one amplifier: with_shifts of that amplifier's shifts (the same generic code)
-    for_amplifier = FluxDependentPSF.for_amplifier
+    def with_flux_unit(self, flux_unit, gain=None):
+        """The same grid for images in another unit (every node's
+        `FluxDependentPSF.with_flux_unit`)."""
+        new = self.__class__([node.with_flux_unit(flux_unit, gain) for node in self.nodes],
+                             self.x_nodes, self.y_nodes)
+        return self.copy_metadata_to(new, shift_samples=True)
 
-    # -- astropy model interface -------------------------------------------------------------
-    # the parameter values copied, the node models shared (as FluxDependentPSF shares arrays)
-    copy = FluxDependentPSF.copy
-    deepcopy = FluxDependentPSF.deepcopy
+    def charge_delta(self, charge_e, density=None):
+        """The charge each pixel gains under the model's operator, e- (every node shares the
+        shifts and build-up): `FluxDependentPSF.charge_delta`."""
+        return self.nodes[0].charge_delta(charge_e, density)
+
+    def _value_state(self):
+        return (self.x_nodes, self.y_nodes, [node._value_state() for node in self.nodes],
+                [float(getattr(self, name).value) for name in self.param_names],
+                self.metadata_state())
 
     @property
     def bounding_box(self):
@@ -283,39 +307,42 @@ class GriddedFluxDependentPSF(Fittable2DModel):
         return np.asarray(result) * np.ones(np.broadcast(x, y).shape)
 
     # -- views at one position ----------------------------------------------------------------
-    def at(self, x, y):
-        """The model at image position (x, y) as one `FluxDependentPSF` (table mode only).
+    def at(self, x=None, y=None):
+        """The model at image position (x, y) as one `FluxDependentPSF` (default the grid's
+        centre), with the grid's metadata.
 
-        Its data is sum_k w_k P0_k and its BF table sum_k w_k R[P0_k], exactly the gridded
-        model evaluated for a star at (x, y).
+        In table mode its data is sum_k w_k P0_k and its BF table sum_k w_k R[P0_k], exactly
+        the gridded model evaluated for a star at (x, y). In exact mode (e.g. the build-up of
+        a refined calibration) its data is sum_k w_k P0_k and R is recomputed from it: R of
+        the interpolated P0, which differs from the interpolated R at second order in the
+        node difference (module docstring).
         """
-        if self.mode != "table":
-            msg = (f"at() needs table-mode nodes (interpolated BF tables), got mode="
-                   f"{self.mode!r}; use star_image(flux, x=..., y=...) instead")
-            raise BFPSFValueError(msg, self.mode)
-        indices, weights = self.weights(float(x), float(y))
+        x, y = self.position_or_reference(x, y)
+        indices, weights = self.weights(x, y)
         data = sum(weight * self.nodes[index].data for index, weight in zip(indices, weights))
-        table = sum(weight * self.nodes[index].bf_table
-                    for index, weight in zip(indices, weights))
         node = self.nodes[0]
-        options = dict(node.options, mode="table", bf_table=table, buildup_steps=None,
-                       flux=float(self.flux.value), x_0=float(x), y_0=float(y))
-        options.pop("density_profile", None)
+        options = dict(node.options, flux=float(self.flux.value), x_0=x, y_0=y)
+        if self.mode == "table":
+            options.update(bf_table=sum(weight * self.nodes[index].bf_table
+                                        for index, weight in zip(indices, weights)))
+        else:
+            options.update(density_profile=node.density_profile)
         psf = FluxDependentPSF(data, node.shifts, **options)
-        psf.calibration = self.calibration
-        return psf
+        return self.copy_metadata_to(psf, shift_samples=True)
 
-    def star_image(self, flux, *, x, y, x_phase=0.0, y_phase=0.0, half_size=None):
+    def star_image(self, flux, x=None, y=None, *, x_phase=None, y_phase=None, half_size=None):
         """Pixel image of a star of flux F at image position (x, y), like
         `FluxDependentPSF.star_image` (exact at the phase, in every mode).
 
         Parameters
         ----------
         flux : float
-        x, y : float
-            Position of the star on the image, pixels: it sets the node weights.
+        x, y : float, optional
+            Position of the star on the image, pixels: it sets the node weights (default the
+            grid's centre) and the default phase.
         x_phase, y_phase : float, optional
-            Star centre minus the centre of the stamp's central pixel, pixels.
+            Star centre minus the centre of the stamp's central pixel, pixels; default the
+            phase of (x, y).
         half_size : int, optional
 
         Returns
@@ -323,28 +350,12 @@ class GriddedFluxDependentPSF(Fittable2DModel):
         ndarray [y, x]
             sum_k w_k (F p_k + g F |F| R[p_k]).
         """
-        indices, weights = self.weights(float(x), float(y))
+        x_phase, y_phase = star_phases(x, y, x_phase, y_phase)
+        x, y = self.position_or_reference(x, y)
+        indices, weights = self.weights(x, y)
         return sum(weight * self.nodes[index].star_image(flux, x_phase=x_phase, y_phase=y_phase,
                                                          half_size=half_size)
                    for index, weight in zip(indices, weights) if weight > 0)
-
-    # -- the PSF product ----------------------------------------------------------------------
-    def write(self, path, *, calibration=None, meta=None, overwrite=False):
-        """Write the PSF product (FITS) with its grid; see `bfpsf.psf_product.write_psf`."""
-        from ..psf_product import write_psf
-
-        write_psf(self, path, calibration=calibration, meta=meta, overwrite=overwrite)
-
-    @classmethod
-    def read(cls, path, **kwargs):
-        """Read a gridded PSF product; see `bfpsf.psf_product.read_psf`."""
-        from ..psf_product import read_psf
-
-        psf = read_psf(path, **kwargs)
-        if not isinstance(psf, cls):
-            msg = f"{path} holds a single PSF, not a grid"
-            raise BFPSFValueError(msg, str(path))
-        return psf
 
     def __repr__(self):
         return (f"<GriddedFluxDependentPSF(flux={float(self.flux.value):g}, "

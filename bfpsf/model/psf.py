@@ -19,20 +19,20 @@ a sum of per-star models (0.3 % flux error measured for 120 ke- peaks 4 pixels a
 uniform sky S adds a term linear in F that P0 absorbs when it is fitted at that sky level.
 """
 
-import copy
 import warnings
 
 import numpy as np
-from astropy.modeling import Fittable2DModel, Parameter
+from astropy.modeling import Parameter
 from scipy.interpolate import RectBivariateSpline
 
 from ..errors import BFPSFValueError, BFPSFWarning
 from ..shifts import as_shifts
+from .base import BFPSFModel
 from .buildup import redistribute_buildup
 from .density import exact_boundary_density
 from .redistribution import redistribution_delta
 
-__all__ = ["FluxDependentPSF", "bf_response_table", "pixelised_stamp"]
+__all__ = ["FluxDependentPSF", "bf_response_table", "pixelised_stamp", "star_phases"]
 
 _MODES = ("table", "exact")
 _FLUX_UNITS = ("electron", "adu")
@@ -143,6 +143,16 @@ def _phase_density(profile, x_phase, y_phase, half_size, sub):
     return exact_boundary_density(fine, sub)[1]
 
 
+def star_phases(x, y, x_phase=None, y_phase=None):
+    """(x_phase, y_phase) of a star: the given phases, else those of its position (x, y)
+    (``x - round(x)``), else 0."""
+    if x_phase is None:
+        x_phase = 0.0 if x is None else float(x - np.floor(x + 0.5))
+    if y_phase is None:
+        y_phase = 0.0 if y is None else float(y - np.floor(y + 0.5))
+    return float(x_phase), float(y_phase)
+
+
 def pixelised_stamp(psf, *, x_phase=0.0, y_phase=0.0, half_size=None):
     """Unit-flux pixelised P0 of ``psf`` on the pixel grid of a star at a sub-pixel phase.
 
@@ -165,7 +175,7 @@ def pixelised_stamp(psf, *, x_phase=0.0, y_phase=0.0, half_size=None):
     return psf.evaluate_base(dx, dy)
 
 
-class FluxDependentPSF(Fittable2DModel):
+class FluxDependentPSF(BFPSFModel):
     r"""A PSF whose shape depends on the star's flux through charge redistribution.
 
     The model of a star of flux F centred at (x_0, y_0) is (G15 eq. scrambling_model applied
@@ -243,9 +253,14 @@ class FluxDependentPSF(Fittable2DModel):
       is absorbed in P0 when P0 is fitted on images with that sky.
     """
 
+    kind = "a single PSF"
+
     flux = Parameter(default=1, description="Total flux of the star (image unit)")
     x_0 = Parameter(default=0, description="x position of the star centre (pixels)")
     y_0 = Parameter(default=0, description="y position of the star centre (pixels)")
+
+    #: The position taken when none is given: the model is the same everywhere.
+    reference_position = (0.0, 0.0)
 
     def __init__(self, data, shifts, *, flux=flux.default, x_0=x_0.default, y_0=y_0.default,
                  origin=None, oversampling=1, flux_unit=None, gain=None, mode="table",
@@ -289,8 +304,9 @@ class FluxDependentPSF(Fittable2DModel):
         self.density_oversampling = int(density_oversampling)
         self.mode = mode
         self.fill_value = float(fill_value)
-        #: Name of the calibration file the shifts come from (product metadata).
-        self.calibration = ""
+        #: Product metadata (`bfpsf.model.base`): ``calibration`` (file name of the shifts),
+        #: ``linearity_c_per_1e5``, ``flux_correction`` and its error.
+        self._init_metadata()
         #: Shifts drawn from the calibration's uncertainty (`Calibration.shift_samples`):
         #: predictions made with this model propagate them (``bfpsf slope --psf``).
         self.shift_samples = tuple(shifts.shift_samples()) if hasattr(shifts, "shift_samples") else ()
@@ -373,11 +389,6 @@ class FluxDependentPSF(Fittable2DModel):
 
     # -- units and options ---------------------------------------------------------------------
     @property
-    def electrons_per_unit(self):
-        """e- per flux unit: 1 in electrons, the gain in ADU (the factor g of the BF term)."""
-        return self.gain if self.flux_unit == "adu" else 1.0
-
-    @property
     def options(self):
         """The keyword arguments that rebuild this model from ``data`` and ``shifts``.
 
@@ -414,48 +425,19 @@ class FluxDependentPSF(Fittable2DModel):
         options.update(flux_unit=flux_unit, gain=self.gain if gain is None else gain,
                        density_profile=self.density_profile)
         new = self.__class__(self.data, self.shifts, **options)
-        new.calibration = self.calibration
-        new.shift_samples = self.shift_samples
-        new.amplifier_shifts = dict(self.amplifier_shifts)
-        return new
+        return self.copy_metadata_to(new, shift_samples=True)
 
-    # -- shapes ----------------------------------------------------------------------------
-    def shape(self, flux, x=None, y=None):
-        """Adaptive moments of the pixelised model at a flux (and position).
+    def at(self, x=None, y=None):
+        """The model at image position (x, y): a single P(F) is the same everywhere, itself."""
+        return self
 
-        The model of a star of flux F (`evaluate` on the pixels around it: BF and pixel
-        response included, exactly what a fitter sees) is measured with the estimator of the star measurements
-        (`bfpsf.measure.moments.adaptive_moments`), so the model can be compared with the
-        stars, or handed to a shear pipeline at a galaxy's flux (about P0).
-
-        Parameters
-        ----------
-        flux : float
-            Flux, ``flux_unit``; > 0.
-        x, y : float, optional
-            Position in the image, pixels: its sub-pixel phase sets the pixelisation (R
-            depends on it). Default: a star centred on a pixel.
-
-        Returns
-        -------
-        bfpsf.measure.shapes.PSFShape
-            ``sigma`` (IQ), ``T = Mxx + Myy``, ``e1``, ``e2``, ``rho4``, the moments and flags.
-        """
-        from ..measure.shapes import psf_shape
-
-        return psf_shape(self, flux, x=x, y=y)
-
-    # -- astropy model interface -------------------------------------------------------------
-    def copy(self):
-        """Copy with the parameter values copied and the arrays and splines shared."""
-        new = object.__new__(self.__class__)
-        for key, value in self.__dict__.items():
-            new.__dict__[key] = copy.copy(value) if key in self.param_names else value
-        return new
-
-    def deepcopy(self):
-        """A copy that owns every array."""
-        return copy.deepcopy(self)
+    def _value_state(self):
+        options = self.options
+        options.pop("bf_table", None)
+        return (self.data, self.bf_table, self.shifts.north, self.shifts.east, options,
+                self.density_profile, self.metadata_state(),
+                {name: (one.north, one.east) for name, one in self.amplifier_shifts.items()},
+                [(one.north, one.east) for one in self.shift_samples])
 
     def with_shifts(self, shifts):
         """The same P0 and options with other boundary shifts (a new model; the BF table, if
@@ -464,21 +446,7 @@ class FluxDependentPSF(Fittable2DModel):
         options = self.options
         options.pop("bf_table", None)
         new = self.__class__(self.data, shifts, density_profile=self.density_profile, **options)
-        new.calibration = self.calibration
-        new.amplifier_shifts = dict(self.amplifier_shifts)
-        return new
-
-    def for_amplifier(self, name):
-        """The model of the stars of amplifier ``name`` (EXTNAME): P0 with that amplifier's
-        boundary shifts (`with_shifts`) when the model has per-amplifier shifts
-        (``amplifier_shifts``, from ``bfpsf psf`` on several amplifiers), else this model."""
-        if not self.amplifier_shifts:
-            return self
-        if name not in self.amplifier_shifts:
-            msg = (f"the PSF has no boundary shifts for amplifier {name!r} (it has "
-                   f"{', '.join(sorted(self.amplifier_shifts))})")
-            raise BFPSFValueError(msg, name)
-        return self.with_shifts(self.amplifier_shifts[name])
+        return self.copy_metadata_to(new)
 
     @property
     def half_size(self):
@@ -666,7 +634,7 @@ class FluxDependentPSF(Fittable2DModel):
         return result.reshape(shape)
 
     # -- convenience -------------------------------------------------------------------------
-    def star_image(self, flux, *, x_phase=0.0, y_phase=0.0, half_size=None):
+    def star_image(self, flux, x=None, y=None, *, x_phase=None, y_phase=None, half_size=None):
         """Pixel image of a star of flux F, centred on the central pixel plus a phase.
 
         Always exact (R recomputed at the phase, with the exact boundary density when the
@@ -676,8 +644,12 @@ class FluxDependentPSF(Fittable2DModel):
         ----------
         flux : float
             Flux, image unit.
+        x, y : float, optional
+            Image position of the star, pixels: its sub-pixel phase is the default phase (a
+            single P(F) is the same everywhere; a field-varying one is taken there).
         x_phase, y_phase : float, optional
-            Star centre minus the centre of the central pixel, pixels.
+            Star centre minus the centre of the central pixel, pixels; default the phase of
+            (x, y), 0 without them.
         half_size : int, optional
             The image is ``2 * half_size + 1`` pixels square.
 
@@ -686,27 +658,11 @@ class FluxDependentPSF(Fittable2DModel):
         ndarray [y, x]
             F p + g F |F| R[p]; divide by F for the normalised P(F).
         """
+        x_phase, y_phase = star_phases(x, y, x_phase, y_phase)
         half = self.half_size if half_size is None else int(half_size)
         self._warn_beyond_first_order(flux)
         stamp = pixelised_stamp(self, x_phase=x_phase, y_phase=y_phase, half_size=half)
         return flux * stamp + self._stamp_delta(stamp, flux, x_phase, y_phase)
-
-    # -- the PSF product (bfpsf.psf_product: the model layer knows nothing of files) ---------
-    def write(self, path, *, calibration=None, meta=None, overwrite=False):
-        """Write the PSF product (FITS): P0, its sampling, and the calibration it used.
-
-        See `bfpsf.psf_product.write_psf`.
-        """
-        from ..psf_product import write_psf
-
-        write_psf(self, path, calibration=calibration, meta=meta, overwrite=overwrite)
-
-    @classmethod
-    def read(cls, path, **kwargs):
-        """Read a PSF product written by `write`; see `bfpsf.psf_product.read_psf`."""
-        from ..psf_product import read_psf
-
-        return read_psf(path, cls=cls, **kwargs)
 
     def __repr__(self):
         return (f"<FluxDependentPSF(flux={float(self.flux.value):g}, "

@@ -1,0 +1,255 @@
+"""The sky under the stars: a low-order surface fitted to the pixels the stars leave.
+
+One sky model for every command (``psf``, ``measure``, ``photometry``, ``diagnose`` through the
+image preparation, `bfpsf.workflow.prepare_image`). A user does not know their sky, and three
+things bias the obvious estimators:
+
+* the wings of bright stars reach far: a sigma-clipped median of the image clips the cores but
+  keeps the wings, so it comes out high in a field of bright stars (the level the BF-aware
+  photometry then subtracts is too high by the stars' own light: a flux bias that grows with
+  the stars' brightness, 2.8 mmag bright-minus-faint on E2V spots, issue 21);
+* the sky is not flat: a gradient across the image leaves each star a different sky;
+* every exposure has its own sky.
+
+`estimate_sky` fits a plane (``degree=1``; any low order) to the pixels away from the sources,
+with sigma clipping, per image. The sources are masked where the smoothed image exceeds twice
+its noise, each out to three times its own radius at that level (`source_mask`), so a bright
+star's wings are masked further than a faint one's; a dense field, where that leaves less than
+15 % of the image, is masked out to fewer radii. No mask removes the wings beyond it: summed
+over a field of bright stars they are a glow (8 e- per pixel for 60 Kolmogorov stars of peaks
+3-120 ke- on 300^2 pixels) that a sky between the stars takes for sky. So the sky is fitted
+beyond the stars' total-flux model: ``bfpsf psf`` fits every image's plane jointly with the
+stars' wings beyond P0's support (`bfpsf.measure.total_flux.fit_sky_and_wings`), and the PSF
+product keeps that wing law; photometry fits the plane, then again beyond the glow of its
+fitted stars' wings (``glow_e``), in its model-weighted refit. Fitting the plane to the image
+minus the stars' models within P0's support alone was tried and rejected: their wings beyond
+the support, left in the pixels the masks no longer cover, biased it more (0.77 e- against
+0.31 e- for 64 bright Moffat stars on a sky of 0, tests/test_gridded.py's field).
+Why a plane and not a local annulus per star (photutils ``LocalBackground``): both
+follow a linear gradient exactly (an annulus symmetric about the star averages a plane to its
+centre value), but the annulus median carries the noise of a few hundred pixels into every
+star (0.3 % of a 3 ke- peak star's flux on a 600 e- sky), and in a dense field its pixels are
+mostly neighbours' wings; the plane uses every free pixel of the image. A sky with structure
+on the scale of the stars is beyond either; give it with ``--background`` (a known sky).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import BFPSFInputError, BFPSFValueError
+
+__all__ = ["SkyModel", "estimate_sky", "source_mask"]
+
+#: Pixels at most used in the surface fit (a regular subsample of the free pixels beyond).
+_MAX_FIT_PIXELS = 250_000
+#: Smallest share of the image the source mask leaves free before it is shrunk.
+_MIN_FREE_FRACTION = 0.15
+
+
+@dataclass(frozen=True)
+class SkyModel:
+    """A sky surface over an image, e- per pixel.
+
+    Attributes
+    ----------
+    coefficients : tuple of float
+        Polynomial coefficients in the normalised coordinates u = (x - xc) / s, v = (y - yc) / s
+        (centre and half-size of the image), ordered 1, u, v, u^2, u v, v^2, ... (e- per pixel).
+    degree : int
+        Polynomial degree (0: a constant, 1: a plane).
+    shape : (int, int)
+        (ny, nx) of the image.
+    rms : float
+        Clipped scatter of the fitted pixels about the surface, e- per pixel (the sky's noise,
+        read noise included).
+    method : str
+        ``'known'`` (given by the caller), ``'masked'`` (fitted beyond the masked sources) or
+        ``'masked, wings subtracted'`` (and the stars' wings beyond the PSF support
+        subtracted).
+    n_pixels : int
+        Pixels the fit used (0 for a known sky).
+    """
+
+    coefficients: tuple
+    degree: int
+    shape: tuple
+    rms: float
+    method: str
+    n_pixels: int = 0
+
+    @classmethod
+    def constant(cls, level, shape, *, rms=np.nan, method="known"):
+        """A flat sky of ``level`` e- per pixel."""
+        return cls((float(level),), 0, tuple(int(n) for n in shape), float(rms), method)
+
+    def _scale(self):
+        ny, nx = self.shape
+        return (nx - 1) / 2.0, (ny - 1) / 2.0, max(nx, ny, 2) / 2.0
+
+    def __call__(self, x, y):
+        """Sky at image positions (x, y), pixels; e- per pixel, shaped like ``x``."""
+        x_centre, y_centre, scale = self._scale()
+        u = (np.asarray(x, dtype=float) - x_centre) / scale
+        v = (np.asarray(y, dtype=float) - y_centre) / scale
+        return np.tensordot(np.asarray(self.coefficients), _powers(u, v, self.degree), axes=1)
+
+    def image(self):
+        """The sky on every pixel of the image, ndarray [y, x], e-."""
+        y, x = np.mgrid[:self.shape[0], :self.shape[1]]
+        return self(x, y)
+
+    @property
+    def level(self):
+        """Sky at the image's centre, e- per pixel."""
+        return float(self.coefficients[0])
+
+    @property
+    def slope(self):
+        """(d sky / dx, d sky / dy) of the linear terms, e- per pixel per pixel."""
+        if self.degree < 1:
+            return 0.0, 0.0
+        scale = self._scale()[2]
+        return float(self.coefficients[1]) / scale, float(self.coefficients[2]) / scale
+
+
+def _powers(u, v, degree):
+    """Monomials 1, u, v, u^2, u v, v^2, ... up to ``degree``, stacked on a first axis."""
+    terms = [u**(order - k) * v**k for order in range(degree + 1) for k in range(order + 1)]
+    return np.stack([np.broadcast_to(term, np.shape(u)) for term in terms])
+
+
+def source_mask(image_e, *, threshold=2.0, reach=3.0, grow=2, smoothing_fwhm=3.0):
+    """Pixels of the sources and their wings.
+
+    Sources are where the smoothed image minus a rough sky exceeds ``threshold`` times its
+    noise; each is masked out to ``reach`` times its equivalent radius at that threshold
+    (sqrt(area / pi)) from its centroid, so a bright star's wings are masked further than a
+    faint one's: for a Moffat of beta 3 the wing left at the mask's edge is 3^-6 of the
+    threshold level, for a Kolmogorov profile (r^-11/3) 3^-3.7 = 2 % of it.
+
+    Parameters
+    ----------
+    image_e : ndarray [y, x]
+        Image, e- (sky included); non-finite pixels are masked.
+    threshold : float, optional
+        In RMS of the smoothed image (default 2: well below the detection threshold).
+    reach : float, optional
+        Mask radius in units of each source's equivalent radius (default 3).
+    grow : int, optional
+        Pixels added to every mask radius (default 2).
+    smoothing_fwhm : float, optional
+        Gaussian smoothing before thresholding, pixels (default 3).
+
+    Returns
+    -------
+    ndarray of bool [y, x]
+    """
+    from astropy.stats import sigma_clipped_stats
+    from scipy import ndimage
+
+    image = np.asarray(image_e, dtype=float)
+    bad = ~np.isfinite(image)
+    filled = np.where(bad, np.nanmedian(image), image)
+    smoothed = ndimage.gaussian_filter(filled, smoothing_fwhm / 2.3548, mode="nearest")
+    _, level, rms = sigma_clipped_stats(smoothed[~bad], sigma=3.0, maxiters=5)
+    # a rough sky that follows a gradient: a wide median of the smoothed image
+    if min(image.shape) >= 32:
+        step = 4  # on a coarse grid: a median filter of a quarter of the image is slow
+        coarse = ndimage.median_filter(smoothed[::step, ::step],
+                                       size=max(3, min(image.shape) // (4 * step)) | 1,
+                                       mode="nearest")
+        rough = ndimage.zoom(coarse, (image.shape[0] / coarse.shape[0],
+                                      image.shape[1] / coarse.shape[1]), order=1,
+                             mode="nearest")[:image.shape[0], :image.shape[1]]
+    else:
+        rough = level
+    labels, n_sources = ndimage.label((smoothed - rough) > threshold * rms)
+    mask = bad.copy()
+    if n_sources:
+        index = np.arange(1, n_sources + 1)
+        areas = ndimage.sum_labels(np.ones(image.shape), labels, index)
+        centres = ndimage.center_of_mass(np.ones(image.shape), labels, index)
+        ny, nx = image.shape
+        for area, (y_c, x_c) in zip(areas, centres):
+            radius = reach * np.sqrt(area / np.pi) + grow
+            low_y, high_y = max(int(y_c - radius), 0), min(int(y_c + radius) + 2, ny)
+            low_x, high_x = max(int(x_c - radius), 0), min(int(x_c + radius) + 2, nx)
+            yy, xx = np.mgrid[low_y:high_y, low_x:high_x]
+            mask[low_y:high_y, low_x:high_x] |= np.hypot(xx - x_c, yy - y_c) <= radius
+    return mask
+
+
+def estimate_sky(image_e, *, glow_e=None, mask=None, degree=1, clip_nsigma=3.0,
+                 max_iterations=10):
+    """The sky surface of an image (module docstring for the choice).
+
+    Parameters
+    ----------
+    image_e : array_like [y, x]
+        Image, e- per pixel, sky included.
+    glow_e : ndarray [y, x], optional
+        The stars' light beyond the PSF support (`bfpsf.measure.total_flux.wing_image`),
+        e-: the surface is fitted to ``image_e - glow_e`` (the sources still masked), so the
+        sky is what is left beyond the stars' total-flux model.
+    mask : ndarray of bool, optional
+        Further pixels to leave out (True = not sky).
+    degree : int, optional
+        Polynomial degree of the surface (default 1, a plane: a gradient; 0: a constant).
+    clip_nsigma : float, optional
+        Pixels further than this many clipped RMS from the surface are left out, iteratively
+        (default 3: cosmic rays, faint undetected stars).
+    max_iterations : int, optional
+        Clipping iterations at most (default 10).
+
+    Returns
+    -------
+    SkyModel
+    """
+    image = np.asarray(image_e, dtype=float)
+    if image.ndim != 2:
+        msg = f"image must be 2-D [y, x], got shape {image.shape}"
+        raise BFPSFInputError(msg, image.shape)
+    if int(degree) != degree or not 0 <= degree <= 3:
+        msg = f"degree of the sky surface must be 0, 1, 2 or 3, got {degree!r}"
+        raise BFPSFValueError(msg, degree)
+    degree = int(degree)
+    residual, method = image, "masked"
+    if glow_e is not None:
+        residual, method = image - np.asarray(glow_e, dtype=float), "masked, wings subtracted"
+    # a dense field leaves few pixels beyond 3 radii: mask less, down to 1 radius
+    for reach in (3.0, 2.0, 1.5, 1.0):
+        free = ~source_mask(image, reach=reach)
+        if free.mean() >= _MIN_FREE_FRACTION:
+            break
+    if mask is not None:
+        free &= ~np.asarray(mask, dtype=bool)
+    free &= np.isfinite(residual)
+    rows, columns = np.nonzero(free)
+    if rows.size < 10 * (degree + 1) ** 2:
+        free = np.isfinite(image)  # nearly every pixel is a star: fit what there is
+        rows, columns = np.nonzero(free)
+        if rows.size == 0:
+            msg = "image has no finite pixel: no sky"
+            raise BFPSFInputError(msg, image.shape)
+    step = max(1, rows.size // _MAX_FIT_PIXELS)
+    rows, columns = rows[::step], columns[::step]
+    values = residual[rows, columns]
+    template = SkyModel((0.0,) * ((degree + 1) * (degree + 2) // 2), degree, image.shape,
+                        np.nan, method)
+    x_centre, y_centre, scale = template._scale()
+    design = _powers((columns - x_centre) / scale, (rows - y_centre) / scale, degree).T
+    keep = np.ones(values.size, dtype=bool)
+    for _ in range(max_iterations):
+        if degree == 0:  # a constant: the clipped median (robust to the residual tails)
+            coefficients = np.array([np.median(values[keep])])
+        else:
+            coefficients = np.linalg.lstsq(design[keep], values[keep], rcond=None)[0]
+        deviation = values - design @ coefficients
+        rms = 1.4826 * np.median(np.abs(deviation[keep]))
+        new_keep = np.abs(deviation) <= clip_nsigma * max(rms, 1e-12)
+        if np.array_equal(new_keep, keep) or new_keep.sum() < design.shape[1] * 10:
+            break
+        keep = new_keep
+    return SkyModel(tuple(float(c) for c in coefficients), degree, image.shape, float(rms),
+                    method, int(keep.sum()))

@@ -1,0 +1,226 @@
+"""The interface every flux-dependent PSF kind shares (as GalSim's ``GSObject`` for profiles).
+
+`BFPSFModel` is the base of the single P(F) (`~bfpsf.model.psf.FluxDependentPSF`) and of the
+field-varying P(F, x, y) (`~bfpsf.model.gridded.GriddedFluxDependentPSF`). A PSF fitted with
+each amplifier's boundary shifts (``amplifier_shifts``) and one built from a calibration refined
+by ``bfpsf diagnose --output-calib`` (build-up steps, a linearity correction of the images) are
+these same classes with that metadata, so every kind answers the same calls:
+
+=========================================  ==================================================
+``psf.star_image(flux, x, y)``             pixel image of a star of flux F at (x, y)
+``psf.shape(flux, x, y)``                  adaptive moments of the model a fitter sees there
+``psf.at(x, y)``                           the single P(F) at (x, y) (a single PSF: itself)
+``psf.with_flux_unit(unit, gain)``         the same PSF for images in e- or ADU
+``psf.with_shifts(shifts)``                other boundary shifts, same P0
+``psf.for_amplifier(name)``                the model of one amplifier's stars
+``psf.charge_delta(charge_e)``             the model's own BF operator on any charge image
+``psf.to_galsim(flux, x, y)``              a GalSim profile (pixel response included)
+``psf.write(path)`` / ``read(path)``       the PSF product (``save`` / ``load`` alike)
+``psf == other``, ``pickle.dumps(psf)``    value equality; pickling (Dask ships models)
+=========================================  ==================================================
+
+Every kind is a photutils-compatible model itself (``flux``, ``x_0``, ``y_0``; stateless
+``evaluate``), so no caller needs to test which kind it holds.
+
+Product metadata carried by every kind (kept by the PSF product, `bfpsf.psf_product`):
+``calibration`` (file name), ``shift_samples`` (the calibration's uncertainty),
+``amplifier_shifts`` ({EXTNAME: BoundaryShifts}), ``linearity_c_per_1e5`` (a refined
+calibration's linearity correction, applied to the images on input by
+`bfpsf.workflow.prepare_image`), and ``flux_correction`` / ``flux_correction_err``: the ratio of
+a star's total flux to the flux P0 holds in its support (the wings beyond it), measured from
+the bright isolated stars, applied by photometry so that ``flux_fit`` is the total flux, with
+the power law of those wings, ``wing_amplitude`` and ``wing_power``
+(`bfpsf.measure.total_flux.WingModel`), whose glow the sky estimate leaves out.
+"""
+
+import copy
+
+import numpy as np
+from astropy.modeling import Fittable2DModel, Parameter
+
+from ..errors import BFPSFValueError
+
+__all__ = ["BFPSFModel"]
+
+#: Metadata every kind carries (name -> default factory), copied by the derived models.
+_METADATA = {"calibration": str, "linearity_c_per_1e5": float,
+             "flux_correction": lambda: 1.0, "flux_correction_err": lambda: float("nan"),
+             "wing_amplitude": float, "wing_power": lambda: 4.0}
+
+
+class BFPSFModel(Fittable2DModel):
+    """Base class of the flux-dependent PSF kinds (module docstring for the interface).
+
+    Subclasses implement ``evaluate``, `at`, `star_image`, `with_shifts`, `with_flux_unit`,
+    `charge_delta`, ``reference_position`` and ``_value_state``.
+    """
+
+    #: What the kind is, in words (messages).
+    kind = "a flux-dependent PSF"
+    #: `read` returns whatever kind the product holds (False: only this class).
+    reads_any_kind = True
+
+    flux = Parameter(default=1, description="Total flux of the star (image unit)")
+    x_0 = Parameter(default=0, description="x position of the star centre (pixels)")
+    y_0 = Parameter(default=0, description="y position of the star centre (pixels)")
+
+    def _init_metadata(self):
+        for name, factory in _METADATA.items():
+            self.__dict__.setdefault(name, factory())
+
+    def metadata_state(self):
+        """The product metadata as a tuple (value equality)."""
+        return tuple(getattr(self, name) for name in _METADATA)
+
+    def copy_metadata_to(self, other, *, shift_samples=False):
+        """Give ``other`` this model's product metadata (and shift samples if asked)."""
+        for name in _METADATA:
+            setattr(other, name, getattr(self, name))
+        other.amplifier_shifts = dict(self.amplifier_shifts)
+        if shift_samples:
+            other.shift_samples = tuple(self.shift_samples)
+        return other
+
+    # -- the interface ---------------------------------------------------------------------
+    def at(self, x, y):
+        """The single `FluxDependentPSF` of a star at image position (x, y), pixels."""
+        raise NotImplementedError
+
+    @property
+    def field_nodes(self):
+        """(x_nodes, y_nodes), pixels: the positions the model is defined at and interpolated
+        between (bilinearly, `bfpsf.model.gridded.bilinear_weights`); one node for a model
+        that is the same everywhere."""
+        x_ref, y_ref = self.reference_position
+        return np.array([x_ref]), np.array([y_ref])
+
+    @property
+    def varies_over_field(self):
+        """True when the model differs from one image position to another (a grid)."""
+        return self.at() is not self
+
+    def position_or_reference(self, x, y):
+        """(x, y) with None replaced by ``reference_position`` (the grid centre of a
+        field-varying model; 0 for a single one)."""
+        x_ref, y_ref = self.reference_position
+        return (x_ref if x is None else float(x)), (y_ref if y is None else float(y))
+
+    def shape(self, flux, x=None, y=None):
+        """Adaptive moments of the pixelised model at a flux and image position.
+
+        The model of a star of flux F at (x, y) (``evaluate`` on the pixels around it: BF,
+        pixel response and, for a field-varying model, the interpolation at (x, y) included,
+        exactly what a fitter sees there) is measured with the estimator of the star
+        measurements (`bfpsf.measure.moments.adaptive_moments`).
+
+        Parameters
+        ----------
+        flux : float
+            Flux, ``flux_unit``; > 0.
+        x, y : float, optional
+            Image position, pixels: its sub-pixel phase sets the pixelisation (R depends on
+            it), and a field-varying model is taken there. Default ``reference_position``.
+
+        Returns
+        -------
+        bfpsf.measure.shapes.PSFShape
+        """
+        from ..measure.shapes import psf_shape
+
+        return psf_shape(self, flux, x=x, y=y)
+
+    def to_galsim(self, flux, x=None, y=None, *, x_phase=0.0, y_phase=0.0, normalise=True):
+        """The pixelised PSF of a star of flux F at (x, y) as a GalSim profile; see
+        `bfpsf.interop.galsim_psf.to_galsim` (returns ``(profile, pixel_included)``)."""
+        from ..interop.galsim_psf import to_galsim
+
+        position = None if x is None and y is None else self.position_or_reference(x, y)
+        return to_galsim(self, flux, x_phase=x_phase, y_phase=y_phase, normalise=normalise,
+                         position=position)
+
+    def for_amplifier(self, name):
+        """The model of the stars of amplifier ``name`` (EXTNAME): P0 with that amplifier's
+        boundary shifts (`with_shifts`) when the model has per-amplifier shifts
+        (``amplifier_shifts``, from ``bfpsf psf`` on several amplifiers), else this model."""
+        if not self.amplifier_shifts:
+            return self
+        if name not in self.amplifier_shifts:
+            msg = (f"the PSF has no boundary shifts for amplifier {name!r} (it has "
+                   f"{', '.join(sorted(self.amplifier_shifts))})")
+            raise BFPSFValueError(msg, name)
+        return self.with_shifts(self.amplifier_shifts[name])
+
+    @property
+    def electrons_per_unit(self):
+        """e- per flux unit: 1 in electrons, the gain in ADU (the factor g of the BF term)."""
+        return self.gain if self.flux_unit == "adu" else 1.0
+
+    # -- astropy model interface -------------------------------------------------------------
+    def copy(self):
+        """Copy with the parameter values copied and the arrays, splines and nodes shared."""
+        new = object.__new__(self.__class__)
+        for key, value in self.__dict__.items():
+            new.__dict__[key] = copy.copy(value) if key in self.param_names else value
+        return new
+
+    def deepcopy(self):
+        """A copy that owns every array."""
+        return copy.deepcopy(self)
+
+    # -- the PSF product (bfpsf.psf_product: the model layer knows nothing of files) ---------
+    def write(self, path, *, calibration=None, meta=None, overwrite=False):
+        """Write the PSF product (FITS); see `bfpsf.psf_product.write_psf`."""
+        from ..psf_product import write_psf
+
+        write_psf(self, path, calibration=calibration, meta=meta, overwrite=overwrite)
+
+    @classmethod
+    def read(cls, path, **kwargs):
+        """Read a PSF product (`bfpsf.psf_product.read_psf`): any kind through this class or
+        `FluxDependentPSF` (``reads_any_kind``), only a grid through
+        `GriddedFluxDependentPSF`."""
+        from ..psf_product import read_psf
+
+        from .psf import FluxDependentPSF
+
+        if issubclass(cls, FluxDependentPSF):
+            kwargs.setdefault("cls", cls)
+        psf = read_psf(path, **kwargs)
+        if not (cls.reads_any_kind or isinstance(psf, cls)):
+            msg = f"{path} holds {psf.kind}, not {cls.kind}"
+            raise BFPSFValueError(msg, str(path))
+        return psf
+
+    save = write
+    load = read
+
+    # -- value semantics -----------------------------------------------------------------------
+    def _value_state(self):
+        """Everything that makes the model what it is (arrays, shifts, options, metadata)."""
+        raise NotImplementedError
+
+    def __eq__(self, other):
+        if type(other) is not type(self):
+            return NotImplemented
+        return _equal(self._value_state(), other._value_state())
+
+    def __ne__(self, other):
+        equal = self.__eq__(other)
+        return equal if equal is NotImplemented else not equal
+
+    def __hash__(self):
+        # equal models share these; the parameters (mutable) and arrays stay out of it
+        return hash((type(self).__name__, self.half_size, self.flux_unit, self.gain))
+
+
+def _equal(left, right):
+    """Equality of nested tuples, dicts and arrays (arrays by value)."""
+    if isinstance(left, dict) and isinstance(right, dict):
+        return left.keys() == right.keys() and all(_equal(left[k], right[k]) for k in left)
+    if isinstance(left, (tuple, list)) and isinstance(right, (tuple, list)):
+        return len(left) == len(right) and all(_equal(a, b) for a, b in zip(left, right))
+    if isinstance(left, np.ndarray) or isinstance(right, np.ndarray):
+        return np.shape(left) == np.shape(right) and np.array_equal(left, right)
+    if isinstance(left, float) and isinstance(right, float) and np.isnan(left):
+        return bool(np.isnan(right))  # an unknown error equals an unknown error
+    return bool(left == right)
