@@ -44,6 +44,10 @@ def _column(values, name, n=None, positive=False):
     return array
 
 
+#: Optional per-entry columns of a `SizeTable` beyond the colour and the exposure.
+_OPTIONAL_COLUMNS = ("x_detector", "skew_x", "skew_y", "skew_x_err", "skew_y_err")
+
+
 @dataclass(frozen=True)
 class SizeTable:
     """Spot size against peak flux (the brighter-fatter observable, G15 section 3).
@@ -63,7 +67,15 @@ class SizeTable:
     label : str
     exposure : ndarray of int (n,) or None
         Exposure each entry was measured on, when known: the held-out split
-        (`bfpsf.diagnosis.loop.split_observables`) keeps whole exposures apart.
+        (`bfpsf.diagnosis.loop.split_observables`) keeps whole exposures apart. Exposure
+        numbers are in the order of the night (the residual report's exposure-order terms).
+    x_detector : ndarray (n,) or None
+        Mean position of the entry's stars on the detector along X (distance from the
+        amplifier), pixels: the position dependence of the residual
+        (`bfpsf.diagnosis.signature`).
+    skew_x, skew_y, skew_x_err, skew_y_err : ndarray (n,) or None
+        Third standardised moments of the stars along X and Y (`bfpsf.diagnosis.bench.skewness`)
+        and their errors: the odd (centroid- and skew-like) part of the residual.
     """
 
     peak_e: np.ndarray
@@ -75,6 +87,11 @@ class SizeTable:
     colour: np.ndarray = None
     label: str = ""
     exposure: np.ndarray = None
+    x_detector: np.ndarray = None
+    skew_x: np.ndarray = None
+    skew_y: np.ndarray = None
+    skew_x_err: np.ndarray = None
+    skew_y_err: np.ndarray = None
 
     def __post_init__(self):
         n = np.size(self.peak_e)
@@ -94,6 +111,14 @@ class SizeTable:
                 msg = f"exposure must have {n} values, got {exposure.size}"
                 raise BFPSFInputError(msg, exposure.size)
             object.__setattr__(self, "exposure", exposure.astype(int))
+        for name in _OPTIONAL_COLUMNS:
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, _column(getattr(self, name), name, n,
+                                                       positive=name.endswith("_err")))
+        if (self.skew_x is None) != (self.skew_x_err is None) or \
+                (self.skew_y is None) != (self.skew_y_err is None):
+            msg = "skewness columns need their errors (skew_x_err, skew_y_err)"
+            raise BFPSFInputError(msg)
         if n < 3:
             msg = f"a size table needs at least 3 entries, got {n}"
             raise BFPSFInputError(msg, n)
@@ -113,7 +138,8 @@ class SizeTable:
         return SizeTable(self.peak_e[rows], self.sigma_x[rows], self.sigma_y[rows],
                          self.sigma_x_err[rows], self.sigma_y_err[rows], group=self.group[rows],
                          colour=pick(self.colour), label=self.label,
-                         exposure=pick(self.exposure))
+                         exposure=pick(self.exposure),
+                         **{name: pick(getattr(self, name)) for name in _OPTIONAL_COLUMNS})
 
 
 @dataclass(frozen=True)
