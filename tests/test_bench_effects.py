@@ -5,8 +5,8 @@ conserved, the right axis, parity, position and exposure dependence (`bfpsf.diag
 import numpy as np
 import pytest
 
-from bfpsf.diagnosis.bench import (DETECTOR_WIDTH, OUTSIDE_EFFECTS, apply_effect,
-                                   draw_bench_spots, skewness)
+from bfpsf.diagnosis.bench import DETECTOR_WIDTH, OUTSIDE_EFFECTS, apply_effect, draw_bench_spots
+from bfpsf.diagnosis.odd_moments import skewness, star_skewness
 from bfpsf.errors import BFPSFValueError
 from bfpsf.measure.moments import adaptive_moments_batch
 from bfpsf.shifts import BoundaryShifts
@@ -82,3 +82,21 @@ def test_bench_input_errors(spots):
         apply_effect(spots, "tree_rings", 1.0)
     with pytest.raises(BFPSFValueError, match="either shifts"):
         draw_bench_spots(n_exposures=1)
+
+
+def test_star_skewness_matches_the_stamp_measurement(spots):
+    """On an image of two spots, the table-driven skewness equals that of the stamps."""
+    from astropy.table import Table
+
+    stamps = apply_effect(spots, "centroid", 0.05)[[9, 17]]
+    image = np.zeros((30, 60))
+    image[3:27, 3:27], image[3:27, 33:57] = stamps
+    moments = adaptive_moments_batch(stamps)
+    table = Table({"x": np.asarray(moments.x) + [3, 33], "y": np.asarray(moments.y) + 3,
+                   "mxx": moments.mxx, "myy": moments.myy, "mxy": moments.mxy})
+    expected = skewness(stamps, moments)
+    got = star_skewness(image, table, half_size=11)
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-9)
+    # a star too close to the edge has none
+    table["x"][0] = 2.0
+    assert np.isnan(star_skewness(image, table, half_size=11)[0][0])

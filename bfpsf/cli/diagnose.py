@@ -12,7 +12,8 @@ Two modes (a thin layer over `bfpsf.diagnosis`):
 
 JSON keys: ``residual_before``, ``candidates``, ``selected``, ``residual_after``,
 ``residual_before_heldout``, ``residual_after_heldout`` (same keys as ``residual_after``),
-``confirmed``, ``holdout``, ``unexplained`` (plus ``nuisance``, ``output_calib``,
+``confirmed``, ``holdout``, ``unexplained``, ``rejected`` (candidates whose signature the data
+contradict, `bfpsf.diagnosis.signature`), ``verdict`` (plus ``nuisance``, ``output_calib``,
 ``parameters``, ``ambiguous``, ``residual_physical``, ``threshold``, ``inputs``, and in images
 mode ``star_residual``: the stacked residual of the stars against P(F), ``rms_over_peak``,
 ``chi2_per_pixel``, ``n_stars`` and its radial profile).
@@ -21,6 +22,7 @@ mode ``star_residual``: the stacked residual of the stars against P(F), ``rms_ov
 import sys
 from pathlib import Path
 
+from ..diagnosis.signature import describe_entry
 from ..errors import BFPSFInputError
 from . import background_option, maxlag_option
 
@@ -52,6 +54,9 @@ def add_parser(subparsers):
                       help="calibrate without the Astier+19 b term (few or small flats)")
     data.add_argument("--bins", type=int, default=10,
                       help="peak bins of the measured sizes (default 10)")
+    data.add_argument("--position-bins", type=int, default=1, metavar="N",
+                      help="also split the bins in N ranges of column (distance from the "
+                           "amplifier), for the residual's position dependence (default 1)")
     tables = parser.add_argument_group("table mode")
     tables.add_argument("--correlations", metavar="FILE",
                         help="measured a / correlation table (corr_meas, Poisson_CCD, cp_pipe)")
@@ -102,7 +107,8 @@ def _observables(args):
                                                 fit_b=args.fit_b, amp=args.amp,
                                                 holdout_fraction=args.holdout_fraction,
                                                 background=args.background,
-                                                progress=None)
+                                                progress=None,
+                                                position_bins=args.position_bins)
     msg = ("give --flats and --images, or --correlations and --sizes, or --measured NAME")
     raise BFPSFInputError(msg)
 
@@ -167,9 +173,17 @@ def run(args):
                  ("held-out after", result.residual_after_heldout)]
         for name, confirmed in result.confirmed.items():
             print(f"{name}: {'confirmed' if confirmed else 'NOT CONFIRMED'} on held-out data")
+    for name, entry in result.rejected.items():
+        print(f"rejected: {name} (Delta BIC {entry['delta_bic']:.0f}): its signature is "
+              f"contradicted by {entry['contradicted_by']} (p = {entry['p_value']:.1e})")
     for entry in result.unexplained:
-        print(f"unexplained: {entry['observable']} {entry['axis'] or ''} "
-              f"{entry['significance']:.1f} sigma")
+        print(f"unexplained: {describe_entry(entry)}")
+    verdict = result.verdict
+    if verdict.get("star_residual_chi2_per_pixel") is not None:
+        print(f"star residual chi2 per pixel {verdict['star_residual_chi2_per_pixel']:.1f} "
+              f"(null expectation {verdict['null_expectation']:.1f})")
+    print("verdict: " + ("explained" if verdict.get("success") else
+                         "NOT EXPLAINED: " + "; ".join(verdict.get("reasons", []))))
     for label, values in rows:
         if "slope_x_percent" in values:
             print(f"{label}: BF slope residual X {values['slope_x_percent']:+.2f} %, "

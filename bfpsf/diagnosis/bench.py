@@ -42,9 +42,10 @@ import numpy as np
 
 from ..errors import BFPSFValueError
 from .observables import SizeTable
+from .odd_moments import skewness
 
 __all__ = ["OUTSIDE_EFFECTS", "CATALOGUE_CASES", "BenchSpots", "draw_bench_spots",
-           "apply_effect", "bench_sizes", "skewness"]
+           "apply_effect", "bench_sizes"]
 
 #: Effects no catalogue entry describes.
 OUTSIDE_EFFECTS = ("one_axis", "position", "centroid", "night")
@@ -197,27 +198,6 @@ def apply_effect(spots, name, strength):
         return out
     msg = f"unknown bench effect {name!r}; expected one of {OUTSIDE_EFFECTS + CATALOGUE_CASES}"
     raise BFPSFValueError(msg, name)
-
-
-def skewness(stamps, moments):
-    """Third standardised moments along X and Y under the adaptive Gaussian weight.
-
-    skew_x = sum w I (x - x0)^3 / (sum w I) / Mxx^(3/2), w the elliptical Gaussian of the
-    adaptive moments; zero for a profile symmetric under x -> -x about its centroid, so it
-    measures the odd (centroid- and skew-like) part of a star. Dimensionless.
-    """
-    n, ny, nx = stamps.shape
-    y, x = np.mgrid[:ny, :nx].astype(float)
-    dx = x[None] - np.asarray(moments.x)[:, None, None]
-    dy = y[None] - np.asarray(moments.y)[:, None, None]
-    mxx, myy, mxy = (np.asarray(v)[:, None, None] for v in (moments.mxx, moments.myy,
-                                                             moments.mxy))
-    det = mxx * myy - mxy ** 2
-    weight = np.exp(-0.5 * (myy * dx ** 2 - 2 * mxy * dx * dy + mxx * dy ** 2) / det)
-    total = np.sum(weight * stamps, axis=(1, 2))
-    skew_x = np.sum(weight * stamps * dx ** 3, axis=(1, 2)) / total / mxx[:, 0, 0] ** 1.5
-    skew_y = np.sum(weight * stamps * dy ** 3, axis=(1, 2)) / total / myy[:, 0, 0] ** 1.5
-    return skew_x, skew_y
 
 
 def bench_sizes(spots, stamps_e, *, sky_e=50.0, read_noise_e=5.0, seed=0):

@@ -43,13 +43,17 @@ against peak, percent of the raw measured slope), the photometry bias the size r
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import chi2 as _chi2
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from .catalogue import CATALOGUE
 from .observables import interleaved as _interleaved
+from .signature import (SIGNATURE_ALPHA, contradiction, parity_test, signature_parts,
+                        signature_test)
+from .signature import weighted_least_squares as _wls
 
 __all__ = ["DiagnosisResult", "diagnose", "DEFAULT_THRESHOLD", "slope_residuals", "split_observables",
-           "describe_unexplained", "UNEXPLAINED_NSIGMA"]
+           "describe_unexplained", "UNEXPLAINED_NSIGMA", "verdict", "STAR_CHI2_FACTOR"]
 
 #: Families `bfpsf.diagnosis.refine` folds into a calibration (second order: when positive).
 _FOLDABLE = ("calibration_scale", "xy_anisotropy", "gain_nonlinearity")
@@ -182,25 +186,6 @@ def _effect_design(problem, templates):
     return design
 
 
-def _wls(residual, sigma, design):
-    """Weighted least squares: parameters, covariance, chi2, fitted model."""
-    weights = 1.0 / sigma
-    a = design * weights[:, None]
-    b = residual * weights
-    # scale columns for conditioning
-    norms = np.sqrt((a ** 2).sum(axis=0))
-    norms[norms == 0] = 1.0
-    solution, *_ = np.linalg.lstsq(a / norms, b, rcond=None)
-    params = solution / norms
-    model = design @ params
-    chi2 = float((((residual - model) * weights) ** 2).sum())
-    try:
-        covariance = np.linalg.pinv((a / norms).T @ (a / norms)) / np.outer(norms, norms)
-    except np.linalg.LinAlgError:
-        covariance = np.full((params.size, params.size), np.nan)
-    return params, covariance, chi2, model
-
-
 def slope_residuals(sizes, residual_x, residual_y):
     """BF slope residual in X and Y, percent of the raw measured slope, and the raw slopes.
 
@@ -326,6 +311,16 @@ class DiagnosisResult:
     unexplained : list of dict
         Significant residuals no confirmed effect explains: {observable, axis, parity,
         flux_dependence, significance} (`describe_unexplained`).
+    rejected : dict
+        Candidates that passed the information criterion but not the signature test
+        (`bfpsf.diagnosis.signature`): name -> {``round``, ``delta_bic``, ``contradicted_by``
+        (the dimension with the smallest p-value), ``p_value``, ``signature`` (every
+        dimension's test)}. The first round each was rejected in.
+    verdict : dict
+        `verdict`: ``success`` (False whenever a residual is unexplained, the size scale's
+        signature is contradicted or the stars' residual chi2 per pixel is far above its null
+        expectation), ``reasons``, ``star_residual_chi2_per_pixel``, ``null_expectation``
+        and ``limit``.
     folded : dict
         The joint fit of the selected effects a calibration can hold (``names``, ``effects``:
         name -> values, ``scale_nuisance``), for `bfpsf.diagnosis.refine`.
@@ -354,6 +349,8 @@ class DiagnosisResult:
     holdout: dict = None
     unexplained: list = field(default_factory=list)
     folded: dict = field(default_factory=dict)
+    rejected: dict = field(default_factory=dict)
+    verdict: dict = field(default_factory=dict)
 
     def to_json_dict(self):
         """The ``--json`` summary: residual_before, candidates, selected, residual_after (+)."""
@@ -366,11 +363,12 @@ class DiagnosisResult:
                       "residual_after_heldout": self.residual_after_heldout,
                       "residual_physical_heldout": self.residual_physical_heldout,
                       "confirmed": self.confirmed, "holdout": self.holdout,
-                      "unexplained": self.unexplained, "folded": self.folded})
+                      "unexplained": self.unexplained, "folded": self.folded,
+                      "rejected": self.rejected, "verdict": self.verdict})
 
 
 def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, max_rounds=4,
-             prefer_physical=False, holdout_fraction=None):
+             prefer_physical=False, holdout_fraction=None, signature_alpha=SIGNATURE_ALPHA):
     """Find, by information criterion, the effects the base model is missing.
 
     Parameters
@@ -391,6 +389,11 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
         Fit on part of the data and report the residual on the rest (`split_observables`):
         ``residual_before_heldout``, ``residual_after_heldout`` and, per selected effect,
         whether it improves the held-out residual (``confirmed``). Default None: no split.
+    signature_alpha : float or None, optional
+        A candidate is named only when its signature matches in every dimension at this
+        p-value (`bfpsf.diagnosis.signature`, default 1e-3); those that pass the
+        information criterion but not the signature are reported in ``rejected``. None: the
+        information criterion alone (the loop before issue 22).
 
     Returns
     -------
@@ -398,13 +401,17 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
     """
     if holdout_fraction:
         fit_part, heldout = split_observables(observables, holdout_fraction)
-        result, state = _run_loop(fit_part, catalogue, threshold, max_rounds, prefer_physical)
-        return _with_heldout(result, state, heldout, holdout_fraction)
-    result, state = _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical)
-    return _with_unexplained(result, state, observables)
+        result, state = _run_loop(fit_part, catalogue, threshold, max_rounds, prefer_physical,
+                                  signature_alpha)
+        return _with_verdict(_with_heldout(result, state, heldout, holdout_fraction),
+                             observables)
+    result, state = _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
+                              signature_alpha)
+    return _with_verdict(_with_unexplained(result, state, observables), observables)
 
 
-def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
+def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
+              signature_alpha=SIGNATURE_ALPHA):
     """The loop itself: the result and what the held-out evaluation needs."""
     if not threshold < 0:
         msg = f"threshold must be a negative Delta BIC, got {threshold!r}"
@@ -461,6 +468,24 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
         model_before = _wls(problem.residual, problem.sigma, local)[3]
     candidates = []
     ambiguous = {}
+    rejected = {}
+    parts = signature_parts(problem, observables)
+    parity = parity_test(observables.sizes, alpha=signature_alpha or SIGNATURE_ALPHA)
+
+    def signature(design, nuisance=None):
+        """The signature test of a template given the effects already selected."""
+        free = [other for other in selected if other not in fixed]
+        offset = sum((fixed[other] for other in selected if other in fixed),
+                     np.zeros_like(problem.residual))
+        base = np.column_stack([problem.nuisance if nuisance is None else nuisance]
+                               + [designs[other] for other in free])
+        test = signature_test(problem.residual - offset, problem.sigma, base, design, parts,
+                              alpha=signature_alpha)
+        if parity is not None and "sizes" in problem.slices and np.any(
+                design[problem.slices["sizes"]]):
+            test["parity"] = parity
+        return test
+
     for round_index in range(int(max_rounds)):
         scores = []
         taken = {family(name) for name in selected}
@@ -488,6 +513,16 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
                     low <= value <= high for value, (low, high) in zip(values, effect.bounds))
                 entry.update(statistic=float(statistic), delta_bic=float(delta_bic),
                              parameters=values, errors=errors, allowed=bool(allowed))
+                if allowed and delta_bic < threshold and signature_alpha:
+                    test = signature(designs[effect.name])
+                    against = contradiction(test)
+                    entry.update(signature=test, contradicted_by=against)
+                    if against is not None:
+                        rejected.setdefault(name, {
+                            "round": round_index + 1, "delta_bic": float(delta_bic),
+                            "contradicted_by": against,
+                            "p_value": test[against]["p_value"], "signature": test})
+                        allowed = False
                 if allowed:
                     scores.append((delta_bic, name, chi2))
             candidates.append(entry)
@@ -560,6 +595,20 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
             "value": float(params[column]),
             "error": float(np.sqrt(abs(covariance[column, column]))),
             "prior": float(observables.meta["scale_err"])}
+        if signature_alpha:
+            # the size scale is a nuisance within the flats' error, with a signature of its
+            # own (isotropic, the same everywhere): tested like a candidate, and its pull
+            # against the flats' prior must stay within 3 sigma
+            test = signature(problem.nuisance[:, [column]],
+                             nuisance=np.delete(problem.nuisance, column, axis=1))
+            entry = nuisance["calibration_scale"]
+            pull = entry["value"] / entry["prior"] if entry["prior"] > 0 else 0.0
+            test["flats_prior"] = {"parts": ["flats", "stars"], "amplitudes": [[0.0],
+                                   [entry["value"]]], "errors": [[entry["prior"]],
+                                   [entry["error"]]], "chi2": pull ** 2, "dof": 1,
+                                   "p_value": float(_chi2.sf(pull ** 2, 1)),
+                                   "matches": bool(abs(pull) <= 3.0)}
+            entry.update(signature=test, contradicted_by=contradiction(test))
     # what a calibration can hold (`bfpsf.diagnosis.refine`), refitted jointly without the
     # rest: a fitted second order goes into the build-up only when positive (the build-up's
     # own second order strengthens BF); otherwise the others are refitted without it
@@ -577,7 +626,8 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
                              residual_after=_summary(problem, observables, model_after),
                              parameters=parameters, threshold=float(threshold), curves=curves,
                              ambiguous=ambiguous, residual_physical=residual_physical,
-                             ptc_curves=ptc_curves, nuisance=nuisance, folded=folded)
+                             ptc_curves=ptc_curves, nuisance=nuisance, folded=folded,
+                             rejected=rejected)
     # for the held-out evaluation: the effect and global-nuisance values of each step, the
     # first one the bare prediction
     steps = [{"names": [], "global": np.zeros(len(problem.global_columns)), "effects": {},
@@ -737,7 +787,9 @@ def _with_heldout(result, state, heldout, fraction):
     # unexplained: judged on the held-out data with the confirmed effects only
     kept = [name for name in result.selected if confirmed[name]]
     step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
-    if not confirmed.get("calibration_scale (nuisance)", True):
+    contradicted = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
+    if not confirmed.get("calibration_scale (nuisance)", True) or contradicted:
+        # a size scale whose signature is contradicted is no explanation either
         step = dict(step, **{"global": np.zeros_like(step["global"])})
     problem, model = _evaluate(state, heldout, step)
     unexplained = describe_unexplained(problem, heldout, model)
@@ -753,6 +805,56 @@ def _with_unexplained(result, state, observables):
     model = state["steps"][-1]["model"]
     return dataclasses.replace(result, unexplained=describe_unexplained(
         state["problem"], observables, model))
+
+
+#: The stacked star residual's chi2 per pixel is "far above" its null expectation beyond this
+#: factor (the null expectation is 1 for the noise model of `stacked_star_residual`; a
+#: measured null, ``meta['star_chi2_null']``, replaces it).
+STAR_CHI2_FACTOR = 10.0
+
+
+def verdict(unexplained, nuisance, star=None, null_expectation=1.0):
+    """Whether a run explains its data: never a success while something is left.
+
+    Parameters
+    ----------
+    unexplained : list of dict
+        `describe_unexplained`.
+    nuisance : dict
+        `DiagnosisResult.nuisance` (the size scale and its signature).
+    star : dict, optional
+        The stacked star residual (`stacked_star_residual`), with ``chi2_per_pixel``.
+    null_expectation : float
+        Its chi2 per pixel on data the model describes (1 for the noise model).
+
+    Returns
+    -------
+    dict
+        ``success``, ``reasons`` (list of str), ``star_residual_chi2_per_pixel``,
+        ``null_expectation``, ``limit`` (`STAR_CHI2_FACTOR` times the expectation).
+    """
+    reasons = [f"unexplained {entry['observable']}"
+               + (f" {entry['axis']}" if entry.get("axis") else "")
+               + f" ({entry['significance']:.1f} sigma)" for entry in unexplained]
+    against = (nuisance.get("calibration_scale") or {}).get("contradicted_by")
+    if against:
+        reasons.append(f"the size scale is contradicted by {against}")
+    chi2 = None if star is None else float(star["chi2_per_pixel"])
+    limit = STAR_CHI2_FACTOR * float(null_expectation)
+    if chi2 is not None and chi2 > limit:
+        reasons.append(f"star residual chi2 per pixel {chi2:.1f}, null expectation "
+                       f"{null_expectation:.1f} (limit {limit:.1f})")
+    return {"success": not reasons, "reasons": reasons, "star_residual_chi2_per_pixel": chi2,
+            "null_expectation": float(null_expectation), "limit": limit}
+
+
+def _with_verdict(result, observables):
+    import dataclasses
+
+    meta = observables.meta
+    return dataclasses.replace(result, verdict=verdict(
+        result.unexplained, result.nuisance, meta.get("star_residual"),
+        meta.get("star_chi2_null", 1.0)))
 
 
 #: Significance (sigma) above which a residual is reported as unexplained.
@@ -783,19 +885,55 @@ def _flux_dependence(peak, residual, sigma, group):
     return {"kind": kind, "per_1e5": float(params[0]), "per_1e10": float(params[1])}
 
 
+def _dependence(sizes, values, errors, column, scale, labels):
+    """Coefficient of peak x (column - mean) / scale in the size residual (per-group
+    intercepts and a common slope fitted with it): how the flux dependence changes along
+    ``column`` (detector position, exposure order)."""
+    x = sizes.peak_e / 1e5
+    centred = (np.asarray(column, float) - np.mean(column)) / scale
+    groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
+    params, covariance, _, _ = _wls(values, errors, np.column_stack([x, x * centred, groups]))
+    error = float(np.sqrt(abs(covariance[1, 1])))
+    significance = abs(params[1]) / error if error > 0 else 0.0
+    kind = "none" if significance <= UNEXPLAINED_NSIGMA else labels[int(params[1] < 0)]
+    return {"kind": kind, "per_1e5_per_unit": float(params[1]), "error": error,
+            "significance": float(significance)}
+
+
+def _odd_parity(sizes, axis):
+    """'odd' when the stars' skewness along ``axis`` changes with flux at more than
+    `UNEXPLAINED_NSIGMA`, else 'even'; None without skewness columns."""
+    values = getattr(sizes, f"skew_{axis}")
+    if values is None:
+        return None
+    errors = getattr(sizes, f"skew_{axis}_err")
+    groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
+    params, covariance, _, _ = _wls(values, errors, np.column_stack([sizes.peak_e / 1e5,
+                                                                     groups]))
+    significance = abs(params[0]) / np.sqrt(abs(covariance[0, 0]))
+    return "odd" if significance > UNEXPLAINED_NSIGMA else "even"
+
+
 def describe_unexplained(problem, observables, model):
     """Significant residuals left by a model, with their signature.
 
     Sizes, per axis: the slope of the size residual against peak (per-group intercepts) at
-    more than `UNEXPLAINED_NSIGMA` of its error; its parity is that of the stacked star
-    residual under reflection along the axis (when the observables hold one); its flux
-    dependence the highest significant power of peak. Other observables: a chi2 per point
-    whose excess over its degrees of freedom is significant, (chi2 - N) / sqrt(2 N).
+    more than `UNEXPLAINED_NSIGMA` of its error; its sign (``rising`` or ``falling`` with
+    flux); its parity: ``odd`` when the stars' skewness along the axis changes with flux
+    (``SizeTable.skew_x``, ``skew_y``), else that of the stacked star residual under
+    reflection along the axis; its flux dependence the highest significant power of peak;
+    its ``position_dependence`` (the slope's change with the distance from the amplifier,
+    per 1000 pixels, with ``SizeTable.x_detector``) and ``exposure_dependence`` (per exposure
+    of the night, with ``SizeTable.exposure``), each with its significance and a kind
+    (``none`` below `UNEXPLAINED_NSIGMA`); ``flats`` says whether a flat observable is
+    unexplained too (``flats and stars``) or not (``stars only``). Other observables: a chi2
+    per point whose excess over its degrees of freedom is significant, (chi2 - N) / sqrt(2 N).
 
     Returns
     -------
     list of dict
-        {observable, axis, parity, flux_dependence, significance (sigma)}.
+        {observable, axis, parity, flux_dependence, significance (sigma)} and, for sizes,
+        sign, position_dependence, exposure_dependence, flats.
     """
     residual = problem.residual - model
     out = []
@@ -813,11 +951,26 @@ def describe_unexplained(problem, observables, model):
                                    scale_errors=False, clip_nsigma=None)
                 significance = abs(fit.slope) / fit.slope_err
                 if significance > UNEXPLAINED_NSIGMA:
-                    out.append({"observable": "sizes", "axis": axis,
-                                "parity": _parity(observables.meta.get("star_residual"), axis),
-                                "flux_dependence": _flux_dependence(sizes.peak_e, values, errors,
-                                                                    sizes.group),
-                                "significance": float(significance)})
+                    parity = _odd_parity(sizes, axis)
+                    if parity is None:
+                        parity = _parity(observables.meta.get("star_residual"), axis)
+                    entry = {"observable": "sizes", "axis": axis, "parity": parity,
+                             "sign": "rising" if fit.slope > 0 else "falling",
+                             "flux_dependence": _flux_dependence(sizes.peak_e, values, errors,
+                                                                 sizes.group),
+                             "significance": float(significance),
+                             "position_dependence": None, "exposure_dependence": None}
+                    if sizes.x_detector is not None and np.ptp(sizes.x_detector) > 0:
+                        entry["position_dependence"] = _dependence(
+                            sizes, values, errors, sizes.x_detector, 1000.0,
+                            ("rising with distance from the amplifier",
+                             "falling with distance from the amplifier"))
+                    if sizes.exposure is not None and np.unique(sizes.exposure).size > 2:
+                        order = np.unique(sizes.exposure, return_inverse=True)[1]
+                        entry["exposure_dependence"] = _dependence(
+                            sizes, values, errors, order, 1.0,
+                            ("rising over the night", "falling over the night"))
+                    out.append(entry)
             continue
         n_points = part.size
         chi2 = float(np.sum((part / sigma) ** 2))
@@ -830,4 +983,8 @@ def describe_unexplained(problem, observables, model):
                 dependence = _flux_dependence(mean, part, sigma, np.zeros(mean.size, int))
             out.append({"observable": key, "axis": None, "parity": None,
                         "flux_dependence": dependence, "significance": float(significance)})
+    flats = any(entry["observable"] != "sizes" for entry in out)
+    for entry in out:
+        if entry["observable"] == "sizes":
+            entry["flats"] = "flats and stars" if flats else "stars only"
     return out

@@ -362,32 +362,57 @@ def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=Non
                        correlations=correlations, meta=meta, ptc=ptc)
 
 
-def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label):
+def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=None,
+                  skew=None, position_bins=1):
     """Mean peak and sizes in quantile bins of flux for each exposure (the same bin edges for
     all), errors from the scatter in each bin; bins with fewer than 3 stars are left out.
 
     Bins are in total flux, not in measured peak: at one flux the peak of a pixelised star
     depends on its sub-pixel phase (by 30 % for a 3 px FWHM), and so does its size, so bins
     of measured peak would select phases and bias the sizes with the peak.
+
+    With ``x`` (star columns, pixels) and ``position_bins`` > 1, every bin is also split in
+    that many quantile ranges of x (the distance from the amplifier): the rows carry their
+    mean x (``x_detector``) and the x range is their intercept group. With ``skew`` ((skew_x,
+    skew_y) per star, `bfpsf.diagnosis.odd_moments.star_skewness`) the rows carry its mean and
+    error (stars without one left out of it).
     """
     edges = np.quantile(flux, np.linspace(0.0, 1.0, n_bins + 1))
     index = np.clip(np.searchsorted(edges, flux, side="right") - 1, 0, n_bins - 1)
+    column = np.zeros(flux.size, int)
+    if x is not None and position_bins > 1:
+        x_edges = np.quantile(x, np.linspace(0.0, 1.0, int(position_bins) + 1))
+        column = np.clip(np.searchsorted(x_edges, x, side="right") - 1, 0,
+                         int(position_bins) - 1)
     rows = []
     for image in np.unique(exposure):
-        for k in range(n_bins):
-            members = (index == k) & (exposure == image)
-            if members.sum() < 3:
-                continue
-            root_n = np.sqrt(members.sum())
-            rows.append((peak[members].mean(), sigma_x[members].mean(), sigma_y[members].mean(),
-                         sigma_x[members].std(ddof=1) / root_n,
-                         sigma_y[members].std(ddof=1) / root_n, image))
+        for part in np.unique(column):
+            for k in range(n_bins):
+                members = (index == k) & (exposure == image) & (column == part)
+                if members.sum() < 3:
+                    continue
+                root_n = np.sqrt(members.sum())
+                row = [peak[members].mean(), sigma_x[members].mean(), sigma_y[members].mean(),
+                       sigma_x[members].std(ddof=1) / root_n,
+                       sigma_y[members].std(ddof=1) / root_n, image, part,
+                       np.nan if x is None else x[members].mean()]
+                for values in (skew if skew is not None else ()):
+                    known = members & np.isfinite(values)
+                    row += ([values[known].mean(), values[known].std(ddof=1)
+                             / np.sqrt(known.sum())] if known.sum() >= 3 else [np.nan, np.nan])
+                rows.append(row)
     if len(rows) < 3:
         msg = f"only {len(rows)} peak bins hold 3 or more stars: too few to diagnose"
         raise BFPSFInputError(msg, len(rows))
     rows = np.array(rows)
+    extra = {}
+    if x is not None:
+        extra["x_detector"] = rows[:, 7]
+    if skew is not None and np.all(np.isfinite(rows[:, 8:12])) and np.all(rows[:, [9, 11]] > 0):
+        extra.update(skew_x=rows[:, 8], skew_x_err=rows[:, 9], skew_y=rows[:, 10],
+                     skew_y_err=rows[:, 11])
     return SizeTable(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], label=label,
-                     exposure=rows[:, 5].astype(int))
+                     exposure=rows[:, 5].astype(int), group=rows[:, 6].astype(int), **extra)
 
 
 def bf_scale_error(spot_model, shift_draws, peaks_e):
@@ -515,7 +540,8 @@ def interleaved(n, fraction):
 
 def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=10, gain=None,
                             calibration=None, fit_b=True, amp=None, holdout_fraction=0.5,
-                            n_monte_carlo=30, background=None, progress=False):
+                            n_monte_carlo=30, background=None, progress=False,
+                            position_bins=1):
     """Observables from flat-field FITS and spot / star images (ADU, bias subtracted).
 
     The flats are calibrated (`bfpsf.calibrate`, with ``n_monte_carlo`` bootstrap samples of
@@ -525,7 +551,10 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     `bfpsf.calibrate` (False for a few small flats, whose b term is unconstrained). The loop
     works on one amplifier: ``amp`` names it in multi-amplifier files (flats and images are
     read by `bfpsf.io.amplifiers`). ``background`` is the images' sky level, ADU per pixel
-    (default: the sigma-clipped median of each image).
+    (default: the sigma-clipped median of each image). ``position_bins`` > 1 also splits
+    the bins by the stars' column (`_binned_sizes`): the residual's dependence on the distance
+    from the amplifier. Every row carries the stars' mean column (``x_detector``) and mean
+    skewness (`bfpsf.diagnosis.odd_moments.star_skewness`), the odd part of the residual.
 
     The model spot is the P0 that ``bfpsf psf`` would fit (`bfpsf.model.psf_fit.fit_psf`, its
     defaults, the calibrated shifts) from the isolated stars of the exposures the loop fits
@@ -559,7 +588,10 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         msg = f"the calibration has no boundary shifts ({reason})"
         raise BFPSFInputError(msg)
     gain = cal.gain if gain is None else gain
+    from .odd_moments import star_skewness
+
     fluxes, peaks, sigma_x, sigma_y, exposure = [], [], [], [], []
+    columns, skews = [], []
     pixels, tables, sky_noise = [], [], []
     for index, path in enumerate(images):
         amplifiers = read_amplifiers(path, amp, what="image")
@@ -582,10 +614,13 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         sigma_x.append(np.asarray(table["sigma_x"], float)[good])
         sigma_y.append(np.asarray(table["sigma_y"], float)[good])
         exposure.append(np.full(good.sum(), index))
-    fluxes, peaks, sigma_x, sigma_y, exposure = (np.concatenate(v) for v in
-                                                 (fluxes, peaks, sigma_x, sigma_y, exposure))
+        columns.append(np.asarray(table["x"], float)[good])
+        skews.append(np.array(star_skewness(data - sky, table[good])).T.reshape(-1, 2))
+    fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews = (
+        np.concatenate(v) for v in (fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews))
     sizes = _binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
-                          f"{len(images)} images")
+                          f"{len(images)} images", x=columns, skew=skews.T,
+                          position_bins=position_bins)
     # P0 from the exposures the loop fits (`bfpsf.diagnosis.loop.split_observables`)
     fitted = np.unique(sizes.exposure)
     if holdout_fraction and fitted.size >= 2:

@@ -123,7 +123,11 @@ def refine_calibration(calibration, result, *, provenance=None):
     scale = 0.0
     folded = result.folded or {"names": [], "effects": {}, "scale_nuisance": None}
     nuisance = folded.get("scale_nuisance")
-    if nuisance is not None and result.confirmed.get("calibration_scale (nuisance)", True):
+    against = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
+    if nuisance is not None and against:
+        not_applied["calibration_scale (nuisance)"] = (
+            f"its signature is contradicted by {against} (an effect outside the catalogue)")
+    elif nuisance is not None and result.confirmed.get("calibration_scale (nuisance)", True):
         scale += nuisance
         applied["calibration_scale (nuisance)"] = "shifts times (1 + s)"
         parameters["calibration_scale (nuisance)"] = dict(result.nuisance["calibration_scale"],
