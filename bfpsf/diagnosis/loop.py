@@ -321,6 +321,11 @@ class DiagnosisResult:
         signature is contradicted or the stars' residual chi2 per pixel is far above its null
         expectation), ``reasons``, ``star_residual_chi2_per_pixel``, ``null_expectation``
         and ``limit``.
+    empirical : dict or None
+        When a size residual is left: the EMPIRICAL term learned from it
+        (`bfpsf.model.empirical.EmpiricalTerm.to_dict`, label ``'empirical'``) with its
+        out-of-sample ``validation`` (``heldout`` and, with 4 or more exposures,
+        ``late_block``: slope residual and photometry bias before and after it).
     folded : dict
         The joint fit of the selected effects a calibration can hold (``names``, ``effects``:
         name -> values, ``scale_nuisance``), for `bfpsf.diagnosis.refine`.
@@ -351,6 +356,7 @@ class DiagnosisResult:
     folded: dict = field(default_factory=dict)
     rejected: dict = field(default_factory=dict)
     verdict: dict = field(default_factory=dict)
+    empirical: dict = None
 
     def to_json_dict(self):
         """The ``--json`` summary: residual_before, candidates, selected, residual_after (+)."""
@@ -364,7 +370,8 @@ class DiagnosisResult:
                       "residual_physical_heldout": self.residual_physical_heldout,
                       "confirmed": self.confirmed, "holdout": self.holdout,
                       "unexplained": self.unexplained, "folded": self.folded,
-                      "rejected": self.rejected, "verdict": self.verdict})
+                      "rejected": self.rejected, "verdict": self.verdict,
+                      "empirical": self.empirical})
 
 
 def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, max_rounds=4,
@@ -403,11 +410,12 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
         fit_part, heldout = split_observables(observables, holdout_fraction)
         result, state = _run_loop(fit_part, catalogue, threshold, max_rounds, prefer_physical,
                                   signature_alpha)
-        return _with_verdict(_with_heldout(result, state, heldout, holdout_fraction),
-                             observables)
+        result = _with_heldout(result, state, heldout, holdout_fraction)
+        return _with_verdict(_with_empirical(result, state, heldout, observables), observables)
     result, state = _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                               signature_alpha)
-    return _with_verdict(_with_unexplained(result, state, observables), observables)
+    result = _with_unexplained(result, state, observables)
+    return _with_verdict(_with_empirical(result, state, None, observables), observables)
 
 
 def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
@@ -639,7 +647,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                       "effects": _effect_values(values, problem, names, fixed, by_name, family),
                       "model": model})
     state = {"problem": problem, "steps": steps, "fixed": fixed, "family": family,
-             "by_name": by_name}
+             "by_name": by_name, "observables": observables}
     return result, state
 
 
@@ -751,6 +759,80 @@ def _evaluate(state, observables, step):
     return problem, model + offset
 
 
+def _kept_step(result, state, confirmed):
+    """The last step of the loop whose effects were all confirmed, with the size scale at
+    zero when it was not confirmed or its signature is contradicted (no explanation
+    either)."""
+    kept = [name for name in result.selected if confirmed.get(name, True)]
+    step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
+    contradicted = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
+    if step.get("global") is not None and (
+            not confirmed.get("calibration_scale (nuisance)", True) or contradicted):
+        step = dict(step, **{"global": np.zeros_like(step["global"])})
+    return step
+
+
+def _size_residual(state, observables, step):
+    """Measured minus predicted sigma_x, sigma_y with one step's effects and global
+    nuisances (no intercepts fitted), pixels."""
+    from .observables import Observables
+
+    only = Observables(sizes=observables.sizes, spot_model=observables.spot_model,
+                       meta=observables.meta)
+    problem = _build_problem(only)
+    offset = np.zeros_like(problem.residual)
+    for name, values in step["effects"].items():
+        templates = state["by_name"][state["family"](name)].templates(only)
+        offset += _effect_design(problem, templates) @ np.asarray(values, float)
+    if problem.global_columns and step.get("global") is not None:
+        offset += problem.nuisance[:, list(problem.global_columns)] @ step["global"]
+    residual = (problem.residual - offset)[problem.slices["sizes"]]
+    n = len(observables.sizes)
+    return residual[:n], residual[n:]
+
+
+def _with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0):
+    """The EMPIRICAL term (`bfpsf.diagnosis.empirical_fit`) when a size residual is left:
+    fitted on the loop's fit part, judged on its held-out exposures and, with at least 4
+    exposures, fitted on the early exposures and judged on a contiguous late block."""
+    import dataclasses
+
+    from .empirical_fit import adaptive_response, early_late, evaluate_empirical, fit_empirical
+
+    left = [entry for entry in result.unexplained if entry["observable"] == "sizes"]
+    if not left or observables.sizes is None:
+        return result
+    position = any((entry.get("position_dependence") or {}).get("kind", "none") != "none"
+                   for entry in left)
+    exposure = any((entry.get("exposure_dependence") or {}).get("kind", "none") != "none"
+                   for entry in left)
+    step = _kept_step(result, state, result.confirmed)
+    model = observables.spot_model
+
+    def inputs(part):
+        sizes = part.sizes
+        return (sizes, model.fluxes(sizes.peak_e), model.sizes(sizes.peak_e),
+                _size_residual(state, part, step))
+
+    response = adaptive_response(model, float(np.median(observables.sizes.peak_e)))
+    options = {"position": position, "exposure": exposure, "response": response}
+    term = fit_empirical(*inputs(state["observables"]), **options)
+    validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
+                  "position_term": position, "exposure_term": exposure}
+    if heldout is not None:
+        validation["heldout"] = evaluate_empirical(term, *inputs(heldout), response)
+    split = early_late(observables, late_fraction)
+    if split is not None:
+        early, late = split
+        early_term = fit_empirical(*inputs(early), **options)
+        validation["late_block"] = dict(evaluate_empirical(early_term, *inputs(late),
+                                                           response),
+                                        exposures=sorted(np.unique(late.sizes.exposure)
+                                                         .tolist()))
+    term = dataclasses.replace(term, validation=validation)
+    return dataclasses.replace(result, empirical=term.to_dict())
+
+
 def _with_heldout(result, state, heldout, fraction):
     """The result with the held-out residuals, the confirmation of each selected effect and
     the unexplained residuals (judged on the held-out data)."""
@@ -785,12 +867,7 @@ def _with_heldout(result, state, heldout, fraction):
                "n_fit": int(result.residual_after["n"]), "n_heldout": int(after["n"]),
                "heldout_size_entries": 0 if sizes is None else len(sizes)}
     # unexplained: judged on the held-out data with the confirmed effects only
-    kept = [name for name in result.selected if confirmed[name]]
-    step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
-    contradicted = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
-    if not confirmed.get("calibration_scale (nuisance)", True) or contradicted:
-        # a size scale whose signature is contradicted is no explanation either
-        step = dict(step, **{"global": np.zeros_like(step["global"])})
+    step = _kept_step(result, state, confirmed)
     problem, model = _evaluate(state, heldout, step)
     unexplained = describe_unexplained(problem, heldout, model)
     return dataclasses.replace(result, residual_before_heldout=before,

@@ -16,7 +16,11 @@ the PSF model can use it:
 * ``flux_diffusion``, ``boundary_density``, ``sum_rule_tail``, ``chromatic_size`` and
   ``readout_pedestal`` are recorded but not applied (P(F) has no flux-dependent blur term; P0
   fitted from the stars holds the flux-independent part; the pedestal is already subtracted by
-  the calibration), and the refinement says so.
+  the calibration), and the refinement says so;
+* when a size residual is left that no catalogue effect matches, the loop's EMPIRICAL term
+  (`bfpsf.model.empirical.EmpiricalTerm`, with its out-of-sample validation) is stored in
+  ``refinement['empirical']``: the PSF model applies it (`EmpiricalTerm.from_calibration`),
+  and it is labelled empirical wherever it is reported.
 
 The provenance (effects, parameters, errors, whether the held-out data confirmed them, the input
 files) is kept in ``Calibration.refinement`` and written to the file's REFINE extension.
@@ -177,6 +181,12 @@ def refine_calibration(calibration, result, *, provenance=None):
                   "confirmed": dict(result.confirmed), "holdout": result.holdout,
                   "linearity_c_per_1e5": linearity_c, "buildup_steps": buildup,
                   "scale": scale, "provenance": dict(provenance or {})}
+    if result.empirical:
+        # what no physics explained: the EMPIRICAL term (`bfpsf.model.empirical`), applied by
+        # every consumer of the calibration and labelled empirical in every report
+        refinement["empirical"] = result.empirical
+        applied["empirical"] = ("EMPIRICAL flux-dependent size term learned from the stars "
+                                "(not physics)")
     return dataclasses.replace(calibration, shifts=shifts, refinement=json_ready(refinement),
                                **samples)
 
