@@ -126,8 +126,9 @@ def run(args):
         return 0
 
     report = Path(args.report) / "report.md" if args.report else None
-    check_outputs([args.json, report, args.output_calib], args.overwrite,
-                  directories=[args.report])
+    check_outputs([args.json, report, args.output_calib,
+                   Path(args.report) / "signatures.png" if args.report else None],
+                  args.overwrite, directories=[args.report])
     if args.output_calib and not (args.flats and args.images):
         msg = ("--output-calib needs images mode (--flats and --images): it refines their "
                "calibration")
@@ -202,5 +203,38 @@ def run(args):
                                       context=context,
                                       residual_images=observables.meta.get("residual_images"),
                                       star_residual=star, overwrite=args.overwrite)
+        _add_signature_report(result, Path(args.report))
         print(f"report: {path}", file=sys.stderr)
     return 0
+
+
+def _add_signature_report(result, directory):
+    """signatures.png and a section of report.md: what was rejected and why, what is left,
+    the EMPIRICAL term and the verdict (issue 22)."""
+    from ..files import save_figure, write_text
+    from ..plotting.diagnose import plot_signatures
+
+    save_figure(plot_signatures(result), directory / "signatures.png", overwrite=True, dpi=110)
+    lines = ["", "## Attribution by signature (issue 22)", ""]
+    verdict = result.verdict or {}
+    lines.append("Verdict: " + ("explained." if verdict.get("success") else
+                                "**NOT EXPLAINED**: " + "; ".join(verdict.get("reasons", []))))
+    for name, entry in result.rejected.items():
+        lines.append(f"- rejected `{name}` (Delta BIC {entry['delta_bic']:.0f}): contradicted "
+                     f"by {entry['contradicted_by']} (p = {entry['p_value']:.1e})")
+    for entry in result.unexplained:
+        lines.append(f"- unexplained: {describe_entry(entry)}")
+    validation = (result.empirical or {}).get("validation", {})
+    for block in ("heldout", "late_block"):
+        if block in validation:
+            before, after = validation[block]["before"], validation[block]["after"]
+            lines.append(
+                f"- EMPIRICAL term ({block}): X {before['slope_x_percent']:+.1f} -> "
+                f"{after['slope_x_percent']:+.1f} +- {after['slope_x_percent_err']:.1f} %, Y "
+                f"{before['slope_y_percent']:+.1f} -> {after['slope_y_percent']:+.1f} +- "
+                f"{after['slope_y_percent_err']:.1f} % of raw; photometry "
+                f"{before['photometry_bias_mmag']:+.2f} -> "
+                f"{after['photometry_bias_mmag']:+.2f} mmag")
+    lines += ["", "![signatures](signatures.png)", ""]
+    path = directory / "report.md"
+    write_text(path, path.read_text() + "\n".join(lines), overwrite=True)

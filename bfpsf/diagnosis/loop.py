@@ -858,6 +858,13 @@ def _with_heldout(result, state, heldout, fraction):
         physical = _summary(problem, heldout, model)
         physical["effects"] = names
     after = _summary(evaluations[-1][0], heldout, evaluations[-1][1])
+    if (result.nuisance.get("calibration_scale") or {}).get("contradicted_by"):
+        # the size scale whose signature the data contradict is not applied (refine) and
+        # is no part of the "after"
+        last = dict(state["steps"][-1])
+        last["global"] = np.zeros_like(last["global"])
+        problem_last, model_last = _evaluate(state, heldout, last)
+        after = _summary(problem_last, heldout, model_last)
     sizes = heldout.sizes
     holdout = {"fraction": float(fraction),
                "sizes_split_by": heldout.meta.get("holdout_sizes_split_by"),

@@ -553,8 +553,9 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     read by `bfpsf.io.amplifiers`). ``background`` is the images' sky level, ADU per pixel
     (default: the sigma-clipped median of each image). ``position_bins`` > 1 also splits
     the bins by the stars' column (`_binned_sizes`): the residual's dependence on the distance
-    from the amplifier. Every row carries the stars' mean column (``x_detector``) and mean
-    skewness (`bfpsf.diagnosis.odd_moments.star_skewness`), the odd part of the residual.
+    from the amplifier, each row then carrying its stars' mean column (``x_detector``). Every
+    row carries the stars' mean skewness (`bfpsf.diagnosis.odd_moments.star_skewness`), the
+    odd part of the residual.
 
     The model spot is the P0 that ``bfpsf psf`` would fit (`bfpsf.model.psf_fit.fit_psf`, its
     defaults, the calibrated shifts) from the isolated stars of the exposures the loop fits
@@ -619,7 +620,9 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews = (
         np.concatenate(v) for v in (fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews))
     sizes = _binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
-                          f"{len(images)} images", x=columns, skew=skews.T,
+                          f"{len(images)} images",
+                          # one position bin: the bins' mean columns differ by chance only
+                          x=columns if position_bins > 1 else None, skew=skews.T,
                           position_bins=position_bins)
     # P0 from the exposures the loop fits (`bfpsf.diagnosis.loop.split_observables`)
     fitted = np.unique(sizes.exposure)
