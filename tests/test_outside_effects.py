@@ -150,5 +150,82 @@ def test_outside_effects_silicon_full():
                                       ("serial_readout", -0.02))}
     _check_catalogue(results)
     for name in OUTSIDE_EFFECTS:
-        _check_outside(diagnose(_observables(bench, name, STRENGTH), holdout_fraction=0.5),
-                       name)
+        results[name] = diagnose(_observables(bench, name, STRENGTH), holdout_fraction=0.5)
+        _print_figures(name, results[name])
+        _check_outside(results[name], name)
+
+
+def _print_figures(name, result):
+    """The figures of docs/undeclared_effects.md (run with -s)."""
+    before = result.residual_before
+    print(f"{name}: raw residual X {before['slope_x_percent']:+.1f} +- "
+          f"{before['slope_x_percent_err']:.1f} %, Y {before['slope_y_percent']:+.1f} +- "
+          f"{before['slope_y_percent_err']:.1f} %; rejected "
+          f"{ {k: v['contradicted_by'] for k, v in result.rejected.items()} }")
+    for block, check in result.empirical["validation"].items():
+        if isinstance(check, dict) and "after" in check:
+            b, a = check["before"], check["after"]
+            print(f"  EMPIRICAL {block}: X {a['slope_x_percent']:+.1f} +- "
+                  f"{a['slope_x_percent_err']:.1f}, Y {a['slope_y_percent']:+.1f} +- "
+                  f"{a['slope_y_percent_err']:.1f} % of raw; photometry "
+                  f"{b['photometry_bias_mmag']:+.2f} -> {a['photometry_bias_mmag']:+.2f} mmag")
+
+
+def test_user_path_on_an_outside_effect(tmp_path):
+    """``bfpsf diagnose`` on FITS flats and spot mosaics with the one_axis smear: nothing
+    named, the rejections and the verdict in the JSON, the EMPIRICAL term in the refined
+    calibration (read back by `EmpiricalTerm.from_calibration`), signatures.png in the
+    report."""
+    import json
+
+    from astropy.io import fits
+
+    from bfpsf.calibration.product import Calibration
+    from bfpsf.cli import main
+    from bfpsf.model.empirical import EmpiricalTerm
+    from bfpsf.validation.simulate_flats import simulate_flats
+
+    gain = 1.5
+    flats = simulate_flats("lsst_e2v_50_8", np.linspace(1e4, 1.2e5, 8), pairs=1, size=160,
+                           nsteps=4, seed=5, gain=gain, lamp_jitter=1e-3)
+    flat_paths = []
+    for index, (image, exptime, _) in enumerate(flats):
+        flat_paths.append(str(tmp_path / f"flat{index:02d}.fits"))
+        fits.PrimaryHDU(image, header=fits.Header({"EXPTIME": exptime})).writeto(
+            flat_paths[-1])
+    from bfpsf.calibration import calibrate
+
+    cal = calibrate(flat_paths, maxlag=3, fit_b=False, n_monte_carlo=0)
+    spots = draw_bench_spots(n_exposures=6, shifts=cal.shifts)
+    stamps = apply_effect(spots, "one_axis", STRENGTH)
+    rng = np.random.default_rng(7)
+    size, images = stamps.shape[1], []
+    for exposure in range(spots.n_exposures):
+        members = np.flatnonzero(spots.exposure == exposure)
+        mosaic = np.zeros((6 * size + 16, 9 * size + 16))
+        for k, index in enumerate(members):
+            row, column = divmod(k, 9)
+            mosaic[8 + row * size:8 + (row + 1) * size,
+                   8 + column * size:8 + (column + 1) * size] = stamps[index]
+        noisy = (rng.poisson(np.clip(mosaic, 0, None) + 50.0) - 50.0
+                 + 5.0 * rng.standard_normal(mosaic.shape))
+        images.append(str(tmp_path / f"spots{exposure}.fits"))
+        fits.PrimaryHDU(noisy / gain, header=fits.Header({"EXPTIME": 1.0})).writeto(images[-1])
+    out, refined, report = tmp_path / "d.json", tmp_path / "refined.fits", tmp_path / "report"
+    assert main(["diagnose", "--flats", *flat_paths, "--images", *images, "--beta", "3",
+                 "--no-fit-b", "--maxlag", "3", "--bins", "6", "--background", "0",
+                 "--json", str(out), "--report", str(report),
+                 "--output-calib", str(refined)]) == 0
+    summary = json.loads(out.read_text())
+    assert summary["selected"] == [] and summary["rejected"]
+    assert not summary["verdict"]["success"]
+    assert summary["verdict"]["star_residual_chi2_per_pixel"] > 1
+    strongest = max(summary["unexplained"], key=lambda entry: entry["significance"])
+    assert strongest["axis"] == "x" and strongest["parity"] == "even"
+    assert summary["empirical"]["label"] == "empirical"
+    assert "empirical" in summary["output_calib"]["applied"]
+    assert "calibration_scale (nuisance)" not in summary["output_calib"]["applied"]
+    term = EmpiricalTerm.from_calibration(Calibration.read(refined))
+    assert term.coefficients["xx"]["constant"] > 3 * term.errors["xx"]["constant"]
+    assert (report / "signatures.png").stat().st_size > 0
+    assert "Attribution by signature" in (report / "report.md").read_text()
