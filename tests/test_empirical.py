@@ -136,6 +136,16 @@ def test_psf_hook_applies_the_term():
     finally:
         psf.empirical = None
     np.testing.assert_allclose(with_term - plain, term.delta(plain, flux), atol=1e-9 * flux)
+    # with_empirical: the same from a refined calibration's record, on a copy
+    from types import SimpleNamespace
+
+    from bfpsf.model.empirical import with_empirical
+
+    copy = with_empirical(psf, SimpleNamespace(refinement={"empirical": term.to_dict()}))
+    assert copy is not psf and psf.empirical is None
+    np.testing.assert_allclose(copy.star_image(flux, x_phase=0.1, half_size=12), with_term,
+                               rtol=0, atol=1e-9 * flux)
+    assert with_empirical(psf, SimpleNamespace(refinement={})) is psf
     change = _plain_moments(with_term)[3] - _plain_moments(plain)[3]
     # the Moffat's wings at the edge of the 25 px stamp: 1 %
     assert change == pytest.approx(term.variance_change(flux)[0], rel=0.01)

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import BFPSFValueError
 
-__all__ = ["EmpiricalTerm", "PATTERNS", "FLUX_REFERENCE", "apply_pattern"]
+__all__ = ["EmpiricalTerm", "PATTERNS", "FLUX_REFERENCE", "apply_pattern", "with_empirical"]
 
 #: The pixel-space patterns, in the order of `EmpiricalTerm.coefficients`.
 PATTERNS = ("xx", "yy")
@@ -168,3 +168,15 @@ class EmpiricalTerm:
         """The empirical term a refined calibration holds, or None."""
         record = (getattr(calibration, "refinement", None) or {}).get("empirical")
         return None if not record else cls.from_dict(record)
+
+
+def with_empirical(psf, calibration, *, x=None, exposure=None):
+    """A copy of ``psf`` (`FluxDependentPSF`) applying the EMPIRICAL term of a refined
+    calibration, evaluated at column ``x`` and exposure order ``exposure``; ``psf`` itself
+    when the calibration holds none (every calibration not refined by the loop)."""
+    term = EmpiricalTerm.from_calibration(calibration)
+    if term is None:
+        return psf
+    out = psf.copy()
+    out.empirical = term.at(x=x, exposure=exposure)
+    return out
