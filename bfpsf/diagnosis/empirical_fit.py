@@ -6,7 +6,7 @@ sigma^2 - sigma_model^2 is [c(x, t) F / F_ref + q(x, t) (F / F_ref)^2] (through 
 moments' response to the patterns, `adaptive_response`) plus an intercept per group, c and q
 each a constant plus a position term (x - x_ref) / 1000 and an exposure term (t - t_ref); the
 position and exposure terms enter only where the residual report found that dependence
-(`bfpsf.diagnosis.loop.describe_unexplained`). Weighted least squares with the sizes' errors.
+(`bfpsf.diagnosis.unexplained.describe_unexplained`). Weighted least squares with the sizes' errors.
 
 `evaluate_empirical` applies a term to other data (the held-out exposures of the loop's split;
 for a term that changes over the night, also a contiguous block of late exposures fitted on

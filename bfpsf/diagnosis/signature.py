@@ -250,7 +250,7 @@ def contradiction(test):
 
 
 def describe_entry(entry):
-    """One line of an unexplained residual (`bfpsf.diagnosis.loop.describe_unexplained`)."""
+    """One line of an unexplained residual (`bfpsf.diagnosis.unexplained.describe_unexplained`)."""
     words = [entry["observable"]]
     if entry.get("axis"):
         words.append(f"along {entry['axis']}")
