@@ -179,6 +179,8 @@ def run(args):
               f"contradicted by {entry['contradicted_by']} (p = {entry['p_value']:.1e})")
     for entry in result.unexplained:
         print(f"unexplained: {describe_entry(entry)}")
+    for line in _empirical_lines(result):
+        print(line)
     verdict = result.verdict
     if verdict.get("star_residual_chi2_per_pixel") is not None:
         print(f"star residual chi2 per pixel {verdict['star_residual_chi2_per_pixel']:.1f} "
@@ -224,17 +226,24 @@ def _add_signature_report(result, directory):
                      f"by {entry['contradicted_by']} (p = {entry['p_value']:.1e})")
     for entry in result.unexplained:
         lines.append(f"- unexplained: {describe_entry(entry)}")
+    lines += [f"- {line}" for line in _empirical_lines(result)]
+    lines += ["", "![signatures](signatures.png)", ""]
+    path = directory / "report.md"
+    write_text(path, path.read_text() + "\n".join(lines), overwrite=True)
+
+
+def _empirical_lines(result):
+    """The EMPIRICAL term's out-of-sample figures, one line per validation block."""
     validation = (result.empirical or {}).get("validation", {})
+    lines = []
     for block in ("heldout", "late_block"):
         if block in validation:
             before, after = validation[block]["before"], validation[block]["after"]
             lines.append(
-                f"- EMPIRICAL term ({block}): X {before['slope_x_percent']:+.1f} -> "
-                f"{after['slope_x_percent']:+.1f} +- {after['slope_x_percent_err']:.1f} %, Y "
-                f"{before['slope_y_percent']:+.1f} -> {after['slope_y_percent']:+.1f} +- "
-                f"{after['slope_y_percent_err']:.1f} % of raw; photometry "
+                f"EMPIRICAL term ({block}): BF slope residual X {before['slope_x_percent']:+.1f}"
+                f" -> {after['slope_x_percent']:+.1f} +- {after['slope_x_percent_err']:.1f} %,"
+                f" Y {before['slope_y_percent']:+.1f} -> {after['slope_y_percent']:+.1f} +- "
+                f"{after['slope_y_percent_err']:.1f} % of raw; photometry bias implied "
                 f"{before['photometry_bias_mmag']:+.2f} -> "
                 f"{after['photometry_bias_mmag']:+.2f} mmag")
-    lines += ["", "![signatures](signatures.png)", ""]
-    path = directory / "report.md"
-    write_text(path, path.read_text() + "\n".join(lines), overwrite=True)
+    return lines

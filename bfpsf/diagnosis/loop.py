@@ -327,7 +327,9 @@ class DiagnosisResult:
         When a size residual is left: the EMPIRICAL term learned from it
         (`bfpsf.model.empirical.EmpiricalTerm.to_dict`, label ``'empirical'``) with its
         out-of-sample ``validation`` (``heldout`` and, with 4 or more exposures,
-        ``late_block``: slope residual and photometry bias before and after it).
+        ``late_block``: slope residual and photometry bias before and after it;
+        ``validated``: it lowered the slope residual on every block, else `refine` leaves it
+        out).
     folded : dict
         The joint fit of the selected effects a calibration can hold (``names``, ``effects``:
         name -> values, ``scale_nuisance``), for `bfpsf.diagnosis.refine`.
@@ -831,6 +833,11 @@ def _with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0
                                                            response),
                                         exposures=sorted(np.unique(late.sizes.exposure)
                                                          .tolist()))
+    # applied (refine) only when it lowers the slope residual on every block it did not fit
+    validation["validated"] = all(
+        sum(validation[block]["after"][f"slope_{a}_percent"] ** 2 for a in "xy")
+        < sum(validation[block]["before"][f"slope_{a}_percent"] ** 2 for a in "xy")
+        for block in ("heldout", "late_block") if block in validation)
     term = dataclasses.replace(term, validation=validation)
     return dataclasses.replace(result, empirical=term.to_dict())
 

@@ -373,7 +373,8 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
 
     With ``x`` (star columns, pixels) and ``position_bins`` > 1, every bin is also split in
     that many quantile ranges of x (the distance from the amplifier): the rows carry their
-    mean x (``x_detector``) and the x range is their intercept group. With ``skew`` ((skew_x,
+    mean x (``x_detector``), the x range is their intercept group, and the errors come from
+    the scatter pooled over the rows of each flux bin (`_pool_errors`). With ``skew`` ((skew_x,
     skew_y) per star, `bfpsf.diagnosis.odd_moments.star_skewness`) the rows carry its mean and
     error (stars without one left out of it).
     """
@@ -384,7 +385,7 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
         x_edges = np.quantile(x, np.linspace(0.0, 1.0, int(position_bins) + 1))
         column = np.clip(np.searchsorted(x_edges, x, side="right") - 1, 0,
                          int(position_bins) - 1)
-    rows = []
+    rows, row_members = [], []
     for image in np.unique(exposure):
         for part in np.unique(column):
             for k in range(n_bins):
@@ -401,10 +402,13 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
                     row += ([values[known].mean(), values[known].std(ddof=1)
                              / np.sqrt(known.sum())] if known.sum() >= 3 else [np.nan, np.nan])
                 rows.append(row)
+                row_members.append((k, members))
     if len(rows) < 3:
         msg = f"only {len(rows)} peak bins hold 3 or more stars: too few to diagnose"
         raise BFPSFInputError(msg, len(rows))
     rows = np.array(rows)
+    if position_bins > 1:
+        _pool_errors(rows, row_members, (sigma_x, sigma_y, *(skew if skew is not None else ())))
     extra = {}
     if x is not None:
         extra["x_detector"] = rows[:, 7]
@@ -413,6 +417,27 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
                      skew_y_err=rows[:, 11])
     return SizeTable(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], label=label,
                      exposure=rows[:, 5].astype(int), group=rows[:, 6].astype(int), **extra)
+
+
+def _pool_errors(rows, row_members, quantities):
+    """Errors of binned means from the scatter pooled over every row of the same flux bin
+    (rows of a few stars each estimate their own scatter badly: 3 stars give it to 50 %)."""
+    columns = ((1, 3), (2, 4), (8, 9), (10, 11))
+    for values, (mean_column, error_column) in zip(quantities, columns):
+        for k in {k for k, _ in row_members}:
+            deviations, count = [], 0
+            for (bin_k, members), row in zip(row_members, rows):
+                if bin_k != k:
+                    continue
+                known = members & np.isfinite(values)
+                deviations.append(values[known] - values[known].mean())
+                count += 1
+            deviations = np.concatenate(deviations)
+            pooled = np.sqrt(np.sum(deviations ** 2) / max(deviations.size - count, 1))
+            for index, (bin_k, members) in enumerate(row_members):
+                if bin_k == k:
+                    known = members & np.isfinite(values)
+                    rows[index, error_column] = pooled / np.sqrt(max(known.sum(), 1))
 
 
 def bf_scale_error(spot_model, shift_draws, peaks_e):

@@ -181,7 +181,10 @@ def refine_calibration(calibration, result, *, provenance=None):
                   "confirmed": dict(result.confirmed), "holdout": result.holdout,
                   "linearity_c_per_1e5": linearity_c, "buildup_steps": buildup,
                   "scale": scale, "provenance": dict(provenance or {})}
-    if result.empirical:
+    if result.empirical and not result.empirical.get("validation", {}).get("validated", True):
+        not_applied["empirical"] = ("the EMPIRICAL term did not lower the slope residual on "
+                                    "data it was not fitted on")
+    elif result.empirical:
         # what no physics explained: the EMPIRICAL term (`bfpsf.model.empirical`), applied by
         # every consumer of the calibration and labelled empirical in every report
         refinement["empirical"] = result.empirical
