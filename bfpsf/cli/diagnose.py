@@ -13,7 +13,8 @@ Two modes (a thin layer over `bfpsf.diagnosis`):
 JSON keys: ``residual_before``, ``candidates``, ``selected``, ``residual_after``,
 ``residual_before_heldout``, ``residual_after_heldout`` (same keys as ``residual_after``),
 ``confirmed``, ``holdout``, ``unexplained``, ``rejected`` (candidates whose signature the data
-contradict, `bfpsf.diagnosis.signature`), ``verdict`` (plus ``nuisance``, ``output_calib``,
+contradict, `bfpsf.diagnosis.signature`), ``verdict``, ``empirical`` (the EMPIRICAL term
+learned from what is left, with its out-of-sample validation; None when nothing is left) (plus ``nuisance``, ``output_calib``,
 ``parameters``, ``ambiguous``, ``residual_physical``, ``threshold``, ``inputs``, and in images
 mode ``star_residual``: the stacked residual of the stars against P(F), ``rms_over_peak``,
 ``chi2_per_pixel``, ``n_stars`` and its radial profile).
