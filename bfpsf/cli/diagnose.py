@@ -12,7 +12,9 @@ Two modes (a thin layer over `bfpsf.diagnosis`):
 
 JSON keys: ``residual_before``, ``candidates``, ``selected``, ``residual_after``,
 ``residual_before_heldout``, ``residual_after_heldout`` (same keys as ``residual_after``),
-``confirmed``, ``holdout``, ``unexplained`` (plus ``nuisance``, ``output_calib``,
+``confirmed``, ``holdout``, ``unexplained``, ``rejected`` (candidates whose signature the data
+contradict, `bfpsf.diagnosis.signature`), ``verdict``, ``empirical`` (the EMPIRICAL term
+learned from what is left, with its out-of-sample validation; None when nothing is left) (plus ``nuisance``, ``output_calib``,
 ``parameters``, ``ambiguous``, ``residual_physical``, ``threshold``, ``inputs``, and in images
 mode ``star_residual``: the stacked residual of the stars against P(F), ``rms_over_peak``,
 ``chi2_per_pixel``, ``n_stars`` and its radial profile).
@@ -21,6 +23,7 @@ mode ``star_residual``: the stacked residual of the stars against P(F), ``rms_ov
 import sys
 from pathlib import Path
 
+from ..diagnosis.signature import describe_entry
 from ..errors import BFPSFInputError
 from . import background_option, maxlag_option, positive_int
 
@@ -52,6 +55,9 @@ def add_parser(subparsers):
                       help="calibrate without the Astier+19 b term (few or small flats)")
     data.add_argument("--bins", type=positive_int, default=10,
                       help="peak bins of the measured sizes (default 10)")
+    data.add_argument("--position-bins", type=positive_int, default=1, metavar="N",
+                      help="also split the bins in N ranges of column (distance from the "
+                           "amplifier), for the residual's position dependence (default 1)")
     tables = parser.add_argument_group("table mode")
     tables.add_argument("--correlations", metavar="FILE",
                         help="measured a / correlation table (corr_meas, Poisson_CCD, cp_pipe)")
@@ -102,7 +108,8 @@ def _observables(args):
                                                 fit_b=args.fit_b, amp=args.amp,
                                                 holdout_fraction=args.holdout_fraction,
                                                 background=args.background,
-                                                progress=None)
+                                                progress=None,
+                                                position_bins=args.position_bins)
     msg = ("give --flats and --images, or --correlations and --sizes, or --measured NAME")
     raise BFPSFInputError(msg)
 
@@ -120,8 +127,9 @@ def run(args):
         return 0
 
     report = Path(args.report) / "report.md" if args.report else None
-    check_outputs([args.json, report, args.output_calib], args.overwrite,
-                  directories=[args.report],
+    check_outputs([args.json, report, args.output_calib,
+                   Path(args.report) / "signatures.png" if args.report else None],
+                  args.overwrite, directories=[args.report],
                   inputs=input_files(args.flats, args.images, args.correlations, args.sizes))
     if args.output_calib and not (args.flats and args.images):
         msg = ("--output-calib needs images mode (--flats and --images): it refines their "
@@ -168,9 +176,19 @@ def run(args):
                  ("held-out after", result.residual_after_heldout)]
         for name, confirmed in result.confirmed.items():
             print(f"{name}: {'confirmed' if confirmed else 'NOT CONFIRMED'} on held-out data")
+    for name, entry in result.rejected.items():
+        print(f"rejected: {name} (Delta BIC {entry['delta_bic']:.0f}): its signature is "
+              f"contradicted by {entry['contradicted_by']} (p = {entry['p_value']:.1e})")
     for entry in result.unexplained:
-        print(f"unexplained: {entry['observable']} {entry['axis'] or ''} "
-              f"{entry['significance']:.1f} sigma")
+        print(f"unexplained: {describe_entry(entry)}")
+    for line in _empirical_lines(result):
+        print(line)
+    verdict = result.verdict
+    if verdict.get("star_residual_chi2_per_pixel") is not None:
+        print(f"star residual chi2 per pixel {verdict['star_residual_chi2_per_pixel']:.1f} "
+              f"(null expectation {verdict['null_expectation']:.1f})")
+    print("verdict: " + ("explained" if verdict.get("success") else
+                         "NOT EXPLAINED: " + "; ".join(verdict.get("reasons", []))))
     for label, values in rows:
         if "slope_x_percent" in values:
             print(f"{label}: BF slope residual X {values['slope_x_percent']:+.2f} %, "
@@ -189,5 +207,45 @@ def run(args):
                                       context=context,
                                       residual_images=observables.meta.get("residual_images"),
                                       star_residual=star, overwrite=args.overwrite)
+        _add_signature_report(result, Path(args.report))
         print(f"report: {path}", file=sys.stderr)
     return 0
+
+
+def _add_signature_report(result, directory):
+    """signatures.png and a section of report.md: what was rejected and why, what is left,
+    the EMPIRICAL term and the verdict (issue 22)."""
+    from ..files import save_figure, write_text
+    from ..plotting.diagnose import plot_signatures
+
+    save_figure(plot_signatures(result), directory / "signatures.png", overwrite=True, dpi=110)
+    lines = ["", "## Attribution by signature (issue 22)", ""]
+    verdict = result.verdict or {}
+    lines.append("Verdict: " + ("explained." if verdict.get("success") else
+                                "**NOT EXPLAINED**: " + "; ".join(verdict.get("reasons", []))))
+    for name, entry in result.rejected.items():
+        lines.append(f"- rejected `{name}` (Delta BIC {entry['delta_bic']:.0f}): contradicted "
+                     f"by {entry['contradicted_by']} (p = {entry['p_value']:.1e})")
+    for entry in result.unexplained:
+        lines.append(f"- unexplained: {describe_entry(entry)}")
+    lines += [f"- {line}" for line in _empirical_lines(result)]
+    lines += ["", "![signatures](signatures.png)", ""]
+    path = directory / "report.md"
+    write_text(path, path.read_text() + "\n".join(lines), overwrite=True)
+
+
+def _empirical_lines(result):
+    """The EMPIRICAL term's out-of-sample figures, one line per validation block."""
+    validation = (result.empirical or {}).get("validation", {})
+    lines = []
+    for block in ("heldout", "late_block"):
+        if block in validation:
+            before, after = validation[block]["before"], validation[block]["after"]
+            lines.append(
+                f"EMPIRICAL term ({block}): BF slope residual X {before['slope_x_percent']:+.1f}"
+                f" -> {after['slope_x_percent']:+.1f} +- {after['slope_x_percent_err']:.1f} %,"
+                f" Y {before['slope_y_percent']:+.1f} -> {after['slope_y_percent']:+.1f} +- "
+                f"{after['slope_y_percent_err']:.1f} % of raw; photometry bias implied "
+                f"{before['photometry_bias_mmag']:+.2f} -> "
+                f"{after['photometry_bias_mmag']:+.2f} mmag")
+    return lines

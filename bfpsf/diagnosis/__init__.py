@@ -10,5 +10,12 @@ One module per job:
   description of what no candidate explains;
 - `bfpsf.diagnosis.readers`: the published measured tables;
 - `bfpsf.diagnosis.star_residual`: the stacked residual of the stars against P(F);
-- `bfpsf.diagnosis.refine`: the loop's result written as a calibration.
+- `bfpsf.diagnosis.refine`: the loop's result written as a calibration;
+- `bfpsf.diagnosis.signature`: attribution by signature (a candidate is named only when its
+  template matches in every observable, axis, position and exposure block and in parity);
+- `bfpsf.diagnosis.odd_moments`: the stars' skewness (the odd part of the residual);
+- `bfpsf.diagnosis.empirical_fit`: the EMPIRICAL term learned from what is left, validated
+  out of sample (its model: `bfpsf.model.empirical`);
+- `bfpsf.diagnosis.bench`: a bench of effects outside the catalogue (and the null and
+  catalogue effects) applied to the same simulated spots.
 """

@@ -43,13 +43,19 @@ against peak, percent of the raw measured slope), the photometry bias the size r
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import chi2 as _chi2
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from .catalogue import CATALOGUE
 from .observables import interleaved as _interleaved
+from .signature import (SIGNATURE_ALPHA, contradiction, parity_test, signature_parts,
+                        signature_test)
+from .signature import weighted_least_squares as _wls
+from .unexplained import (STAR_CHI2_FACTOR, UNEXPLAINED_NSIGMA, describe_unexplained,
+                          verdict)
 
 __all__ = ["DiagnosisResult", "diagnose", "DEFAULT_THRESHOLD", "slope_residuals", "split_observables",
-           "describe_unexplained", "UNEXPLAINED_NSIGMA"]
+           "describe_unexplained", "UNEXPLAINED_NSIGMA", "verdict", "STAR_CHI2_FACTOR"]
 
 #: Families `bfpsf.diagnosis.refine` folds into a calibration (second order: when positive).
 _FOLDABLE = ("calibration_scale", "xy_anisotropy", "gain_nonlinearity")
@@ -182,25 +188,6 @@ def _effect_design(problem, templates):
     return design
 
 
-def _wls(residual, sigma, design):
-    """Weighted least squares: parameters, covariance, chi2, fitted model."""
-    weights = 1.0 / sigma
-    a = design * weights[:, None]
-    b = residual * weights
-    # scale columns for conditioning
-    norms = np.sqrt((a ** 2).sum(axis=0))
-    norms[norms == 0] = 1.0
-    solution, *_ = np.linalg.lstsq(a / norms, b, rcond=None)
-    params = solution / norms
-    model = design @ params
-    chi2 = float((((residual - model) * weights) ** 2).sum())
-    try:
-        covariance = np.linalg.pinv((a / norms).T @ (a / norms)) / np.outer(norms, norms)
-    except np.linalg.LinAlgError:
-        covariance = np.full((params.size, params.size), np.nan)
-    return params, covariance, chi2, model
-
-
 def slope_residuals(sizes, residual_x, residual_y):
     """BF slope residual in X and Y, percent of the raw measured slope, and the raw slopes.
 
@@ -326,6 +313,23 @@ class DiagnosisResult:
     unexplained : list of dict
         Significant residuals no confirmed effect explains: {observable, axis, parity,
         flux_dependence, significance} (`describe_unexplained`).
+    rejected : dict
+        Candidates that passed the information criterion but not the signature test
+        (`bfpsf.diagnosis.signature`): name -> {``round``, ``delta_bic``, ``contradicted_by``
+        (the dimension with the smallest p-value), ``p_value``, ``signature`` (every
+        dimension's test)}. The first round each was rejected in.
+    verdict : dict
+        `verdict`: ``success`` (False whenever a residual is unexplained, the size scale's
+        signature is contradicted or the stars' residual chi2 per pixel is far above its null
+        expectation), ``reasons``, ``star_residual_chi2_per_pixel``, ``null_expectation``
+        and ``limit``.
+    empirical : dict or None
+        When a size residual is left: the EMPIRICAL term learned from it
+        (`bfpsf.model.empirical.EmpiricalTerm.to_dict`, label ``'empirical'``) with its
+        out-of-sample ``validation`` (``heldout`` and, with 4 or more exposures,
+        ``late_block``: slope residual and photometry bias before and after it;
+        ``validated``: it lowered the slope residual on every block, else `refine` leaves it
+        out).
     folded : dict
         The joint fit of the selected effects a calibration can hold (``names``, ``effects``:
         name -> values, ``scale_nuisance``), for `bfpsf.diagnosis.refine`.
@@ -354,6 +358,9 @@ class DiagnosisResult:
     holdout: dict = None
     unexplained: list = field(default_factory=list)
     folded: dict = field(default_factory=dict)
+    rejected: dict = field(default_factory=dict)
+    verdict: dict = field(default_factory=dict)
+    empirical: dict = None
 
     def to_json_dict(self):
         """The ``--json`` summary: residual_before, candidates, selected, residual_after (+)."""
@@ -366,11 +373,13 @@ class DiagnosisResult:
                       "residual_after_heldout": self.residual_after_heldout,
                       "residual_physical_heldout": self.residual_physical_heldout,
                       "confirmed": self.confirmed, "holdout": self.holdout,
-                      "unexplained": self.unexplained, "folded": self.folded})
+                      "unexplained": self.unexplained, "folded": self.folded,
+                      "rejected": self.rejected, "verdict": self.verdict,
+                      "empirical": self.empirical})
 
 
 def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, max_rounds=4,
-             prefer_physical=False, holdout_fraction=None):
+             prefer_physical=False, holdout_fraction=None, signature_alpha=SIGNATURE_ALPHA):
     """Find, by information criterion, the effects the base model is missing.
 
     Parameters
@@ -391,6 +400,11 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
         Fit on part of the data and report the residual on the rest (`split_observables`):
         ``residual_before_heldout``, ``residual_after_heldout`` and, per selected effect,
         whether it improves the held-out residual (``confirmed``). Default None: no split.
+    signature_alpha : float or None, optional
+        A candidate is named only when its signature matches in every dimension at this
+        p-value (`bfpsf.diagnosis.signature`, default 1e-3); those that pass the
+        information criterion but not the signature are reported in ``rejected``. None: the
+        information criterion alone (the loop before issue 22).
 
     Returns
     -------
@@ -398,13 +412,18 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
     """
     if holdout_fraction:
         fit_part, heldout = split_observables(observables, holdout_fraction)
-        result, state = _run_loop(fit_part, catalogue, threshold, max_rounds, prefer_physical)
-        return _with_heldout(result, state, heldout, holdout_fraction)
-    result, state = _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical)
-    return _with_unexplained(result, state, observables)
+        result, state = _run_loop(fit_part, catalogue, threshold, max_rounds, prefer_physical,
+                                  signature_alpha)
+        result = _with_heldout(result, state, heldout, holdout_fraction)
+        return _with_verdict(_with_empirical(result, state, heldout, observables), observables)
+    result, state = _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
+                              signature_alpha)
+    result = _with_unexplained(result, state, observables)
+    return _with_verdict(_with_empirical(result, state, None, observables), observables)
 
 
-def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
+def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
+              signature_alpha=SIGNATURE_ALPHA):
     """The loop itself: the result and what the held-out evaluation needs."""
     if not threshold < 0:
         msg = f"threshold must be a negative Delta BIC, got {threshold!r}"
@@ -461,6 +480,24 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
         model_before = _wls(problem.residual, problem.sigma, local)[3]
     candidates = []
     ambiguous = {}
+    rejected = {}
+    parts = signature_parts(problem, observables)
+    parity = parity_test(observables.sizes, alpha=signature_alpha or SIGNATURE_ALPHA)
+
+    def signature(design, nuisance=None):
+        """The signature test of a template given the effects already selected."""
+        free = [other for other in selected if other not in fixed]
+        offset = sum((fixed[other] for other in selected if other in fixed),
+                     np.zeros_like(problem.residual))
+        base = np.column_stack([problem.nuisance if nuisance is None else nuisance]
+                               + [designs[other] for other in free])
+        test = signature_test(problem.residual - offset, problem.sigma, base, design, parts,
+                              alpha=signature_alpha)
+        if parity is not None and "sizes" in problem.slices and np.any(
+                design[problem.slices["sizes"]]):
+            test["parity"] = parity
+        return test
+
     for round_index in range(int(max_rounds)):
         scores = []
         taken = {family(name) for name in selected}
@@ -488,6 +525,16 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
                     low <= value <= high for value, (low, high) in zip(values, effect.bounds))
                 entry.update(statistic=float(statistic), delta_bic=float(delta_bic),
                              parameters=values, errors=errors, allowed=bool(allowed))
+                if allowed and delta_bic < threshold and signature_alpha:
+                    test = signature(designs[effect.name])
+                    against = contradiction(test)
+                    entry.update(signature=test, contradicted_by=against)
+                    if against is not None:
+                        rejected.setdefault(name, {
+                            "round": round_index + 1, "delta_bic": float(delta_bic),
+                            "contradicted_by": against,
+                            "p_value": test[against]["p_value"], "signature": test})
+                        allowed = False
                 if allowed:
                     scores.append((delta_bic, name, chi2))
             candidates.append(entry)
@@ -560,6 +607,20 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
             "value": float(params[column]),
             "error": float(np.sqrt(abs(covariance[column, column]))),
             "prior": float(observables.meta["scale_err"])}
+        if signature_alpha:
+            # the size scale is a nuisance within the flats' error, with a signature of its
+            # own (isotropic, the same everywhere): tested like a candidate, and its pull
+            # against the flats' prior must stay within 3 sigma
+            test = signature(problem.nuisance[:, [column]],
+                             nuisance=np.delete(problem.nuisance, column, axis=1))
+            entry = nuisance["calibration_scale"]
+            pull = entry["value"] / entry["prior"] if entry["prior"] > 0 else 0.0
+            test["flats_prior"] = {"parts": ["flats", "stars"], "amplitudes": [[0.0],
+                                   [entry["value"]]], "errors": [[entry["prior"]],
+                                   [entry["error"]]], "chi2": pull ** 2, "dof": 1,
+                                   "p_value": float(_chi2.sf(pull ** 2, 1)),
+                                   "matches": bool(abs(pull) <= 3.0)}
+            entry.update(signature=test, contradicted_by=contradiction(test))
     # what a calibration can hold (`bfpsf.diagnosis.refine`), refitted jointly without the
     # rest: a fitted second order goes into the build-up only when positive (the build-up's
     # own second order strengthens BF); otherwise the others are refitted without it
@@ -577,7 +638,8 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
                              residual_after=_summary(problem, observables, model_after),
                              parameters=parameters, threshold=float(threshold), curves=curves,
                              ambiguous=ambiguous, residual_physical=residual_physical,
-                             ptc_curves=ptc_curves, nuisance=nuisance, folded=folded)
+                             ptc_curves=ptc_curves, nuisance=nuisance, folded=folded,
+                             rejected=rejected)
     # for the held-out evaluation: the effect and global-nuisance values of each step, the
     # first one the bare prediction
     steps = [{"names": [], "global": np.zeros(len(problem.global_columns)), "effects": {},
@@ -589,7 +651,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical):
                       "effects": _effect_values(values, problem, names, fixed, by_name, family),
                       "model": model})
     state = {"problem": problem, "steps": steps, "fixed": fixed, "family": family,
-             "by_name": by_name}
+             "by_name": by_name, "observables": observables}
     return result, state
 
 
@@ -701,6 +763,85 @@ def _evaluate(state, observables, step):
     return problem, model + offset
 
 
+def _kept_step(result, state, confirmed):
+    """The last step of the loop whose effects were all confirmed, with the size scale at
+    zero when it was not confirmed or its signature is contradicted (no explanation
+    either)."""
+    kept = [name for name in result.selected if confirmed.get(name, True)]
+    step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
+    contradicted = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
+    if step.get("global") is not None and (
+            not confirmed.get("calibration_scale (nuisance)", True) or contradicted):
+        step = dict(step, **{"global": np.zeros_like(step["global"])})
+    return step
+
+
+def _size_residual(state, observables, step):
+    """Measured minus predicted sigma_x, sigma_y with one step's effects and global
+    nuisances (no intercepts fitted), pixels."""
+    from .observables import Observables
+
+    only = Observables(sizes=observables.sizes, spot_model=observables.spot_model,
+                       meta=observables.meta)
+    problem = _build_problem(only)
+    offset = np.zeros_like(problem.residual)
+    for name, values in step["effects"].items():
+        templates = state["by_name"][state["family"](name)].templates(only)
+        offset += _effect_design(problem, templates) @ np.asarray(values, float)
+    if problem.global_columns and step.get("global") is not None:
+        offset += problem.nuisance[:, list(problem.global_columns)] @ step["global"]
+    residual = (problem.residual - offset)[problem.slices["sizes"]]
+    n = len(observables.sizes)
+    return residual[:n], residual[n:]
+
+
+def _with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0):
+    """The EMPIRICAL term (`bfpsf.diagnosis.empirical_fit`) when a size residual is left:
+    fitted on the loop's fit part, judged on its held-out exposures and, with at least 4
+    exposures, fitted on the early exposures and judged on a contiguous late block."""
+    import dataclasses
+
+    from .empirical_fit import adaptive_response, early_late, evaluate_empirical, fit_empirical
+
+    left = [entry for entry in result.unexplained if entry["observable"] == "sizes"]
+    if not left or observables.sizes is None:
+        return result
+    position = any((entry.get("position_dependence") or {}).get("kind", "none") != "none"
+                   for entry in left)
+    exposure = any((entry.get("exposure_dependence") or {}).get("kind", "none") != "none"
+                   for entry in left)
+    step = _kept_step(result, state, result.confirmed)
+    model = observables.spot_model
+
+    def inputs(part):
+        sizes = part.sizes
+        return (sizes, model.fluxes(sizes.peak_e), model.sizes(sizes.peak_e),
+                _size_residual(state, part, step))
+
+    response = adaptive_response(model, float(np.median(observables.sizes.peak_e)))
+    options = {"position": position, "exposure": exposure, "response": response}
+    term = fit_empirical(*inputs(state["observables"]), **options)
+    validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
+                  "position_term": position, "exposure_term": exposure}
+    if heldout is not None:
+        validation["heldout"] = evaluate_empirical(term, *inputs(heldout), response)
+    split = early_late(observables, late_fraction)
+    if split is not None:
+        early, late = split
+        early_term = fit_empirical(*inputs(early), **options)
+        validation["late_block"] = dict(evaluate_empirical(early_term, *inputs(late),
+                                                           response),
+                                        exposures=sorted(np.unique(late.sizes.exposure)
+                                                         .tolist()))
+    # applied (refine) only when it lowers the slope residual on every block it did not fit
+    validation["validated"] = all(
+        sum(validation[block]["after"][f"slope_{a}_percent"] ** 2 for a in "xy")
+        < sum(validation[block]["before"][f"slope_{a}_percent"] ** 2 for a in "xy")
+        for block in ("heldout", "late_block") if block in validation)
+    term = dataclasses.replace(term, validation=validation)
+    return dataclasses.replace(result, empirical=term.to_dict())
+
+
 def _with_heldout(result, state, heldout, fraction):
     """The result with the held-out residuals, the confirmation of each selected effect and
     the unexplained residuals (judged on the held-out data)."""
@@ -726,6 +867,13 @@ def _with_heldout(result, state, heldout, fraction):
         physical = _summary(problem, heldout, model)
         physical["effects"] = names
     after = _summary(evaluations[-1][0], heldout, evaluations[-1][1])
+    if (result.nuisance.get("calibration_scale") or {}).get("contradicted_by"):
+        # the size scale whose signature the data contradict is not applied (refine) and
+        # is no part of the "after"
+        last = dict(state["steps"][-1])
+        last["global"] = np.zeros_like(last["global"])
+        problem_last, model_last = _evaluate(state, heldout, last)
+        after = _summary(problem_last, heldout, model_last)
     sizes = heldout.sizes
     holdout = {"fraction": float(fraction),
                "sizes_split_by": heldout.meta.get("holdout_sizes_split_by"),
@@ -735,10 +883,7 @@ def _with_heldout(result, state, heldout, fraction):
                "n_fit": int(result.residual_after["n"]), "n_heldout": int(after["n"]),
                "heldout_size_entries": 0 if sizes is None else len(sizes)}
     # unexplained: judged on the held-out data with the confirmed effects only
-    kept = [name for name in result.selected if confirmed[name]]
-    step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
-    if not confirmed.get("calibration_scale (nuisance)", True):
-        step = dict(step, **{"global": np.zeros_like(step["global"])})
+    step = _kept_step(result, state, confirmed)
     problem, model = _evaluate(state, heldout, step)
     unexplained = describe_unexplained(problem, heldout, model)
     return dataclasses.replace(result, residual_before_heldout=before,
@@ -755,79 +900,10 @@ def _with_unexplained(result, state, observables):
         state["problem"], observables, model))
 
 
-#: Significance (sigma) above which a residual is reported as unexplained.
-UNEXPLAINED_NSIGMA = 3.0
+def _with_verdict(result, observables):
+    import dataclasses
 
-
-def _parity(star, axis):
-    """'even' or 'odd': the larger part of the stacked star residual under reflection along
-    ``axis`` (x: columns mirrored, y: rows mirrored); None without a stacked residual."""
-    if not star:
-        return None
-    image = np.asarray(star["image"], float)
-    mirrored = image[:, ::-1] if axis == "x" else image[::-1, :]
-    even = 0.5 * (image + mirrored)
-    odd = 0.5 * (image - mirrored)
-    return "even" if np.sum(even ** 2) >= np.sum(odd ** 2) else "odd"
-
-
-def _flux_dependence(peak, residual, sigma, group):
-    """How a residual grows with peak: 'constant', 'linear' or 'quadratic' (the highest power
-    significant at 3 sigma in a fit with per-group intercepts), with the coefficients."""
-    x = np.asarray(peak, float) / 1e5
-    columns = [x, x ** 2] + [(group == g).astype(float) for g in np.unique(group)]
-    params, covariance, _, _ = _wls(residual, sigma, np.column_stack(columns))
-    errors = np.sqrt(np.abs(np.diag(covariance)[:2]))
-    significant = [abs(p) > UNEXPLAINED_NSIGMA * e for p, e in zip(params[:2], errors)]
-    kind = "quadratic" if significant[1] else "linear" if significant[0] else "constant"
-    return {"kind": kind, "per_1e5": float(params[0]), "per_1e10": float(params[1])}
-
-
-def describe_unexplained(problem, observables, model):
-    """Significant residuals left by a model, with their signature.
-
-    Sizes, per axis: the slope of the size residual against peak (per-group intercepts) at
-    more than `UNEXPLAINED_NSIGMA` of its error; its parity is that of the stacked star
-    residual under reflection along the axis (when the observables hold one); its flux
-    dependence the highest significant power of peak. Other observables: a chi2 per point
-    whose excess over its degrees of freedom is significant, (chi2 - N) / sqrt(2 N).
-
-    Returns
-    -------
-    list of dict
-        {observable, axis, parity, flux_dependence, significance (sigma)}.
-    """
-    residual = problem.residual - model
-    out = []
-    for key in problem.keys:
-        block = problem.slices[key]
-        part, sigma = residual[block], problem.sigma[block]
-        if key == "sizes":
-            from ..measure.slopes import fit_bf_slope
-
-            sizes = observables.sizes
-            n = len(sizes)
-            for index, axis in enumerate("xy"):
-                values, errors = part[index * n:(index + 1) * n], sigma[index * n:(index + 1) * n]
-                fit = fit_bf_slope(sizes.peak_e, values, size_err=errors, group=sizes.group,
-                                   scale_errors=False, clip_nsigma=None)
-                significance = abs(fit.slope) / fit.slope_err
-                if significance > UNEXPLAINED_NSIGMA:
-                    out.append({"observable": "sizes", "axis": axis,
-                                "parity": _parity(observables.meta.get("star_residual"), axis),
-                                "flux_dependence": _flux_dependence(sizes.peak_e, values, errors,
-                                                                    sizes.group),
-                                "significance": float(significance)})
-            continue
-        n_points = part.size
-        chi2 = float(np.sum((part / sigma) ** 2))
-        significance = (chi2 - n_points) / np.sqrt(2.0 * n_points)
-        if significance > UNEXPLAINED_NSIGMA:
-            mean = {"linearity": getattr(observables.linearity, "mean_e", None),
-                    "ptc": getattr(observables.ptc, "mean_e", None)}.get(key)
-            dependence = None
-            if mean is not None and mean.size > 3:
-                dependence = _flux_dependence(mean, part, sigma, np.zeros(mean.size, int))
-            out.append({"observable": key, "axis": None, "parity": None,
-                        "flux_dependence": dependence, "significance": float(significance)})
-    return out
+    meta = observables.meta
+    return dataclasses.replace(result, verdict=verdict(
+        result.unexplained, result.nuisance, meta.get("star_residual"),
+        meta.get("star_chi2_null", 1.0)))

@@ -44,6 +44,10 @@ def _column(values, name, n=None, positive=False):
     return array
 
 
+#: Optional per-entry columns of a `SizeTable` beyond the colour and the exposure.
+_OPTIONAL_COLUMNS = ("x_detector", "skew_x", "skew_y", "skew_x_err", "skew_y_err")
+
+
 @dataclass(frozen=True)
 class SizeTable:
     """Spot size against peak flux (the brighter-fatter observable, G15 section 3).
@@ -63,7 +67,15 @@ class SizeTable:
     label : str
     exposure : ndarray of int (n,) or None
         Exposure each entry was measured on, when known: the held-out split
-        (`bfpsf.diagnosis.loop.split_observables`) keeps whole exposures apart.
+        (`bfpsf.diagnosis.loop.split_observables`) keeps whole exposures apart. Exposure
+        numbers are in the order of the night (the residual report's exposure-order terms).
+    x_detector : ndarray (n,) or None
+        Mean position of the entry's stars on the detector along X (distance from the
+        amplifier), pixels: the position dependence of the residual
+        (`bfpsf.diagnosis.signature`).
+    skew_x, skew_y, skew_x_err, skew_y_err : ndarray (n,) or None
+        Third standardised moments of the stars along X and Y (`bfpsf.diagnosis.bench.skewness`)
+        and their errors: the odd (centroid- and skew-like) part of the residual.
     """
 
     peak_e: np.ndarray
@@ -75,6 +87,11 @@ class SizeTable:
     colour: np.ndarray = None
     label: str = ""
     exposure: np.ndarray = None
+    x_detector: np.ndarray = None
+    skew_x: np.ndarray = None
+    skew_y: np.ndarray = None
+    skew_x_err: np.ndarray = None
+    skew_y_err: np.ndarray = None
 
     def __post_init__(self):
         n = np.size(self.peak_e)
@@ -94,6 +111,14 @@ class SizeTable:
                 msg = f"exposure must have {n} values, got {exposure.size}"
                 raise BFPSFInputError(msg, exposure.size)
             object.__setattr__(self, "exposure", exposure.astype(int))
+        for name in _OPTIONAL_COLUMNS:
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, _column(getattr(self, name), name, n,
+                                                       positive=name.endswith("_err")))
+        if (self.skew_x is None) != (self.skew_x_err is None) or \
+                (self.skew_y is None) != (self.skew_y_err is None):
+            msg = "skewness columns need their errors (skew_x_err, skew_y_err)"
+            raise BFPSFInputError(msg)
         if n < 3:
             msg = f"a size table needs at least 3 entries, got {n}"
             raise BFPSFInputError(msg, n)
@@ -113,7 +138,8 @@ class SizeTable:
         return SizeTable(self.peak_e[rows], self.sigma_x[rows], self.sigma_y[rows],
                          self.sigma_x_err[rows], self.sigma_y_err[rows], group=self.group[rows],
                          colour=pick(self.colour), label=self.label,
-                         exposure=pick(self.exposure))
+                         exposure=pick(self.exposure),
+                         **{name: pick(getattr(self, name)) for name in _OPTIONAL_COLUMNS})
 
 
 @dataclass(frozen=True)
@@ -336,32 +362,82 @@ def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=Non
                        correlations=correlations, meta=meta, ptc=ptc)
 
 
-def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label):
+def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=None,
+                  skew=None, position_bins=1):
     """Mean peak and sizes in quantile bins of flux for each exposure (the same bin edges for
     all), errors from the scatter in each bin; bins with fewer than 3 stars are left out.
 
     Bins are in total flux, not in measured peak: at one flux the peak of a pixelised star
     depends on its sub-pixel phase (by 30 % for a 3 px FWHM), and so does its size, so bins
     of measured peak would select phases and bias the sizes with the peak.
+
+    With ``x`` (star columns, pixels) and ``position_bins`` > 1, every bin is also split in
+    that many quantile ranges of x (the distance from the amplifier): the rows carry their
+    mean x (``x_detector``), the x range is their intercept group, and the errors come from
+    the scatter pooled over the rows of each flux bin (`_pool_errors`). With ``skew`` ((skew_x,
+    skew_y) per star, `bfpsf.diagnosis.odd_moments.star_skewness`) the rows carry its mean and
+    error (stars without one left out of it).
     """
     edges = np.quantile(flux, np.linspace(0.0, 1.0, n_bins + 1))
     index = np.clip(np.searchsorted(edges, flux, side="right") - 1, 0, n_bins - 1)
-    rows = []
+    column = np.zeros(flux.size, int)
+    if x is not None and position_bins > 1:
+        x_edges = np.quantile(x, np.linspace(0.0, 1.0, int(position_bins) + 1))
+        column = np.clip(np.searchsorted(x_edges, x, side="right") - 1, 0,
+                         int(position_bins) - 1)
+    rows, row_members = [], []
     for image in np.unique(exposure):
-        for k in range(n_bins):
-            members = (index == k) & (exposure == image)
-            if members.sum() < 3:
-                continue
-            root_n = np.sqrt(members.sum())
-            rows.append((peak[members].mean(), sigma_x[members].mean(), sigma_y[members].mean(),
-                         sigma_x[members].std(ddof=1) / root_n,
-                         sigma_y[members].std(ddof=1) / root_n, image))
+        for part in np.unique(column):
+            for k in range(n_bins):
+                members = (index == k) & (exposure == image) & (column == part)
+                if members.sum() < 3:
+                    continue
+                root_n = np.sqrt(members.sum())
+                row = [peak[members].mean(), sigma_x[members].mean(), sigma_y[members].mean(),
+                       sigma_x[members].std(ddof=1) / root_n,
+                       sigma_y[members].std(ddof=1) / root_n, image, part,
+                       np.nan if x is None else x[members].mean()]
+                for values in (skew if skew is not None else ()):
+                    known = members & np.isfinite(values)
+                    row += ([values[known].mean(), values[known].std(ddof=1)
+                             / np.sqrt(known.sum())] if known.sum() >= 3 else [np.nan, np.nan])
+                rows.append(row)
+                row_members.append((k, members))
     if len(rows) < 3:
         msg = f"only {len(rows)} peak bins hold 3 or more stars: too few to diagnose"
         raise BFPSFInputError(msg, len(rows))
     rows = np.array(rows)
+    if position_bins > 1:
+        _pool_errors(rows, row_members, (sigma_x, sigma_y, *(skew if skew is not None else ())))
+    extra = {}
+    if x is not None:
+        extra["x_detector"] = rows[:, 7]
+    if skew is not None and np.all(np.isfinite(rows[:, 8:12])) and np.all(rows[:, [9, 11]] > 0):
+        extra.update(skew_x=rows[:, 8], skew_x_err=rows[:, 9], skew_y=rows[:, 10],
+                     skew_y_err=rows[:, 11])
     return SizeTable(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], label=label,
-                     exposure=rows[:, 5].astype(int))
+                     exposure=rows[:, 5].astype(int), group=rows[:, 6].astype(int), **extra)
+
+
+def _pool_errors(rows, row_members, quantities):
+    """Errors of binned means from the scatter pooled over every row of the same flux bin
+    (rows of a few stars each estimate their own scatter badly: 3 stars give it to 50 %)."""
+    columns = ((1, 3), (2, 4), (8, 9), (10, 11))
+    for values, (mean_column, error_column) in zip(quantities, columns):
+        for k in {k for k, _ in row_members}:
+            deviations, count = [], 0
+            for (bin_k, members), row in zip(row_members, rows):
+                if bin_k != k:
+                    continue
+                known = members & np.isfinite(values)
+                deviations.append(values[known] - values[known].mean())
+                count += 1
+            deviations = np.concatenate(deviations)
+            pooled = np.sqrt(np.sum(deviations ** 2) / max(deviations.size - count, 1))
+            for index, (bin_k, members) in enumerate(row_members):
+                if bin_k == k:
+                    known = members & np.isfinite(values)
+                    rows[index, error_column] = pooled / np.sqrt(max(known.sum(), 1))
 
 
 def bf_scale_error(spot_model, shift_draws, peaks_e):
@@ -489,7 +565,8 @@ def interleaved(n, fraction):
 
 def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=10, gain=None,
                             calibration=None, fit_b=True, amp=None, holdout_fraction=0.5,
-                            n_monte_carlo=30, background=None, progress=False):
+                            n_monte_carlo=30, background=None, progress=False,
+                            position_bins=1):
     """Observables from flat-field FITS and spot / star images (ADU, bias subtracted).
 
     The flats are calibrated (`bfpsf.calibrate`, with ``n_monte_carlo`` bootstrap samples of
@@ -499,7 +576,11 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     `bfpsf.calibrate` (False for a few small flats, whose b term is unconstrained). The loop
     works on one amplifier: ``amp`` names it in multi-amplifier files (flats and images are
     read by `bfpsf.io.amplifiers`). ``background`` is the images' sky level, ADU per pixel
-    (default: the sigma-clipped median of each image).
+    (default: the sigma-clipped median of each image). ``position_bins`` > 1 also splits
+    the bins by the stars' column (`_binned_sizes`): the residual's dependence on the distance
+    from the amplifier, each row then carrying its stars' mean column (``x_detector``). Every
+    row carries the stars' mean skewness (`bfpsf.diagnosis.odd_moments.star_skewness`), the
+    odd part of the residual.
 
     The model spot is the P0 that ``bfpsf psf`` would fit (`bfpsf.model.psf_fit.fit_psf`, its
     defaults, the calibrated shifts) from the isolated stars of the exposures the loop fits
@@ -535,7 +616,10 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         msg = f"the calibration has no boundary shifts ({reason})"
         raise BFPSFInputError(msg)
     gain = cal.gain if gain is None else gain
+    from .odd_moments import star_skewness
+
     fluxes, peaks, sigma_x, sigma_y, exposure = [], [], [], [], []
+    columns, skews = [], []
     pixels, tables, sky_noise = [], [], []
     for index, path in enumerate(images):
         amplifiers = read_amplifiers(path, amp, what="image")
@@ -558,14 +642,20 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         sigma_x.append(np.asarray(table["sigma_x"], float)[good])
         sigma_y.append(np.asarray(table["sigma_y"], float)[good])
         exposure.append(np.full(good.sum(), index))
-    fluxes, peaks, sigma_x, sigma_y, exposure = (np.concatenate(v) for v in
-                                                 (fluxes, peaks, sigma_x, sigma_y, exposure))
+        columns.append(np.asarray(table["x"], float)[good])
+        skews.append(np.array(star_skewness(prepared.sky_subtracted,
+                                            table[good])).T.reshape(-1, 2))
+    fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews = (
+        np.concatenate(v) for v in (fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews))
     if fluxes.size < 9:  # the size bins need 3 of 3 stars; no quantile of nothing
         msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean star(s), too few to "
                "diagnose (9 or more)")
         raise BFPSFInputError(msg, fluxes.size)
     sizes = _binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
-                          f"{len(images)} images")
+                          f"{len(images)} images",
+                          # one position bin: the bins' mean columns differ by chance only
+                          x=columns if position_bins > 1 else None, skew=skews.T,
+                          position_bins=position_bins)
     # P0 from the exposures the loop fits (`bfpsf.diagnosis.loop.split_observables`)
     fitted = np.unique(sizes.exposure)
     if holdout_fraction and fitted.size >= 2:

@@ -16,7 +16,11 @@ the PSF model can use it:
 * ``flux_diffusion``, ``boundary_density``, ``sum_rule_tail``, ``chromatic_size`` and
   ``readout_pedestal`` are recorded but not applied (P(F) has no flux-dependent blur term; P0
   fitted from the stars holds the flux-independent part; the pedestal is already subtracted by
-  the calibration), and the refinement says so.
+  the calibration), and the refinement says so;
+* when a size residual is left that no catalogue effect matches, the loop's EMPIRICAL term
+  (`bfpsf.model.empirical.EmpiricalTerm`, with its out-of-sample validation) is stored in
+  ``refinement['empirical']``: the PSF model applies it (`EmpiricalTerm.from_calibration`),
+  and it is labelled empirical wherever it is reported.
 
 The provenance (effects, parameters, errors, whether the held-out data confirmed them, the input
 files) is kept in ``Calibration.refinement`` and written to the file's REFINE extension.
@@ -123,7 +127,11 @@ def refine_calibration(calibration, result, *, provenance=None):
     scale = 0.0
     folded = result.folded or {"names": [], "effects": {}, "scale_nuisance": None}
     nuisance = folded.get("scale_nuisance")
-    if nuisance is not None and result.confirmed.get("calibration_scale (nuisance)", True):
+    against = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
+    if nuisance is not None and against:
+        not_applied["calibration_scale (nuisance)"] = (
+            f"its signature is contradicted by {against} (an effect outside the catalogue)")
+    elif nuisance is not None and result.confirmed.get("calibration_scale (nuisance)", True):
         scale += nuisance
         applied["calibration_scale (nuisance)"] = "shifts times (1 + s)"
         parameters["calibration_scale (nuisance)"] = dict(result.nuisance["calibration_scale"],
@@ -173,6 +181,15 @@ def refine_calibration(calibration, result, *, provenance=None):
                   "confirmed": dict(result.confirmed), "holdout": result.holdout,
                   "linearity_c_per_1e5": linearity_c, "buildup_steps": buildup,
                   "scale": scale, "provenance": dict(provenance or {})}
+    if result.empirical and not result.empirical.get("validation", {}).get("validated", True):
+        not_applied["empirical"] = ("the EMPIRICAL term did not lower the slope residual on "
+                                    "data it was not fitted on")
+    elif result.empirical:
+        # what no physics explained: the EMPIRICAL term (`bfpsf.model.empirical`), applied by
+        # every consumer of the calibration and labelled empirical in every report
+        refinement["empirical"] = result.empirical
+        applied["empirical"] = ("EMPIRICAL flux-dependent size term learned from the stars "
+                                "(not physics)")
     return dataclasses.replace(calibration, shifts=shifts, refinement=json_ready(refinement),
                                **samples)
 

@@ -262,6 +262,11 @@ class FluxDependentPSF(BFPSFModel):
     #: The position taken when none is given: the model is the same everywhere.
     reference_position = (0.0, 0.0)
 
+    #: issue 22: the EMPIRICAL term (`bfpsf.model.empirical.EmpiricalTerm`, evaluated at
+    #: this PSF's position and exposure) of a refined calibration, or None; applied by
+    #: `_stamp_delta` (star_image and the exact mode)
+    empirical = None
+
     def __init__(self, data, shifts, *, flux=flux.default, x_0=x_0.default, y_0=y_0.default,
                  origin=None, oversampling=1, flux_unit=None, gain=None, mode="table",
                  buildup_steps=None, bf_table=None, fill_value=0.0, density_profile=None,
@@ -537,9 +542,16 @@ class FluxDependentPSF(BFPSFModel):
         ``(x_phase, y_phase)`` from the central pixel), as mode='exact' computes it."""
         density = self.boundary_density(x_phase, y_phase, stamp.shape[0] // 2)
         if self.buildup_steps is not None:
-            return self._buildup_delta(stamp, flux, density)
-        return self.electrons_per_unit * flux * abs(flux) * redistribution_delta(stamp, self.shifts,
-                                                                   density=density)
+            delta = self._buildup_delta(stamp, flux, density)
+        else:
+            delta = self.electrons_per_unit * flux * abs(flux) * redistribution_delta(
+                stamp, self.shifts, density=density)
+        # -- issue 22 hook: the EMPIRICAL term of a refined calibration (not physics) --------
+        if self.empirical is not None:
+            delta = delta + self.empirical.delta(flux * stamp + delta,
+                                                 self.electrons_per_unit * abs(flux))
+        # -- end of the issue 22 hook ------------------------------------------------------
+        return delta
 
     def _buildup_delta(self, stamp, flux, density=None):
         """BF term of the star (image unit) with the build-up integrated, odd in F."""

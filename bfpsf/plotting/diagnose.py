@@ -195,3 +195,77 @@ def plot_radial_profile(images, labels, *, ax=None):
     ax.legend(fontsize=8)
     figure.tight_layout()
     return figure
+
+
+def plot_signatures(result, *, axes=None):
+    """What the stars' residual is and why no catalogue effect was named (issue 22).
+
+    Left: the unexplained size residual per axis (BF slope, percent of the raw slope, on the
+    held-out data) before and after the EMPIRICAL term, with the verdict and the stars' chi2
+    per pixel against its null expectation in the title. Right: each rejected candidate's
+    amplitudes in the parts of the dimension that contradicts it (normalised to their mean,
+    1 = one amplitude fits all parts), with errors.
+
+    Parameters
+    ----------
+    result : DiagnosisResult
+    axes : sequence of two matplotlib.axes.Axes, optional
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    import matplotlib.pyplot as plt
+
+    if axes is None:
+        figure, axes = plt.subplots(1, 2, figsize=(11, 4))
+    else:
+        figure = axes[0].figure
+    left, right = axes
+    validation = (result.empirical or {}).get("validation", {})
+    heldout = validation.get("heldout") or {}
+    stages = [("loop", result.residual_after_heldout or result.residual_after)]
+    if heldout:
+        stages += [("before empirical", heldout["before"]), ("after EMPIRICAL", heldout["after"])]
+    width = 0.8 / len(stages)
+    for index, (label, values) in enumerate(stages):
+        if not values or "slope_x_percent" not in values:
+            continue
+        left.bar(np.arange(2) + index * width,
+                 [values["slope_x_percent"], values["slope_y_percent"]], width,
+                 yerr=[values["slope_x_percent_err"], values["slope_y_percent_err"]],
+                 label=label)
+    left.axhline(0.0, color="k", lw=0.8)
+    for bound in (-2.0, 2.0):
+        left.axhline(bound, color="grey", ls=":", lw=0.8)
+    left.set_xticks(np.arange(2) + 0.4 - width / 2, ["X", "Y"])
+    left.set_ylabel("BF slope residual, held-out (% of raw)")
+    verdict = result.verdict or {}
+    title = "explained" if verdict.get("success") else "NOT EXPLAINED"
+    chi2 = verdict.get("star_residual_chi2_per_pixel")
+    if chi2 is not None:
+        title += (f"; star chi2/pixel {chi2:.1f} (null {verdict['null_expectation']:.1f}, "
+                  f"limit {verdict['limit']:.0f})")
+    left.set_title(title, fontsize=9)
+    left.legend(fontsize=8)
+    offset = 0
+    ticks, labels = [], []
+    for name, entry in result.rejected.items():
+        test = entry["signature"][entry["contradicted_by"]]
+        amplitudes = np.array([values[0] for values in test["amplitudes"]])
+        errors = np.array([values[0] for values in test["errors"]])
+        mean = np.mean(amplitudes) or 1.0
+        positions = offset + np.arange(amplitudes.size)
+        right.errorbar(positions, amplitudes / mean, yerr=np.abs(errors / mean), fmt="o",
+                       label=f"{name}: {entry['contradicted_by']} (p={entry['p_value']:.0e})")
+        ticks += list(positions)
+        labels += test["parts"]
+        offset += amplitudes.size + 1
+    right.axhline(1.0, color="k", lw=0.8)
+    right.set_xticks(ticks, labels, rotation=30, fontsize=7)
+    right.set_ylabel("part amplitude / mean")
+    right.set_title("rejected: the observable that contradicts each", fontsize=9)
+    if result.rejected:
+        right.legend(fontsize=7)
+    figure.tight_layout()
+    return figure

@@ -1,0 +1,187 @@
+"""Learning the EMPIRICAL term from the stars' size residual, and judging it out of sample.
+
+When the loop leaves a size residual that no catalogue effect matches (`bfpsf.diagnosis.signature`),
+`fit_empirical` fits `bfpsf.model.empirical.EmpiricalTerm` to it: per axis, the residual
+sigma^2 - sigma_model^2 is [c(x, t) F / F_ref + q(x, t) (F / F_ref)^2] (through the adaptive
+moments' response to the patterns, `adaptive_response`) plus an intercept per group, c and q
+each a constant plus a position term (x - x_ref) / 1000 and an exposure term (t - t_ref); the
+position and exposure terms enter only where the residual report found that dependence
+(`bfpsf.diagnosis.unexplained.describe_unexplained`). Weighted least squares with the sizes' errors.
+
+`evaluate_empirical` applies a term to other data (the held-out exposures of the loop's split;
+for a term that changes over the night, also a contiguous block of late exposures fitted on
+the early ones) and reports the BF slope residual left (percent of the raw slope, per axis)
+and the photometry bias it implies (mmag, as `bfpsf.diagnosis.loop` computes it), before and
+after the term.
+"""
+
+import numpy as np
+
+from ..model.empirical import FLUX_REFERENCE, PATTERNS, EmpiricalTerm
+from .signature import weighted_least_squares
+
+__all__ = ["fit_empirical", "evaluate_empirical", "predicted_size_change", "early_late",
+           "adaptive_response"]
+
+_MAG_PER_FRACTION = 2.5 / np.log(10.0)
+
+
+def _terms(sizes, fluxes, x_reference, exposure_reference, position, exposure):
+    """Columns multiplying each term of c and q (`EmpiricalTerm`) per entry: the flux basis
+    (F / F_ref, (F / F_ref)^2) times (1, position, exposure)."""
+    scaled = np.asarray(fluxes, float) / FLUX_REFERENCE
+    dependence = {"": np.ones(len(sizes))}
+    if position and sizes.x_detector is not None:
+        dependence["position"] = (sizes.x_detector - x_reference) / 1000.0
+    if exposure and sizes.exposure is not None:
+        dependence["exposure"] = np.asarray(sizes.exposure, float) - exposure_reference
+    columns = {}
+    for name, values in dependence.items():
+        columns[name or "constant"] = scaled * values
+        columns["flux2_" + name if name else "flux2"] = scaled ** 2 * values
+    return columns
+
+
+def adaptive_response(spot_model, peak_e, *, step=0.05):
+    """How the measured (adaptive) second moments respond to each pattern, per unit pattern
+    variance: {pattern: {'mxx': d Mxx, 'myy': d Myy}}.
+
+    The patterns change the plain second moments by exactly their coefficient along their own
+    axis; the adaptive moments the loop measures weight the core and re-shape their weight, so
+    they see about 1.1 times the change along the pattern's axis and a fraction of it along
+    the other (a Moffat's Myy follows an X smear by about 15 %). Measured on the model spot at
+    ``peak_e``, averaged over its phases.
+    """
+    from ..measure.moments import adaptive_moments_batch
+    from ..model.empirical import apply_pattern
+
+    stamps = spot_model.stamps([peak_e])[0]
+    base = adaptive_moments_batch(stamps)
+    out = {}
+    for pattern in PATTERNS:
+        changed = np.array([stamp + step * apply_pattern(stamp, pattern) for stamp in stamps])
+        after = adaptive_moments_batch(changed)
+        out[pattern] = {moment: float(np.mean((np.asarray(getattr(after, moment))
+                                               - np.asarray(getattr(base, moment))) / step))
+                        for moment in ("mxx", "myy")}
+    return out
+
+
+_IDENTITY = {"xx": {"mxx": 1.0, "myy": 0.0}, "yy": {"mxx": 0.0, "myy": 1.0}}
+
+
+def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, exposure=False,
+                  response=None):
+    """Fit the empirical term to a size residual.
+
+    Parameters
+    ----------
+    sizes : SizeTable
+        Groups, positions (``x_detector``) and exposures of the entries.
+    fluxes : ndarray (n,)
+        Total flux of each entry, e-.
+    model_sigma : (ndarray, ndarray)
+        The model's sigma_x, sigma_y of each entry, pixels.
+    residual : (ndarray, ndarray)
+        Measured minus model sigma_x, sigma_y, pixels (errors from ``sizes``).
+    position, exposure : bool
+        Fit a position / an exposure dependence of the coefficients.
+    response : dict, optional
+        `adaptive_response` of the measured sizes (default: the plain moments' identity):
+        the coefficients are those of the patterns; both axes are fitted jointly.
+
+    Returns
+    -------
+    EmpiricalTerm
+    """
+    x_reference = float(np.mean(sizes.x_detector)) if sizes.x_detector is not None else 0.0
+    exposure_reference = float(np.mean(sizes.exposure)) if sizes.exposure is not None else 0.0
+    terms = _terms(sizes, fluxes, x_reference, exposure_reference, position, exposure)
+    response = response or _IDENTITY
+    groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
+    zeros = np.zeros_like(groups)
+    blocks = [np.vstack([groups, zeros]), np.vstack([zeros, groups])]
+    for pattern in PATTERNS:
+        for column in terms.values():
+            blocks.append(np.concatenate([response[pattern]["mxx"] * column,
+                                          response[pattern]["myy"] * column])[:, None])
+    # in second moments, where the term is linear: (sigma_model + r)^2 - sigma_model^2, with
+    # errors 2 sigma err (fitting r ~ dM / (2 sigma) instead leaves r^2, 2 % of the raw slope
+    # for an effect of half of it)
+    measured = [sigma + part for sigma, part in zip(model_sigma, residual)]
+    target = np.concatenate([m ** 2 - sigma ** 2 for m, sigma in zip(measured, model_sigma)])
+    errors_m = np.concatenate([2 * m * err for m, err in zip(
+        measured, (sizes.sigma_x_err, sizes.sigma_y_err))])
+    params, covariance, _, _ = weighted_least_squares(target, errors_m, np.hstack(blocks))
+    first = 2 * groups.shape[1]
+    coefficients, errors = {}, {}
+    for index, pattern in enumerate(PATTERNS):
+        for k, name in enumerate(terms):
+            column = first + index * len(terms) + k
+            coefficients.setdefault(pattern, {})[name] = float(params[column])
+            errors.setdefault(pattern, {})[name] = float(np.sqrt(abs(covariance[column,
+                                                                                column])))
+    return EmpiricalTerm(coefficients, errors=errors, x_reference=x_reference,
+                         exposure_reference=exposure_reference)
+
+
+def predicted_size_change(term, sizes, fluxes, model_sigma, response=None):
+    """(d sigma_x, d sigma_y) the term predicts for each entry as measured (``response``:
+    `adaptive_response`), pixels."""
+    x = sizes.x_detector
+    exposure = None if sizes.exposure is None else np.asarray(sizes.exposure, float)
+    changes = dict(zip(PATTERNS, term.variance_change(fluxes, x=x, exposure=exposure)))
+    response = response or _IDENTITY
+    return tuple(np.sqrt(np.clip(sigma ** 2 + sum(response[pattern][moment] * change
+                                                  for pattern, change in changes.items()),
+                                 1e-12, None)) - sigma
+                 for moment, sigma in zip(("mxx", "myy"), model_sigma))
+
+
+def evaluate_empirical(term, sizes, fluxes, model_sigma, residual, response=None):
+    """The BF slope residual and photometry bias before and after the term.
+
+    Returns
+    -------
+    dict
+        ``before`` and ``after``: ``slope_x_percent``, ``slope_y_percent`` (of the raw slope)
+        with errors, ``photometry_bias_mmag`` (faintest to brightest entry, as the loop's
+        summary); ``n`` entries.
+    """
+    from .loop import slope_residuals
+
+    change = predicted_size_change(term, sizes, fluxes, model_sigma, response)
+    out = {"n": len(sizes)}
+    for label, (rx, ry) in (("before", residual),
+                            ("after", (residual[0] - change[0], residual[1] - change[1]))):
+        slopes = slope_residuals(sizes, rx, ry)
+        mean_sigma = 0.5 * (sizes.sigma_x.mean() + sizes.sigma_y.mean())
+        span = (sizes.peak_e.max() - sizes.peak_e.min()) / 1e5
+        per_axis = [slopes[f"raw_slope_{a}"] * slopes[f"slope_{a}_percent"] / 100.0
+                    for a in "xy"]
+        slopes["photometry_bias_mmag"] = float(1e3 * _MAG_PER_FRACTION * np.mean(per_axis)
+                                               * span / mean_sigma)
+        out[label] = slopes
+    return out
+
+
+def early_late(observables, late_fraction=1.0 / 3.0):
+    """Sizes-only observables of the early exposures and of a contiguous block of late ones
+    (the last ``late_fraction`` of the night), or None with fewer than 4 exposures."""
+    from .observables import Observables
+
+    sizes = observables.sizes
+    if sizes is None or sizes.exposure is None:
+        return None
+    exposures = np.unique(sizes.exposure)
+    if exposures.size < 4:
+        return None
+    n_late = max(1, int(round(late_fraction * exposures.size)))
+    late = np.isin(sizes.exposure, exposures[-n_late:])
+    parts = []
+    for rows in (~late, late):
+        if rows.sum() < 3 or np.unique(sizes.group[rows]).size < sizes.n_groups:
+            return None
+        parts.append(Observables(sizes=sizes.subset(rows), spot_model=observables.spot_model,
+                                 meta=observables.meta))
+    return tuple(parts)

@@ -1,0 +1,271 @@
+"""Attribution by signature: a candidate is named only when its shape matches in every observable.
+
+A fit alone cannot reject a wrong attribution: an effect nobody declared is present in the
+fitted and in the held-out data alike, so any flexible template that takes part of it also
+improves the held-out residual. Each catalogue effect predicts more than an amplitude: its
+template (`bfpsf.diagnosis.catalogue`) fixes how the change is shared between the observables
+(flat means, flat correlations, PTC, star sizes), between the axes (sigma_x against sigma_y),
+between faint and bright stars, over the detector and over the night (a catalogue effect is
+the same at every position and in every exposure). The signature test checks each of these
+*dimensions* separately.
+
+Test statistic, per dimension d with parts i = 1..m (e.g. the X and the Y sizes):
+
+1. Refit the residual with the effect's template split into m copies, each restricted to the
+   rows of one part and with its own amplitude p_i, jointly with the base model's nuisances
+   and the effects already named (weighted least squares, the observables' errors). Rows of
+   the template outside every part keep one common amplitude.
+2. Under the hypothesis that the effect (and only its template) is what the data hold, the
+   p_i estimate one amplitude: with C their covariance and p the generalised-least-squares
+   mean, chi2_d = (p_i - p)^T (C + (tau_d p)^2 I)^-1 (p_i - p). tau_d =
+   `TEMPLATE_TOLERANCE` [d] is the relative accuracy of the first-order templates between the
+   parts: 30 % between observables (a gain non-linearity's amplitude from the flat means and
+   from the PTC agree to about 30 %, `tests/test_diagnosis_heldout.py`), 10 % between the
+   axes (the model spot's shape), 30 % between faint and bright stars (the first-order
+   templates' flux dependence, and the faint stars' size measurement: on the null user path,
+   images through P0 fitted from the stars, the BF amplitude of the faint half differs from
+   the bright half's by 2 times its 10 % error), 0 between positions and between exposures
+   (the same template on the same kind of stars: its errors are common to both halves). The
+   covariance is not scaled by the fit's chi2: an effect outside the catalogue inflates that
+   chi2 and would weaken the very test meant to catch it.
+3. Null distribution: chi-square with (m - 1) k degrees of freedom (k the effect's
+   parameters), exact for Gaussian errors and tau = 0, conservative (fewer rejections) with
+   tau > 0. The effect matches in d when its p-value is at least ``alpha`` (default
+   `SIGNATURE_ALPHA` = 1e-3, 3.3 sigma one-sided).
+
+An effect is named only when it matches in every dimension where its template puts something
+in at least two parts; otherwise it is rejected and the report names the dimension with the
+smallest p-value (the observable that contradicts it) with the amplitudes of its parts.
+
+Dimensions (`signature_parts`): ``observable`` (linearity, correlations, PTC, sizes: flats and
+stars must agree), ``axis`` (sizes X, Y), ``position`` (near and far half from the amplifier,
+with ``SizeTable.x_detector``) and ``exposure_order`` (first and second half of the night,
+with ``SizeTable.exposure``). ``flux`` (faint and bright half of the peaks) is available but
+off by default: on the null user path (FITS images, P0 fitted from the stars) the faint
+half's BF amplitude differs from the bright half's by more than 3 sigma (the faint stars'
+size measurement is biased by their noise), so it rejects the flats' size scale on data the
+model describes; none of the bench's outside effects needs it.
+
+``parity`` (`parity_test`): every catalogue effect that changes the stars is even under
+reflection (the G15 redistribution of a symmetric star, a non-linearity, a blur), so each
+predicts that the stars' odd moments (``SizeTable.skew_x``, ``skew_y``) do not change with
+flux. The statistic is the chi2 of the two skewness slopes against peak (free intercepts per
+group), null distribution chi-square with 2 degrees of freedom; when it is significant, no
+even effect matches and every candidate with a size template is rejected by parity.
+"""
+
+import numpy as np
+from scipy.stats import chi2 as chi2_distribution
+
+__all__ = ["SIGNATURE_ALPHA", "TEMPLATE_TOLERANCE", "weighted_least_squares",
+           "signature_parts", "signature_test", "contradiction", "parity_test",
+           "describe_entry"]
+
+#: p-value below which a dimension contradicts a candidate (3.3 sigma one-sided).
+SIGNATURE_ALPHA = 1e-3
+#: Relative accuracy of the first-order templates between the parts of each dimension (tau_d).
+TEMPLATE_TOLERANCE = {"observable": 0.3, "axis": 0.1, "flux": 0.3, "position": 0.0,
+                      "exposure_order": 0.0}
+
+
+def weighted_least_squares(residual, sigma, design):
+    """Weighted least squares: parameters, covariance, chi2, fitted model.
+
+    Columns are scaled to unit norm for conditioning; a singular design gives the
+    pseudo-inverse covariance.
+    """
+    weights = 1.0 / sigma
+    a = design * weights[:, None]
+    b = residual * weights
+    norms = np.sqrt((a ** 2).sum(axis=0))
+    norms[norms == 0] = 1.0
+    solution, *_ = np.linalg.lstsq(a / norms, b, rcond=None)
+    params = solution / norms
+    model = design @ params
+    chi2 = float((((residual - model) * weights) ** 2).sum())
+    try:
+        covariance = np.linalg.pinv((a / norms).T @ (a / norms)) / np.outer(norms, norms)
+    except np.linalg.LinAlgError:
+        covariance = np.full((params.size, params.size), np.nan)
+    return params, covariance, chi2, model
+
+
+def _halves(values):
+    """Boolean mask of the upper half of ``values`` (None when they do not vary)."""
+    values = np.asarray(values, float)
+    if np.ptp(values) == 0:
+        return None
+    upper = values > np.median(values)
+    if upper.all() or not upper.any():
+        upper = values >= np.median(values)
+    return upper if upper.any() and not upper.all() else None
+
+
+def signature_parts(problem, observables, *, flux=False):
+    """The dimensions of the signature test and their parts.
+
+    Parameters
+    ----------
+    problem : bfpsf.diagnosis.loop._Problem
+        The stacked residual (its ``keys`` and ``slices``).
+    observables : Observables
+    flux : bool
+        Also split faint from bright stars (default False: module docstring).
+
+    Returns
+    -------
+    dict
+        Dimension -> list of (part label, boolean row mask over the residual vector).
+    """
+    n_rows = problem.residual.size
+    out = {"observable": []}
+    for key in problem.keys:
+        mask = np.zeros(n_rows, bool)
+        mask[problem.slices[key]] = True
+        out["observable"].append((key, mask))
+    sizes = observables.sizes
+    if sizes is None:
+        return out
+    start, n = problem.slices["sizes"].start, len(sizes)
+
+    def size_rows(select_x, select_y):
+        mask = np.zeros(n_rows, bool)
+        mask[start:start + n] = select_x
+        mask[start + n:start + 2 * n] = select_y
+        return mask
+
+    every, none = np.ones(n, bool), np.zeros(n, bool)
+    out["axis"] = [("x", size_rows(every, none)), ("y", size_rows(none, every))]
+    splits = {"flux": (sizes.peak_e, ("faint", "bright"))} if flux else {}
+    if sizes.x_detector is not None:
+        splits["position"] = (sizes.x_detector, ("near the amplifier", "far from it"))
+    if sizes.exposure is not None:
+        order = np.unique(sizes.exposure, return_inverse=True)[1]
+        splits["exposure_order"] = (order, ("early", "late"))
+    for dimension, (values, labels) in splits.items():
+        upper = _halves(values)
+        if upper is not None:
+            out[dimension] = [(labels[0], size_rows(~upper, ~upper)),
+                              (labels[1], size_rows(upper, upper))]
+    return out
+
+
+def signature_test(residual, sigma, base_design, effect_design, parts, *, alpha=SIGNATURE_ALPHA,
+                   tolerance=TEMPLATE_TOLERANCE):
+    """The signature test of one candidate, in every dimension its template reaches.
+
+    Parameters
+    ----------
+    residual, sigma : ndarray (N,)
+        Residual to explain (fixed effects already subtracted) and its errors.
+    base_design : ndarray (N, m)
+        Nuisances and the free effects already named.
+    effect_design : ndarray (N, k)
+        The candidate's template (`bfpsf.diagnosis.loop._effect_design`).
+    parts : dict
+        `signature_parts`.
+    alpha : float
+        The p-value threshold.
+    tolerance : dict
+        tau_d per dimension (module docstring); 0 for dimensions not in it.
+
+    Returns
+    -------
+    dict
+        Dimension -> {``parts`` (labels), ``amplitudes``, ``errors`` (per part and parameter),
+        ``chi2``, ``dof``, ``p_value``, ``matches``}; dimensions where the template reaches
+        fewer than two parts are left out.
+    """
+    k = effect_design.shape[1]
+    out = {}
+    for dimension, members in parts.items():
+        labels, columns = [], []
+        for label, mask in members:
+            part = effect_design * mask[:, None]
+            if np.any(part):
+                labels.append(label)
+                columns.append(part)
+        if len(columns) < 2:
+            continue
+        covered = np.any([mask for _, mask in members], axis=0)
+        rest = effect_design * (~covered)[:, None]
+        blocks = [base_design] + ([rest] if np.any(rest) else []) + columns
+        params, covariance, _, _ = weighted_least_squares(residual, sigma,
+                                                          np.column_stack(blocks))
+        first = params.size - len(columns) * k
+        amplitudes = params[first:].reshape(len(columns), k)
+        errors = np.sqrt(np.abs(np.diag(covariance)[first:])).reshape(len(columns), k)
+        statistic = 0.0
+        for j in range(k):
+            index = first + j + k * np.arange(len(columns))
+            values = amplitudes[:, j]
+            inverse = np.linalg.pinv(covariance[np.ix_(index, index)])
+            ones = np.ones(len(columns))
+            mean = float(ones @ inverse @ values / (ones @ inverse @ ones))
+            tau = tolerance.get(dimension, 0.0)
+            total = covariance[np.ix_(index, index)] + (tau * mean) ** 2 * np.eye(
+                len(columns))
+            deviation = values - mean
+            statistic += float(deviation @ np.linalg.pinv(total) @ deviation)
+        dof = (len(columns) - 1) * k
+        p_value = float(chi2_distribution.sf(statistic, dof))
+        out[dimension] = {"parts": labels, "amplitudes": amplitudes.tolist(),
+                          "errors": errors.tolist(), "chi2": statistic, "dof": dof,
+                          "p_value": p_value, "matches": bool(p_value >= alpha)}
+    return out
+
+
+def parity_test(sizes, *, alpha=SIGNATURE_ALPHA):
+    """The stars' odd moments against flux (the ``parity`` dimension), or None without them.
+
+    Returns
+    -------
+    dict or None
+        As a `signature_test` entry: ``parts`` ("skew x", "skew y"), ``amplitudes`` (slopes,
+        per 1e5 e- of peak), ``errors``, ``chi2``, ``dof`` (2), ``p_value``, ``matches``.
+    """
+    if sizes is None or sizes.skew_x is None or sizes.skew_y is None:
+        return None
+    groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
+    design = np.column_stack([sizes.peak_e / 1e5, groups])
+    slopes, errors, statistic = [], [], 0.0
+    for values, sigma in ((sizes.skew_x, sizes.skew_x_err), (sizes.skew_y, sizes.skew_y_err)):
+        params, covariance, _, _ = weighted_least_squares(values, sigma, design)
+        slopes.append([float(params[0])])
+        errors.append([float(np.sqrt(abs(covariance[0, 0])))])
+        statistic += (params[0] / errors[-1][0]) ** 2
+    p_value = float(chi2_distribution.sf(statistic, 2))
+    return {"parts": ["skew x", "skew y"], "amplitudes": slopes, "errors": errors,
+            "chi2": float(statistic), "dof": 2, "p_value": p_value,
+            "matches": bool(p_value >= alpha)}
+
+
+def contradiction(test):
+    """The dimension of a `signature_test` with the smallest p-value among those that do not
+    match, or None when the candidate matches everywhere."""
+    failed = {name: entry for name, entry in test.items() if not entry["matches"]}
+    if not failed:
+        return None
+    return min(failed, key=lambda name: failed[name]["p_value"])
+
+
+def describe_entry(entry):
+    """One line of an unexplained residual (`bfpsf.diagnosis.unexplained.describe_unexplained`)."""
+    words = [entry["observable"]]
+    if entry.get("axis"):
+        words.append(f"along {entry['axis']}")
+    words.append(f"{entry['significance']:.1f} sigma")
+    if entry.get("parity"):
+        words.append(f"{entry['parity']} parity")
+    if entry.get("sign"):
+        words.append(f"{entry['sign']} with flux")
+    dependence = entry.get("flux_dependence") or {}
+    if dependence.get("kind"):
+        words.append(f"{dependence['kind']} in flux")
+    for key in ("position_dependence", "exposure_dependence"):
+        kind = (entry.get(key) or {}).get("kind")
+        if kind and kind != "none":
+            words.append(kind)
+    if entry.get("flats"):
+        words.append(entry["flats"])
+    return ", ".join(words)

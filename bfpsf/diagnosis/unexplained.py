@@ -1,0 +1,187 @@
+"""What the loop leaves, described without a model, and whether a run may report success.
+
+`describe_unexplained` gives each significant residual's signature (axis, parity, sign, flux,
+position and exposure-order dependence, flats against stars); `verdict` is never a success
+while something is left or the stars' residual chi2 per pixel is far above its null
+expectation (issue 22). Both are used by `bfpsf.diagnosis.loop`.
+"""
+
+import numpy as np
+
+from .signature import weighted_least_squares as _wls
+
+__all__ = ["describe_unexplained", "verdict", "UNEXPLAINED_NSIGMA", "STAR_CHI2_FACTOR"]
+
+
+#: The stacked star residual's chi2 per pixel is "far above" its null expectation beyond this
+#: factor (the null expectation is 1 for the noise model of `stacked_star_residual`; a
+#: measured null, ``meta['star_chi2_null']``, replaces it).
+STAR_CHI2_FACTOR = 10.0
+
+
+def verdict(unexplained, nuisance, star=None, null_expectation=1.0):
+    """Whether a run explains its data: never a success while something is left.
+
+    Parameters
+    ----------
+    unexplained : list of dict
+        `describe_unexplained`.
+    nuisance : dict
+        `DiagnosisResult.nuisance` (the size scale and its signature).
+    star : dict, optional
+        The stacked star residual (`stacked_star_residual`), with ``chi2_per_pixel``.
+    null_expectation : float
+        Its chi2 per pixel on data the model describes (1 for the noise model).
+
+    Returns
+    -------
+    dict
+        ``success``, ``reasons`` (list of str), ``star_residual_chi2_per_pixel``,
+        ``null_expectation``, ``limit`` (`STAR_CHI2_FACTOR` times the expectation).
+    """
+    reasons = [f"unexplained {entry['observable']}"
+               + (f" {entry['axis']}" if entry.get("axis") else "")
+               + f" ({entry['significance']:.1f} sigma)" for entry in unexplained]
+    against = (nuisance.get("calibration_scale") or {}).get("contradicted_by")
+    if against:
+        reasons.append(f"the size scale is contradicted by {against}")
+    chi2 = None if star is None else float(star["chi2_per_pixel"])
+    limit = STAR_CHI2_FACTOR * float(null_expectation)
+    if chi2 is not None and chi2 > limit:
+        reasons.append(f"star residual chi2 per pixel {chi2:.1f}, null expectation "
+                       f"{null_expectation:.1f} (limit {limit:.1f})")
+    return {"success": not reasons, "reasons": reasons, "star_residual_chi2_per_pixel": chi2,
+            "null_expectation": float(null_expectation), "limit": limit}
+
+
+#: Significance (sigma) above which a residual is reported as unexplained.
+UNEXPLAINED_NSIGMA = 3.0
+
+
+def _parity(star, axis):
+    """'even' or 'odd': the larger part of the stacked star residual under reflection along
+    ``axis`` (x: columns mirrored, y: rows mirrored); None without a stacked residual."""
+    if not star:
+        return None
+    image = np.asarray(star["image"], float)
+    mirrored = image[:, ::-1] if axis == "x" else image[::-1, :]
+    even = 0.5 * (image + mirrored)
+    odd = 0.5 * (image - mirrored)
+    return "even" if np.sum(even ** 2) >= np.sum(odd ** 2) else "odd"
+
+
+def _flux_dependence(peak, residual, sigma, group):
+    """How a residual grows with peak: 'constant', 'linear' or 'quadratic' (the highest power
+    significant at 3 sigma in a fit with per-group intercepts), with the coefficients."""
+    x = np.asarray(peak, float) / 1e5
+    columns = [x, x ** 2] + [(group == g).astype(float) for g in np.unique(group)]
+    params, covariance, _, _ = _wls(residual, sigma, np.column_stack(columns))
+    errors = np.sqrt(np.abs(np.diag(covariance)[:2]))
+    significant = [abs(p) > UNEXPLAINED_NSIGMA * e for p, e in zip(params[:2], errors)]
+    kind = "quadratic" if significant[1] else "linear" if significant[0] else "constant"
+    return {"kind": kind, "per_1e5": float(params[0]), "per_1e10": float(params[1])}
+
+
+def _dependence(sizes, values, errors, column, scale, labels):
+    """Coefficient of peak x (column - mean) / scale in the size residual (per-group
+    intercepts and a common slope fitted with it): how the flux dependence changes along
+    ``column`` (detector position, exposure order)."""
+    x = sizes.peak_e / 1e5
+    centred = (np.asarray(column, float) - np.mean(column)) / scale
+    groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
+    params, covariance, _, _ = _wls(values, errors, np.column_stack([x, x * centred, groups]))
+    error = float(np.sqrt(abs(covariance[1, 1])))
+    significance = abs(params[1]) / error if error > 0 else 0.0
+    kind = "none" if significance <= UNEXPLAINED_NSIGMA else labels[int(params[1] < 0)]
+    return {"kind": kind, "per_1e5_per_unit": float(params[1]), "error": error,
+            "significance": float(significance)}
+
+
+def _odd_parity(sizes, axis):
+    """'odd' when the stars' skewness along ``axis`` changes with flux at more than
+    `UNEXPLAINED_NSIGMA`, else 'even'; None without skewness columns."""
+    values = getattr(sizes, f"skew_{axis}")
+    if values is None:
+        return None
+    errors = getattr(sizes, f"skew_{axis}_err")
+    groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
+    params, covariance, _, _ = _wls(values, errors, np.column_stack([sizes.peak_e / 1e5,
+                                                                     groups]))
+    significance = abs(params[0]) / np.sqrt(abs(covariance[0, 0]))
+    return "odd" if significance > UNEXPLAINED_NSIGMA else "even"
+
+
+def describe_unexplained(problem, observables, model):
+    """Significant residuals left by a model, with their signature.
+
+    Sizes, per axis: the slope of the size residual against peak (per-group intercepts) at
+    more than `UNEXPLAINED_NSIGMA` of its error; its sign (``rising`` or ``falling`` with
+    flux); its parity: ``odd`` when the stars' skewness along the axis changes with flux
+    (``SizeTable.skew_x``, ``skew_y``), else that of the stacked star residual under
+    reflection along the axis; its flux dependence the highest significant power of peak;
+    its ``position_dependence`` (the slope's change with the distance from the amplifier,
+    per 1000 pixels, with ``SizeTable.x_detector``) and ``exposure_dependence`` (per exposure
+    of the night, with ``SizeTable.exposure``), each with its significance and a kind
+    (``none`` below `UNEXPLAINED_NSIGMA`); ``flats`` says whether a flat observable is
+    unexplained too (``flats and stars``) or not (``stars only``). Other observables: a chi2
+    per point whose excess over its degrees of freedom is significant, (chi2 - N) / sqrt(2 N).
+
+    Returns
+    -------
+    list of dict
+        {observable, axis, parity, flux_dependence, significance (sigma)} and, for sizes,
+        sign, position_dependence, exposure_dependence, flats.
+    """
+    residual = problem.residual - model
+    out = []
+    for key in problem.keys:
+        block = problem.slices[key]
+        part, sigma = residual[block], problem.sigma[block]
+        if key == "sizes":
+            from ..measure.slopes import fit_bf_slope
+
+            sizes = observables.sizes
+            n = len(sizes)
+            for index, axis in enumerate("xy"):
+                values, errors = part[index * n:(index + 1) * n], sigma[index * n:(index + 1) * n]
+                fit = fit_bf_slope(sizes.peak_e, values, size_err=errors, group=sizes.group,
+                                   scale_errors=False, clip_nsigma=None)
+                significance = abs(fit.slope) / fit.slope_err
+                if significance > UNEXPLAINED_NSIGMA:
+                    parity = _odd_parity(sizes, axis)
+                    if parity is None:
+                        parity = _parity(observables.meta.get("star_residual"), axis)
+                    entry = {"observable": "sizes", "axis": axis, "parity": parity,
+                             "sign": "rising" if fit.slope > 0 else "falling",
+                             "flux_dependence": _flux_dependence(sizes.peak_e, values, errors,
+                                                                 sizes.group),
+                             "significance": float(significance),
+                             "position_dependence": None, "exposure_dependence": None}
+                    if sizes.x_detector is not None and np.ptp(sizes.x_detector) > 0:
+                        entry["position_dependence"] = _dependence(
+                            sizes, values, errors, sizes.x_detector, 1000.0,
+                            ("rising with distance from the amplifier",
+                             "falling with distance from the amplifier"))
+                    if sizes.exposure is not None and np.unique(sizes.exposure).size > 2:
+                        order = np.unique(sizes.exposure, return_inverse=True)[1]
+                        entry["exposure_dependence"] = _dependence(
+                            sizes, values, errors, order, 1.0,
+                            ("rising over the night", "falling over the night"))
+                    out.append(entry)
+            continue
+        n_points = part.size
+        chi2 = float(np.sum((part / sigma) ** 2))
+        significance = (chi2 - n_points) / np.sqrt(2.0 * n_points)
+        if significance > UNEXPLAINED_NSIGMA:
+            mean = {"linearity": getattr(observables.linearity, "mean_e", None),
+                    "ptc": getattr(observables.ptc, "mean_e", None)}.get(key)
+            dependence = None
+            if mean is not None and mean.size > 3:
+                dependence = _flux_dependence(mean, part, sigma, np.zeros(mean.size, int))
+            out.append({"observable": key, "axis": None, "parity": None,
+                        "flux_dependence": dependence, "significance": float(significance)})
+    flats = any(entry["observable"] != "sizes" for entry in out)
+    for entry in out:
+        if entry["observable"] == "sizes":
+            entry["flats"] = "flats and stars" if flats else "stars only"
+    return out

@@ -1,0 +1,182 @@
+"""An EMPIRICAL flux-dependent correction to P(F): what the stars show and no physics explains.
+
+When the closed loop (`bfpsf.diagnosis`) finds a residual that no catalogue effect matches, the
+user still needs a PSF that works. The empirical term is a low-order basis in flux times a
+pixel-space pattern, with a position and an exposure dependence where the residual shows one:
+
+    image(F) = BF image(F) + sum_k [(F / F_ref) c_k(x, t) + (F / F_ref)^2 q_k(x, t)] B_k[image(F)]
+
+with the charge-conserving, centroid-preserving patterns
+
+    B_xx = 1/2 d^2/dx^2 (three-point, along columns),  B_yy = 1/2 d^2/dy^2 (along rows),
+
+each adding c_k F / F_ref + q_k (F / F_ref)^2 pixel^2 to the second moment along its axis of
+any star (exactly for the unweighted moments of a pixelised image away from its edges), and
+
+    c_k(x, t) = constant_k + position_k (x - x_ref) / 1000 + exposure_k (t - t_ref),
+    q_k(x, t) = flux2_k + flux2_position_k (x - x_ref) / 1000 + flux2_exposure_k (t - t_ref),
+
+x the column (distance from the amplifier, pixels), t the exposure's order in the night. F_ref
+is 1e6 e- of total flux. It is labelled empirical everywhere: it describes, it does not
+explain, and it is valid only over the fluxes, positions and exposures it was learned on.
+
+Odd (centroid- and skew-like) residuals are reported by the loop but not corrected: a PSF fit
+takes a flux-dependent centroid shift into its position.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import BFPSFValueError
+
+__all__ = ["EmpiricalTerm", "PATTERNS", "FLUX_REFERENCE", "apply_pattern", "with_empirical"]
+
+#: The pixel-space patterns, in the order of `EmpiricalTerm.coefficients`.
+PATTERNS = ("xx", "yy")
+#: Reference total flux of the coefficients, e-.
+FLUX_REFERENCE = 1e6
+_TERMS = ("constant", "position", "exposure", "flux2", "flux2_position", "flux2_exposure")
+
+
+def apply_pattern(image, pattern):
+    """B_k[image]: half the three-point second difference along x ('xx') or y ('yy').
+
+    The image is extended by its edge pixels (no flux crosses the stamp's edge), so the
+    pattern conserves the flux exactly, and for a star that fits in the stamp it leaves the
+    centroid unchanged and adds the star's flux to sum (x - x0)^2 I.
+    """
+    image = np.asarray(image, float)
+    axis = {"xx": 1, "yy": 0}.get(pattern)
+    if axis is None:
+        msg = f"pattern must be one of {PATTERNS}, got {pattern!r}"
+        raise BFPSFValueError(msg, pattern)
+    padded = np.pad(image, [(1, 1) if a == axis else (0, 0) for a in range(2)], mode="edge")
+    if axis == 1:
+        second = padded[:, 2:] - 2 * padded[:, 1:-1] + padded[:, :-2]
+    else:
+        second = padded[2:, :] - 2 * padded[1:-1, :] + padded[:-2, :]
+    return 0.5 * second
+
+
+@dataclass(frozen=True)
+class EmpiricalTerm:
+    """The empirical correction (module docstring), learned by `bfpsf.diagnosis.empirical_fit`.
+
+    Attributes
+    ----------
+    coefficients : dict
+        Pattern (``'xx'``, ``'yy'``) -> {``constant`` (pixel^2 per F_ref), ``position``
+        (pixel^2 per F_ref per 1000 pixels), ``exposure`` (pixel^2 per F_ref per exposure),
+        ``flux2``, ``flux2_position``, ``flux2_exposure`` (the same for q, pixel^2 per
+        F_ref^2)}; missing terms are 0.
+    errors : dict
+        Same layout: 1-sigma errors.
+    x_reference : float
+        Column the position term is centred on, pixels.
+    exposure_reference : float
+        Exposure order the exposure term is centred on.
+    validation : dict
+        How it did on data it was not fitted on (`bfpsf.diagnosis.empirical_fit`).
+    label : str
+        Always ``'empirical'``.
+    """
+
+    coefficients: dict
+    errors: dict = field(default_factory=dict)
+    x_reference: float = 0.0
+    exposure_reference: float = 0.0
+    validation: dict = field(default_factory=dict)
+    label: str = "empirical"
+
+    def __post_init__(self):
+        for pattern, terms in self.coefficients.items():
+            if pattern not in PATTERNS or set(terms) - set(_TERMS):
+                msg = (f"empirical coefficients must map {PATTERNS} to {_TERMS}, got "
+                       f"{pattern!r}: {sorted(terms)}")
+                raise BFPSFValueError(msg, pattern)
+            if not all(np.isfinite(value) for value in terms.values()):
+                msg = f"empirical coefficients of {pattern!r} must be finite, got {terms}"
+                raise BFPSFValueError(msg, terms)
+
+    def coefficient(self, pattern, x=None, exposure=None, *, order=1):
+        """c_k (``order=1``, pixel^2 per F_ref) or q_k (``order=2``, per F_ref^2) at column
+        ``x`` and exposure order ``exposure`` (the references when None)."""
+        terms = self.coefficients.get(pattern, {})
+        prefix = "" if order == 1 else "flux2_"
+        value = terms.get("constant" if order == 1 else "flux2", 0.0)
+        if x is not None:
+            value = value + terms.get(prefix + "position", 0.0) * (
+                np.asarray(x, float) - self.x_reference) / 1000.0
+        if exposure is not None:
+            value = value + terms.get(prefix + "exposure", 0.0) * (
+                np.asarray(exposure, float) - self.exposure_reference)
+        return value
+
+    def variance_change(self, flux, x=None, exposure=None):
+        """(dMxx, dMyy) of a star of total flux ``flux`` (e-), pixel^2."""
+        scale = np.asarray(flux, float) / FLUX_REFERENCE
+        return tuple(scale * self.coefficient(pattern, x, exposure)
+                     + scale ** 2 * self.coefficient(pattern, x, exposure, order=2)
+                     for pattern in PATTERNS)
+
+    def delta(self, image, flux, x=None, exposure=None):
+        """The term's change of a star image of total flux ``flux`` (e-), image units."""
+        changes = self.variance_change(float(flux), x, exposure)
+        out = np.zeros_like(np.asarray(image, float))
+        for pattern, change in zip(PATTERNS, changes):
+            if change:
+                out = out + float(change) * apply_pattern(image, pattern)
+        return out
+
+    def at(self, x=None, exposure=None):
+        """The term with its position and exposure dependence evaluated: constants only (for
+        a PSF that holds one position and one exposure)."""
+        coefficients = {pattern: {"constant": float(self.coefficient(pattern, x, exposure)),
+                                  "flux2": float(self.coefficient(pattern, x, exposure,
+                                                                  order=2))}
+                        for pattern in self.coefficients}
+        return EmpiricalTerm(coefficients, validation=dict(self.validation))
+
+    def to_dict(self):
+        """JSON-ready form (stored in a refined calibration's ``refinement['empirical']``)."""
+        return {"label": self.label, "coefficients": self.coefficients, "errors": self.errors,
+                "x_reference": float(self.x_reference),
+                "exposure_reference": float(self.exposure_reference),
+                "flux_reference_e": FLUX_REFERENCE, "patterns": list(PATTERNS),
+                "validation": self.validation}
+
+    @classmethod
+    def from_dict(cls, record):
+        """Inverse of `to_dict`."""
+        if record.get("label") != "empirical":
+            msg = f"not an empirical term record (label {record.get('label')!r})"
+            raise BFPSFValueError(msg, record.get("label"))
+        if float(record.get("flux_reference_e", FLUX_REFERENCE)) != FLUX_REFERENCE:
+            msg = (f"empirical term with flux reference {record['flux_reference_e']} e-; this "
+                   f"bfpsf uses {FLUX_REFERENCE}")
+            raise BFPSFValueError(msg, record["flux_reference_e"])
+        return cls({pattern: {key: float(value) for key, value in terms.items()}
+                    for pattern, terms in record["coefficients"].items()},
+                   errors=record.get("errors", {}),
+                   x_reference=float(record.get("x_reference", 0.0)),
+                   exposure_reference=float(record.get("exposure_reference", 0.0)),
+                   validation=record.get("validation", {}))
+
+    @classmethod
+    def from_calibration(cls, calibration):
+        """The empirical term a refined calibration holds, or None."""
+        record = (getattr(calibration, "refinement", None) or {}).get("empirical")
+        return None if not record else cls.from_dict(record)
+
+
+def with_empirical(psf, calibration, *, x=None, exposure=None):
+    """A copy of ``psf`` (`FluxDependentPSF`) applying the EMPIRICAL term of a refined
+    calibration, evaluated at column ``x`` and exposure order ``exposure``; ``psf`` itself
+    when the calibration holds none (every calibration not refined by the loop)."""
+    term = EmpiricalTerm.from_calibration(calibration)
+    if term is None:
+        return psf
+    out = psf.copy()
+    out.empirical = term.at(x=x, exposure=exposure)
+    return out

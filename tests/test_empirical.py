@@ -1,0 +1,152 @@
+"""The EMPIRICAL term (`bfpsf.model.empirical`): what its patterns do to a star, its storage in a
+refined calibration, and the PSF model's hook that applies it (issue 22)."""
+
+import galsim
+import numpy as np
+import pytest
+from scipy.special import exp1
+
+from bfpsf.errors import BFPSFValueError
+from bfpsf.measure.moments import adaptive_moments_batch
+from bfpsf.model.empirical import FLUX_REFERENCE, EmpiricalTerm, apply_pattern
+from bfpsf.model.psf import FluxDependentPSF
+from bfpsf.shifts import BoundaryShifts
+
+SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 2e-7 * exp1(0.8 * r), 3)
+MOFFAT = galsim.Moffat(beta=3.0, fwhm=3.0)
+
+
+def _star(offset=(0.2, -0.3)):
+    return MOFFAT.drawImage(nx=31, ny=31, scale=1.0, offset=offset).array.astype(float)
+
+
+def _plain_moments(image):
+    y, x = np.mgrid[:image.shape[0], :image.shape[1]].astype(float)
+    total = image.sum()
+    cx, cy = (image * x).sum() / total, (image * y).sum() / total
+    return (total, cx, cy, (image * (x - cx) ** 2).sum() / total,
+            (image * (y - cy) ** 2).sum() / total)
+
+
+def test_patterns_add_variance_along_one_axis():
+    """B_xx adds the star's flux to sum (x - x0)^2 I (so c to Mxx per unit c) and nothing
+    to its flux, centroid or Myy; B_yy the same along y. The flux exactly; the rest to the
+    Moffat wing at the edge of the 31 px stamp (1e-5 of the flux per edge pixel row)."""
+    star = _star()
+    total, cx, cy, mxx, myy = _plain_moments(star)
+    for pattern, grows in (("xx", 3), ("yy", 4)):
+        changed = star + 0.1 * apply_pattern(star, pattern)
+        after = _plain_moments(changed)
+        assert after[0] == pytest.approx(total, rel=1e-12)
+        np.testing.assert_allclose(after[1:3], (cx, cy), rtol=0, atol=1e-5)
+        expected = [mxx, myy]
+        expected[grows - 3] += 0.1
+        np.testing.assert_allclose(after[3:], expected, rtol=0, atol=2e-3)
+    with pytest.raises(BFPSFValueError, match="pattern must be one of"):
+        apply_pattern(star, "xy")
+
+
+def test_term_changes_adaptive_moments_as_stated():
+    """On a Moffat, the adaptive moments (what the loop measures) follow the stated variance
+    changes through the adaptive response (`adaptive_response`, measured on the centred star:
+    about 1.1 along the pattern's axis, a fraction across it) to 4 % (the star here is
+    off-centre by (0.2, -0.3) px, which changes the response by a few %)."""
+    from bfpsf.diagnosis.empirical_fit import adaptive_response
+    from bfpsf.diagnosis.spot_model import SpotForwardModel
+
+    response = adaptive_response(SpotForwardModel(MOFFAT, SHIFTS, phases=1, stamp_size=31),
+                                 1e4)
+    assert 1.0 < response["xx"]["mxx"] < 1.3 and 0 < response["xx"]["myy"] < 0.3
+    assert response["xx"]["mxx"] == pytest.approx(response["yy"]["myy"], rel=1e-3)
+    term = EmpiricalTerm({"xx": {"constant": 0.05, "position": 0.02},
+                          "yy": {"constant": -0.01, "exposure": 0.004, "flux2": 0.01}},
+                         x_reference=1000.0, exposure_reference=3.0)
+    star = 2e5 * _star()
+    flux = star.sum()
+    for x, exposure in ((1000.0, 3.0), (1800.0, 7.0)):
+        changed = star + term.delta(star, flux, x=x, exposure=exposure)
+        moments = adaptive_moments_batch(np.array([star, changed]))
+        dxx, dyy = term.variance_change(flux, x=x, exposure=exposure)
+        scale = flux / FLUX_REFERENCE
+        assert dxx == pytest.approx(scale * (0.05 + 0.02 * (x - 1000.0) / 1000.0))
+        assert dyy == pytest.approx(scale * (-0.01 + 0.004 * (exposure - 3.0)) + 0.01 * scale ** 2)
+        measured_xx = response["xx"]["mxx"] * dxx + response["yy"]["mxx"] * dyy
+        measured_yy = response["xx"]["myy"] * dxx + response["yy"]["myy"] * dyy
+        assert moments.mxx[1] - moments.mxx[0] == pytest.approx(measured_xx, rel=0.04)
+        assert moments.myy[1] - moments.myy[0] == pytest.approx(measured_yy, rel=0.04)
+    # evaluated at one place, the term is the same there
+    local = term.at(x=1800.0, exposure=7.0)
+    assert local.variance_change(flux) == pytest.approx(
+        term.variance_change(flux, x=1800.0, exposure=7.0))
+
+
+def test_round_trip_and_errors(tmp_path):
+    term = EmpiricalTerm({"xx": {"constant": 0.05}, "yy": {"constant": 0.01}},
+                         errors={"xx": {"constant": 0.001}}, validation={"heldout": {"n": 3}})
+    record = term.to_dict()
+    assert record["label"] == "empirical"
+    assert EmpiricalTerm.from_dict(record) == term
+    with pytest.raises(BFPSFValueError, match="not an empirical term record"):
+        EmpiricalTerm.from_dict(dict(record, label="physics"))
+    with pytest.raises(BFPSFValueError, match="empirical coefficients must map"):
+        EmpiricalTerm({"zz": {"constant": 1.0}})
+    with pytest.raises(BFPSFValueError, match="must be finite"):
+        EmpiricalTerm({"xx": {"constant": np.nan}})
+    assert EmpiricalTerm.from_calibration(object()) is None
+
+
+def test_refined_calibration_carries_the_term(tmp_path):
+    """refine_calibration stores the loop's empirical term; it survives write / read and
+    comes back as the same term."""
+    from bfpsf.calibration.product import Calibration
+    from bfpsf.diagnosis.loop import DiagnosisResult
+    from bfpsf.diagnosis.refine import refine_calibration
+    from bfpsf.validation.simulate_flats import simulate_flats
+    from bfpsf.calibration import calibrate
+
+    flats = simulate_flats("lsst_itl_50_8", np.linspace(1e4, 8e4, 4), pairs=1, size=64,
+                           nsteps=2, seed=1)
+    cal = calibrate([image for image, _, _ in flats], exptimes=[t for _, t, _ in flats],
+                    maxlag=2, n_monte_carlo=0, fit_b=False)
+    term = EmpiricalTerm({"xx": {"constant": 0.05, "flux2": -0.01}, "yy": {"constant": 0.0}},
+                         validation={"heldout": {"n": 4}})
+    result = DiagnosisResult(residual_before={}, candidates=[], residual_after={},
+                             threshold=-10.0, selected=[], parameters={},
+                             empirical=term.to_dict())
+    refined = refine_calibration(cal, result)
+    assert "empirical" in refined.refinement["applied"]
+    path = tmp_path / "refined.fits"
+    refined.write(path)
+    back = EmpiricalTerm.from_calibration(Calibration.read(path))
+    assert back == term
+    # a calibration without one (every older file) has none
+    assert EmpiricalTerm.from_calibration(cal) is None
+
+
+def test_psf_hook_applies_the_term():
+    """FluxDependentPSF.star_image with an empirical term: the BF image plus the term's
+    pattern on it, so the star's plain Mxx grows by the stated change; none without it."""
+    psf = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=4, size=25)
+    flux = 3e5
+    plain = psf.star_image(flux, x_phase=0.1, half_size=12)
+    term = EmpiricalTerm({"xx": {"constant": 0.2}, "yy": {"constant": 0.0}})
+    psf.empirical = term
+    try:
+        with_term = psf.star_image(flux, x_phase=0.1, half_size=12)
+    finally:
+        psf.empirical = None
+    np.testing.assert_allclose(with_term - plain, term.delta(plain, flux), atol=1e-9 * flux)
+    # with_empirical: the same from a refined calibration's record, on a copy
+    from types import SimpleNamespace
+
+    from bfpsf.model.empirical import with_empirical
+
+    copy = with_empirical(psf, SimpleNamespace(refinement={"empirical": term.to_dict()}))
+    assert copy is not psf and psf.empirical is None
+    np.testing.assert_allclose(copy.star_image(flux, x_phase=0.1, half_size=12), with_term,
+                               rtol=0, atol=1e-9 * flux)
+    assert with_empirical(psf, SimpleNamespace(refinement={})) is psf
+    change = _plain_moments(with_term)[3] - _plain_moments(plain)[3]
+    # the Moffat's wings at the edge of the 25 px stamp: 1 %
+    assert change == pytest.approx(term.variance_change(flux)[0], rel=0.01)
+    assert np.array_equal(psf.star_image(flux, x_phase=0.1, half_size=12), plain)

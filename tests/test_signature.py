@@ -1,0 +1,72 @@
+"""The signature test's statistic has the null distribution it states (`bfpsf.diagnosis.signature`):
+when the data hold exactly the template (plus Gaussian noise of the stated errors), its
+p-values are uniform, so it rejects a true effect at the rate alpha; when the template is
+wrong in one part, it rejects it there."""
+
+import numpy as np
+import pytest
+
+from bfpsf.diagnosis.signature import contradiction, parity_test, signature_test
+from bfpsf.diagnosis.observables import SizeTable
+
+
+def _problem(rng, n=40):
+    """A residual of 2n points (two 'axes'), an intercept per axis, and a template."""
+    template = np.concatenate([np.linspace(0.1, 1.0, n), 0.6 * np.linspace(0.1, 1.0, n)])
+    base = np.zeros((2 * n, 2))
+    base[:n, 0] = base[n:, 1] = 1.0
+    sigma = np.full(2 * n, 0.05)
+    parts = {"axis": [("x", np.arange(2 * n) < n), ("y", np.arange(2 * n) >= n)]}
+    return template[:, None], base, sigma, parts
+
+
+def test_p_values_are_uniform_under_the_null():
+    """1000 data sets with the template's own shape: the fraction of p-values below 0.05,
+    0.2 and 0.5 is that level within 3 binomial sigma (tau = 0: the exact chi-square)."""
+    rng = np.random.default_rng(0)
+    template, base, sigma, parts = _problem(rng)
+    p_values = []
+    for _ in range(1000):
+        residual = 0.3 + 0.8 * template[:, 0] + sigma * rng.standard_normal(sigma.size)
+        test = signature_test(residual, sigma, base, template, parts, tolerance={})
+        p_values.append(test["axis"]["p_value"])
+    p_values = np.array(p_values)
+    for level in (0.05, 0.2, 0.5):
+        assert np.mean(p_values < level) == pytest.approx(
+            level, abs=3 * np.sqrt(level * (1 - level) / p_values.size))
+
+
+def test_a_one_axis_residual_is_rejected_by_axis():
+    rng = np.random.default_rng(1)
+    template, base, sigma, parts = _problem(rng)
+    n = sigma.size // 2
+    residual = np.concatenate([0.8 * template[:n, 0], np.zeros(n)])
+    residual = residual + sigma * rng.standard_normal(sigma.size)
+    test = signature_test(residual, sigma, base, template, parts)
+    assert contradiction(test) == "axis"
+    assert test["axis"]["dof"] == 1 and test["axis"]["p_value"] < 1e-6
+    # a part the template does not reach is no test
+    only_x = template * (np.arange(sigma.size) < n)[:, None]
+    assert signature_test(residual, sigma, base, only_x, parts) == {}
+
+
+def test_parity_null_and_signal():
+    """Skewness slopes of pure noise: p-values uniform (chi-square, 2 dof); a skewness that
+    grows with peak: rejected."""
+    rng = np.random.default_rng(2)
+    peak = np.tile(np.linspace(1e4, 1.2e5, 6), 4)
+    flat = np.full(peak.size, 1.5)
+    p_values = []
+    for _ in range(400):
+        table = SizeTable(peak, flat, flat, flat * 0.01, flat * 0.01,
+                          skew_x=0.01 * rng.standard_normal(peak.size),
+                          skew_y=0.01 * rng.standard_normal(peak.size),
+                          skew_x_err=np.full(peak.size, 0.01),
+                          skew_y_err=np.full(peak.size, 0.01))
+        p_values.append(parity_test(table)["p_value"])
+    assert np.mean(np.array(p_values) < 0.1) == pytest.approx(0.1, abs=3 * np.sqrt(0.09 / 400))
+    table = SizeTable(peak, flat, flat, flat * 0.01, flat * 0.01, skew_x=np.zeros(peak.size),
+                      skew_y=0.05 * peak / 1e5, skew_x_err=np.full(peak.size, 0.01),
+                      skew_y_err=np.full(peak.size, 0.01))
+    assert not parity_test(table)["matches"]
+    assert parity_test(SizeTable(peak, flat, flat, flat * 0.01, flat * 0.01)) is None
