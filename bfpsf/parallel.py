@@ -118,10 +118,10 @@ def _client(workers, scheduler):
                           "distributed.worker.profile.enabled": WORKER_PROFILER}):
         # no dashboard; the scheduler's HTTP routes on a free local port (the default 8787
         # may be taken by another cluster, and Dask then warns)
-        # silence_logs: the nannies' and workers' warnings when an interrupt or an error
+        # silence_logs: the nannies' and workers' messages when an interrupt or an error
         # stops the run ("worker still alive, killing", cancelled tasks) are not the user's
         cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR,
+                               dashboard_address=None, silence_logs=logging.CRITICAL,
                                scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
     return Client(cluster), cluster
 

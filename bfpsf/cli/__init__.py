@@ -157,6 +157,7 @@ def main(argv=None):
         print(f"{command}: error: {_one_line(error)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
+        _close_dask_quietly()
         print(f"{command}: interrupted; no partial output was left", file=sys.stderr)
         return EXIT_INTERRUPTED
     except OSError as error:  # an operating-system error no library function turned into ours
@@ -175,6 +176,23 @@ def main(argv=None):
         print(f"{command}: internal error: {type(error).__name__}: {_one_line(error)} (a "
               "bfpsf bug, please report it; -vv prints the traceback)", file=sys.stderr)
         return 1
+
+
+def _close_dask_quietly():
+    """Close the local Dask clusters an interrupt left behind (one may be half-started),
+    without the tracebacks Dask's own exit handler prints for a half-started one."""
+    spec = sys.modules.get("distributed.deploy.spec")
+    if spec is None:
+        return
+    import atexit
+    import contextlib
+    import io
+
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
+    for cluster in list(spec.SpecCluster._instances):
+        with contextlib.suppress(Exception), contextlib.redirect_stderr(io.StringIO()):
+            cluster.close(timeout=10)
+    atexit.unregister(spec.close_clusters)
 
 
 def _one_line(error):
