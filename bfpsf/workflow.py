@@ -184,8 +184,10 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     positions, per_image, detections = [], [], []
     for index, prepared in enumerate(images):
         data = prepared.sky_subtracted
+        # the level in the sky-subtracted image: below it wherever the sky is highest (a
+        # clipped pixel minus a sloped sky falls under the level minus the sky's mean)
         level = None if not np.isfinite(saturation[index]) else float(
-            saturation[index] - prepared.sky.level)
+            saturation[index] - prepared.sky.image().max())
         xy, n_detected, sources = isolated_stars(data, size, threshold=threshold,
                                                  saturation_e=level, return_sources=True)
         detections.append(sources)
