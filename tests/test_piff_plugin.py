@@ -287,7 +287,7 @@ def test_acceptance_on_a_silicon_sensor_field(tmp_path):
     Piff and BrighterFatter around it, each star's residual minus that of its BF-free twin
     (same photons and noise: `write_field` with ``control=True``). The flats are those of
     benchmarks/bench_piff.py (64 of 512^2 px; 256^2 px leave a carried error of 50 % on the
-    e1 change); about 10 minutes of CPU (the flats 7); the 12-exposure run is the benchmark."""
+    e1 change); 15 minutes on a shared 2-core machine; the 12-exposure run is the benchmark."""
     from bfpsf.interop.silicon_truth import silicon_diffusion_sigma
     from bfpsf.piff.field import acceptance, carried_errors
     from bfpsf.validation.simulate_flats import simulate_flats
