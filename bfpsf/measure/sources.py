@@ -481,10 +481,7 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
     sources : astropy.table.Table
         With ``return_sources=True``: every detection (`measure_sources`).
     """
-    # a neighbour beyond the cutout still reaches into it with its core (FWHM 3-4 px): no
-    # detection within half the cutout plus 8 pixels (in a dense field, a neighbour 15 px
-    # away put its light in P0 and every flux came out 30 % high)
-    sources = measure_sources(image_e, threshold=threshold, blend_radius=size / 2 + 8,
+    sources = measure_sources(image_e, threshold=threshold, blend_radius=size / 2 + 2,
                               saturation=saturation_e, stamp_size=size + 6)
     clean = np.asarray(sources["flags"]) == 0
     positions = np.column_stack([np.asarray(sources["x"], dtype=float)[clean],
