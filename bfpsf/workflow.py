@@ -181,16 +181,14 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         calibrations = [calibrations] * len(images)
     saturation = np.broadcast_to(np.asarray(saturation_e if saturation_e is not None
                                             else np.nan, dtype=float), (len(images),))
-    positions, per_image, detections = [], [], []
+    positions, per_image = [], []
     for index, prepared in enumerate(images):
         data = prepared.sky_subtracted
         # the level in the sky-subtracted image: below it wherever the sky is highest (a
         # clipped pixel minus a sloped sky falls under the level minus the sky's mean)
         level = None if not np.isfinite(saturation[index]) else float(
             saturation[index] - prepared.sky.image().max())
-        xy, n_detected, sources = isolated_stars(data, size, threshold=threshold,
-                                                 saturation_e=level, return_sources=True)
-        detections.append(sources)
+        xy, n_detected = isolated_stars(data, size, threshold=threshold, saturation_e=level)
         excluded = np.zeros(len(xy), dtype=bool)
         if exclude is not None and exclude[index] is not None and len(xy):
             excluded = np.asarray(exclude[index](xy, data.shape), dtype=bool)
@@ -239,14 +237,14 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         skies, wings = fit_sky_and_wings(
             [prepared.image_e - prepared.sky.image() if known else prepared.image_e
              for prepared in images],
-            _glowing_stars(result.stars, detections), half_size=size // 2,
+            _stars_of_images(result.stars, len(images)), half_size=size // 2,
             degree=0 if known else images[0].sky.degree)
         if known:
             break
         images = [prepared.with_sky(prepared.sky if prepared.sky.method == "known" else sky,
                                     _glow(wings, stars, prepared.image_e.shape))
                   for prepared, sky, stars in zip(
-                      images, skies, _glowing_stars(result.stars, detections))]
+                      images, skies, _stars_of_images(result.stars, len(images)))]
         result = fit()
     for entry, prepared in zip(per_image, images):
         entry.update(background_e=prepared.sky.level, sky_slope=list(prepared.sky.slope),
@@ -280,22 +278,3 @@ def _glow(wings, stars, shape):
     from .measure.total_flux import wing_image
 
     return wing_image(wings, *stars, shape)
-
-
-def _glowing_stars(stars, detections):
-    """Per image, (x, y, flux) of every star whose wings glow: the fitted ones (flux inside
-    the support) and every other detection (its aperture flux, 98 % of a Moffat's), so that
-    in a dense field the stars the P0 fit leaves out do not light the sky."""
-    from scipy.spatial import cKDTree
-
-    fitted = _stars_of_images(stars, len(detections))
-    result = []
-    for (x, y, flux), sources in zip(fitted, detections):
-        others = np.column_stack([np.asarray(sources["x"], float),
-                                  np.asarray(sources["y"], float)])
-        other_flux = np.asarray(sources["flux_e"], float)
-        if len(x) and len(others):
-            distance, _ = cKDTree(np.column_stack([x, y])).query(others)
-            others, other_flux = others[distance > 2.0], other_flux[distance > 2.0]
-        result.append((np.r_[x, others[:, 0]], np.r_[y, others[:, 1]], np.r_[flux, other_flux]))
-    return result

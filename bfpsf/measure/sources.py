@@ -461,8 +461,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     return table
 
 
-def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None,
-                   return_sources=False):
+def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None):
     """Clean, unsaturated detections isolated within ``size`` pixels: the stars a P0 fit
     (`bfpsf.model.psf_fit.fit_psf`) takes.
 
@@ -483,19 +482,12 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
         (x, y) of the stars, pixels.
     n_detected : int
         All detections, flagged ones included.
-    sources : astropy.table.Table
-        With ``return_sources=True``: every detection (`measure_sources`).
     """
-    # a neighbour beyond the cutout still reaches into it with its core (FWHM 3-4 px): no
-    # detection within half the cutout plus 8 pixels (in a dense field, a neighbour 15 px
-    # away put its light in P0 and every flux came out 30 % high)
-    sources = measure_sources(image_e, threshold=threshold, blend_radius=size / 2 + 8,
+    sources = measure_sources(image_e, threshold=threshold, blend_radius=size / 2 + 2,
                               saturation=saturation_e, stamp_size=size + 6)
     clean = np.asarray(sources["flags"]) == 0
     positions = np.column_stack([np.asarray(sources["x"], dtype=float)[clean],
                                  np.asarray(sources["y"], dtype=float)[clean]])
-    if return_sources:
-        return positions, len(sources), sources
     return positions, len(sources)
 
 
