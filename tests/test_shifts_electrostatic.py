@@ -195,3 +195,17 @@ def test_split_of_noise_free_areas_against_maxlag(sensor, maxlag, north, east):
     m, k = fit.shifts.radius, landing.radius
     assert fit.shifts.north[m, m] / landing.north[k, k] == pytest.approx(north, abs=0.01)
     assert fit.shifts.east[m, m] / landing.east[k, k] == pytest.approx(east, abs=0.01)
+
+
+def test_fits_stopped_by_their_evaluation_bound_are_reported():
+    """Every fit is bounded; one that stops on the bound is counted and warned about, never
+    passed off as converged (issue 25)."""
+    truth = electrostatic_shifts(GEOMETRY, 2e-6, 3)
+    area = truth.area_quadrant(2)
+    area_err = 0.01 * abs(area[0, 0]) * np.ones_like(area)
+    converged = fit_electrostatic(area, area_err, n_samples=3, seed=1)
+    assert converged.n_unconverged == 0
+    assert not [w for w in shift_warnings(converged) if "evaluation bound" in w]
+    bounded = fit_electrostatic(area, area_err, n_samples=3, seed=1, max_evaluations=2)
+    assert bounded.n_unconverged >= 1
+    assert any("stopped on their evaluation bound" in w for w in shift_warnings(bounded))

@@ -119,6 +119,11 @@ def shift_warnings(solution):
     else:
         warnings.append("no uncertainty on the boundary shifts (no errors on a, or no samples): "
                         "predictions carry no calibration error")
+    unconverged = getattr(solution, "n_unconverged", 0)
+    if unconverged:
+        warnings.append(f"{unconverged} of the {solution.method} fits (the best fit and its "
+                        f"{len(samples_north)} Monte Carlo refits) stopped on their evaluation "
+                        "bound, not converged: the shifts or their errors are uncertain")
     if solution.dof > 0 and solution.chi2 / solution.dof > CHI2_TOLERANCE:
         warnings.append(f"the {solution.method} model does not describe the measured a: "
                         f"chi2/dof = {solution.chi2:.1f}/{solution.dof}; shift errors are scaled "

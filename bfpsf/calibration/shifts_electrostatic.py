@@ -293,6 +293,9 @@ class ElectrostaticFit:
         The measured a [dy, dx] and its 1-sigma errors (1/e-).
     area_model : ndarray
         The model's a [dy, dx] at the measured lags.
+    n_unconverged : int
+        Fits that stopped on their evaluation bound instead of a tolerance: the best fit (1)
+        and the Monte Carlo refits behind the samples. Reported by `shift_warnings`.
     """
 
     shifts: BoundaryShifts
@@ -311,6 +314,7 @@ class ElectrostaticFit:
     area: np.ndarray
     area_err: np.ndarray
     area_model: np.ndarray
+    n_unconverged: int = 0
 
     method = "electrostatic"
 
@@ -345,7 +349,7 @@ def _default_errors(area):
 
 
 def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
-                      n_samples=DEFAULT_SAMPLES, seed=0):
+                      n_samples=DEFAULT_SAMPLES, seed=0, max_evaluations=200):
     """Fit the electrostatic model to measured area coefficients and return the shifts.
 
     Parameters
@@ -364,6 +368,10 @@ def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
         Monte Carlo samples of the shifts. Default 100.
     seed : int, optional
         Seed of the samples.
+    max_evaluations : int, optional
+        Bound on the model evaluations of the final fit (default 200; typical fits take about
+        20) and, halved, of each Monte Carlo refit. A fit that reaches it is counted in
+        ``n_unconverged`` and reported by `bfpsf.calibration.boundary_shifts.shift_warnings`.
 
     Returns
     -------
@@ -420,7 +428,8 @@ def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
                     key=lambda result: result.cost)
     # every fit has an evaluation bound (scipy's default, 100 per parameter, can take many
     # minutes on data the model cannot describe)
-    polished = sorted((fit(result.x, xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=200)
+    polished = sorted((fit(result.x, xtol=1e-10, ftol=1e-10, gtol=1e-10,
+                           max_nfev=int(max_evaluations))
                        for result in coarse[:_POLISHED]), key=lambda result: result.cost)
     best = polished[0]
     vector = best.x
@@ -451,15 +460,18 @@ def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
     noise_root = noise_root * np.sqrt(scale)
     rng = np.random.default_rng(seed)
     draws, samples_north, samples_east = [], [], []
+    n_unconverged = int(best.status == 0)
     for _ in range(int(n_samples)):
         perturbed = whiten @ (area.ravel() + noise_root @ rng.standard_normal(area.size))
         refits = []
         for start in minima:
             refit = optimize.least_squares(lambda v: _profile(v, perturbed)[1], start,
                                            bounds=(_LOWER, _UPPER), x_scale="jac",
-                                           xtol=1e-6, ftol=1e-6, max_nfev=100)
+                                           xtol=1e-6, ftol=1e-6,
+                                           max_nfev=max(int(max_evaluations) // 2, 1))
             refits.append(refit)
         refit = min(refits, key=lambda result: result.cost)
+        n_unconverged += refit.status == 0  # scipy: the evaluation bound was reached
         draw_alpha = _profile(refit.x, perturbed)[0]
         draws.append(np.append(refit.x, draw_alpha))
         sample = electrostatic_shifts(_geometry(refit.x, thickness), draw_alpha, radius)
@@ -481,4 +493,4 @@ def fit_electrostatic(area, area_err=None, *, area_cov=None, thickness=10.0,
         samples_east=samples_east, geometry=geometry, alpha=alpha, parameters=full,
         parameter_cov=parameter_cov, at_bound=at_bound, chi2=chi2, dof=dof,
         error_scale=float(np.sqrt(scale)), area=area, area_err=area_err,
-        area_model=shifts.area_quadrant(n))
+        area_model=shifts.area_quadrant(n), n_unconverged=int(n_unconverged))
