@@ -367,3 +367,18 @@ def test_memory_limit_setting(monkeypatch, setting, limit):
     with pytest.raises(BFPSFResourceError, match=r"^--x 2: this would need about .* of memory, "
                                                  r"more than the .* limit \(BFPSF_MEMORY_LIMIT"):
         check_memory(limit * 1.01, option="--x 2", what="this")
+
+
+def test_python_fit_psf_refuses_a_grid_beyond_the_memory_limit(monkeypatch):
+    """The library's P0 fit checks its own cost before allocating (not only the command)."""
+    from bfpsf import BoundaryShifts, fit_psf
+    from bfpsf.errors import BFPSFResourceError
+
+    monkeypatch.setenv("BFPSF_MEMORY_LIMIT", "8G")
+    image = np.zeros((400, 400))
+    positions = np.array([[100.0, 100.0], [200.0, 200.0], [300.0, 300.0]])
+    shifts = BoundaryShifts.from_radial_profile(lambda r: 1e-8 * np.exp(-r), 2)
+    start = time.monotonic()
+    with pytest.raises(BFPSFResourceError, match="--grid 50 50"):
+        fit_psf([image], [positions], shifts, grid=(50, 50))
+    assert time.monotonic() - start < 60

@@ -39,6 +39,7 @@ from astropy.table import Table
 from scipy.interpolate import make_interp_spline
 
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
+from ..resources import check_psf_fit
 from ..shifts import BoundaryShifts, as_shifts
 from .gridded import GriddedFluxDependentPSF, bilinear_weights, grid_node_positions
 from .psf import FluxDependentPSF
@@ -510,6 +511,9 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         raise BFPSFValueError(msg, sky_e)
     x_nodes, y_nodes = _grid_nodes(grid, images)
     n_nodes = x_nodes.size * y_nodes.size
+    # refused before anything is allocated when its memory or time is beyond the limits
+    check_psf_fit(sum(len(xy) for xy in positions), size, over,
+                  None if grid is None else (x_nodes.size, y_nodes.size), max_iterations)
     half = size // 2 + 1  # cutouts one pixel wider than P0: every node gets samples
     flags, image_index, stars = _cut_stars(images, positions, half,
                                            read_noise**2 + skies + 1.0)
