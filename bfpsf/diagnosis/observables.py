@@ -620,7 +620,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
 
     fluxes, peaks, sigma_x, sigma_y, exposure = [], [], [], [], []
     columns, skews = [], []
-    pixels, tables, sky_noise = [], [], []
+    pixels, tables, sky_noise, levels = [], [], [], []
     for index, path in enumerate(images):
         amplifiers = read_amplifiers(path, amp, what="image")
         if len(amplifiers) > 1:
@@ -632,7 +632,10 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
             None if background is None else float(background) * gain))
         data = prepared.image_e
         # saturated spots (header SATURATE, calibration turnoff) are flagged, not used
-        table = measure_sources(data, saturation=saturation_e(amplifiers[0], gain, None, cal))
+        level = saturation_e(amplifiers[0], gain, None, cal)
+        table = measure_sources(data, saturation=level)
+        # the P0 fit below works on the sky-subtracted pixels: the level under the highest sky
+        levels.append(None if level is None else level - float(prepared.sky.image().max()))
         pixels.append(prepared.sky_subtracted)
         sky_noise.append(prepared.sky.rms if background is None else sky_level(data)[1])
         tables.append(table)
@@ -660,7 +663,9 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     fitted = np.unique(sizes.exposure)
     if holdout_fraction and fitted.size >= 2:
         fitted = fitted[~interleaved(fitted.size, holdout_fraction)]
-    stars = [isolated_stars(pixels[index], DEFAULT_SIZE)[0] for index in fitted]
+    # saturated spots (header, calibration turnoff) are left out of P0 as in `bfpsf psf`
+    stars = [isolated_stars(pixels[index], DEFAULT_SIZE, saturation_e=levels[index])[0]
+             for index in fitted]
     if sum(len(xy) for xy in stars) < 10:
         msg = (f"only {sum(len(xy) for xy in stars)} isolated stars in the fitted exposures: "
                "too few to fit P0")
