@@ -182,10 +182,13 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         return solution, values - design @ solution
 
     keep = np.ones(values.size, dtype=bool)
+    # a noiseless sky beyond the stars (a simulation, a known sky subtracted) has no scatter:
+    # the floor keeps the clipping and the chi-square of the powers finite
+    floor = 1e-12 * max(1.0, float(np.max(np.abs(values))) if values.size else 1.0)
     for _ in range(10):  # the clipping, at a Kolmogorov-like power
         _, deviation = solve(11 / 3, keep)
-        rms = 1.4826 * np.median(np.abs(deviation[keep]))
-        new_keep = np.abs(deviation) <= clip_nsigma * max(rms, 1e-12)
+        rms = max(1.4826 * float(np.median(np.abs(deviation[keep]))), floor)
+        new_keep = np.abs(deviation) <= clip_nsigma * rms
         if np.array_equal(new_keep, keep):
             break
         keep = new_keep
