@@ -25,8 +25,10 @@ measures. Results come back in the order of the inputs, identical to the in-proc
 same function runs on the same inputs).
 """
 
+import contextlib
 import logging
 import os
+import signal
 
 from .errors import BFPSFValueError
 
@@ -120,10 +122,43 @@ def _client(workers, scheduler):
         # may be taken by another cluster, and Dask then warns)
         # silence_logs: the nannies' and workers' messages when an interrupt or an error
         # stops the run ("worker still alive, killing", cancelled tasks) are not the user's
-        cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.CRITICAL,
-                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
-    return Client(cluster), cluster
+        with _interrupts_held():
+            cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1,
+                                   processes=True, dashboard_address=None,
+                                   silence_logs=logging.CRITICAL,
+                                   scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
+    try:
+        return Client(cluster), cluster
+    except BaseException:
+        cluster.close()
+        raise
+
+
+@contextlib.contextmanager
+def _interrupts_held():
+    """Hold SIGINT (Ctrl-C) back from this thread while the local workers are spawned.
+
+    A terminal's Ctrl-C goes to every process of the foreground group, the workers included:
+    each one printed a KeyboardInterrupt traceback of its own (issue 25) while this process
+    stopped with its one line. The workers inherit the signal mask of the thread that spawns
+    them (the cluster's event-loop thread, started here, inherits it from this one), so SIGINT
+    stays blocked in them and only this process answers it: its interrupt closes the cluster.
+    An interrupt that arrives while the workers start is held, not lost: it is delivered here
+    as soon as the mask is restored.
+    """
+    if not hasattr(signal, "pthread_sigmask"):  # not on POSIX
+        yield
+        return
+    # multiprocessing starts its resource tracker on first use and unblocks SIGINT in the
+    # calling thread when it has: started first, it leaves the mask alone
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 #: Chunks cut per worker from the items still to submit (guided self-scheduling: a chunk is

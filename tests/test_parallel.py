@@ -151,6 +151,60 @@ def test_dask_window_of_one_and_local_workers_without_profiler():
         assert session.map(_square, items) == [i * i for i in items]
         assert session.map(_square, items[:2]) == [0, 1]
         assert set(session._client.run(_profiler_enabled).values()) == {False}
+        # SIGINT stays blocked in the workers, not in this thread (issue 25)
+        assert set(session._client.run(_sigint_blocked).values()) == {True}
+    assert not _sigint_blocked()
+
+
+def _sigint_blocked():
+    import signal
+
+    return signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+
+
+INTERRUPTED_MAP = """
+import sys, time
+from bfpsf.parallel import parallel_session
+
+def slow(value):
+    print("running", flush=True)
+    time.sleep(60)
+    return value
+
+if __name__ == "__main__":
+    try:
+        with parallel_session(workers=2) as session:
+            print("ready", flush=True)
+            session.map(slow, [1, 2])
+    except KeyboardInterrupt:
+        sys.exit(130)
+"""
+
+
+@pytest.mark.skipif(not dask_available(), reason="dask.distributed is not installed")
+@pytest.mark.parametrize("when", ["ready", "running"])
+def test_ctrl_c_on_the_process_group_reaches_this_process_alone(tmp_path, when):
+    """A terminal's Ctrl-C goes to the whole foreground process group: the workers stay
+    silent (each printed a KeyboardInterrupt traceback before issue 25), this process stops,
+    whether the workers are starting (``ready``: the cluster starts with the first map) or
+    running their tasks."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    (tmp_path / "run.py").write_text(INTERRUPTED_MAP)
+    environment = {**os.environ, "OMP_NUM_THREADS": "1",
+                   "PYTHONPATH": str(Path(__file__).parents[1])}
+    process = subprocess.Popen([sys.executable, "run.py"], cwd=tmp_path, env=environment,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
+    while process.stdout.readline() not in (f"{when}\n", ""):
+        pass
+    os.killpg(process.pid, signal.SIGINT)
+    _, err = process.communicate(timeout=60)
+    assert (process.returncode, err) == (130, "")
 
 
 @pytest.mark.skipif(not dask_available(), reason="dask.distributed is not installed")
