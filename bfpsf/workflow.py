@@ -25,7 +25,7 @@ from .errors import BFPSFInputError, BFPSFValueError
 from .measure.sky import SkyModel, estimate_sky
 from .resources import check_psf_fit
 
-__all__ = ["PreparedImage", "prepare_image", "linearity_of", "psf_from_images",
+__all__ = ["PreparedImage", "electrons", "prepare_image", "linearity_of", "psf_from_images",
            "PSFFromImages"]
 
 
@@ -80,6 +80,24 @@ def linearity_of(calibration):
     return float(refinement.get("linearity_c_per_1e5") or 0.0)
 
 
+def electrons(data, *, gain=1.0, linearity_c_per_1e5=0.0):
+    """The image in e-, a refined calibration's linearity correction undone (`prepare_image`
+    without the sky: for `bfpsf.measure.sources.measure_sources`, which has its own)."""
+    from .diagnosis.refine import linearise
+
+    image = np.asarray(data, dtype=float)
+    if image.ndim != 2:
+        msg = f"an image must be 2-D [y, x], got shape {image.shape}"
+        raise BFPSFInputError(msg, image.shape)
+    if not (np.isfinite(gain) and gain > 0):
+        msg = f"the gain must be positive e-/ADU, got {gain!r}"
+        raise BFPSFValueError(msg, gain)
+    image_e = image * float(gain)
+    if linearity_c_per_1e5:
+        image_e = linearise(image_e, linearity_c_per_1e5)
+    return image_e
+
+
 def prepare_image(data, *, gain=1.0, linearity_c_per_1e5=0.0, background_e=None,
                   sky_degree=1):
     """An image in e- with its sky: the one preparation step of every command.
@@ -103,23 +121,28 @@ def prepare_image(data, *, gain=1.0, linearity_c_per_1e5=0.0, background_e=None,
     -------
     PreparedImage
     """
-    from .diagnosis.refine import linearise
-
-    image = np.asarray(data, dtype=float)
-    if image.ndim != 2:
-        msg = f"an image must be 2-D [y, x], got shape {image.shape}"
-        raise BFPSFInputError(msg, image.shape)
-    if not (np.isfinite(gain) and gain > 0):
-        msg = f"the gain must be positive e-/ADU, got {gain!r}"
-        raise BFPSFValueError(msg, gain)
-    image_e = image * float(gain)
-    if linearity_c_per_1e5:
-        image_e = linearise(image_e, linearity_c_per_1e5)
+    image_e = electrons(data, gain=gain, linearity_c_per_1e5=linearity_c_per_1e5)
     if background_e is None:
         sky = estimate_sky(image_e, degree=sky_degree)
     else:
+        _check_known_sky(float(background_e), image_e)
         sky = SkyModel.constant(background_e, image_e.shape)
     return PreparedImage(image_e, sky, float(gain), float(linearity_c_per_1e5))
+
+
+def _check_known_sky(background_e, image_e):
+    """A known sky (``--background``) must be possible: not above every pixel (every star
+    would be negative), nor further below the darkest pixel than the image's whole range
+    (every pixel a star's; a noiseless image of stars alone has its sky just below its
+    darkest pixel, and is accepted)."""
+    finite = image_e[np.isfinite(image_e)]
+    if finite.size == 0:
+        return  # named by the step that needs pixels
+    low, high = float(finite.min()), float(finite.max())
+    if not low - (high - low) <= background_e <= high:
+        msg = (f"the given sky, {background_e:.6g} e- per pixel, is not possible for an image "
+               f"whose pixels span {low:.6g} to {high:.6g} e-")
+        raise BFPSFInputError(msg, background_e)
 
 
 @dataclass(frozen=True)

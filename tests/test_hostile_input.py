@@ -260,6 +260,12 @@ def test_amplifier_sections_overlapping_or_outside(workdir, capsys, sections, me
      "argument --size: expected a positive integer, got '-3'"),
     (["validate", "--quick", "--spots-per-level", "0"],
      "argument --spots-per-level: expected a positive integer, got '0'"),
+    (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--size", "-5"],
+     "argument --size: expected an integer >= 8 pixels, got '-5'"),
+    (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--grid", "0", "3"],
+     "argument --grid: expected a positive integer, got '0'"),
+    (["measure", "img.fits", "--gain", "1.5", "-o", "m.ecsv", "--stamp-size", "4"],
+     "argument --stamp-size: expected an integer >= 8 pixels, got '4'"),
 ])
 def test_invalid_counts_are_refused_not_reinterpreted(workdir, capsys, argv, message):
     before = snapshot(workdir)
@@ -382,3 +388,27 @@ def test_python_fit_psf_refuses_a_grid_beyond_the_memory_limit(monkeypatch):
     with pytest.raises(BFPSFResourceError, match="--grid 50 50"):
         fit_psf([image], [positions], shifts, grid=(50, 50))
     assert time.monotonic() - start < 60
+
+
+@pytest.mark.parametrize("argv, message", [
+    # a sky far outside the image's pixels: every star fit failed, and P0 "from 0 stars" was
+    # written with exit 0
+    (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--background=-1e9"],
+     "img.fits: the given sky, -1.49973e+09 e- per pixel, is not possible for an image "
+     "whose pixels span"),
+    (["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv", "--background", "1e9"],
+     "img.fits: the given sky, 1.5e+09 e- per pixel, is not possible for an image whose "
+     "pixels span"),
+    # more grid nodes than the stars fill: the node is named, and what to do
+    (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--grid", "6", "6"],
+     "img.fits: P0 at grid node"),
+    (["measure", "nan.fits", "--gain", "1.5", "-o", "m.ecsv"],
+     "nan.fits: the image has no finite pixel"),
+])
+def test_messages_name_the_file_and_the_problem(workdir, capsys, argv, message):
+    fits.PrimaryHDU(np.full((64, 64), np.nan, dtype=np.float32)).writeto("nan.fits")
+    before = snapshot(workdir)
+    code, err = run(capsys, *argv)
+    assert code == 1
+    assert err.startswith(f"bfpsf {argv[0]}: error: {message}") and err.count("\n") == 1
+    assert snapshot(workdir) == before

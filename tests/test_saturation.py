@@ -118,6 +118,9 @@ def test_measure_and_photometry_flag_every_saturated_star(clipped_image, tmp_pat
     photometry = Table.read(out)
     index = _matched(xy, photometry["x_fit"], photometry["y_fit"])
     np.testing.assert_array_equal(np.asarray(photometry["saturated"]), truth[index])
+    # and in the source flags, as measure flags them
+    np.testing.assert_array_equal((np.asarray(photometry["source_flags"]) & 8) != 0,
+                                  truth[index])
     assert f"{truth.sum()} of them saturated" in capsys.readouterr().out
 
 

@@ -53,6 +53,11 @@ def positive_int(text):
     return _integer(text, 1, "a positive integer")
 
 
+def stamp_size_option(text):
+    """``--size`` / ``--stamp-size``: a stamp side of at least 8 pixels."""
+    return _integer(text, 8, "an integer >= 8 pixels")
+
+
 def non_negative_int(text):
     """An integer option that may be 0 (e.g. a number of samples)."""
     return _integer(text, 0, "an integer >= 0")

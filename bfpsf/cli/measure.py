@@ -8,9 +8,10 @@ Parse, read the images (ADU, converted to electrons with the gain), call
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import (check_outputs, input_files, read_table, refuse_duplicates, write_json,
-                     write_table)
+from ..files import (about, check_outputs, input_files, read_table, refuse_duplicates,
+                     write_json, write_table)
 from ..measure.sources import DETECTION_THRESHOLD
+from . import stamp_size_option
 from ._files import place_stars, read_image
 
 
@@ -55,7 +56,7 @@ def add_parser(subparsers):
     parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")
-    parser.add_argument("--stamp-size", type=int, default=32,
+    parser.add_argument("--stamp-size", type=stamp_size_option, default=32,
                         help="measurement stamp side, pixels (default 32)")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
                         help="saturation level of the raw image, ADU (flags, does not drop; "
@@ -92,7 +93,7 @@ def run(args):
     from ..io.saturation import saturation_e
     from ..measure.moments import MomentsFlag
     from ..measure.sources import measure_sources
-    from ..workflow import linearity_of, prepare_image
+    from ..workflow import electrons, linearity_of
 
     check_outputs([args.output, args.json], args.overwrite,
                   inputs=input_files(args.images, args.calib, args.catalog))
@@ -117,12 +118,13 @@ def run(args):
             # the one image preparation: e-, and a refined calibration's linearity undone
             linearity = (0.0 if amplifier_calibration is None
                          else linearity_of(amplifier_calibration))
-            table = measure_sources(
-                prepare_image(amplifier.data, gain=gain, linearity_c_per_1e5=linearity,
-                              background_e=0.0).image_e,  # measure_sources' own sky
-                threshold=args.threshold, stamp_size=args.stamp_size, saturation=level,
-                colour=_amplifier_colours(colour_table, amplifier) if args.colour else None,
-                colour_columns=args.colour)
+            with about(path):
+                table = measure_sources(  # e- (measure_sources fits its own sky)
+                    electrons(amplifier.data, gain=gain, linearity_c_per_1e5=linearity),
+                    threshold=args.threshold, stamp_size=args.stamp_size, saturation=level,
+                    colour=(_amplifier_colours(colour_table, amplifier) if args.colour
+                            else None),
+                    colour_columns=args.colour)
             place_stars(table, amplifier, sides, args.stamp_size / 2)
             table.add_column(str(path), name="image", index=0)
             tables.append(table)

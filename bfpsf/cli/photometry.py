@@ -9,7 +9,7 @@ PSF), write the table (fluxes in e-) and the JSON summary.
 import numpy as np
 
 from ..files import about, check_outputs, input_files, write_json, write_table
-from ..measure.sources import DETECTION_THRESHOLD
+from ..measure.sources import DETECTION_THRESHOLD, SourceFlag
 from . import background_option
 from ._files import place_stars, read_image
 
@@ -50,7 +50,8 @@ def add_parser(subparsers):
                         help="fit box, pixels, odd (default about 3 FWHM)")
     parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
                         help="saturation level of the raw images, ADU: stars with a pixel at "
-                             "or above it in the fit box are flagged (column saturated; "
+                             "or above it in the fit box are flagged (column saturated and bit 8 "
+                             "of source_flags; "
                              "default the header's SATURATE or a variant; with --calib, the "
                              "linearity turnoff where lower)")
     parser.add_argument("--static", action="store_true",
@@ -136,6 +137,8 @@ def run(args):
             table["saturated"] = saturated_stars(
                 amplifier.data * amp_gain, level, table["x_fit"], table["y_fit"],
                 args.fit_shape or default_fit_shape(model))
+            if "source_flags" in table.colnames:  # as `bfpsf measure` flags them
+                table["source_flags"] |= np.where(table["saturated"], SourceFlag.SATURATED, 0)
             margin = (args.fit_shape or 2 * psf.half_size + 1) / 2
             place_stars(table, amplifier, sides, margin, x="x_fit", y="y_fit")
             if "x_init" in table.colnames and amplifier.layout.detsec is not None:

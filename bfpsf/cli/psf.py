@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import BFPSFInputError
 from ..files import about, check_outputs, input_files, refuse_duplicates, write_json
 from ..measure.sources import DETECTION_THRESHOLD
-from . import background_option, positive_int
+from . import background_option, positive_int, stamp_size_option
 from ..model.psf_fit import DEFAULT_SIZE
 from ._files import read_image
 
@@ -41,7 +41,7 @@ def add_parser(subparsers):
                         help="PSF product to write (FITS)")
     parser.add_argument("--oversampling", type=int, default=2,
                         help="oversampling of P0 (default 2; 4 needs several hundred stars)")
-    parser.add_argument("--size", type=int, default=DEFAULT_SIZE,
+    parser.add_argument("--size", type=stamp_size_option, default=DEFAULT_SIZE,
                         help="support of P0 and star cutouts, pixels, odd (default 25)")
     parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
@@ -54,7 +54,7 @@ def add_parser(subparsers):
                         help="saturation level, ADU: saturated stars are not used (default "
                              "the header's SATURATE or a variant; the calibration's linearity "
                              "turnoff where lower)")
-    parser.add_argument("--grid", type=int, nargs=2, metavar=("NX", "NY"), default=None,
+    parser.add_argument("--grid", type=positive_int, nargs=2, metavar=("NX", "NY"), default=None,
                         help="fit P0 on NX x NY nodes over the image (P(F, x, y), bilinear "
                              "between nodes, as photutils GriddedPSFModel); default one P0")
     parser.add_argument("--max-iterations", type=positive_int, default=40,
@@ -124,9 +124,10 @@ def run(args):
             # a calibration refined by `bfpsf diagnose --output-calib`: its linearity
             # correction on input and its build-up (the shifts are already refined)
             refinement.update(one.refinement)
-            prepared.append(prepare_image(
-                amplifier.data, gain=gain, linearity_c_per_1e5=linearity_of(one),
-                background_e=None if args.background is None else args.background * gain))
+            with about(path):
+                prepared.append(prepare_image(
+                    amplifier.data, gain=gain, linearity_c_per_1e5=linearity_of(one),
+                    background_e=None if args.background is None else args.background * gain))
             calibrations.append(one)
             # saturated or beyond the turnoff (header SATURATE, --saturation, calibration):
             # left out of the P0 fit, and counted

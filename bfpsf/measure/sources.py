@@ -338,7 +338,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
         raise BFPSFValueError(msg, threshold)
     bad = ~np.isfinite(image)
     if bad.all():
-        msg = "image_e has no finite pixel"
+        msg = "the image has no finite pixel"
         raise BFPSFInputError(msg, image.shape)
     if colour is not None:
         for name in ("x", "y"):

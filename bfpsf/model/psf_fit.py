@@ -176,13 +176,29 @@ def _fill_empty(stack, weight):
     return filled
 
 
-def _normalise(data, oversampling):
+def _normalise(data, oversampling, where=None):
+    """P0 scaled to unit total flux; ``where`` names the grid node in the error."""
     oy, ox = oversampling
     total = data.sum()
     if not total > 0:
-        msg = f"the stacked PSF has non-positive total {total:.3g}; check the star list"
-        raise BFPSFValueError(msg, total)
+        if where is None:
+            msg = f"the stacked PSF has non-positive total {total:.3g}; check the star list"
+        else:
+            msg = (f"P0 at grid node {where} has non-positive total {total:.3g}: too few "
+                   "stars there for the grid; use fewer grid nodes or more images")
+        raise BFPSFInputError(msg, total)
     return data * (oy * ox / total)
+
+
+def _normalise_nodes(data, oversampling, x_nodes, y_nodes, dense_weights):
+    """`_normalise` of every node, an error naming the node (its place and star weight)."""
+    if len(data) == 1:
+        return np.array([_normalise(data[0], oversampling)])
+    weights = dense_weights.sum(axis=0)
+    return np.array([_normalise(node, oversampling, where=(
+        f"{k + 1} of {len(data)} (x {x_nodes[k % x_nodes.size]:.0f}, y "
+        f"{y_nodes[k // x_nodes.size]:.0f}; the stars there weigh {weights[k]:.1f})"))
+        for k, node in enumerate(data)])
 
 
 class _Sampling:
@@ -548,7 +564,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                    f"{size}, got {data.shape}")
             raise BFPSFValueError(msg, data.shape)
         data = data.reshape((n_nodes,) + shape)
-    data = np.array([_normalise(node, (over, over)) for node in data])
+    data = _normalise_nodes(data, (over, over), x_nodes, y_nodes, dense_weights)
     fitted = _Grid(data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs)
     fitted.cardinal = cardinal
     changes = []
@@ -576,9 +592,10 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         flux = stars.flux[:, None, None]
         weight = np.where((stars.flags & 8)[:, None, None] == 0, flux**2 / variance, 0.0)
         update = _node_solution(residual / flux, weight, dense_weights, xs, ys, npix)
-        new_data = np.array([_normalise(node + damping * _without_translation(step, node),
-                                        (over, over))
-                             for node, step in zip(fitted.data, update)])
+        new_data = _normalise_nodes(
+            [node + damping * _without_translation(step, node)
+             for node, step in zip(fitted.data, update)], (over, over), x_nodes, y_nodes,
+            dense_weights)
         change = float(max(np.abs(new - old).max() / np.abs(old).max()
                            for new, old in zip(new_data, fitted.data)))
         changes.append(change)
@@ -610,8 +627,13 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                        np.zeros_like(star_set), over, psf_kwargs)
     psf = (fitted.nodes[0] if grid is None
            else GriddedFluxDependentPSF(fitted.nodes, x_nodes, y_nodes))
-    return PSFFitResult(psf=psf, stars=_star_table(flags, image_index, positions, stars,
-                                                   variance),
+    table = _star_table(flags, image_index, positions, stars, variance)
+    n_kept = int(np.sum(table["flags"] == 0))
+    if n_kept < 3:  # a P0 that no star's fit holds is not a result
+        msg = (f"the P0 fit kept {n_kept} of {len(table)} stars (the others' flux or position "
+               "fits failed): check the sky level and the star list")
+        raise BFPSFInputError(msg, n_kept)
+    return PSFFitResult(psf=psf, stars=table,
                         iterations=len(changes), converged=converged, changes=np.array(changes))
 
 

@@ -238,7 +238,7 @@ def simulate_flats(sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, pairs=1
 
 def _validate(levels_e, pairs, size, gain, read_noise_e, hot_columns):
     if levels_e.size == 0 or np.any(levels_e < 0) or not np.all(np.isfinite(levels_e)):
-        msg = f"levels_e must be finite charges >= 0 electrons, got {levels_e.tolist()}"
+        msg = f"the flat levels must be finite charges >= 0 e-, got {levels_e.tolist()}"
         raise BFPSFValueError(msg, levels_e)
     if int(pairs) != pairs or pairs < 1:
         msg = f"pairs must be a positive integer, got {pairs}"
@@ -307,7 +307,7 @@ def write_flats(outdir, sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, ov
     paths = [outdir / f"flat_{level:08.0f}e_p{pair:02d}_{member}.fits"
              for level in levels for pair in range(pairs) for member in (1, 2)]
     if len(set(paths)) != len(paths):
-        msg = f"levels_e has repeated values: {levels.tolist()}"
+        msg = f"the flat levels repeat a value: {levels.tolist()}"
         raise BFPSFValueError(msg, levels.tolist())
     if not overwrite:
         existing = [str(path) for path in paths if path.exists()]
