@@ -7,8 +7,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.special import expi
 
-from bfpsf.calibration.shifts_ei import (_layout, _unit_east, _unit_north, fit_smoothing_model,
-                                            non_nearest_mask, solve_ei_shifts)
+from bfpsf.calibration.ei_profile import (fit_smoothing_model, non_nearest_mask, unit_east,
+                                          unit_north)
+from bfpsf.calibration.shifts_ei import _layout, solve_ei_shifts
 from bfpsf.calibration.measured import read_measured_area
 from bfpsf.data import measured_path
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
@@ -116,8 +117,8 @@ def g15_literal_rank(maxlag, p1=-0.8):
     for i in range(1, lags):
         for j in range(1, lags):
             row = np.zeros(unknowns)
-            row[layout.north(i, j + 1)] = -_unit_east(i + 1, j, p1)    # N * model_W
-            row[layout.east(i + 1, j)] = _unit_north(i, j + 1, p1)     # - E * model_S
+            row[layout.north(i, j + 1)] = -unit_east(i + 1, j, p1)    # N * model_W
+            row[layout.east(i + 1, j)] = unit_north(i, j + 1, p1)     # - E * model_S
             rows.append(row[None])
     return np.linalg.matrix_rank(np.vstack(rows)), unknowns
 

@@ -304,7 +304,8 @@ class SumRuleTail(Effect):
 
     def tail_area(self, area):
         """Ei-model area outside the measured window, 1/e- (full plane, (0, 0) excluded)."""
-        from ..calibration.shifts_ei import smoothing_model_area, solve_ei_shifts
+        from ..calibration.ei_profile import smoothing_model_area
+        from ..calibration.shifts_ei import solve_ei_shifts
 
         solution = solve_ei_shifts(area, n_monte_carlo=0)
         p0, p1 = solution.p0, solution.p1

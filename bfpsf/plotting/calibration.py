@@ -154,7 +154,7 @@ def plot_area_profile(calibration, ax=None):
                         xytext=(4, 4), textcoords="offset points")
     fit = calibration.shift_fit
     if "p0" in fit and "p1" in fit:
-        from ..calibration.shifts_ei import smoothing_model_area
+        from ..calibration.ei_profile import smoothing_model_area
 
         model = smoothing_model_area(fit["p0"], fit["p1"], nlag - 1)
         model_points = off & ~((dx <= 1) & (dy <= 1))

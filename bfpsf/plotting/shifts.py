@@ -46,7 +46,7 @@ def plot_radial_profile(solution, ax=None):
     """
     import matplotlib.pyplot as plt
 
-    from ..calibration.shifts_ei import non_nearest_mask, smoothing_model_area
+    from ..calibration.ei_profile import non_nearest_mask, smoothing_model_area
 
     if ax is None:
         fig, (ax_area, ax_shift) = plt.subplots(1, 2, figsize=(10, 4), layout="constrained")
