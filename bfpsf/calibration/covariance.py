@@ -17,14 +17,14 @@ forward FFT of the masked difference suffices.
 """
 
 import logging
-from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from .flats import Flat, FlatPair
-from .kernels import FASTMATH, flag_row, flagged_positions
+from .pair_covariance_result import PairCovariance
+from .pair_difference import (clip_variance_factor, difference_kernel, self_consistent_threshold,
+                              sigma_clip)
 
 __all__ = ["PairCovariance", "pair_covariance", "covariance_map", "fold_quadrants",
            "clip_variance_factor"]
@@ -32,204 +32,6 @@ __all__ = ["PairCovariance", "pair_covariance", "covariance_map", "fold_quadrant
 log = logging.getLogger(__name__)
 
 _PRECISIONS = {"single": np.float32, "double": np.float64}
-
-
-@dataclass(frozen=True, eq=False)
-class PairCovariance:
-    """Mean, variance and covariances of one flat pair, single-image units (ADU).
-
-    Attributes
-    ----------
-    exptime : float
-        Exposure time, seconds (NaN when the flats were given as bare arrays).
-    mean_adu : float
-        Mean of the two masked flats, ``(mean1_adu + mean2_adu) / 2``, ADU.
-    mean1_adu, mean2_adu : float
-        Means of the good (unmasked) pixels of each flat, ADU.
-    var_adu : float
-        Single-image variance, var(difference) / 2, corrected for the sigma clipping, ADU^2.
-        Equal to ``cov_adu[0, 0]``.
-    cov_adu : ndarray, shape (maxlag + 1, maxlag + 1)
-        Single-image covariances C(dx, dy), ADU^2, indexed ``[dy, dx]`` for dx, dy = 0..maxlag;
-        (dx, dy) and (dx, -dy) combined (weighted by their pair counts) as G15 do; corrected for
-        the sigma clipping.
-    npix : ndarray of int, shape (maxlag + 1, maxlag + 1)
-        Number of pixel pairs behind each element (both quadrants summed where combined).
-    n_masked : int
-        Pixels excluded by the mask (including non-finite pixels).
-    n_clipped : int
-        Further pixels excluded by the sigma clipping of the difference.
-    maxlag : int
-        Largest lag.
-    clip_nsigma : float
-        Clipping threshold, sigma (inf when no clipping).
-    clip_factor : float
-        The truncated-Gaussian variance fraction v the clipping left (1 without clipping):
-        the measured variance was divided by v and the covariances by v**2.
-    names : tuple of str
-        Names of the two flats.
-    """
-
-    exptime: float
-    mean_adu: float
-    mean1_adu: float
-    mean2_adu: float
-    var_adu: float
-    cov_adu: np.ndarray
-    npix: np.ndarray
-    n_masked: int
-    n_clipped: int
-    maxlag: int
-    clip_nsigma: float = np.inf
-    clip_factor: float = 1.0
-    names: tuple = ()
-
-    @property
-    def corr(self):
-        """Correlation coefficients R(dx, dy) = C(dx, dy) / V, indexed ``[dy, dx]``."""
-        return self.cov_adu / self.var_adu
-
-    @property
-    def cov_err_adu(self):
-        """Statistical error of ``cov_adu`` for Gaussian noise, ADU^2, indexed ``[dy, dx]``.
-
-        V / sqrt(N) off the origin (G15 section 4.2.2: 1/sqrt(N) on a correlation) and
-        V sqrt(2 / N) for the variance.
-        """
-        with np.errstate(divide="ignore"):
-            err = self.var_adu / np.sqrt(self.npix)
-        err[0, 0] *= np.sqrt(2.0)
-        return err
-
-
-# ---------------------------------------------------------------------------------------------
-# Sigma clipping
-
-
-def clip_variance_factor(threshold):
-    """Variance fraction of a unit Gaussian truncated at +-``threshold``.
-
-    ``v(t) = 1 - 2 t phi(t) / (2 Phi(t) - 1)``; cp_pipe's ``sigmaClipCorrection`` returns
-    ``1 / sqrt(v)``.
-    """
-    from scipy.special import erf
-
-    t = float(threshold)
-    if not np.isfinite(t):
-        return 1.0
-    inside = erf(t / np.sqrt(2.0))
-    density = np.exp(-0.5 * t * t) / np.sqrt(2.0 * np.pi)
-    return 1.0 - 2.0 * t * density / inside
-
-
-def _self_consistent_threshold(nsigma):
-    """Clipping threshold in units of the true sigma when the cut is ``nsigma`` times the
-    sigma of the kept (truncated) values, as iterative clipping converges to:
-    t = nsigma * sqrt(v(t))."""
-    t = float(nsigma)
-    for _ in range(100):
-        new = nsigma * np.sqrt(clip_variance_factor(t))
-        if abs(new - t) < 1e-13:
-            break
-        t = new
-    return t
-
-
-@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
-def _difference_kernel(image1, image2, factor1, factor2, out):
-    """``out[:] = factor1 * image1 - factor2 * image2`` (computed in double precision, stored
-    in ``out``'s precision); returns the sum and the sum of squares of the stored values."""
-    ny, nx = image1.shape
-    total = 0.0
-    total2 = 0.0
-    for i in range(ny):
-        row1, row2, row = image1[i], image2[i], out[i]
-        row_sum = 0.0
-        row_sum2 = 0.0
-        for j in range(nx):
-            row[j] = factor1 * row1[j] - factor2 * row2[j]
-            value = row[j]  # as stored
-            row_sum += value
-            row_sum2 += value * value
-        total += row_sum
-        total2 += row_sum2
-    return total, total2
-
-
-@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
-def _beyond_kernel(image, cut, out):
-    """Writes the flat indices (row-major over ``image``) of the values with |value| > cut to
-    ``out``; returns their number (a vectorised flag row per image row, `flagged_positions`)."""
-    ny, nx = image.shape
-    flags = flag_row(nx)
-    positions = np.empty(nx, dtype=np.int64)
-    count = 0
-    for i in range(ny):
-        row = image[i]
-        for j in range(nx):
-            flags[j] = abs(row[j]) > cut
-        for k in range(flagged_positions(flags, nx, positions)):
-            out[count] = i * nx + positions[k]
-            count += 1
-    return count
-
-
-def _beyond(image, cut):
-    """Flat indices (over ``image``, row-major) of the values with ``|value| > cut``."""
-    out = np.empty(image.size, dtype=np.int64)
-    return out[:_beyond_kernel(image, image.dtype.type(cut), out)].copy()
-
-
-def _sigma_clip(image, nsigma, count, total, total2, max_iterations=50):
-    """Iterative sigma clipping of the good pixels of a zero-mean, zero-filled image.
-
-    ``image`` (2-D, single or double precision, possibly a view into a larger buffer; sums
-    in double) holds ``count`` good pixels and zeros at the bad ones, whose sum and sum of
-    squares are ``total`` and ``total2``; since the good pixels average to zero, the fill
-    values always lie inside the cut. Pixels more than ``nsigma`` times the sigma of the kept
-    pixels from their mean are clipped, iterated to convergence. The running sums are
-    updated from a pre-selected tail of candidate outliers, so an iteration costs only the
-    tail, not the whole image.
-
-    Returns the flat (row-major over ``image``) indices of the clipped pixels.
-    """
-    sigma = np.sqrt(max(total2 / count - (total / count) ** 2, 0.0))
-    step = max(1, int(np.sqrt(image.size / 100_000)))
-    sample = image[::step, ::step].ravel()
-    robust = 1.4826 * np.median(np.abs(sample - np.median(sample)))
-    tail_cut = 0.8 * nsigma * (robust if robust > 0 else sigma)
-    if not tail_cut > 0:
-        return np.empty(0, dtype=np.intp)  # a constant image: nothing to clip
-    flat_values = image.ravel() if image.flags.c_contiguous else None
-    for _ in range(40):  # each restart widens the candidate tail by 1 / 0.7
-        tail_index = _beyond(image, tail_cut)
-        if flat_values is not None:
-            tail = flat_values[tail_index].astype(np.float64)
-        else:
-            tail = image[np.divmod(tail_index, image.shape[1])].astype(np.float64)
-        centre = total / count
-        sigma = np.sqrt(max(total2 / count - centre * centre, 0.0))
-        kept = np.ones(tail.size, dtype=bool)
-        for _ in range(max_iterations):
-            cut = nsigma * sigma
-            if centre - cut > -tail_cut or centre + cut < tail_cut:
-                break  # the cut reaches inside the candidate tail: widen it and restart
-            new_kept = np.abs(tail - centre) <= cut
-            removed = tail[~new_kept]
-            kept_count = count - removed.size
-            centre = (total - removed.sum()) / kept_count
-            sigma = np.sqrt(max((total2 - np.dot(removed, removed)) / kept_count
-                                - centre * centre, 0.0))
-            converged = np.array_equal(new_kept, kept)
-            kept = new_kept
-            if converged:
-                return tail_index[~kept]
-        else:
-            log.warning("sigma clipping did not converge in %d iterations", max_iterations)
-            return tail_index[~kept]
-        tail_cut *= 0.7
-    log.warning("sigma clipping stopped: the distribution of the difference is degenerate")
-    return tail_index[~kept]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -624,7 +426,7 @@ def pair_covariance(flat1, flat2=None, *, mask=None, maxlag=8, clip_nsigma=4.0,
     padded, diff = _fft_buffer(image1.shape, maxlag, precision)
     flat_pair = min(mean1, mean2) > 0 and max(mean1, mean2) < 1.5 * min(mean1, mean2)
     factors = (mean2 / mean, mean1 / mean) if flat_pair else (1.0, 1.0)
-    total, total2 = _difference_kernel(image1, image2, *factors, diff)
+    total, total2 = difference_kernel(image1, image2, *factors, diff)
     if n_masked:
         at_bad = diff.flat[bad_index].astype(np.float64)
         total, total2 = total - at_bad.sum(), total2 - np.dot(at_bad, at_bad)
@@ -644,13 +446,13 @@ def pair_covariance(flat1, flat2=None, *, mask=None, maxlag=8, clip_nsigma=4.0,
             # below sqrt(3) iterative clipping collapses onto the centre
             msg = f"clip_nsigma must be at least 2 (or None for no clipping), got {clip_nsigma}"
             raise BFPSFValueError(msg, clip_nsigma)
-        clipped_index = _sigma_clip(diff, clip_nsigma, ngood, total, total2)
+        clipped_index = sigma_clip(diff, clip_nsigma, ngood, total, total2)
         n_clipped = int(clipped_index.size)
         if n_clipped:
             diff.flat[clipped_index] = 0.0
             # clipped pixels are never bad ones (those are zero, at the centre)
             bad_index = np.concatenate([bad_index, clipped_index])
-        clip_factor = clip_variance_factor(_self_consistent_threshold(clip_nsigma))
+        clip_factor = clip_variance_factor(self_consistent_threshold(clip_nsigma))
     else:
         clip_nsigma = np.inf
 
