@@ -113,16 +113,22 @@ def test_defaults_on_unseen_sets(name, e2v_flats_calibration, tmp_path):
         assert main(["slope", str(tmp_path / "stars.ecsv"), "--psf", psf, "--json",
                      str(tmp_path / "slope.json")]) == 0
         slope = json.loads((tmp_path / "slope.json").read_text())
-        for axis in ("x", "y", "e1"):
+        for axis in ("x", "y", "e1", "e2"):
+            # the residual: each star minus the model at its own flux, position and phase;
+            # its error with the calibration's (the product's shift samples)
             raw, residual = slope[axis], slope["model_residual"][axis]
-            error = residual.get("slope_err_total") or residual["slope_err"]
-            print(f"[{name}] slope --psf {axis}: raw {raw['slope']:+.5f}, residual "
-                  f"{residual['slope']:+.5f} +- {error:.5f} "
-                  f"({100 * residual['slope'] / raw['slope']:+.1f} % of raw)")
-            if axis != "e1":
+            error = residual["slope_err_total"]
+            print(f"[{name}] slope --psf {axis}: raw {raw['slope']:+.5f} +- "
+                  f"{raw['slope_err']:.5f}, predicted {slope['prediction'][axis]['slope']:+.5f}"
+                  f", residual {residual['slope']:+.5f} +- {residual['slope_err']:.5f} "
+                  f"(+- {error:.5f} with the calibration's; "
+                  f"{100 * residual['slope'] / raw['slope']:+.1f} % of raw)")
+            if axis in ("x", "y"):
                 # issue 21: size residual within 2 % of raw (and its error)
                 assert abs(residual["slope"]) <= 0.02 * abs(raw["slope"]) + 2 * error
-            else:
+            elif axis == "e1":
+                # the grid's P0 e1 errors (rms 0.003 at the stars) are in this error; e2, where
+                # the model predicts no BF change, shows what they do alone (docs/defaults.md)
                 assert abs(residual["slope"]) <= max(2 * error, 0.2 * abs(raw["slope"]))
     # issue 21 targets: mean offset <= 3 mmag, brightest - faintest <= 1 mmag (each with its
     # 2-sigma statistical error: 180 stars, the faintest fifth's noise 1-2 mmag per star)

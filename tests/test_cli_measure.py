@@ -140,8 +140,11 @@ def test_slope_psf_model_residual_removes_the_bf_slope(tmp_path):
         assert residual["slope_err_total"] > residual["slope_err"]
         assert residual["pull"] == pytest.approx(residual["slope"] / residual["slope_err_total"])
     for key in ("e1", "e2"):
-        assert set(result[key]) == set(result["model_residual"][key]) == {
-            "slope", "slope_err", "intercept"}
+        assert set(result[key]) == {"slope", "slope_err", "intercept"}
+        # the ellipticity residuals carry the calibration's error too (the prediction's)
+        assert set(result["model_residual"][key]) == {"slope", "slope_err", "intercept",
+                                                      "slope_err_total", "pull"}
+        assert set(result["prediction"][key]) == {"slope", "slope_err"}
     # e1 grows with flux (x broadens more), which the model explains; e2 does not move.
     raw, residual = result["e1"], result["model_residual"]["e1"]
     assert raw["slope"] > 5 * raw["slope_err"]

@@ -244,3 +244,38 @@ def test_gridded_model_of_each_amplifier(fits, tmp_path):
     back = GriddedFluxDependentPSF.read(tmp_path / "amps.fits")
     assert set(back.amplifier_shifts) == {"C00", "C01"}
     assert back.amplifier_shifts["C01"] == strong
+
+
+def test_unconverged_grid_fit_keeps_its_best_iterate():
+    """A 3 x 3 grid fitted from 210 stars (the acceptance set's layout: FWHM 3.0 -> 3.9 px
+    along x, 3 exposures of 320^2, 70 stars each; GalSim Moffats with photon noise and a
+    300 e- sky, no BF) does not converge in 40 iterations: after iteration ~12 the update
+    leaves the optimum again (its chi-square rose from 148e3 to 189e3 on the acceptance set).
+    The fit returns the iterate of least chi-square; its model at the stars, against GalSim's
+    truth at each star's own FWHM and phase, measured: e1 rms 0.0035 and sigma_x rms 0.0054
+    px, against 0.0048 and 0.0072 for the last iterate."""
+    from bfpsf.measure.moments import adaptive_moments_batch
+    from bfpsf.measure.slopes import model_star_sizes
+    from bfpsf.validation.simulate_fields import simulate_field
+
+    shape = (320, 320)
+
+    def profile(x, y):
+        return galsim.Moffat(beta=3.5, fwhm=3.0 + 0.9 * x / (shape[1] - 1))
+
+    field = simulate_field(profile, n_images=3, shape=shape, n_stars=70, min_separation=25.0,
+                           sensor=None, shifts=None, sky_range_e=(300.0, 300.0), seed=7305)
+    fit = fit_psf([image - 300.0 for image in field.images],
+                  [np.column_stack([truth["x"], truth["y"]]) for truth in field.truth],
+                  SHIFTS.scaled(0.0), grid=(3, 3), read_noise=5.0, sky_e=300.0)
+    assert not fit.converged  # what the safeguard is for (this set is not fitted to 3e-4)
+    x = np.concatenate([truth["x"] for truth in field.truth])
+    y = np.concatenate([truth["y"] for truth in field.truth])
+    model = model_star_sizes(fit.psf, np.full(x.shape, 1e4), x=x, y=y)
+    truth = adaptive_moments_batch(np.array([
+        profile(a, b).drawImage(nx=25, ny=25, scale=1.0,
+                                offset=(a - np.rint(a), b - np.rint(b))).array
+        for a, b in zip(x, y)]))
+    e1 = (truth.mxx - truth.myy) / (truth.mxx + truth.myy)
+    assert np.sqrt(np.mean((model["e1"] - e1)**2)) < 0.0042
+    assert np.sqrt(np.mean((model["x"] - np.sqrt(truth.mxx))**2)) < 0.0065

@@ -194,11 +194,23 @@ def grid_field(tmp_path_factory):
     return directory, psf, xy, fluxes
 
 
+def _measure_and_slope(directory, name):
+    """``bfpsf measure`` and ``bfpsf slope --psf grid.fits`` on the grid field: (stars, JSON)."""
+    import json
+
+    from bfpsf.cli import main
+
+    stars, summary = directory / f"stars_{name}.ecsv", directory / f"slope_{name}.json"
+    assert main(["measure", str(directory / "stars.fits"), "--gain", "1", "-o",
+                 str(stars)]) == 0
+    assert main(["slope", str(stars), "--psf", str(directory / "grid.fits"), "--json",
+                 str(summary)]) == 0
+    return stars, json.loads(summary.read_text())
+
+
 def test_cli_photometry_and_slope_take_a_gridded_product(grid_field):
     """The crashes of issue 21: ``photometry --psf GRIDDED --gain 1`` (no flux_unit) and
     ``slope --psf GRIDDED`` (star_image without x, y) run, and give the truth's numbers."""
-    import json
-
     from astropy.table import Table
 
     from bfpsf.cli import main
@@ -216,18 +228,40 @@ def test_cli_photometry_and_slope_take_a_gridded_product(grid_field):
     # the mean over 36 stars to 0.3 %
     assert np.all(np.abs(ratio - 1) < 0.03)
     assert abs(np.mean(ratio) - 1) < 3e-3
-    stars = directory / "stars.ecsv"
-    assert main(["measure", str(directory / "stars.fits"), "--gain", "1", "-o",
-                 str(stars)]) == 0
-    summary = directory / "slope.json"
-    assert main(["slope", str(stars), "--psf", str(directory / "grid.fits"), "--json",
-                 str(summary)]) == 0
-    result = json.loads(summary.read_text())
+    _, result = _measure_and_slope(directory, "grid")
     for axis in ("x", "y"):
-        # the stars are the model's own, each at its own position: what is left after the
-        # prediction is the zero-flux size's field variation (FWHM 3.0-3.9) against peak,
-        # 0.7 % and 3 % of the slope with this seed; with the grid's centre for every star
-        # (the flux-only increments) the residual would carry the BF's own field variation
+        # the stars are the model's own, each at its own position: the residual (star minus
+        # the model at its flux, position and phase) is noise
         prediction = result["prediction"][axis]["slope"]
         assert prediction == pytest.approx(0.060, rel=0.05)  # 3.6 % of the size per 100 ke-
         assert abs(result["model_residual"][axis]["slope"]) < 0.05 * prediction
+
+
+def test_slope_residual_leaves_no_field_variation(grid_field):
+    """``slope --psf GRIDDED``: the residual is each star minus the model at its own flux,
+    position and phase, so the field's size variation (FWHM 3.0-3.9, sigma 0.1 px from star
+    to star against a BF change of 0.05 px) is not left in it: the residual scatters by the
+    noise alone and its slope error is a fraction of the raw slope's. Subtracting only the
+    model's BF change (issue 21's defect) left the field variation, the error 2-3 times the
+    size of the BF slope's 2 %, and a slope set by where the bright stars happened to fall."""
+    from astropy.table import Table
+
+    from bfpsf.measure.slopes import model_star_sizes
+
+    directory, psf, xy, fluxes = grid_field
+    stars, result = _measure_and_slope(directory, "residual")
+    for axis in ("x", "y"):
+        raw, residual = result[axis], result["model_residual"][axis]
+        print(f"grid field {axis}: raw {raw['slope']:+.5f} +- {raw['slope_err']:.5f}, residual "
+              f"{residual['slope']:+.5f} +- {residual['slope_err']:.5f}")
+        assert residual["slope_err"] < 0.25 * raw["slope_err"]
+        assert abs(residual["slope"]) < 3 * residual["slope_err"] + 0.02 * raw["slope"]
+        assert abs(residual["intercept"]) < 0.01  # star minus model at zero flux, pixels
+    # the model's size at a star is the size of the model's own star there (truth: the stars
+    # were drawn by the model), at the node FWHMs' interpolation, not the grid centre's
+    table = Table.read(stars)
+    model = model_star_sizes(psf, table["flux_e"] * psf.flux_correction, x=table["x"],
+                             y=table["y"])
+    centre = model_star_sizes(psf, table["flux_e"] * psf.flux_correction)
+    measured = np.asarray(table["sigma_x"])
+    assert np.std(measured - model["x"]) < 0.2 * np.std(measured - centre["x"])

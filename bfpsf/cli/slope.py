@@ -10,8 +10,13 @@ slope in pixels per 100 ke- of peak, relative_percent in percent of the intercep
 when the table has e1, e2), ``n_stars``, and ``details`` (full fits, colour fit, peak range).
 With ``--psf``: ``prediction`` (``{x, y, iq: {slope, slope_err}}``, the slopes P(F) predicts
 for these stars, slope_err the calibration error from the shift samples in the PSF product)
-and ``model_residual`` (slopes of measured minus predicted sizes and ellipticities, the sizes'
-with ``slope_err_total``, the statistical and calibration errors combined, and ``pull``).
+and ``model_residual``: slopes of the measured sizes and ellipticities minus the model's at each
+star's own flux, position and sub-pixel phase (so neither the BF change the model explains nor
+the field's size variation of a ``--grid`` product is left in them), each with
+``slope_err_total`` (the statistical and calibration errors combined) and ``pull``; the sizes'
+``intercept`` is star minus model at zero flux and their ``relative_percent`` is the residual
+slope in percent of the stars' own size (the raw intercept). ``prediction`` holds ``e1`` and
+``e2`` too, with their calibration errors.
 """
 
 import numpy as np
@@ -49,8 +54,9 @@ def add_parser(subparsers):
 
 
 def _model_residual(stars, args, colour_fit, psf):
-    """Slopes of the sizes measured minus the sizes the flux-dependent PSF predicts."""
-    from ..measure.slopes import bf_slopes, model_size_increments, star_positions
+    """Slopes of the sizes measured minus the sizes of the flux-dependent PSF at each star's
+    own flux, position and phase (zero-flux size, field variation and BF change together)."""
+    from ..measure.slopes import bf_slopes, model_star_sizes, star_positions
     from ..measure.sources import total_flux
 
     if "flux_e" not in stars.colnames:
@@ -58,12 +64,12 @@ def _model_residual(stars, args, colour_fit, psf):
         raise BFPSFInputError(msg, args.stars)
     # P(F) takes the total flux; flux_e is an aperture flux (it misses the PSF's wings)
     x, y = star_positions(psf, stars)
-    increments = model_size_increments(psf, total_flux(psf, stars["flux_e"]), x=x, y=y)
+    model = model_star_sizes(psf, total_flux(psf, stars["flux_e"]), x=x, y=y)
     residual = stars.copy()
     for key, column in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "iq"), ("e1", "e1"),
                         ("e2", "e2")):
         if column in residual.colnames:
-            residual[column] = residual[column] - increments[key]
+            residual[column] = residual[column] - model[key]
     return bf_slopes(residual, min_peak_e=args.min_peak, max_peak_e=args.max_peak,
                      use_errors=not args.unweighted, colour_fit=colour_fit)
 
@@ -106,8 +112,14 @@ def run(args):
         prediction = predicted_slopes(psf, stars, min_peak_e=args.min_peak,
                                       max_peak_e=args.max_peak, use_errors=not args.unweighted)
         summary["model_residual"] = _summary(residual)
-        for key in ("x", "y", "iq"):
+        for key in ("x", "y", "iq", "e1", "e2"):
+            if key not in summary["model_residual"]:
+                continue
             entry = summary["model_residual"][key]
+            if key in ("x", "y", "iq"):
+                # the residual's intercept is star minus model at zero flux (about 0): the
+                # residual slope in percent of the stars' own size
+                entry["relative_percent"] = 100.0 * entry["slope"] / summary[key]["intercept"]
             # the residual's error with the calibration's: what a pull should divide by
             entry["slope_err_total"] = float(np.hypot(entry["slope_err"],
                                                       prediction[key]["slope_err"]))
@@ -146,8 +158,11 @@ def run(args):
               f"intercept {fit.intercept:.4f} pix  {fit.relative_percent:+.3f} %/100ke-")
     for key in ("e1", "e2"):
         if key in slopes:
-            after = (f"  residual after P(F) {residual[key].slope:+.2e}"
-                     if residual is not None else "")
+            after = ""
+            if residual is not None:
+                entry = summary["model_residual"][key]
+                after = (f"  residual after P(F) {entry['slope']:+.2e} +- "
+                         f"{entry['slope_err_total']:.2e} (pull {entry['pull']:+.1f})")
             print(f"{key:8s} slope {slopes[key].slope:+.2e} +- {slopes[key].slope_err:.2e} "
                   f"/100ke-  intercept {slopes[key].intercept:+.5f}{after}")
     print(f"{slopes['n_stars']} stars fitted"

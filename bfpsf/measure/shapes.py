@@ -19,8 +19,8 @@ import numpy as np
 from ..errors import BFPSFValueError
 from .moments import adaptive_moments_batch
 
-__all__ = ["PSFShape", "distortion", "fourth_moment", "psf_shape", "model_shapes",
-           "shape_residuals"]
+__all__ = ["PSFShape", "distortion", "fourth_moment", "psf_shape", "psf_shapes",
+           "model_shapes", "shape_residuals"]
 
 
 @dataclass(frozen=True)
@@ -113,19 +113,55 @@ def psf_shape(psf, flux, *, x=None, y=None):
     # every PSF kind (bfpsf.model.base): a field-varying one is evaluated at (x, y) itself,
     # by default at its reference position (the grid's centre), never at the stamp's corner
     x, y = psf.position_or_reference(x, y)
-    column0, row0 = np.floor(x + 0.5), np.floor(y + 0.5)
+    shapes = psf_shapes(psf, [flux], [x], [y])
+    return PSFShape(**{name: (int(value[0]) if name == "flags" else float(value[0]))
+                       for name, value in shapes.items()})
+
+
+def psf_shapes(psf, flux, x, y):
+    """`psf_shape` of many stars: the model's adaptive moments at each star's own flux,
+    image position and sub-pixel phase.
+
+    Each star's model (``psf.evaluate`` on the pixels around ``(x, y)``: BF at its flux, the
+    pixel response at its phase and, for a field-varying model, the model at its position) is
+    normalised to unit flux and measured with the estimator of the star measurements.
+
+    Parameters
+    ----------
+    psf : bfpsf.model.base.BFPSFModel
+    flux, x, y : array_like
+        Fluxes (the model's ``flux_unit``) and image positions, pixels, one per star.
+        Non-finite or non-positive fluxes and non-finite positions give NaN.
+
+    Returns
+    -------
+    dict of ndarray
+        The `PSFShape` fields (``sigma``, ``T``, ``e1``, ``e2``, ``rho4``, ``mxx``, ``myy``,
+        ``mxy``, ``flux``, ``flags``), one value per star.
+    """
+    flux, x, y = np.broadcast_arrays(*(np.asarray(value, dtype=float).ravel()
+                                       for value in (flux, x, y)))
+    good = np.isfinite(flux) & (flux > 0) & np.isfinite(x) & np.isfinite(y)
+    names = ("sigma", "T", "e1", "e2", "rho4", "mxx", "myy", "mxy")
+    result = {name: np.full(flux.shape, np.nan) for name in names}
+    result["flux"] = flux.copy()
+    result["flags"] = np.zeros(flux.shape, dtype=int)
+    if not good.any():
+        return result
     half = psf.half_size
     rows, columns = np.mgrid[:2 * half + 1, :2 * half + 1]
     # The model as a fitter sees it (mode 'table': the stored table; 'exact': R at the phase).
-    stamp = psf.evaluate(columns + column0 - half, rows + row0 - half, flux, x, y) / flux
-    moments = adaptive_moments_batch(stamp[None])
-    e1, e2 = distortion(moments.mxx, moments.myy, moments.mxy)
-    rho4 = fourth_moment(stamp[None], moments)
-    return PSFShape(sigma=float(moments.sigma[0]), T=float(moments.mxx[0] + moments.myy[0]),
-                    e1=float(e1[0]), e2=float(e2[0]), rho4=float(rho4[0]),
-                    mxx=float(moments.mxx[0]), myy=float(moments.myy[0]),
-                    mxy=float(moments.mxy[0]), flux=float(flux),
-                    flags=int(moments.flags[0]))
+    stamps = np.array([psf.evaluate(columns + np.floor(x_0 + 0.5) - half,
+                                    rows + np.floor(y_0 + 0.5) - half, value, x_0, y_0) / value
+                       for value, x_0, y_0 in zip(flux[good], x[good], y[good])])
+    moments = adaptive_moments_batch(stamps)
+    values = dict(mxx=moments.mxx, myy=moments.myy, mxy=moments.mxy, sigma=moments.sigma,
+                  T=moments.mxx + moments.myy, rho4=fourth_moment(stamps, moments))
+    values["e1"], values["e2"] = distortion(moments.mxx, moments.myy, moments.mxy)
+    for name, value in values.items():
+        result[name][good] = value
+    result["flags"][good] = moments.flags
+    return result
 
 
 def model_shapes(psf, flux, *, n_grid=12):
@@ -165,11 +201,14 @@ def model_shapes(psf, flux, *, n_grid=12):
 def shape_residuals(stars, psf, *, flux=None):
     """Star minus model: relative size, e1 and e2 of each star against a PSF model.
 
+    The model is taken at each star's own position and sub-pixel phase (`psf_shapes`: a
+    field-varying model there, not at its centre) when the table has ``x``, ``y``.
+
     Parameters
     ----------
     stars : astropy.table.Table
-        Star table (``flux_e``, ``iq``, ``e1``, ``e2``).
-    psf : FluxDependentPSF
+        Star table (``flux_e``, ``iq``, ``e1``, ``e2``; ``x``, ``y`` optional).
+    psf : bfpsf.model.base.BFPSFModel
         In electrons.
     flux : float, optional
         Compare every star with the model at this one flux (a static PSF frozen there);
@@ -182,7 +221,10 @@ def shape_residuals(stars, psf, *, flux=None):
     """
     star_flux = np.asarray(stars["flux_e"], dtype=float)
     at = star_flux if flux is None else np.full(star_flux.shape, float(flux))
-    model = model_shapes(psf, at)
+    x, y = psf.reference_position
+    if "x" in stars.colnames and "y" in stars.colnames:
+        x, y = np.asarray(stars["x"], dtype=float), np.asarray(stars["y"], dtype=float)
+    model = psf_shapes(psf, at, x, y)
     return {"sigma": np.asarray(stars["iq"], dtype=float) / model["sigma"] - 1.0,
             "e1": np.asarray(stars["e1"], dtype=float) - model["e1"],
             "e2": np.asarray(stars["e2"], dtype=float) - model["e2"]}

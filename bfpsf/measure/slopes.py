@@ -22,7 +22,8 @@ import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 
-__all__ = ["SlopeFit", "fit_bf_slope", "bf_slopes", "PEAK_UNIT_E"]
+__all__ = ["SlopeFit", "fit_bf_slope", "bf_slopes", "PEAK_UNIT_E", "model_size_increments",
+           "model_star_sizes", "predicted_slopes", "star_positions"]
 
 #: the flux unit of slopes: 100 ke- of peak
 PEAK_UNIT_E = 1e5
@@ -385,11 +386,48 @@ def model_size_increments(psf, flux_e, *, x=None, y=None, n_grid=24):
 
 
 def star_positions(psf, table):
-    """(x, y) of a star table's stars for a model varying over the field (None, None for a
-    single P(F) or a table without positions)."""
-    if not psf.varies_over_field or "x" not in table.colnames or "y" not in table.colnames:
+    """(x, y) of a star table's stars, pixels ((None, None) for a table without positions:
+    the model's reference position is then taken)."""
+    if "x" not in table.colnames or "y" not in table.colnames:
         return None, None
     return np.asarray(table["x"], dtype=float), np.asarray(table["y"], dtype=float)
+
+
+def model_star_sizes(psf, flux_e, *, x=None, y=None):
+    """sigma_x, sigma_y, IQ, e1 and e2 of the model of each star: at its own flux, image
+    position and sub-pixel phase (`bfpsf.measure.shapes.psf_shapes`).
+
+    What a star measured with the same estimator should show if the model is right: the
+    zero-flux size, its variation over the field (a grid's P0 interpolated to the star) and
+    the BF change at the star's flux. Measured minus this is ``model_residual`` of ``bfpsf
+    slope --psf``: it carries neither the brighter-fatter slope the model explains nor the
+    field's size variation (which, against peak, would dominate the residual's error).
+
+    Parameters
+    ----------
+    psf : bfpsf.model.base.BFPSFModel
+        In electrons.
+    flux_e : array_like
+        Total fluxes of the stars, e-.
+    x, y : array_like, optional
+        Image positions, pixels; default the model's reference position (phase 0).
+
+    Returns
+    -------
+    dict of ndarray
+        ``{'x', 'y', 'iq'}`` (pixels) and ``{'e1', 'e2'}``, one value per star; NaN where the
+        flux is not positive.
+    """
+    from .shapes import psf_shapes
+
+    flux_e = np.asarray(flux_e, dtype=float)
+    x_ref, y_ref = psf.reference_position
+    x = np.broadcast_to(x_ref if x is None else np.asarray(x, dtype=float), flux_e.shape)
+    y = np.broadcast_to(y_ref if y is None else np.asarray(y, dtype=float), flux_e.shape)
+    shapes = psf_shapes(psf, flux_e, x, y)
+    return {key: value.reshape(flux_e.shape) for key, value in (
+        ("x", np.sqrt(shapes["mxx"])), ("y", np.sqrt(shapes["myy"])), ("iq", shapes["sigma"]),
+        ("e1", shapes["e1"]), ("e2", shapes["e2"]))}
 
 
 def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors=True):
@@ -403,8 +441,9 @@ def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors
     Returns
     -------
     dict
-        ``{'x': {...}, 'y': {...}, 'iq': {...}, 'n_samples': int}``; each axis holds
-        ``slope`` and ``slope_err`` (pixels per 100 ke- of peak; the error is that of the
+        ``{'x': {...}, 'y': {...}, 'iq': {...}, 'n_samples': int}``, and ``'e1'``, ``'e2'``
+        when the table has those columns; each axis holds ``slope`` and ``slope_err``
+        (pixels, or for e1 and e2 distortion, per 100 ke- of peak; the error is that of the
         calibration, NaN without samples).
     """
     from .sources import total_flux
@@ -412,20 +451,22 @@ def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors
     flux = total_flux(psf, table["flux_e"])  # P(F) takes total fluxes, flux_e is an aperture's
     x, y = star_positions(psf, table)
 
+    axes = _AXES + tuple(axis for axis in _SHAPE_AXES if axis[1] in table.colnames)
+
     def slopes_of(model):
         increments = model_size_increments(model, flux, x=x, y=y)
         predicted = table.copy()
-        for key, column, _ in _AXES:
+        for key, column, _ in axes:
             predicted[column] = increments[key]
         fits = bf_slopes(predicted, min_peak_e=min_peak_e, max_peak_e=max_peak_e,
                          use_errors=use_errors)
-        return np.array([fits[key].slope for key, _, _ in _AXES])
+        return np.array([fits[key].slope for key, _, _ in axes])
 
     best = slopes_of(psf)
     draws = np.array([slopes_of(psf.with_shifts(sample)) for sample in psf.shift_samples])
     errors = (draws.std(axis=0, ddof=1) if len(draws) >= 2
               else np.full(best.shape, np.nan))
     out = {key: {"slope": float(value), "slope_err": float(error)}
-           for (key, _, _), value, error in zip(_AXES, best, errors)}
+           for (key, _, _), value, error in zip(axes, best, errors)}
     out["n_samples"] = int(len(draws))
     return out
