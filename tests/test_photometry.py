@@ -125,6 +125,25 @@ def test_grouped_overlapping_stars(psf):
     assert np.abs(alone["y_fit"] - xy[:, 1]).max() > 0.01
 
 
+def test_two_models_of_one_class_fitted_in_turn():
+    """photutils 3.0 caches its grouped-fit model class by (group size, model class): a second
+    FluxDependentPSF fitted after a first one evaluated the first's P0 in its groups
+    (`bfpsf.interop.photutils._forget_grouped_models` clears it; astropy/photutils#2384
+    removes it upstream). Each of two PSFs of different widths, fitted in turn on blended
+    pairs drawn with it, gets its own fluxes."""
+    rng = np.random.default_rng(11)
+    centres = grid_positions(4, 2, 30, rng)
+    xy = np.vstack([centres + [2.5, 0.0], centres - [2.5, 0.0]])
+    fluxes = rng.uniform(2e5, 1e6, len(xy))
+    for fwhm in (3.0, 5.0):
+        profile = galsim.Moffat(beta=3.0, fwhm=fwhm)
+        model = FluxDependentPSF.from_galsim(profile, SHIFTS, oversampling=2, size=25)
+        image = render_stars(profile, xy, fluxes, (60, 120), shifts=SHIFTS) + SKY
+        result = psf_photometry(image, model, positions=xy, background_e=SKY, read_noise_e=5.0)
+        assert np.all(result["group_size"] == 2)
+        np.testing.assert_allclose(np.asarray(result["flux_fit"]) / fluxes, 1.0, atol=3e-3)
+
+
 def weighted_sizes(stamps, sigma=2.0):
     """Gaussian-weighted <dx^2>, <dy^2> about the stamp centre, pixels^2 (one per stamp)."""
     half = stamps.shape[-1] // 2

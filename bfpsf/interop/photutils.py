@@ -59,6 +59,10 @@ def _forget_grouped_models(psf):
     same class (another P0, other shifts, static and P(F) as two FluxDependentPSF) would
     silently evaluate the first one for its groups. Called for every photometry object made
     here; the cache is private photutils state, so nothing happens if it is not there.
+    Upstream fix: astropy/photutils#2384 (merged 2026-08, a cache per fitter keyed on the
+    number of sources; not in 3.0.0, the newest release): with it this is a no-op.
+    `tests/test_photometry.py::test_two_models_of_one_class_fitted_in_turn` fails without it
+    on photutils 3.0.0.
     """
     try:
         from photutils.psf import _components
