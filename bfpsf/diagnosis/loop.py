@@ -46,6 +46,7 @@ import numpy as np
 from scipy.stats import chi2 as _chi2
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from ..files import json_safe
 from .catalogue import CATALOGUE
 from .observables import interleaved as _interleaved
 from .signature import (SIGNATURE_ALPHA, contradiction, parity_test, signature_parts,
@@ -258,21 +259,6 @@ def _summary(problem, observables, model):
     return out
 
 
-def json_ready(value):
-    """A JSON-serialisable copy: numpy scalars and arrays to Python, NaN and inf to None."""
-    if isinstance(value, dict):
-        return {str(key): json_ready(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [json_ready(item) for item in value]
-    if isinstance(value, (float, np.floating)):
-        return float(value) if np.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    return value
-
-
 @dataclass(frozen=True)
 class DiagnosisResult:
     """Outcome of the closed loop.
@@ -364,7 +350,7 @@ class DiagnosisResult:
 
     def to_json_dict(self):
         """The ``--json`` summary: residual_before, candidates, selected, residual_after (+)."""
-        return json_ready({"residual_before": self.residual_before, "candidates": self.candidates,
+        return json_safe({"residual_before": self.residual_before, "candidates": self.candidates,
                       "selected": self.selected, "residual_after": self.residual_after,
                       "parameters": self.parameters, "threshold": self.threshold,
                       "ambiguous": self.ambiguous,

@@ -31,8 +31,8 @@ import dataclasses
 import numpy as np
 
 from ..errors import BFPSFValueError
+from ..files import json_safe
 from .catalogue import add_shifts, quadrupole_shifts
-from .loop import json_ready
 from .spot_model import FLUX_SCALE
 
 __all__ = ["refine_calibration", "linearise", "undo_refined_linearity", "BUILDUP_STEPS"]
@@ -190,6 +190,6 @@ def refine_calibration(calibration, result, *, provenance=None):
         refinement["empirical"] = result.empirical
         applied["empirical"] = ("EMPIRICAL flux-dependent size term learned from the stars "
                                 "(not physics)")
-    return dataclasses.replace(calibration, shifts=shifts, refinement=json_ready(refinement),
+    return dataclasses.replace(calibration, shifts=shifts, refinement=json_safe(refinement),
                                **samples)
 
