@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .calibration.linearity import linearise
 from .errors import BFPSFInputError, BFPSFValueError
 from .measure.sky import SkyModel, estimate_sky
 from .resources import check_psf_fit
@@ -83,8 +84,6 @@ def linearity_of(calibration):
 def electrons(data, *, gain=1.0, linearity_c_per_1e5=0.0):
     """The image in e-, a refined calibration's linearity correction undone (`prepare_image`
     without the sky: for `bfpsf.measure.sources.measure_sources`, which has its own)."""
-    from .diagnosis.refine import linearise
-
     image = np.asarray(data, dtype=float)
     if image.ndim != 2:
         msg = f"an image must be 2-D [y, x], got shape {image.shape}"
@@ -110,7 +109,7 @@ def prepare_image(data, *, gain=1.0, linearity_c_per_1e5=0.0, background_e=None,
         e-/ADU (default 1).
     linearity_c_per_1e5 : float, optional
         A refined calibration's linearity correction (`linearity_of`), undone on input
-        (`bfpsf.diagnosis.refine.linearise`). Default 0.
+        (`bfpsf.calibration.linearity.linearise`). Default 0.
     background_e : float, optional
         A known sky, e- per pixel (``--background`` times the gain); default: estimated
         (`bfpsf.measure.sky.estimate_sky`, a plane fitted beyond the masked sources).

@@ -1,4 +1,6 @@
-"""Linearity of the flat-field response: mean signal against exposure time (G15 section 4.3.2).
+"""Linearity of the flat-field response: mean signal against exposure time (G15 section 4.3.2),
+and the correction of a gain non-linearity v = q (1 + c q / 1e5) (`linearise`, the
+``gain_nonlinearity`` of a calibration refined by `bfpsf diagnose --output-calib`).
 
 Brighter-fatter moves charge between pixels but conserves it, so the flat mean stays linear in
 the exposure time; G15 found departures below 2 per mil peak to peak from 0 to 130 ke- on the
@@ -12,7 +14,7 @@ import numpy as np
 
 from ..errors import BFPSFValueError
 
-__all__ = ["Linearity", "measure_linearity", "DEFAULT_LINEARITY_THRESHOLD"]
+__all__ = ["Linearity", "measure_linearity", "linearise", "DEFAULT_LINEARITY_THRESHOLD"]
 
 #: Default flag threshold on the peak-to-peak fractional residual: 3 per mil, above G15's
 #: < 2 per mil on a good sensor, leaving room for GalSim's SiliconSensor, whose mean pixel area
@@ -115,3 +117,31 @@ def measure_linearity(exptime, mean_adu, *, used=None, threshold=DEFAULT_LINEARI
     frac_residual = mean_adu / (intercept + slope * exptime) - 1.0
     return Linearity(exptime, mean_adu, float(slope), float(intercept), frac_residual, used,
                      float(threshold), True)
+
+
+def linearise(image_e, c_per_1e5):
+    """Undo v = q (1 + c q / 1e5): the linear charge q of measured values v, e-.
+
+    Parameters
+    ----------
+    image_e : ndarray
+        Measured values, e-.
+    c_per_1e5 : float
+        The ``gain_nonlinearity`` parameter c (relative change per 1e5 e-).
+
+    Returns
+    -------
+    ndarray
+        q, e- (the root of c q^2 / 1e5 + q - v = 0 that tends to v as c -> 0).
+    """
+    image = np.asarray(image_e, dtype=float)
+    k = float(c_per_1e5) / 1e5
+    if k == 0:
+        return image.copy()
+    discriminant = 1.0 + 4.0 * k * image
+    if np.any(discriminant < 0):
+        msg = (f"the linearity correction c = {c_per_1e5:g} per 1e5 e- has no solution above "
+               f"{-1 / (4 * k):.4g} e-")
+        raise BFPSFValueError(msg, c_per_1e5)
+    # 2 v / (1 + sqrt(1 + 4 k v)): the stable form of (-1 + sqrt(1 + 4 k v)) / (2 k)
+    return 2.0 * image / (1.0 + np.sqrt(discriminant))

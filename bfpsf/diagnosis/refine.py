@@ -32,8 +32,8 @@ import numpy as np
 
 from ..errors import BFPSFValueError
 from ..files import json_safe
+from ..calibration.linearity import linearise
 from .catalogue import add_shifts, quadrupole_shifts
-from .spot_model import FLUX_SCALE
 
 __all__ = ["refine_calibration", "linearise", "undo_refined_linearity", "BUILDUP_STEPS"]
 
@@ -50,34 +50,6 @@ _NOT_APPLIED = {
     "second_order": "a negative second order is not the build-up's (which strengthens BF); "
                     "the scale and anisotropy were refitted without it",
 }
-
-
-def linearise(image_e, c_per_1e5):
-    """Undo v = q (1 + c q / 1e5): the linear charge q of measured values v, e-.
-
-    Parameters
-    ----------
-    image_e : ndarray
-        Measured values, e-.
-    c_per_1e5 : float
-        The ``gain_nonlinearity`` parameter c (relative change per 1e5 e-).
-
-    Returns
-    -------
-    ndarray
-        q, e- (the root of c q^2 / 1e5 + q - v = 0 that tends to v as c -> 0).
-    """
-    image = np.asarray(image_e, dtype=float)
-    k = float(c_per_1e5) / FLUX_SCALE
-    if k == 0:
-        return image.copy()
-    discriminant = 1.0 + 4.0 * k * image
-    if np.any(discriminant < 0):
-        msg = (f"the linearity correction c = {c_per_1e5:g} per 1e5 e- has no solution above "
-               f"{-1 / (4 * k):.4g} e-")
-        raise BFPSFValueError(msg, c_per_1e5)
-    # 2 v / (1 + sqrt(1 + 4 k v)): the stable form of (-1 + sqrt(1 + 4 k v)) / (2 k)
-    return 2.0 * image / (1.0 + np.sqrt(discriminant))
 
 
 def undo_refined_linearity(image_e, calibration):
