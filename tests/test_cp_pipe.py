@@ -12,7 +12,7 @@ from bfpsf.calibration import calibrate_from_ptc
 from bfpsf.calibration.ptc import covariance_errors, full_covariance_model
 from bfpsf.cli import main
 from bfpsf.errors import BFPSFInputError
-from bfpsf.io.cp_pipe import PTC_COLUMNS, ptc_table_hdu, read_ptc_dataset, write_ptc_dataset
+from bfpsf.calibration.cp_pipe import PTC_COLUMNS, ptc_table_hdu, read_ptc_dataset, write_ptc_dataset
 
 R22_S11 = ("measured/lsst_cp_pipe_LSSTCam_R22_S11_amatrix/"
            "amatrix_LSSTCam_R22_S11_E2V-CCD250-382.csv")

@@ -222,7 +222,7 @@ def calibrate_from_ptc(path, *, amps=None, maxlag="auto", ptc_model="full", fit_
                        pedestal_nsigma=4.0, pedestal_degree=2, linearity_threshold=None,
                        solve_shifts=True, shift_method="electrostatic", thickness=10.0,
                        n_monte_carlo=100, seed=0):
-    """Calibrate from an LSST cp_pipe PTC dataset instead of flats (`bfpsf.io.cp_pipe`).
+    """Calibrate from an LSST cp_pipe PTC dataset instead of flats (`bfpsf.calibration.cp_pipe`).
 
     The per-pair means and covariances cp_pipe measured (the pairs its EXP_ID_MASK keeps) go
     through the same fit as flats do (`fit_amplifier`: pedestal, the PTC model, linearity, the
@@ -247,7 +247,7 @@ def calibrate_from_ptc(path, *, amps=None, maxlag="auto", ptc_model="full", fit_
     Calibration or DetectorCalibration
         One amplifier, or several.
     """
-    from ..io.cp_pipe import read_ptc_dataset
+    from .cp_pipe import read_ptc_dataset
     from .maxlag import check_maxlag
     from .product import DetectorCalibration
 

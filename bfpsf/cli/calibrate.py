@@ -197,7 +197,7 @@ def run(args):
             print(f"WARNING: {' '.join(filter(None, (detector, warning)))}", file=sys.stderr)
         print(f"wrote {outputs[detector]}")
         if args.export_ptc:
-            from ..io.cp_pipe import write_ptc_dataset
+            from ..calibration.cp_pipe import write_ptc_dataset
 
             write_ptc_dataset(args.export_ptc, calibration, overwrite=args.overwrite)
             print(f"wrote {args.export_ptc} (cp_pipe PTC dataset)")

@@ -99,7 +99,7 @@ def _pixel_counts(cov_adu, sqrt_weights):
 
 
 def _amplifier(row, path):
-    from ..calibration.ptc import PTCData
+    from .ptc import PTCData
 
     name = str(row["AMPLIFIER_NAME"]).strip()
     where = f"{path}: amplifier {name}"
@@ -175,7 +175,7 @@ def _flat(matrix):
 
 
 def _row(name, calibration):
-    from ..calibration.ptc import covariance_errors
+    from .ptc import covariance_errors
 
     cov = np.asarray(calibration.covariances_adu, dtype=float)
     npix = np.asarray(calibration.npix, dtype=float)
@@ -225,7 +225,7 @@ def ptc_dataset_table(calibration):
     """
     from astropy.table import Table
 
-    from ..calibration.product import amplifiers_of
+    from .product import amplifiers_of
 
     amplifiers = amplifiers_of(calibration)
     for name, one in amplifiers.items():
