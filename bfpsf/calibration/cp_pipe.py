@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import refuse_overwrite
+from ..files import write_fits
 
 __all__ = ["PTC_COLUMNS", "PTC_VERSION", "PTCAmplifier", "read_ptc_dataset",
            "write_ptc_dataset", "ptc_dataset_table", "ptc_table_hdu"]
@@ -259,6 +259,5 @@ def write_ptc_dataset(path, calibration, *, overwrite=False):
     """Write `ptc_dataset_table` as cp_pipe does: the table in HDU 1, metadata in its header."""
     from astropy.io import fits
 
-    refuse_overwrite(path, overwrite)
     hdus = fits.HDUList([fits.PrimaryHDU(), ptc_table_hdu(ptc_dataset_table(calibration))])
-    hdus.writeto(path, overwrite=overwrite)
+    write_fits(hdus, path, overwrite=overwrite)  # atomic
