@@ -16,6 +16,12 @@ import warnings
 import galsim
 import numpy as np
 
+from bfpsf.validation.simulate_spots import peak_fraction
+
+MOFFAT = galsim.Moffat(beta=3.0, fwhm=3.5)
+#: Fraction of the flux in the peak pixel (a star of peak P has flux P / PEAK_PER_FLUX).
+PEAK_PER_FLUX = peak_fraction(MOFFAT)
+
 
 def star_field(n_stars, spacing, shifts, seed=0):
     from bfpsf.interop.galsim_psf import render_stars
@@ -26,9 +32,9 @@ def star_field(n_stars, spacing, shifts, seed=0):
     xy = np.array([(x, y) for y in grid for x in grid])[:n_stars]
     xy = xy + rng.uniform(-0.5, 0.5, xy.shape)
     peaks = np.exp(rng.uniform(np.log(3e3), np.log(1.2e5), n_stars))
-    fluxes = peaks / 0.0518
+    fluxes = peaks / PEAK_PER_FLUX
     sky = 1000.0
-    image = render_stars(galsim.Moffat(beta=3.0, fwhm=3.5), xy, fluxes,
+    image = render_stars(MOFFAT, xy, fluxes,
                          (n_side * spacing, n_side * spacing), shifts=shifts) + sky
     image = image + rng.normal(0.0, np.sqrt(image + 25.0))
     return image - sky, np.sqrt(image + 25.0), xy, fluxes
@@ -63,7 +69,7 @@ def main():
     from bfpsf.shifts import BoundaryShifts
 
     shifts = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
-    moffat = galsim.Moffat(beta=3.0, fwhm=3.5)
+    moffat = MOFFAT
     psf = FluxDependentPSF.from_galsim(moffat, shifts, oversampling=4, size=25)
     psf_exact = FluxDependentPSF.from_galsim(moffat, shifts, oversampling=4, size=25,
                                              mode="exact")
@@ -82,7 +88,7 @@ def main():
     print(f"FluxDependentPSF table : {t_bf:8.2f} s   ratio {t_bf / t_static:.2f}  (target <= 1.5)")
     print(f"FluxDependentPSF exact : {t_exact:8.2f} s   ratio {t_exact / t_static_sub:.2f} "
           f"(on {n_exact} stars)")
-    faint, bright = fluxes < 1e4 / 0.0518, fluxes > 6e4 / 0.0518
+    faint, bright = fluxes < 1e4 / PEAK_PER_FLUX, fluxes > 6e4 / PEAK_PER_FLUX
     for name, table in (("static", r_static), ("P(F)", r_bf)):
         ratio = np.asarray(table["flux_fit"]) / fluxes
         bias = -2500 * np.log10(np.median(ratio[faint]) / np.median(ratio[bright]))
@@ -93,7 +99,7 @@ def main():
 
     # Phase interpolation of R in the table mode, relative to the BF term of a 120 ke- star.
     rng = np.random.default_rng(1)
-    flux = 1.2e5 / 0.0518
+    flux = 1.2e5 / PEAK_PER_FLUX
     worst = 0.0
     y, x = np.mgrid[:27, :27]
     for _ in range(50):

@@ -13,11 +13,12 @@ from bfpsf.interop.photutils import make_psf_photometry, static_image_psf
 from bfpsf.measure.photometry import psf_photometry
 from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.shifts import BoundaryShifts
+from bfpsf.validation.simulate_spots import peak_fraction
 
 #: E2V-like shifts: a(0,0) = -2.3e-6 /e- as GalSim's lsst_e2v_50_8 (-2.2e-6).
 SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
 MOFFAT = galsim.Moffat(beta=3.0, fwhm=3.5)
-PEAK_PER_FLUX = 0.0518
+PEAK_PER_FLUX = peak_fraction(MOFFAT)
 SKY = 1000.0  # e- per pixel: faint stars are sky-limited, as in real images
 
 

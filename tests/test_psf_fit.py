@@ -9,11 +9,12 @@ from bfpsf.interop.galsim_psf import render_stars
 from bfpsf.model.psf import FluxDependentPSF, pixelised_stamp
 from bfpsf.model.psf_fit import fit_psf
 from bfpsf.shifts import BoundaryShifts
+from bfpsf.validation.simulate_spots import peak_fraction
 
 #: E2V-like shifts: a(0,0) = -2.3e-6 /e- as GalSim's lsst_e2v_50_8 (-2.2e-6).
 SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
 MOFFAT = galsim.Moffat(beta=3.0, fwhm=3.5)
-PEAK_PER_FLUX = 0.0518  # peak pixel of the unit-flux pixelised Moffat at phase 0
+PEAK_PER_FLUX = peak_fraction(MOFFAT)  # peak pixel of the unit-flux Moffat at phase 0
 
 
 def star_field(n_side, *, spacing=36, peak_range=(3e3, 1.2e5), noise=False, seed=1):

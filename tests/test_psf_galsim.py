@@ -9,10 +9,11 @@ from bfpsf.interop.galsim_psf import apply_bf_to_rendered, render_stars, to_gals
 from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.model.redistribution import redistribute
 from bfpsf.shifts import BoundaryShifts
+from bfpsf.validation.simulate_spots import peak_fraction
 
 SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
 MOFFAT = galsim.Moffat(beta=3.0, fwhm=3.5)
-BRIGHT = 1.2e5 / 0.0518  # flux of a 120 ke- peak star, e-
+BRIGHT = 1.2e5 / peak_fraction(MOFFAT)  # flux of a 120 ke- peak star, e-
 
 
 @pytest.fixture(scope="module")

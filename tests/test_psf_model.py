@@ -10,12 +10,13 @@ from bfpsf.errors import BFPSFValueError
 from bfpsf.model.psf import FluxDependentPSF, bf_response_table, pixelised_stamp
 from bfpsf.model.redistribution import redistribute
 from bfpsf.shifts import BoundaryShifts
+from bfpsf.validation.simulate_spots import peak_fraction
 
 #: E2V-like shifts: a(0,0) = -2.3e-6 /e- as GalSim's lsst_e2v_50_8 (-2.2e-6).
 SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
 MOFFAT = galsim.Moffat(beta=3.0, fwhm=3.5)
 #: Flux of a star with a 120 ke- peak.
-BRIGHT = 1.2e5 / 0.0518
+BRIGHT = 1.2e5 / peak_fraction(MOFFAT)
 
 
 @pytest.fixture(scope="module")

@@ -100,16 +100,12 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
     from astropy.table import Table
 
     from ..model.redistribution import redistribute
+    from .simulate_spots import peak_fraction
 
     rng = np.random.default_rng(seed)
     ny, nx = (int(value) for value in shape)
     profile_at = profile if callable(profile) and not isinstance(profile, galsim.GSObject) \
         else (lambda x, y: profile)
-
-    def peak_fraction(star_profile):
-        pixelised = galsim.Convolve(star_profile, galsim.Pixel(1.0))
-        return pixelised.withFlux(1.0).drawImage(nx=1, ny=1, scale=1.0,
-                                                 method="no_pixel").array[0, 0]
 
     galsim_rng = galsim.BaseDeviate(int(rng.integers(1, 2**31 - 1)))
     sensor_object = None

@@ -19,7 +19,7 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from ..files import refuse_overwrite, write_fits
 
 __all__ = ["SpotSet", "StarField", "simulate_spots", "simulate_star_field", "write_image_adu",
-           "bf_free_sensor", "simulate_varying_exposures"]
+           "peak_fraction", "bf_free_sensor", "simulate_varying_exposures"]
 
 
 @dataclass(frozen=True)
@@ -147,8 +147,10 @@ def _sensor_label(sensor):
     return sensor if isinstance(sensor, (str, type(None))) else type(sensor).__name__
 
 
-def _peak_fraction(profile, size, offset):
-    """Fraction of the flux in the brightest pixel, drawn without sensor (pixel-integrated)."""
+def peak_fraction(profile, size=15, offset=(0.0, 0.0)):
+    """Fraction of the flux in the brightest pixel, drawn without sensor (pixel-integrated),
+    the star centred ``offset`` pixels from the centre of a ``size``-pixel stamp: a star of
+    peak P has flux P / peak_fraction (0.0518 for a Moffat of beta 3, FWHM 3.5 px)."""
     image = profile.withFlux(1.0).drawImage(nx=size, ny=size, scale=1.0, offset=offset)
     return float(image.array.max())
 
@@ -256,7 +258,7 @@ def simulate_spots(*, sensor="lsst_e2v_50_8", fwhm=4.0, beta=3.5, peaks_e=(10e3,
     fluxes = np.empty(n_spots)
     for index in range(n_spots):
         offset = galsim.PositionD(*offsets[index])
-        fluxes[index] = peaks[level[index]] / _peak_fraction(profile, stamp_size, offset)
+        fluxes[index] = peaks[level[index]] / peak_fraction(profile, stamp_size, offset)
         for sensor_, deviate, out in draws:
             image = galsim.ImageD(stamp_size, stamp_size, scale=1.0)
             profile.withFlux(fluxes[index]).drawImage(
@@ -354,7 +356,7 @@ def simulate_star_field(*, shape=(512, 512), n_stars=100, peak_range_e=(2e3, 1.2
         integer = galsim.PositionI(int(np.floor(x[index] + 0.5)), int(np.floor(y[index] + 0.5)))
         offset = centre - galsim.PositionD(integer.x, integer.y)
         size = 2 * stamp_half + 1
-        fluxes[index] = peaks[index] / _peak_fraction(profile, size, offset)
+        fluxes[index] = peaks[index] / peak_fraction(profile, size, offset)
         bounds = galsim.BoundsI(integer.x - stamp_half, integer.x + stamp_half,
                                 integer.y - stamp_half, integer.y + stamp_half) & image.bounds
         if sensor is None:
