@@ -33,10 +33,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import BFPSFValueError
+from ..least_squares import polynomial_fit
 from .ptc_data import PTCData, covariance_errors, stack_pairs
 from .ptc_full import B_CHOICES, SERIES_ORDER, fit_full_covariance_model, full_covariance_model
-from .ptc_variance import (first_order_slopes, fit_exponential_ptc, fit_quadratic_ptc,
-                           weighted_polyfit, exponential_variance)
+from .ptc_variance import (exponential_variance, first_order_slopes, fit_exponential_ptc,
+                           fit_quadratic_ptc)
 from .turnoff import detect_turnoff
 
 __all__ = [
@@ -331,8 +332,8 @@ def summed_covariance_ptc(data, gain, *, maxlag=None, used=None):
     weights[:, 0] = 2.0
     weights[0, 0] = 1.0
     summed_err = np.sqrt(np.sum((weights * lag_err) ** 2, axis=(-2, -1)))
-    params, cov, _ = weighted_polyfit(mean_e[used], summed_e[used], summed_err[used], 1)
-    raw_params, _, _ = weighted_polyfit(mean_e[used], var_e[used],
+    params, cov, _, _ = polynomial_fit(mean_e[used], summed_e[used], summed_err[used], 1)
+    raw_params, _, _, _ = polynomial_fit(mean_e[used], var_e[used],
                                          var_e[used] * np.sqrt(2.0 / npix[used]), 1)
     linear = params[0] + mean_e
     return {

@@ -14,22 +14,13 @@ import numpy as np
 import scipy.optimize
 
 from ..errors import BFPSFInputError
+from ..least_squares import polynomial_fit
 
 __all__ = ["fit_quadratic_ptc", "fit_exponential_ptc", "exponential_variance", "first_order_slopes",
-           "weighted_polyfit", "parameter_covariance", "A_SCALE"]
+           "parameter_covariance", "A_SCALE"]
 
 # Parameter scale of a00 in the fits, so that the optimiser sees numbers of order one.
 A_SCALE = 1e-6     # 1/e-
-
-
-def weighted_polyfit(x, y, sigma, degree):
-    """Weighted least squares of y = sum_k p_k x^k; returns p (low order first), cov, chi2."""
-    design = np.vander(x, degree + 1, increasing=True) / sigma[:, None]
-    target = y / sigma
-    params, *_ = np.linalg.lstsq(design, target, rcond=None)
-    covariance = np.linalg.inv(design.T @ design)
-    chi2 = float(np.sum((design @ params - target) ** 2))
-    return params, covariance, chi2
 
 
 def fit_quadratic_ptc(mean_adu, var_adu, var_err):
@@ -52,7 +43,7 @@ def fit_quadratic_ptc(mean_adu, var_adu, var_err):
     if mean_adu.size < 3:
         msg = f"the quadratic PTC fit needs at least 3 pairs below the turnoff, got {mean_adu.size}"
         raise BFPSFInputError(msg, mean_adu.size)
-    params, cov, chi2 = weighted_polyfit(mean_adu, var_adu, var_err, 2)
+    params, cov, chi2, _ = polynomial_fit(mean_adu, var_adu, var_err, 2)
     intercept, slope, curvature = params
     gain = 1.0 / slope
     gain_err = np.sqrt(cov[1, 1]) / slope**2
@@ -147,7 +138,7 @@ def first_order_slopes(mean_e, cov_adu, npix):
         for dx in range(nlag):
             if dx == dy == 0:
                 continue
-            params, cov, _ = weighted_polyfit(mean_e, correlation[:, dy, dx],
+            params, cov, _, _ = polynomial_fit(mean_e, correlation[:, dy, dx],
                                                corr_err[:, dy, dx], 1)
             intercept[dy, dx], slope[dy, dx] = params
             intercept_err[dy, dx], slope_err[dy, dx] = np.sqrt(np.diag(cov))

@@ -17,8 +17,8 @@ after the term.
 
 import numpy as np
 
+from ..least_squares import weighted_least_squares
 from ..model.empirical import FLUX_REFERENCE, PATTERNS, EmpiricalTerm
-from .signature import weighted_least_squares
 
 __all__ = ["fit_empirical", "evaluate_empirical", "predicted_size_change", "early_late",
            "adaptive_response"]

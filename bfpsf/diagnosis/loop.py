@@ -47,11 +47,11 @@ from scipy.stats import chi2 as _chi2
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..files import json_safe
+from ..least_squares import weighted_least_squares
 from .catalogue import CATALOGUE
 from .observables import interleaved as _interleaved
 from .signature import (SIGNATURE_ALPHA, contradiction, parity_test, signature_parts,
                         signature_test)
-from .signature import weighted_least_squares as _wls
 from .unexplained import (STAR_CHI2_FACTOR, UNEXPLAINED_NSIGMA, describe_unexplained,
                           verdict)
 
@@ -445,7 +445,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
         offset = sum((fixed[name] for name in names if name in fixed),
                      np.zeros_like(problem.residual))
         blocks = [problem.nuisance] + [designs[name] for name in free]
-        params, covariance, chi2, model = _wls(problem.residual - offset, problem.sigma,
+        params, covariance, chi2, model = weighted_least_squares(problem.residual - offset, problem.sigma,
                                                np.column_stack(blocks))
         return params, covariance, chi2, model + offset
 
@@ -463,7 +463,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     if problem.global_columns:
         # "before": the prediction as it stands, global nuisances (the size scale) at zero
         local = np.delete(problem.nuisance, list(problem.global_columns), axis=1)
-        model_before = _wls(problem.residual, problem.sigma, local)[3]
+        model_before = weighted_least_squares(problem.residual, problem.sigma, local)[3]
     candidates = []
     ambiguous = {}
     rejected = {}
@@ -545,7 +545,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
         # parameter-free: the physical values, global nuisances (the size scale) at zero
         offset = sum(fixed[name] for name in physical_names)
         local = np.delete(problem.nuisance, list(problem.global_columns), axis=1)
-        model_physical = _wls(problem.residual - offset, problem.sigma, local)[3] + offset
+        model_physical = weighted_least_squares(problem.residual - offset, problem.sigma, local)[3] + offset
         residual_physical = _summary(problem, observables, model_physical)
         residual_physical["effects"] = physical_names
     params, covariance, _, model_after = fit(selected)
@@ -745,7 +745,7 @@ def _evaluate(state, observables, step):
     if global_columns:
         offset += problem.nuisance[:, global_columns] @ step["global"]
     local = np.delete(problem.nuisance, global_columns, axis=1)
-    _, _, _, model = _wls(problem.residual - offset, problem.sigma, local)
+    _, _, _, model = weighted_least_squares(problem.residual - offset, problem.sigma, local)
     return problem, model + offset
 
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from ..least_squares import polynomial_fit
 from .spot_model import FLUX_SCALE, SpotForwardModel, flux_of_peak
 
 __all__ = ["SizeTable", "LinearityTable", "CorrelationTable", "PTCTable", "Observables",
@@ -330,9 +331,9 @@ def matched_profile(sigma_x, sigma_y, *, beta=None, measure="moments", pixel=Tru
 
 
 def _intercepts(table):
-    px = np.polyfit(table.peak_e, table.sigma_x, 1)
-    py = np.polyfit(table.peak_e, table.sigma_y, 1)
-    return px[1], py[1]
+    """The zero-flux sizes (x, y) of a size table: the intercepts of unweighted lines."""
+    return tuple(float(polynomial_fit(table.peak_e, sizes, 1.0, 1)[0][0])
+                 for sizes in (table.sigma_x, table.sigma_y))
 
 
 def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=None,

@@ -8,6 +8,7 @@ E2V spot moments), `observables_from_tables` (a correlation table and a size tab
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from ..least_squares import polynomial_fit
 from .observables import SizeTable, observables_from_sizes
 
 __all__ = ["read_lage_spot_table", "read_bot_spot_table", "observables_from_tables",
@@ -28,8 +29,8 @@ def _scatter_errors(peak, values, group, degree=2):
         if members.sum() <= degree + 2:
             msg = f"group {g} has {members.sum()} points: too few to estimate errors"
             raise BFPSFInputError(msg, int(members.sum()))
-        fit = np.polyval(np.polyfit(x, y, degree), x)
-        errors[members] = np.sqrt(np.sum((y - fit) ** 2) / (members.sum() - degree - 1))
+        chi2 = polynomial_fit(x, y, 1.0, degree)[2]  # unit errors: the sum of squares
+        errors[members] = np.sqrt(chi2 / (members.sum() - degree - 1))
     return errors
 
 

@@ -57,37 +57,16 @@ even effect matches and every candidate with a size template is rejected by pari
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
-__all__ = ["SIGNATURE_ALPHA", "TEMPLATE_TOLERANCE", "weighted_least_squares",
-           "signature_parts", "signature_test", "contradiction", "parity_test",
-           "describe_entry"]
+from ..least_squares import weighted_least_squares
+
+__all__ = ["SIGNATURE_ALPHA", "TEMPLATE_TOLERANCE", "signature_parts", "signature_test",
+           "contradiction", "parity_test", "describe_entry"]
 
 #: p-value below which a dimension contradicts a candidate (3.3 sigma one-sided).
 SIGNATURE_ALPHA = 1e-3
 #: Relative accuracy of the first-order templates between the parts of each dimension (tau_d).
 TEMPLATE_TOLERANCE = {"observable": 0.3, "axis": 0.1, "flux": 0.3, "position": 0.0,
                       "exposure_order": 0.0}
-
-
-def weighted_least_squares(residual, sigma, design):
-    """Weighted least squares: parameters, covariance, chi2, fitted model.
-
-    Columns are scaled to unit norm for conditioning; a singular design gives the
-    pseudo-inverse covariance.
-    """
-    weights = 1.0 / sigma
-    a = design * weights[:, None]
-    b = residual * weights
-    norms = np.sqrt((a ** 2).sum(axis=0))
-    norms[norms == 0] = 1.0
-    solution, *_ = np.linalg.lstsq(a / norms, b, rcond=None)
-    params = solution / norms
-    model = design @ params
-    chi2 = float((((residual - model) * weights) ** 2).sum())
-    try:
-        covariance = np.linalg.pinv((a / norms).T @ (a / norms)) / np.outer(norms, norms)
-    except np.linalg.LinAlgError:
-        covariance = np.full((params.size, params.size), np.nan)
-    return params, covariance, chi2, model
 
 
 def _halves(values):

@@ -8,7 +8,7 @@ expectation (issue 22). Both are used by `bfpsf.diagnosis.loop`.
 
 import numpy as np
 
-from .signature import weighted_least_squares as _wls
+from ..least_squares import weighted_least_squares
 
 __all__ = ["describe_unexplained", "verdict", "UNEXPLAINED_NSIGMA", "STAR_CHI2_FACTOR"]
 
@@ -75,7 +75,7 @@ def _flux_dependence(peak, residual, sigma, group):
     significant at 3 sigma in a fit with per-group intercepts), with the coefficients."""
     x = np.asarray(peak, float) / 1e5
     columns = [x, x ** 2] + [(group == g).astype(float) for g in np.unique(group)]
-    params, covariance, _, _ = _wls(residual, sigma, np.column_stack(columns))
+    params, covariance, _, _ = weighted_least_squares(residual, sigma, np.column_stack(columns))
     errors = np.sqrt(np.abs(np.diag(covariance)[:2]))
     significant = [abs(p) > UNEXPLAINED_NSIGMA * e for p, e in zip(params[:2], errors)]
     kind = "quadratic" if significant[1] else "linear" if significant[0] else "constant"
@@ -89,7 +89,7 @@ def _dependence(sizes, values, errors, column, scale, labels):
     x = sizes.peak_e / 1e5
     centred = (np.asarray(column, float) - np.mean(column)) / scale
     groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
-    params, covariance, _, _ = _wls(values, errors, np.column_stack([x, x * centred, groups]))
+    params, covariance, _, _ = weighted_least_squares(values, errors, np.column_stack([x, x * centred, groups]))
     error = float(np.sqrt(abs(covariance[1, 1])))
     significance = abs(params[1]) / error if error > 0 else 0.0
     kind = "none" if significance <= UNEXPLAINED_NSIGMA else labels[int(params[1] < 0)]
@@ -105,7 +105,7 @@ def _odd_parity(sizes, axis):
         return None
     errors = getattr(sizes, f"skew_{axis}_err")
     groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
-    params, covariance, _, _ = _wls(values, errors, np.column_stack([sizes.peak_e / 1e5,
+    params, covariance, _, _ = weighted_least_squares(values, errors, np.column_stack([sizes.peak_e / 1e5,
                                                                      groups]))
     significance = abs(params[0]) / np.sqrt(abs(covariance[0, 0]))
     return "odd" if significance > UNEXPLAINED_NSIGMA else "even"

@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from ..least_squares import weighted_least_squares
 
 __all__ = ["SlopeFit", "fit_bf_slope", "bf_slopes", "PEAK_UNIT_E", "model_size_increments",
            "model_star_sizes", "predicted_slopes", "star_positions"]
@@ -159,9 +160,9 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
         if np.linalg.cond(normal) > 1e12:
             msg = "the peak fluxes span no range: the slope is undetermined"
             raise BFPSFValueError(msg, (x.min(), x.max()))
-        covariance = np.linalg.inv(normal)
-        params = covariance @ (design.T @ (weights * y))
-        residual = y - design @ params
+        params, covariance, _, model = weighted_least_squares(y, 1.0 / np.sqrt(weights),
+                                                              design)
+        residual = y - model
         if clip_nsigma is None or n_points <= 3:
             break
         normalised = residual * np.sqrt(weights)
