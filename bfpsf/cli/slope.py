@@ -11,7 +11,9 @@ when the table has e1, e2), ``n_stars``, and ``details`` (full fits, colour fit,
 With ``--psf``: ``prediction`` (``{x, y, iq: {slope, slope_err}}``, the slopes P(F) predicts
 for these stars, slope_err the calibration error from the shift samples in the PSF product)
 and ``model_residual`` (slopes of measured minus predicted sizes and ellipticities, the sizes'
-with ``slope_err_total``, the statistical and calibration errors combined, and ``pull``).
+with ``slope_err_total``, the statistical and calibration errors combined, and ``pull``), and
+``empirical``: the EMPIRICAL term of a refined calibration the PSF product applies (its
+record, label ``'empirical'``; in the prediction and the residual), or None.
 """
 
 import numpy as np
@@ -113,6 +115,7 @@ def run(args):
                                                       prediction[key]["slope_err"]))
             entry["pull"] = entry["slope"] / entry["slope_err_total"]
         summary["prediction"] = prediction
+        summary["empirical"] = None if psf.empirical is None else psf.empirical.to_dict()
     summary["details"] = {
         "units": {"slope": "pixel per 100 ke- of peak", "intercept": "pixel",
                   "relative_percent": "percent of the intercept per 100 ke- of peak",

@@ -106,6 +106,12 @@ class BFSensor(galsim.Sensor):
     nsteps : int, optional
         1 (default): the one-step model, `bfpsf.model.redistribution.redistribute`. K > 1:
         the time-stepped build-up, `bfpsf.model.buildup.redistribute_buildup`.
+    empirical : bfpsf.model.empirical.EmpiricalTerm, optional
+        The EMPIRICAL term of a calibration refined by ``bfpsf diagnose --output-calib``
+        (`build_sensor` takes it from the calibration): the new charge of each stamp gets
+        it at the stamp's total charge and charge-weighted column, as one star's image in
+        `bfpsf.model.psf.FluxDependentPSF`; a stamp holding several objects gets the term
+        of their summed charge.
 
     Notes
     -----
@@ -123,8 +129,12 @@ class BFSensor(galsim.Sensor):
     postage stamps, as GalSim does, rather than one by one onto a full-CCD image.
     """
 
-    def __init__(self, shifts, *, gain=1.0, nsteps=1):
+    def __init__(self, shifts, *, gain=1.0, nsteps=1, empirical=None):
         self.shifts = as_shifts(shifts)
+        #: The EMPIRICAL term of a refined calibration (`bfpsf.model.empirical`), or None:
+        #: added to the new charge of each call's image as to one star's (its total and
+        #: its charge-weighted column), so draw one object per stamp, as GalSim does
+        self.empirical = empirical
         self.gain = float(gain)
         if not self.gain > 0:
             msg = f"gain must be positive, got {gain}"
@@ -189,6 +199,12 @@ class BFSensor(galsim.Sensor):
         collected = self._forward(charge)
         if self._base_delta is not None:
             collected -= self._base_delta
+        total = float(self._landed.sum())
+        if self.empirical is not None and total > 0:
+            new = collected - self._base
+            columns = np.arange(new.shape[1]) + image.bounds.xmin - 1.0  # bfpsf: 0-based
+            column = float((self._landed.sum(axis=0) * columns).sum() / total)
+            collected = collected + self.empirical.delta(new, total, column)
         image.array[:, :] = collected / self.gain
         return added_flux
 
