@@ -322,6 +322,7 @@ class FluxDependentPSF(BFPSFModel):
         x = np.arange(self.data.shape[1])
         y = np.arange(self.data.shape[0])
         self._base_spline = RectBivariateSpline(x, y, self.data.T, kx=3, ky=3, s=0)
+        self._tables = {}  # built when first needed (the EMPIRICAL term's pattern splines)
         if mode == "table":
             if bf_table is None and density_profile is not None:
                 if self.oversampling[0] != self.oversampling[1]:
@@ -583,14 +584,15 @@ class FluxDependentPSF(BFPSFModel):
         ``star_image`` applies it to the star's image."""
         from .empirical import PATTERNS, pattern_tables
 
-        splines = self.__dict__.get("_pattern_splines")
+        # in a dict made by the constructor, so the copies (which share P0 and R) share it
+        splines = self._tables.get("pattern_splines")
         if splines is None:
             grid = (np.arange(self.data.shape[1]), np.arange(self.data.shape[0]))
             tables = [pattern_tables(table, self.oversampling)
                       for table in (self.data, self.bf_table)]
             splines = {pattern: [RectBivariateSpline(*grid, table[pattern].T, kx=3, ky=3, s=0)
                                  for table in tables] for pattern in PATTERNS}
-            self.__dict__["_pattern_splines"] = splines
+            self._tables["pattern_splines"] = splines
         g = self.electrons_per_unit
         term = np.zeros(np.shape(xi))
         for pattern, change in zip(PATTERNS, self.empirical.variance_change(g * abs(flux),
