@@ -160,10 +160,11 @@ def user_path(tmp_path_factory):
         images.append(str(directory / f"stars{index}.fits"))
         write_image_adu(images[-1], image, gain=GAIN)
         stars.append((xy, fluxes))
-    for label in ("plain", "refined"):
-        assert main(["psf", *images, "--calib", str(directory / f"{label}.fits"),
+    for label, options in (("plain", []), ("refined", []), ("grid", ["--grid", "2", "1"])):
+        calib = "plain" if label == "plain" else "refined"
+        assert main(["psf", *images, "--calib", str(directory / f"{calib}.fits"),
                      "-o", str(directory / f"psf_{label}.fits"), "--size", "21",
-                     "--background", str(SKY / GAIN),
+                     "--background", str(SKY / GAIN), *options,
                      "--json", str(directory / f"psf_{label}.json")]) == 0
     return directory, images, stars, truth
 
@@ -196,6 +197,16 @@ def test_psf_from_a_refined_calibration_applies_the_term(user_path):
     # the same P0 with and without the term differs by the term alone
     assert growth(refined) - growth(refined.with_empirical_term(None)) == pytest.approx(
         term_growth, rel=0.05)
+    # psf --grid: P(F, x, y) fitted and stored with the term, every node applying it
+    grid = GriddedFluxDependentPSF.read(directory / "psf_grid.fits")
+    assert json.loads((directory / "psf_grid.json").read_text())["empirical"]["label"] == \
+        "empirical"
+    assert grid.empirical == TERM.at_exposure()
+    assert all(node.empirical == TERM.at_exposure() for node in grid.nodes)
+    for x in (40.0, 250.0):
+        at = grid.at(x, 144.0)
+        assert at.shape(bright).mxx - at.shape(faint).mxx == pytest.approx(
+            growth(truth.with_empirical_term(TERM)), abs=0.15 * term_growth)
 
 
 def test_photometry_and_slope_apply_the_term(user_path):
