@@ -246,6 +246,12 @@ def test_photometry_and_slope_apply_the_term(user_path):
             flux / FLUX_REFERENCE)) ** 2))
         offsets[label] = (1e3 * slope, 1e3 * error)
     assert table.meta["empirical"]["label"] == "empirical"
+    # photometry --calib REFINED with a product made without the term: the calibration's
+    assert main(["photometry", images[0], "--psf", str(directory / "psf_plain.fits"),
+                 "--calib", str(directory / "refined.fits"), "--background", str(SKY / GAIN),
+                 "-o", str(directory / "phot_calib.ecsv")]) == 0
+    assert Table.read(directory / "phot_calib.ecsv").meta["empirical"] == \
+        TERM.at_exposure().to_dict()
     slope, error = offsets["refined"]
     assert abs(slope) < 3 * error + 1.0, offsets  # mmag per 1e6 e-
     # slope --psf: the EMPIRICAL term in the prediction and the JSON
@@ -297,3 +303,33 @@ def test_galsim_sensor_applies_the_refined_term(user_path):
     assert moments["refined"][0] - moments["plain"][0] == pytest.approx(
         TERM.variance_change(flux)[0], rel=0.02)
     assert moments["refined"][1] == pytest.approx(moments["plain"][1], abs=1e-3)
+
+
+def test_one_term_per_calibration_set():
+    """`empirical_of`: the term at an exposure order (exposure terms folded in, position
+    terms kept, `at_position` folds them), None without one, refused when calibrations
+    disagree (one PSF applies one term)."""
+    from types import SimpleNamespace
+
+    from bfpsf.errors import BFPSFValueError
+    from bfpsf.model.empirical import empirical_of
+
+    term = EmpiricalTerm({"xx": {"constant": 0.1, "exposure": 0.01, "position": 0.2,
+                                 "flux2": 0.02, "flux2_exposure": -0.001}},
+                         x_reference=1000.0, exposure_reference=3.0)
+    refined = SimpleNamespace(refinement={"empirical": term.to_dict()})
+    plain = SimpleNamespace(refinement={})
+    at = empirical_of([refined, refined], exposure=7.0)
+    assert at.coefficients["xx"] == pytest.approx({"constant": 0.14, "flux2": 0.016,
+                                                   "position": 0.2})
+    for flux, x in ((5e5, 1500.0), (2e6, 200.0)):
+        assert at.variance_change(flux, x=x)[0] == pytest.approx(
+            term.variance_change(flux, x=x, exposure=7.0)[0])
+        assert at.at_position(x).variance_change(flux)[0] == pytest.approx(
+            term.variance_change(flux, x=x, exposure=7.0)[0])
+    assert empirical_of(refined).exposure_reference == 3.0
+    assert empirical_of([plain, plain]) is None
+    other = SimpleNamespace(refinement={"empirical": term.at_exposure(1.0).to_dict()})
+    for mixed in ([refined, plain], [refined, other]):
+        with pytest.raises(BFPSFValueError, match="different EMPIRICAL terms"):
+            empirical_of(mixed)
