@@ -333,3 +333,22 @@ def test_one_term_per_calibration_set():
     for mixed in ([refined, plain], [refined, other]):
         with pytest.raises(BFPSFValueError, match="different EMPIRICAL terms"):
             empirical_of(mixed)
+
+
+def test_python_consumers_of_a_refined_calibration(user_path, truth):
+    """The Python API takes the term from a refined calibration too: `FluxDependentPSF`
+    built with it, `BFSensor` and `draw_with_bf` (one object: its charge, its column)."""
+    from bfpsf import Calibration
+    from bfpsf.interop.galsim_sensor import BFSensor, draw_with_bf
+
+    directory = user_path[0]
+    plain, refined = (Calibration.read(directory / f"{label}.fits")
+                      for label in ("plain", "refined"))
+    assert FluxDependentPSF(truth.data, refined, oversampling=4).empirical == TERM.at_exposure()
+    assert FluxDependentPSF(truth.data, plain, oversampling=4).empirical is None
+    assert BFSensor(refined).empirical == TERM.at_exposure() and BFSensor(plain).empirical is None
+    flux = 1.5e6
+    images = {label: draw_with_bf(MOFFAT.withFlux(flux), calib, nx=41, ny=41, rng=5).array
+              for label, calib in (("plain", plain), ("refined", refined))}
+    assert _plain_moments(images["refined"])[0] - _plain_moments(images["plain"])[0] == \
+        pytest.approx(TERM.variance_change(images["plain"].sum())[0], rel=0.02)

@@ -195,7 +195,9 @@ class FluxDependentPSF(BFPSFModel):
         `photutils.psf.EPSFBuilder`), normalised to sum ``oversampling**2`` for unit flux.
         Its support must hold the PSF: charge is neither moved into nor out of its edge.
     shifts : BoundaryShifts or Calibration
-        Boundary shifts a^X, 1/e- (G15 eq. def-a).
+        Boundary shifts a^X, 1/e- (G15 eq. def-a). A calibration refined by ``bfpsf
+        diagnose --output-calib`` also brings its EMPIRICAL term (``empirical``, applied by
+        every evaluation; `bfpsf.model.empirical`).
     flux : float, optional
         Total flux of the star, in ``flux_unit``.
     x_0, y_0 : float, optional
@@ -313,6 +315,11 @@ class FluxDependentPSF(BFPSFModel):
         #: Product metadata (`bfpsf.model.base`): ``calibration`` (file name of the shifts),
         #: ``linearity_c_per_1e5``, ``flux_correction`` and its error.
         self._init_metadata()
+        if getattr(shifts, "refinement", None):
+            from .empirical import empirical_of
+
+            # a calibration refined by `bfpsf diagnose --output-calib`: its EMPIRICAL term
+            self.empirical = empirical_of(shifts)
         #: Shifts drawn from the calibration's uncertainty (`Calibration.shift_samples`):
         #: predictions made with this model propagate them (``bfpsf slope --psf``).
         self.shift_samples = tuple(shifts.shift_samples()) if hasattr(shifts, "shift_samples") else ()
