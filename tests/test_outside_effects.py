@@ -249,8 +249,8 @@ def _psf_flux(model, stamp, variance):
     "one_axis", "position", "centroid",
     pytest.param("night", marks=pytest.mark.xfail(
         strict=True, reason="1.1 mmag on the held-out exposures (0.4 without the term): the "
-                            "term's pattern is not the effect's pixel shape (docs/"
-                            "undeclared_effects.md, Limits)"))])
+                            "term is fitted to moments, not pixels; cause not established "
+                            "(docs/undeclared_effects.md, Limits)"))])
 def test_heldout_photometry_with_the_empirical_term(bench, name):
     """PSF photometry of the spots of the exposures the loop held out, with P(F) (the
     bench's Moffat and calibrated shifts) plus the EMPIRICAL term fitted on the other
