@@ -7,7 +7,8 @@
     image:
       sensor: {type: BrighterFatter, calib: CALIB.fits}
 
-builds a `bfpsf.BFSensor` with the calibration's boundary shifts, so ``galsim scene.yaml``
+builds a `bfpsf.BFSensor` with the calibration's boundary shifts (and the EMPIRICAL term of a
+calibration refined by ``bfpsf diagnose --output-calib``, added to each stamp's charge), so ``galsim scene.yaml``
 draws every photon-shot object (``draw_method: phot``) with bfpsf's fast brighter-fatter
 (G15 eq. scrambling_model on the photons landed in each stamp) instead of tracking each photon
 through distorted pixels as ``type: Silicon`` does.
@@ -77,7 +78,10 @@ def build_sensor(calib, *, amp=None, gain=1.0, nsteps=1):
     if one.shifts is None:
         msg = f"sensor type BrighterFatter: {path} has no boundary shifts (not solved)"
         raise BFPSFInputError(msg, path)
-    return BFSensor(one.shifts, gain=gain, nsteps=nsteps)
+    from .model.empirical import empirical_of
+
+    # a refined calibration's EMPIRICAL term, as every consumer of a calibration applies it
+    return BFSensor(one.shifts, gain=gain, nsteps=nsteps, empirical=empirical_of(one))
 
 
 class BrighterFatterSensorBuilder(galsim.config.SensorBuilder):

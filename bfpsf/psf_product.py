@@ -27,6 +27,11 @@ the aperture correction photometry applies; 1 and no FLUXCERR when not measured)
 / ``WINGPOW`` (the power law A r^-p of the wings beyond the support, per pixel per unit flux
 inside it; A = 0 when not measured). Files of
 schema <= 5 read with those defaults.
+Schema 7 adds the optional HDU ``EMPIRIC``: a one-row table whose ``json`` column holds the
+EMPIRICAL term of a calibration refined by ``bfpsf diagnose --output-calib``
+(`bfpsf.model.empirical.EmpiricalTerm.to_dict`, label ``'empirical'``), with the card
+``EMPIRIC = T`` in the primary header; read back as ``psf.empirical`` (None without it).
+Readers of schema 6 refuse these files rather than drop the term.
 """
 
 import numpy as np
@@ -39,8 +44,9 @@ __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 #: Version of the PSF product layout written by `write_psf` (2: optional BFTABLE HDU;
 #: 3: every constructor option, FLUXUNIT replacing the ADU meaning of GAIN; 4: optional GRID,
 #: GRIDX, GRIDY, GRIDBFT HDUs of a gridded PSF; 5: optional AMPSHIFT table of per-amplifier
-#: shifts; 6: LINC, FLUXCORR, FLUXCERR cards).
-PSF_SCHEMA_VERSION = 6
+#: shifts; 6: LINC, FLUXCORR, FLUXCERR cards; 7: optional EMPIRIC table of the EMPIRICAL
+#: term).
+PSF_SCHEMA_VERSION = 7
 
 
 def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
@@ -117,6 +123,9 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
         hdus.append(table)
     if psf.amplifier_shifts:
         hdus.append(_amplifier_hdu(psf.amplifier_shifts))
+    header["EMPIRIC"] = (psf.empirical is not None, "EMPIRICAL term applied (EMPIRIC HDU)")
+    if psf.empirical is not None:
+        hdus.append(_empirical_hdu(psf.empirical))
     if nodes is not None:
         hdus.extend(_grid_hdus(psf))
     write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
@@ -137,6 +146,30 @@ def _amplifier_hdu(amplifier_shifts):
     for column in (2, 3):  # FITS has no 1/electron unit string: say it in words
         hdu.header[f"TUNIT{column}"] = "electron-1"
     return hdu
+
+
+def _empirical_hdu(term):
+    """Table HDU ``EMPIRIC``: the EMPIRICAL term's record as JSON (one row)."""
+    import json
+
+    from astropy.io import fits
+    from astropy.table import Table
+
+    hdu = fits.table_to_hdu(Table({"json": [json.dumps(term.to_dict())]}))
+    hdu.name = "EMPIRIC"
+    hdu.header["LABEL"] = ("empirical", "describes the stars, explains nothing")
+    return hdu
+
+
+def _read_empirical(hdul):
+    """The EMPIRICAL term of the ``EMPIRIC`` HDU, or None without it."""
+    import json
+
+    from .model.empirical import EmpiricalTerm
+
+    if "EMPIRIC" not in hdul:
+        return None
+    return EmpiricalTerm.from_dict(json.loads(str(hdul["EMPIRIC"].data["json"][0])))
 
 
 def _read_amplifier_shifts(hdul):
@@ -214,7 +247,8 @@ def read_psf(path, *, cls=None, **kwargs):
                     "flux_correction": float(header.get("FLUXCORR", 1.0)),
                     "flux_correction_err": float(header.get("FLUXCERR", np.nan)),
                     "wing_amplitude": float(header.get("WINGAMP", 0.0)),
-                    "wing_power": float(header.get("WINGPOW", 4.0))}
+                    "wing_power": float(header.get("WINGPOW", 4.0)),
+                    "empirical": _read_empirical(hdul)}
         samples = ()
         if "SHIFT_N_SAMP" in hdul:
             samples = tuple(BoundaryShifts(north, east, check=False) for north, east in

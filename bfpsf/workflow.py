@@ -7,8 +7,8 @@ command line give the same numbers:
    by ``bfpsf diagnose --output-calib`` undone on input, and the sky surface of the image
    (`bfpsf.measure.sky.estimate_sky`; a known sky with ``background_e``).
 2. `psf_from_images`: isolated stars of every prepared image, the joint P0 fit with each
-   image's boundary shifts (`bfpsf.model.psf_fit.fit_psf`, the build-up of a refined
-   calibration included), the total-flux correction measured from the bright isolated stars
+   image's boundary shifts (`bfpsf.model.psf_fit.fit_psf`, the build-up and the EMPIRICAL
+   term of a refined calibration included), the total-flux correction measured from the bright isolated stars
    (`bfpsf.measure.total_flux.flux_correction`), and the product metadata (calibration,
    linearity correction, per-amplifier shifts).
 3. `bfpsf.measure.photometry.psf_photometry` with the PSF product: the same sky model, the
@@ -165,7 +165,7 @@ class PSFFromImages:
 
 def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=None,
                     threshold=None, saturation_e=None, include_bf=True, max_iterations=40,
-                    exclude=None, calibration_name="", shift_samples=()):
+                    exclude=None, calibration_name="", shift_samples=(), exposure=None):
     """Fit the flux-dependent PSF from prepared images (what ``bfpsf psf`` does).
 
     Parameters
@@ -188,6 +188,10 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         Name of the calibration file (product metadata).
     shift_samples : sequence of BoundaryShifts, optional
         The calibration's uncertainty, kept in the product.
+    exposure : float, optional
+        Exposure order in the night of the images, for the exposure dependence of a refined
+        calibration's EMPIRICAL term (default the term's reference, the middle of the
+        exposures it was learned on).
 
     Returns
     -------
@@ -226,6 +230,13 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     options = {}
     if buildups:
         options = {"mode": "exact", "buildup_steps": int(max(buildups))}
+    from .model.empirical import empirical_of
+
+    # a refined calibration's EMPIRICAL term: in every star's model during the P0 fit (P0
+    # does not absorb it) and in the product, which applies it everywhere
+    empirical = empirical_of(list(calibrations), exposure) if include_bf else None
+    if empirical is not None:
+        options["empirical"] = empirical
     # the read noise and gain of the images the stars came from
     counts = np.array([len(xy) for xy in positions], dtype=float)
     counts = counts if counts.sum() else None
@@ -272,6 +283,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         entry.update(background_e=prepared.sky.level, sky_slope=list(prepared.sky.slope),
                      sky_method=prepared.sky.method)
     psf = result.psf
+    psf.empirical = empirical
     psf.calibration = str(calibration_name)
     psf.shift_samples = tuple(shift_samples)
     linearities = {prepared.linearity_c_per_1e5 for prepared in images}

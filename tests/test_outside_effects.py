@@ -229,3 +229,60 @@ def test_user_path_on_an_outside_effect(tmp_path):
     assert term.coefficients["xx"]["constant"] > 3 * term.errors["xx"]["constant"]
     assert (report / "signatures.png").stat().st_size > 0
     assert "Attribution by signature" in (report / "report.md").read_text()
+
+
+def _psf_flux(model, stamp, variance):
+    """PSF photometry of one spot: flux and centre fitted by weighted least squares with the
+    model's ``evaluate`` (what photutils fits), weights from the spot's own variance."""
+    from scipy.optimize import least_squares
+
+    y, x = np.mgrid[:stamp.shape[0], :stamp.shape[1]].astype(float)
+    total = stamp.sum()
+    start = [total, (stamp * x).sum() / total, (stamp * y).sum() / total]
+    sigma = np.sqrt(variance)
+    fit = least_squares(lambda p: ((model.evaluate(x, y, *p) - stamp) / sigma).ravel(), start,
+                        x_scale=[total, 0.1, 0.1], method="lm")
+    return fit.x[0]
+
+
+@pytest.mark.parametrize("name", [
+    "one_axis", "position", "centroid",
+    pytest.param("night", marks=pytest.mark.xfail(
+        strict=True, reason="1.1 mmag on the held-out exposures (0.4 without the term): the "
+                            "term is fitted to moments, not pixels; cause not established "
+                            "(docs/undeclared_effects.md, Limits)"))])
+def test_heldout_photometry_with_the_empirical_term(bench, name):
+    """PSF photometry of the spots of the exposures the loop held out, with P(F) (the
+    bench's Moffat and calibrated shifts) plus the EMPIRICAL term fitted on the other
+    exposures, at each spot's column and exposure: the drift faint to bright (mmag of fitted
+    over true flux, brightest level minus faintest, noise-free spots so that it is the
+    systematic alone, 36 spots per level) is within the 1 mmag target. Printed (-s) with the
+    drift without the term."""
+    import galsim
+
+    from bfpsf.diagnosis.loop import split_observables
+    from bfpsf.model.empirical import EmpiricalTerm
+    from bfpsf.model.psf import FluxDependentPSF
+
+    calibrations, spots = bench
+    observables = _observables(bench, name, STRENGTH)
+    result = diagnose(observables, holdout_fraction=0.5)
+    held = np.unique(split_observables(observables, 0.5)[1].sizes.exposure)
+    term = EmpiricalTerm.from_dict(result.empirical)
+    stamps = apply_effect(spots, name, STRENGTH)
+    psf = FluxDependentPSF.from_galsim(galsim.Moffat(fwhm=3.0, beta=3.0),
+                                       calibrations["null"].shifts, oversampling=4, size=23)
+    rows = np.flatnonzero(np.isin(spots.exposure, held))
+    level = spots.level[rows]
+    drift = {}
+    for label in ("without", "with"):
+        offsets = np.array([-2.5 * np.log10(_psf_flux(
+            psf if label == "without" else psf.with_empirical_term(
+                term.at(x=spots.x_detector[i], exposure=spots.exposure[i])),
+            stamps[i], np.clip(stamps[i], 0, None) + 75.0) / stamps[i].sum()) for i in rows])
+        drift[label] = 1e3 * (offsets[level == level.max()].mean()
+                              - offsets[level == level.min()].mean())
+    print(f"{name}: held-out exposures {held.tolist()}, {rows.size} spots; PSF photometry "
+          f"drift faint to bright {drift['without']:+.2f} mmag without the term, "
+          f"{drift['with']:+.2f} mmag with it")
+    assert abs(drift["with"]) <= 1.0

@@ -310,3 +310,39 @@ def test_acceptance_on_a_silicon_sensor_field(tmp_path):
     e1_sigma = np.hypot(result["e1_ratio_err"], carried["e1"])
     assert abs(result["e1_ratio"]) < max(0.2, 2 * e1_sigma), (result["e1_ratio"], carried)
     assert result["time_ratio"] < 2.0
+
+
+def test_refined_calibration_brings_its_empirical_term(fits, calibration_file, tmp_path):
+    """A calibration refined with an EMPIRICAL term (`bfpsf diagnose --output-calib`):
+    BrighterFatter adds the term to every drawn star after the redistribution, at the star's
+    charge (so its plain Mxx grows by c g F / F_ref), and keeps it through write / read."""
+    from bfpsf import Calibration
+    from bfpsf.model.empirical import EmpiricalTerm
+
+    one = Calibration.read(calibration_file)
+    term = EmpiricalTerm({"xx": {"constant": 0.08}, "yy": {"constant": 0.0}})
+    refined = replace(one, refinement={"empirical": term.to_dict()})
+    inner = fits["bf"][0].psf
+    plain, with_term = (bfpsf.piff.BrighterFatterPSF(inner, calib) for calib in (one, refined))
+    for psf in (plain, with_term):
+        psf.set_context(fits["bf"][0].wcs)
+    assert plain.amplifiers[None][0].empirical is None
+    flux = 4e5
+    before = plain.draw(150.3, 220.8, chipnum=0, flux=flux, stamp_size=41).array
+    after = with_term.draw(150.3, 220.8, chipnum=0, flux=flux, stamp_size=41).array
+    np.testing.assert_allclose(after - before, term.delta(before, GAIN * before.sum()),
+                               rtol=0, atol=1e-9 * before.max())
+    y, x = np.mgrid[:41, :41].astype(float)
+
+    def mxx(image):
+        cx = (image * x).sum() / image.sum()
+        return (image * (x - cx) ** 2).sum() / image.sum()
+
+    assert mxx(after) - mxx(before) == pytest.approx(term.variance_change(GAIN * flux)[0],
+                                                     rel=0.03)
+    path = tmp_path / "empirical.piff"
+    with_term.write(str(path))
+    read = piff.read(str(path))
+    assert read.amplifiers[None][0].empirical == term.at_exposure()
+    np.testing.assert_array_equal(read.draw(150.3, 220.8, chipnum=0, flux=flux,
+                                            stamp_size=41).array, after)

@@ -238,6 +238,12 @@ def _empirical_lines(result):
     """The EMPIRICAL term's out-of-sample figures, one line per validation block."""
     validation = (result.empirical or {}).get("validation", {})
     lines = []
+    if result.empirical:
+        lines.append("EMPIRICAL term (it describes the stars, it explains nothing): "
+                     + ("written by --output-calib; bfpsf psf, photometry, slope --psf and "
+                        "the Piff and GalSim plug-ins apply it"
+                        if validation.get("validated", True) else
+                        "NOT written by --output-calib (not validated out of sample)"))
     for block in ("heldout", "late_block"):
         if block in validation:
             before, after = validation[block]["before"], validation[block]["after"]

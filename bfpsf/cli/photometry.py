@@ -74,6 +74,7 @@ def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, stati
     from ..calibration.product import calibration_of_amplifier
     from ..interop.photutils import static_image_psf
 
+    from ..model.empirical import empirical_of
     from ..workflow import linearity_of
 
     model = psf.for_amplifier(amplifier.name)
@@ -84,6 +85,9 @@ def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, stati
             model = psf.with_shifts(one.shifts)
         model = model.copy()  # the calibration's linearity correction, undone on input
         model.linearity_c_per_1e5 = linearity_of(one)
+        term = empirical_of(one)  # and its EMPIRICAL term, where it has one
+        if term is not None:
+            model = model.with_empirical_term(term)
     return float(gain), (static_image_psf(model) if static else model), model
 
 
@@ -163,13 +167,16 @@ def run(args):
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     result.meta.update({"psf": str(args.psf), "gain": gain, "flux_unit": "electron",
                         "static_psf": bool(args.static)})
+    # the EMPIRICAL term the model applied (psf_photometry's meta; None for --static)
+    result.meta["empirical"] = tables[0].meta.get("empirical")
     result["flux_fit"].unit = "electron"
     result["flux_err"].unit = "electron"
     write_table(result, args.output, overwrite=args.overwrite)
     summary = {"output": str(args.output), "psf": str(args.psf), "gain": gain,
                "static_psf": bool(args.static), "n_stars": len(result),
                "n_flagged": int(np.sum((result["flags"] != 0) | result["saturated"])),
-               "n_saturated": int(np.sum(result["saturated"])), "images": per_image}
+               "n_saturated": int(np.sum(result["saturated"])), "images": per_image,
+               "empirical": result.meta["empirical"]}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "

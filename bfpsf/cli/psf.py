@@ -4,7 +4,10 @@ Parse, read the images (ADU -> e- with the calibration gain), detect isolated st
 (`bfpsf.measure.sources.measure_sources`), fit P0 from stars of all fluxes with the
 brighter-fatter term of each removed (`bfpsf.model.psf_fit.fit_psf`; with ``--grid NX NY`` one
 P0 per node of a grid over the image, `bfpsf.model.gridded.GriddedFluxDependentPSF`), write the
-PSF product and the JSON summary.
+PSF product and the JSON summary. A calibration refined by ``bfpsf diagnose --output-calib``
+brings its linearity correction, build-up and EMPIRICAL term (`bfpsf.model.empirical`): the
+term enters every star's model during the fit and is stored in the product, which applies it
+everywhere; the JSON's ``empirical`` (label ``'empirical'``) says so.
 """
 
 import sys
@@ -57,6 +60,10 @@ def add_parser(subparsers):
     parser.add_argument("--grid", type=positive_int, nargs=2, metavar=("NX", "NY"), default=None,
                         help="fit P0 on NX x NY nodes over the image (P(F, x, y), bilinear "
                              "between nodes, as photutils GriddedPSFModel); default one P0")
+    parser.add_argument("--exposure-order", type=float, default=None, metavar="T",
+                        help="exposure order of the images in the night, for a refined "
+                             "calibration's EMPIRICAL term that changes over the night "
+                             "(default the middle of the exposures it was learned on)")
     parser.add_argument("--max-iterations", type=positive_int, default=40,
                         help="iterations of the P0 fit (default 40)")
     parser.add_argument("--no-bf", dest="include_bf", action="store_false",
@@ -146,7 +153,8 @@ def run(args):
                                  oversampling=args.oversampling, grid=args.grid,
                                  threshold=args.threshold, saturation_e=saturation,
                                  include_bf=args.include_bf, max_iterations=args.max_iterations,
-                                 exclude=exclude, calibration_name=calibration_name)
+                                 exclude=exclude, calibration_name=calibration_name,
+                                 exposure=args.exposure_order)
     for entry, found in zip(per_image, fitted.images):
         entry.update(n_detected=found["n_detected"], n_isolated=found["n_isolated"],
                      n_amp_boundary=found["n_excluded"], background_e=found["background_e"],
@@ -180,7 +188,9 @@ def run(args):
                "images": per_image,
                "flux_correction": psf.flux_correction,
                "flux_correction_err": psf.flux_correction_err,
-               "refinement_applied": sorted(refinement.get("applied", {}))}
+               "refinement_applied": sorted(refinement.get("applied", {})),
+               # the EMPIRICAL term (issue 22): it describes the stars, it explains nothing
+               "empirical": None if psf.empirical is None else psf.empirical.to_dict()}
     if args.grid is not None:
         summary["grid"] = {"nx": int(args.grid[0]), "ny": int(args.grid[1]),
                            "x_nodes": psf.x_nodes.tolist(), "y_nodes": psf.y_nodes.tolist(),
@@ -195,5 +205,7 @@ def run(args):
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "
           f"{len(args.images)} image(s), {result.iterations} iterations "
           f"({'converged' if result.converged else 'NOT converged'}); "
-          f"{summary['n_saturated']} saturated stars left out; wrote {args.output}")
+          f"{summary['n_saturated']} saturated stars left out; "
+          f"{'EMPIRICAL term applied; ' if psf.empirical is not None else ''}"
+          f"wrote {args.output}")
     return 0

@@ -17,6 +17,8 @@ the field's size variation of a ``--grid`` product is left in them), each with
 ``intercept`` is star minus model at zero flux and their ``relative_percent`` is the residual
 slope in percent of the stars' own size (the raw intercept). ``prediction`` holds ``e1`` and
 ``e2`` too, with their calibration errors.
+And ``empirical``: the EMPIRICAL term of a refined calibration the PSF product applies (its
+record, label ``'empirical'``; in the prediction and the residual), or None.
 """
 
 import numpy as np
@@ -125,6 +127,7 @@ def run(args):
                                                       prediction[key]["slope_err"]))
             entry["pull"] = entry["slope"] / entry["slope_err_total"]
         summary["prediction"] = prediction
+        summary["empirical"] = None if psf.empirical is None else psf.empirical.to_dict()
     summary["details"] = {
         "units": {"slope": "pixel per 100 ke- of peak", "intercept": "pixel",
                   "relative_percent": "percent of the intercept per 100 ke- of peak",

@@ -121,8 +121,10 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
             coefficients.setdefault(pattern, {})[name] = float(params[column])
             errors.setdefault(pattern, {})[name] = float(np.sqrt(abs(covariance[column,
                                                                                 column])))
+    x_range = (None if sizes.x_detector is None else
+               (float(np.min(sizes.x_detector)), float(np.max(sizes.x_detector))))
     return EmpiricalTerm(coefficients, errors=errors, x_reference=x_reference,
-                         exposure_reference=exposure_reference)
+                         exposure_reference=exposure_reference, x_range=x_range)
 
 
 def predicted_size_change(term, sizes, fluxes, model_sigma, response=None):

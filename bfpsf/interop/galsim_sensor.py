@@ -106,6 +106,13 @@ class BFSensor(galsim.Sensor):
     nsteps : int, optional
         1 (default): the one-step model, `bfpsf.model.redistribution.redistribute`. K > 1:
         the time-stepped build-up, `bfpsf.model.buildup.redistribute_buildup`.
+    empirical : bfpsf.model.empirical.EmpiricalTerm, optional
+        The EMPIRICAL term of a calibration refined by ``bfpsf diagnose --output-calib``
+        (default that of ``shifts`` when it is such a calibration): the new charge of each
+        stamp gets
+        it at the stamp's total charge and charge-weighted column, as one star's image in
+        `bfpsf.model.psf.FluxDependentPSF`; a stamp holding several objects gets the term
+        of their summed charge.
 
     Notes
     -----
@@ -123,8 +130,16 @@ class BFSensor(galsim.Sensor):
     postage stamps, as GalSim does, rather than one by one onto a full-CCD image.
     """
 
-    def __init__(self, shifts, *, gain=1.0, nsteps=1):
+    def __init__(self, shifts, *, gain=1.0, nsteps=1, empirical=None):
         self.shifts = as_shifts(shifts)
+        #: The EMPIRICAL term of a refined calibration (`bfpsf.model.empirical`), or None:
+        #: added to the new charge of each call's image as to one star's (its total and
+        #: its charge-weighted column), so draw one object per stamp, as GalSim does
+        if empirical is None and getattr(shifts, "refinement", None):
+            from ..model.empirical import empirical_of
+
+            empirical = empirical_of(shifts)  # a refined calibration's
+        self.empirical = empirical
         self.gain = float(gain)
         if not self.gain > 0:
             msg = f"gain must be positive, got {gain}"
@@ -189,8 +204,21 @@ class BFSensor(galsim.Sensor):
         collected = self._forward(charge)
         if self._base_delta is not None:
             collected -= self._base_delta
+        collected = collected + self._empirical_delta(collected - self._base, self._landed,
+                                                      image.bounds.xmin)
         image.array[:, :] = collected / self.gain
         return added_flux
+
+    def _empirical_delta(self, collected_e, landed_e, xmin):
+        """The EMPIRICAL term of one stamp's star (0 without a term): its pattern on the
+        star's collected charge ``collected_e``, at the landed charge's total and
+        charge-weighted column (GalSim's 1-based ``xmin`` -> bfpsf's 0-based columns)."""
+        total = float(landed_e.sum())
+        if self.empirical is None or total <= 0:
+            return 0.0
+        columns = np.arange(landed_e.shape[1]) + xmin - 1.0
+        column = float((landed_e.sum(axis=0) * columns).sum() / total)
+        return self.empirical.delta(collected_e, total, column)
 
     def calculate_pixel_areas(self, image, orig_center=galsim.PositionI(0, 0), use_flux=True):
         """Pixel areas at the end of the exposure, 1 + sum_(dx,dy) a(dx, dy) Q(x+dx, y+dy).
@@ -211,13 +239,19 @@ class BFSensor(galsim.Sensor):
         return area_image
 
     def __repr__(self):
+        term = "" if self.empirical is None else f", empirical={self.empirical!r}"
         return (f"bfpsf.BFSensor({self.shifts!r}, gain={self.gain!r}, "
-                f"nsteps={self.nsteps!r})")
+                f"nsteps={self.nsteps!r}{term})")
 
     def __eq__(self, other):
         return (self is other or
                 (isinstance(other, BFSensor) and self.shifts == other.shifts
-                 and self.gain == other.gain and self.nsteps == other.nsteps))
+                 and self.gain == other.gain and self.nsteps == other.nsteps
+                 and self.empirical == other.empirical))
+
+    def __setstate__(self, state):
+        state.setdefault("empirical", None)  # pickled before the EMPIRICAL term
+        self.__dict__.update(state)
 
     __hash__ = None
 
@@ -226,9 +260,6 @@ class BFSensor(galsim.Sensor):
         for key in ("_last_image", "_base", "_landed", "_base_delta"):
             state[key] = None
         return state
-
-    def __setstate__(self, state):
-        self.__dict__.update(state)
 
 
 def draw_with_bf(profile, shifts, *, image=None, nx=None, ny=None, scale=1.0, offset=None,
@@ -249,7 +280,8 @@ def draw_with_bf(profile, shifts, *, image=None, nx=None, ny=None, scale=1.0, of
         What to draw, flux in electrons (profiles with negative regions are not photon-like:
         their negative means are set to zero before the Poisson step).
     shifts : BoundaryShifts or Calibration
-        Boundary shifts a^X, 1/e- (G15 eq. def-a).
+        Boundary shifts a^X, 1/e- (G15 eq. def-a); a calibration refined by ``bfpsf
+        diagnose --output-calib`` adds its EMPIRICAL term to the drawn object (`BFSensor`).
     image : galsim.Image, optional
         Image to draw into (its contents are replaced); otherwise ``nx`` x ``ny`` at ``scale``.
     nx, ny : int, optional
@@ -282,5 +314,8 @@ def draw_with_bf(profile, shifts, *, image=None, nx=None, ny=None, scale=1.0, of
                               method=method, dtype=float if image is None else None)
     counts = np.clip(image.array, 0.0, None)  # the means, then the counts in place
     galsim.PoissonDeviate(galsim.BaseDeviate(rng)).generate_from_expectation(counts)
-    image.array[:, :] = sensor._forward(counts) / gain  # pylint: disable=protected-access
+    collected = sensor._forward(counts)  # pylint: disable=protected-access
+    # a refined calibration's EMPIRICAL term, as BFSensor adds it to a stamp's star
+    collected = collected + sensor._empirical_delta(collected, counts, image.bounds.xmin)
+    image.array[:, :] = collected / gain
     return image

@@ -219,7 +219,9 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         light beyond its support), ``sky_e`` (the sky subtracted under each star, e- per
         pixel), ``flags`` (photutils bit flags, `photutils.psf.decode_psf_flags`) and photutils'
         other columns; ``meta['background_e']`` holds the subtracted sky and
-        ``meta['weights']`` the variance model, ``meta['cross_term_refits']`` the refits made.
+        ``meta['weights']`` the variance model, ``meta['cross_term_refits']`` the refits made,
+        ``meta['empirical']`` the EMPIRICAL term the model applied (its record, label
+        ``'empirical'``; None without one).
         With the stars detected here (or ``positions`` a table with a ``source_flags``
         column), ``source_flags`` carries the detection's `bfpsf.measure.sources.SourceFlag`
         bits (``BLENDED``: an unresolved neighbour) to each fitted star.
@@ -318,4 +320,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     result.meta["cross_term_refits"] = n_cross
     result.meta["weights"] = weights
     result.meta["flux_unit"] = "electron"
+    # the EMPIRICAL term of a refined calibration the model applied (issue 22), labelled
+    term = getattr(psf, "empirical", None) if bfpsf_model else None
+    result.meta["empirical"] = None if term is None else term.to_dict()
     return result

@@ -30,7 +30,10 @@ calibration's linearity correction, applied to the images on input by
 a star's total flux to the flux P0 holds in its support (the wings beyond it), measured from
 the bright isolated stars, applied by photometry so that ``flux_fit`` is the total flux, with
 the power law of those wings, ``wing_amplitude`` and ``wing_power``
-(`bfpsf.measure.total_flux.WingModel`), whose glow the sky estimate leaves out.
+(`bfpsf.measure.total_flux.WingModel`), whose glow the sky estimate leaves out; and
+``empirical``: the EMPIRICAL term of a calibration refined by ``bfpsf diagnose
+--output-calib`` (`bfpsf.model.empirical.EmpiricalTerm`, None without one), which every
+evaluation applies (``evaluate`` in both modes, ``star_image``, ``shape``, ``to_galsim``).
 """
 
 import copy
@@ -45,7 +48,7 @@ __all__ = ["BFPSFModel"]
 #: Metadata every kind carries (name -> default factory), copied by the derived models.
 _METADATA = {"calibration": str, "linearity_c_per_1e5": float,
              "flux_correction": lambda: 1.0, "flux_correction_err": lambda: float("nan"),
-             "wing_amplitude": float, "wing_power": lambda: 4.0}
+             "wing_amplitude": float, "wing_power": lambda: 4.0, "empirical": lambda: None}
 
 
 class BFPSFModel(Fittable2DModel):
@@ -69,8 +72,18 @@ class BFPSFModel(Fittable2DModel):
             self.__dict__.setdefault(name, factory())
 
     def metadata_state(self):
-        """The product metadata as a tuple (value equality)."""
-        return tuple(getattr(self, name) for name in _METADATA)
+        """The product metadata as a tuple (value equality; the EMPIRICAL term by its
+        record)."""
+        return tuple(getattr(value, "to_dict", lambda value=value: value)()
+                     for value in (getattr(self, name) for name in _METADATA))
+
+    def with_empirical_term(self, term):
+        """A copy of the model applying the EMPIRICAL term ``term``
+        (`bfpsf.model.empirical.EmpiricalTerm`, or None for none) in every evaluation; this
+        model is left as it is."""
+        out = self.copy()
+        out.empirical = term
+        return out
 
     def copy_metadata_to(self, other, *, shift_samples=False):
         """Give ``other`` this model's product metadata (and shift samples if asked)."""

@@ -30,7 +30,8 @@ import numpy as np
 
 from ..errors import BFPSFValueError
 
-__all__ = ["EmpiricalTerm", "PATTERNS", "FLUX_REFERENCE", "apply_pattern", "with_empirical"]
+__all__ = ["EmpiricalTerm", "PATTERNS", "FLUX_REFERENCE", "apply_pattern", "empirical_of",
+           "with_empirical", "pattern_tables"]
 
 #: The pixel-space patterns, in the order of `EmpiricalTerm.coefficients`.
 PATTERNS = ("xx", "yy")
@@ -44,19 +45,37 @@ def apply_pattern(image, pattern):
 
     The image is extended by its edge pixels (no flux crosses the stamp's edge), so the
     pattern conserves the flux exactly, and for a star that fits in the stamp it leaves the
-    centroid unchanged and adds the star's flux to sum (x - x0)^2 I.
+    centroid unchanged and adds the star's flux to sum (x - x0)^2 I. ``image`` may be a stack
+    [..., y, x] (the pattern acts on the last two axes).
     """
     image = np.asarray(image, float)
-    axis = {"xx": 1, "yy": 0}.get(pattern)
+    axis = {"xx": -1, "yy": -2}.get(pattern)
     if axis is None:
         msg = f"pattern must be one of {PATTERNS}, got {pattern!r}"
         raise BFPSFValueError(msg, pattern)
-    padded = np.pad(image, [(1, 1) if a == axis else (0, 0) for a in range(2)], mode="edge")
-    if axis == 1:
-        second = padded[:, 2:] - 2 * padded[:, 1:-1] + padded[:, :-2]
-    else:
-        second = padded[2:, :] - 2 * padded[1:-1, :] + padded[:-2, :]
-    return 0.5 * second
+    axis = image.ndim + axis
+    padded = np.pad(image, [(1, 1) if a == axis else (0, 0) for a in range(image.ndim)],
+                    mode="edge")
+    n = image.shape[axis]
+    upper, middle, lower = (np.take(padded, np.arange(start, start + n), axis=axis)
+                            for start in (2, 1, 0))
+    return 0.5 * (upper - 2 * middle + lower)
+
+
+def pattern_tables(data, oversampling):
+    """B_k at every sub-pixel phase of an oversampled image, {pattern: table}: each phase
+    ``data[a::oy, b::ox]`` (the pixelised star at that phase) gets `apply_pattern`, as a
+    star image does, so the table mode of `bfpsf.model.psf.FluxDependentPSF` interpolates
+    the same term its exact mode and ``star_image`` compute."""
+    oy, ox = (int(value) for value in oversampling)
+    tables = {}
+    for pattern in PATTERNS:
+        table = np.zeros_like(np.asarray(data, float))
+        for a in range(oy):
+            for b in range(ox):
+                table[a::oy, b::ox] = apply_pattern(data[a::oy, b::ox], pattern)
+        tables[pattern] = table
+    return tables
 
 
 @dataclass(frozen=True)
@@ -80,6 +99,9 @@ class EmpiricalTerm:
         How it did on data it was not fitted on (`bfpsf.diagnosis.empirical_fit`).
     label : str
         Always ``'empirical'``.
+    x_range : (float, float) or None
+        Columns of the stars it was learned on, pixels (a PSF model that applies a position
+        term takes it as its field nodes, `bfpsf.model.psf.FluxDependentPSF.field_nodes`).
     """
 
     coefficients: dict
@@ -88,6 +110,7 @@ class EmpiricalTerm:
     exposure_reference: float = 0.0
     validation: dict = field(default_factory=dict)
     label: str = "empirical"
+    x_range: tuple = None
 
     def __post_init__(self):
         for pattern, terms in self.coefficients.items():
@@ -129,22 +152,64 @@ class EmpiricalTerm:
                 out = out + float(change) * apply_pattern(image, pattern)
         return out
 
+    @property
+    def position_dependent(self):
+        """True when a coefficient changes with the column (a ``position`` term)."""
+        return any(terms.get(name, 0.0) for terms in self.coefficients.values()
+                   for name in ("position", "flux2_position"))
+
     def at(self, x=None, exposure=None):
         """The term with its position and exposure dependence evaluated: constants only (for
         a PSF that holds one position and one exposure)."""
-        coefficients = {pattern: {"constant": float(self.coefficient(pattern, x, exposure)),
-                                  "flux2": float(self.coefficient(pattern, x, exposure,
-                                                                  order=2))}
-                        for pattern in self.coefficients}
-        return EmpiricalTerm(coefficients, validation=dict(self.validation))
+        return self.at_exposure(exposure).at_position(x)
+
+    def at_exposure(self, exposure=None):
+        """The term at exposure order ``exposure`` (default its reference): the exposure
+        terms folded into the constants, the position terms kept (a PSF of one exposure
+        applies them at each star's column)."""
+        coefficients = {}
+        for pattern, terms in self.coefficients.items():
+            coefficients[pattern] = {name: value for name, value in terms.items()
+                                     if name in ("position", "flux2_position")}
+            coefficients[pattern]["constant"] = float(self.coefficient(pattern, None,
+                                                                       exposure))
+            coefficients[pattern]["flux2"] = float(self.coefficient(pattern, None, exposure,
+                                                                    order=2))
+        reference = self.exposure_reference if exposure is None else float(exposure)
+        return EmpiricalTerm(coefficients, errors=self.errors, x_reference=self.x_reference,
+                             exposure_reference=reference, validation=self.validation,
+                             x_range=self.x_range)
+
+    def at_position(self, x=None):
+        """The term at column ``x`` (default its reference): the position terms folded into
+        the constants (the exposure terms kept)."""
+        if x is None or not self.position_dependent:
+            return self
+        coefficients = {}
+        for pattern, terms in self.coefficients.items():
+            coefficients[pattern] = {name: value for name, value in terms.items()
+                                     if name in ("exposure", "flux2_exposure")}
+            for name, order in (("constant", 1), ("flux2", 2)):
+                terms_x = {key: terms.get(key, 0.0) for key in ("constant", "position",
+                                                                 "flux2", "flux2_position")}
+                coefficients[pattern][name] = float(EmpiricalTerm(
+                    {pattern: terms_x}, x_reference=self.x_reference).coefficient(
+                        pattern, x, order=order))
+        return EmpiricalTerm(coefficients, errors=self.errors, x_reference=float(x),
+                             exposure_reference=self.exposure_reference,
+                             validation=self.validation, x_range=self.x_range)
 
     def to_dict(self):
-        """JSON-ready form (stored in a refined calibration's ``refinement['empirical']``)."""
-        return {"label": self.label, "coefficients": self.coefficients, "errors": self.errors,
-                "x_reference": float(self.x_reference),
-                "exposure_reference": float(self.exposure_reference),
-                "flux_reference_e": FLUX_REFERENCE, "patterns": list(PATTERNS),
-                "validation": self.validation}
+        """JSON-ready form (stored in a refined calibration's ``refinement['empirical']`` and
+        in the PSF product's ``EMPIRIC`` HDU)."""
+        record = {"label": self.label, "coefficients": self.coefficients,
+                  "errors": self.errors, "x_reference": float(self.x_reference),
+                  "exposure_reference": float(self.exposure_reference),
+                  "flux_reference_e": FLUX_REFERENCE, "patterns": list(PATTERNS),
+                  "validation": self.validation}
+        if self.x_range is not None:
+            record["x_range"] = [float(value) for value in self.x_range]
+        return record
 
     @classmethod
     def from_dict(cls, record):
@@ -161,7 +226,9 @@ class EmpiricalTerm:
                    errors=record.get("errors", {}),
                    x_reference=float(record.get("x_reference", 0.0)),
                    exposure_reference=float(record.get("exposure_reference", 0.0)),
-                   validation=record.get("validation", {}))
+                   validation=record.get("validation", {}),
+                   x_range=None if record.get("x_range") is None else tuple(
+                       float(value) for value in record["x_range"]))
 
     @classmethod
     def from_calibration(cls, calibration):
@@ -170,13 +237,30 @@ class EmpiricalTerm:
         return None if not record else cls.from_dict(record)
 
 
+def empirical_of(calibrations, exposure=None):
+    """The one EMPIRICAL term of some calibrations (a refined calibration's, at exposure
+    order ``exposure``, its position terms kept), or None when none holds one. Every
+    consumer of a calibration takes the term through here (`bfpsf.workflow.psf_from_images`,
+    the Piff and GalSim plug-ins)."""
+    if not isinstance(calibrations, (list, tuple)):
+        calibrations = [calibrations]
+    terms = [EmpiricalTerm.from_calibration(calibration) for calibration in calibrations]
+    records = {repr(term.to_dict()): term for term in terms if term is not None}
+    if len(records) > 1 or (records and None in terms):
+        msg = ("the calibrations hold different EMPIRICAL terms (or some none); one PSF "
+               "applies one (refine them together with bfpsf diagnose)")
+        raise BFPSFValueError(msg, len(records))
+    return next(iter(records.values())).at_exposure(exposure) if records else None
+
+
 def with_empirical(psf, calibration, *, x=None, exposure=None):
-    """A copy of ``psf`` (`FluxDependentPSF`) applying the EMPIRICAL term of a refined
-    calibration, evaluated at column ``x`` and exposure order ``exposure``; ``psf`` itself
-    when the calibration holds none (every calibration not refined by the loop)."""
-    term = EmpiricalTerm.from_calibration(calibration)
+    """A copy of ``psf`` (any `BFPSFModel` kind) applying the EMPIRICAL term of a refined
+    calibration at exposure order ``exposure`` (and, when ``x`` is given, at column ``x``
+    only; default: at each star's column); ``psf`` itself when the calibration holds none
+    (every calibration not refined by the loop)."""
+    term = empirical_of(calibration, exposure)
     if term is None:
         return psf
     out = psf.copy()
-    out.empirical = term.at(x=x, exposure=exposure)
+    out.empirical = term.at_position(x)
     return out

@@ -239,6 +239,28 @@ class GriddedFluxDependentPSF(BFPSFModel):
         for node in self.nodes:
             node.amplifier_shifts = dict(shifts)
 
+    @property
+    def empirical(self):
+        """The EMPIRICAL term of a refined calibration (`bfpsf.model.empirical`), held by
+        every node (each applies it at the star's column), or None."""
+        return self.nodes[0].empirical
+
+    @empirical.setter
+    def empirical(self, term):
+        for node in self.nodes:
+            node.empirical = term
+
+    def with_empirical_term(self, term):
+        """A grid of copies of the nodes applying ``term`` (`BFPSFModel.with_empirical_term`;
+        the copies of a grid share its nodes, so the nodes are copied first)."""
+        new = self.__class__([node.with_empirical_term(term) for node in self.nodes],
+                             self.x_nodes, self.y_nodes)
+        self.copy_metadata_to(new, shift_samples=True)
+        for name in self.param_names:
+            getattr(new, name).value = getattr(self, name).value
+        new.empirical = term
+        return new
+
     def with_shifts(self, shifts):
         """The same node P0s and options with other boundary shifts (every node's
         `FluxDependentPSF.with_shifts`); the per-amplifier shifts are kept."""
@@ -327,8 +349,10 @@ class GriddedFluxDependentPSF(BFPSFModel):
                                         for index, weight in zip(indices, weights)))
         else:
             options.update(density_profile=node.density_profile)
-        psf = FluxDependentPSF(data, node.shifts, **options)
-        return self.copy_metadata_to(psf, shift_samples=True)
+        psf = self.copy_metadata_to(FluxDependentPSF(data, node.shifts, **options),
+                                    shift_samples=True)
+        # the EMPIRICAL term at this column, as the grid applies it to a star here
+        return psf.at(x, y)
 
     def star_image(self, flux, x=None, y=None, *, x_phase=None, y_phase=None, half_size=None):
         """Pixel image of a star of flux F at image position (x, y), like
@@ -353,8 +377,8 @@ class GriddedFluxDependentPSF(BFPSFModel):
         x_phase, y_phase = star_phases(x, y, x_phase, y_phase)
         x, y = self.position_or_reference(x, y)
         indices, weights = self.weights(x, y)
-        return sum(weight * self.nodes[index].star_image(flux, x_phase=x_phase, y_phase=y_phase,
-                                                         half_size=half_size)
+        return sum(weight * self.nodes[index].star_image(flux, x, y, x_phase=x_phase,
+                                                         y_phase=y_phase, half_size=half_size)
                    for index, weight in zip(indices, weights) if weight > 0)
 
     def __repr__(self):

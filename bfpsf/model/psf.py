@@ -195,7 +195,9 @@ class FluxDependentPSF(BFPSFModel):
         `photutils.psf.EPSFBuilder`), normalised to sum ``oversampling**2`` for unit flux.
         Its support must hold the PSF: charge is neither moved into nor out of its edge.
     shifts : BoundaryShifts or Calibration
-        Boundary shifts a^X, 1/e- (G15 eq. def-a).
+        Boundary shifts a^X, 1/e- (G15 eq. def-a). A calibration refined by ``bfpsf
+        diagnose --output-calib`` also brings its EMPIRICAL term (``empirical``, applied by
+        every evaluation; `bfpsf.model.empirical`).
     flux : float, optional
         Total flux of the star, in ``flux_unit``.
     x_0, y_0 : float, optional
@@ -259,13 +261,14 @@ class FluxDependentPSF(BFPSFModel):
     x_0 = Parameter(default=0, description="x position of the star centre (pixels)")
     y_0 = Parameter(default=0, description="y position of the star centre (pixels)")
 
-    #: The position taken when none is given: the model is the same everywhere.
-    reference_position = (0.0, 0.0)
-
-    #: issue 22: the EMPIRICAL term (`bfpsf.model.empirical.EmpiricalTerm`, evaluated at
-    #: this PSF's position and exposure) of a refined calibration, or None; applied by
-    #: `_stamp_delta` (star_image and the exact mode)
-    empirical = None
+    @property
+    def reference_position(self):
+        """The position taken when none is given: (0, 0), the model being the same
+        everywhere; with an EMPIRICAL term that changes with the column, that term's
+        reference column (rounded to a pixel centre) and row 0."""
+        if self.empirical is not None and self.empirical.position_dependent:
+            return (float(np.floor(self.empirical.x_reference + 0.5)), 0.0)
+        return (0.0, 0.0)
 
     def __init__(self, data, shifts, *, flux=flux.default, x_0=x_0.default, y_0=y_0.default,
                  origin=None, oversampling=1, flux_unit=None, gain=None, mode="table",
@@ -312,6 +315,11 @@ class FluxDependentPSF(BFPSFModel):
         #: Product metadata (`bfpsf.model.base`): ``calibration`` (file name of the shifts),
         #: ``linearity_c_per_1e5``, ``flux_correction`` and its error.
         self._init_metadata()
+        if getattr(shifts, "refinement", None):
+            from .empirical import empirical_of
+
+            # a calibration refined by `bfpsf diagnose --output-calib`: its EMPIRICAL term
+            self.empirical = empirical_of(shifts)
         #: Shifts drawn from the calibration's uncertainty (`Calibration.shift_samples`):
         #: predictions made with this model propagate them (``bfpsf slope --psf``).
         self.shift_samples = tuple(shifts.shift_samples()) if hasattr(shifts, "shift_samples") else ()
@@ -321,6 +329,7 @@ class FluxDependentPSF(BFPSFModel):
         x = np.arange(self.data.shape[1])
         y = np.arange(self.data.shape[0])
         self._base_spline = RectBivariateSpline(x, y, self.data.T, kx=3, ky=3, s=0)
+        self._tables = {}  # built when first needed (the EMPIRICAL term's pattern splines)
         if mode == "table":
             if bf_table is None and density_profile is not None:
                 if self.oversampling[0] != self.oversampling[1]:
@@ -433,8 +442,28 @@ class FluxDependentPSF(BFPSFModel):
         return self.copy_metadata_to(new, shift_samples=True)
 
     def at(self, x=None, y=None):
-        """The model at image position (x, y): a single P(F) is the same everywhere, itself."""
-        return self
+        """The model at image position (x, y): a single P(F) is the same everywhere, itself;
+        with an EMPIRICAL term that changes with the column, a copy with the term at ``x``."""
+        if x is None or self.empirical is None or not self.empirical.position_dependent:
+            return self
+        return self.with_empirical_term(self.empirical.at_position(x))
+
+    @property
+    def varies_over_field(self):
+        """True only with an EMPIRICAL term that changes with the column."""
+        return self.empirical is not None and self.empirical.position_dependent
+
+    @property
+    def field_nodes(self):
+        """(x_nodes, y_nodes), pixels: the reference position; with an EMPIRICAL term that
+        changes with the column, the ends of the columns it was learned on (the term is
+        linear in the column, so interpolating between them is exact)."""
+        x_ref, y_ref = self.reference_position
+        if self.varies_over_field and self.empirical.x_range is not None:
+            low, high = self.empirical.x_range
+            if high > low:
+                return np.array([low, high], dtype=float), np.array([y_ref])
+        return np.array([x_ref]), np.array([y_ref])
 
     def _value_state(self):
         options = self.options
@@ -488,8 +517,9 @@ class FluxDependentPSF(BFPSFModel):
         values[outside] = 0.0
         return values.reshape(shape)
 
-    def _bf_term_exact(self, dx, dy, flux):
-        """g F |F| R at offsets (dx, dy), R computed on the pixel grid through each point."""
+    def _bf_term_exact(self, dx, dy, flux, x=None):
+        """g F |F| R at offsets (dx, dy), R computed on the pixel grid through each point
+        (and the EMPIRICAL term of a star at column ``x``, `_stamp_delta`)."""
         result = np.zeros(dx.shape)
         # The grid through a point (x, y) has the phase of its offset from the star.
         phase_x = dx - np.floor(dx + 0.5)
@@ -501,7 +531,7 @@ class FluxDependentPSF(BFPSFModel):
             px, py = phase_x[members][0], phase_y[members][0]
             # Offsets dx = n + px from the star: the star sits at phase -px on this grid.
             stamp = pixelised_stamp(self, x_phase=-px, y_phase=-py, half_size=half)
-            delta = self._stamp_delta(stamp, flux, -px, -py)
+            delta = self._stamp_delta(stamp, flux, -px, -py, x)
             col = np.rint(dx[members] - px).astype(int) + half
             row = np.rint(dy[members] - py).astype(int) + half
             inside = (col >= 0) & (col <= 2 * half) & (row >= 0) & (row <= 2 * half)
@@ -537,21 +567,49 @@ class FluxDependentPSF(BFPSFModel):
                           f"negative above {self.first_order_flux:.3g} for these boundary shifts",
                           BFPSFWarning, stacklevel=3)
 
-    def _stamp_delta(self, stamp, flux, x_phase, y_phase):
+    def _stamp_delta(self, stamp, flux, x_phase, y_phase, x=None):
         """BF term (image unit) of a star of flux F on its pixelised unit stamp (star at
-        ``(x_phase, y_phase)`` from the central pixel), as mode='exact' computes it."""
+        ``(x_phase, y_phase)`` from the central pixel), as mode='exact' computes it, with the
+        EMPIRICAL term of a star at column ``x`` (default the term's reference column)."""
         density = self.boundary_density(x_phase, y_phase, stamp.shape[0] // 2)
         if self.buildup_steps is not None:
             delta = self._buildup_delta(stamp, flux, density)
         else:
             delta = self.electrons_per_unit * flux * abs(flux) * redistribution_delta(
                 stamp, self.shifts, density=density)
-        # -- issue 22 hook: the EMPIRICAL term of a refined calibration (not physics) --------
+        # the EMPIRICAL term of a refined calibration (issue 22; not physics), on the star's
+        # image with its BF: the table mode interpolates the same (`_empirical_table_term`)
         if self.empirical is not None:
             delta = delta + self.empirical.delta(flux * stamp + delta,
-                                                 self.electrons_per_unit * abs(flux))
-        # -- end of the issue 22 hook ------------------------------------------------------
+                                                 self.electrons_per_unit * abs(flux), x)
         return delta
+
+    def _empirical_table_term(self, xi, yi, outside, flux, x):
+        """The EMPIRICAL term in table mode (image unit) at fractional data indices, for a
+        star of flux F at column ``x``: sum_k v_k(F, x) B_k[F p + g F |F| R], with B_k of P0
+        and of R tabulated at every phase (`bfpsf.model.empirical.pattern_tables`), as
+        ``star_image`` applies it to the star's image."""
+        from .empirical import PATTERNS, pattern_tables
+
+        # in a dict made by the constructor, so the copies (which share P0 and R) share it
+        splines = self._tables.get("pattern_splines")
+        if splines is None:
+            grid = (np.arange(self.data.shape[1]), np.arange(self.data.shape[0]))
+            tables = [pattern_tables(table, self.oversampling)
+                      for table in (self.data, self.bf_table)]
+            splines = {pattern: [RectBivariateSpline(*grid, table[pattern].T, kx=3, ky=3, s=0)
+                                 for table in tables] for pattern in PATTERNS}
+            self._tables["pattern_splines"] = splines
+        g = self.electrons_per_unit
+        term = np.zeros(np.shape(xi))
+        for pattern, change in zip(PATTERNS, self.empirical.variance_change(g * abs(flux),
+                                                                            x=x)):
+            if change:
+                base, bf = splines[pattern]
+                term += float(change) * (flux * base(xi, yi, grid=False)
+                                         + g * flux * abs(flux) * bf(xi, yi, grid=False))
+        term[outside] = 0.0
+        return term
 
     def _buildup_delta(self, stamp, flux, density=None):
         """BF term of the star (image unit) with the build-up integrated, odd in F."""
@@ -638,9 +696,11 @@ class FluxDependentPSF(BFPSFModel):
         if self.mode == "table":
             bf_term = self.electrons_per_unit * flux * abs(flux) * self._bf_spline(xi, yi, grid=False)
             bf_term[outside] = 0.0
+            if self.empirical is not None:
+                bf_term += self._empirical_table_term(xi, yi, outside, flux, x_0)
         else:
             # Charge may cross the edge of the P0 support: keep it (conservation).
-            bf_term = self._bf_term_exact(dx, dy, flux)
+            bf_term = self._bf_term_exact(dx, dy, flux, x_0)
         result[outside] = self.fill_value
         result += bf_term
         return result.reshape(shape)
@@ -674,7 +734,8 @@ class FluxDependentPSF(BFPSFModel):
         half = self.half_size if half_size is None else int(half_size)
         self._warn_beyond_first_order(flux)
         stamp = pixelised_stamp(self, x_phase=x_phase, y_phase=y_phase, half_size=half)
-        return flux * stamp + self._stamp_delta(stamp, flux, x_phase, y_phase)
+        return flux * stamp + self._stamp_delta(stamp, flux, x_phase, y_phase,
+                                                self.position_or_reference(x, y)[0])
 
     def __repr__(self):
         return (f"<FluxDependentPSF(flux={float(self.flux.value):g}, "

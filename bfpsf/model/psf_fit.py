@@ -244,9 +244,13 @@ class _Grid:
         self.x_nodes, self.y_nodes = x_nodes, y_nodes
         self.oversampling, self.psf_kwargs = oversampling, psf_kwargs
         self.star_set = star_set            # (N,) index into shift_sets
+        psf_kwargs = dict(psf_kwargs)
+        self.empirical = psf_kwargs.pop("empirical", None)
         self.set_nodes = [[FluxDependentPSF(node, shifts, oversampling=oversampling,
                                             **psf_kwargs) for node in data]
                           for shifts in shift_sets]
+        for node in (node for nodes in self.set_nodes for node in nodes):
+            node.empirical = self.empirical  # the exact mode's evaluate applies it
         self.nodes = self.set_nodes[0]
         self.table = self.nodes[0].mode == "table"
 
@@ -311,11 +315,35 @@ def _star_models(grid, weights, stars, free_positions):
         d_flux = base + 2 * bf / flux
         charge = flux * p0  # the BF term's own position derivative is neglected here
     model = flux * base + bf
+    if tables is not None and grid.empirical is not None:
+        model, d_flux = _with_empirical(grid.empirical, model, d_flux, stars)
     jacobian = [d_flux]
     if free_positions:
         jacobian.append(-_project(ys.matrix, charge, xs.derivative))
         jacobian.append(-_project(ys.derivative, charge, xs.matrix))
     return model, np.stack(jacobian, axis=1), xs, ys
+
+
+def _with_empirical(term, model, d_flux, stars):
+    """Every star's table-mode model and flux derivative with the EMPIRICAL term of a
+    refined calibration (`bfpsf.model.empirical`) at its flux and column: sum_k v_k(F, x)
+    B_k[model], as `FluxDependentPSF` applies it (its position derivative neglected)."""
+    from .empirical import PATTERNS, apply_pattern
+
+    flux = np.abs(stars.flux)
+    step = 1e-3 * np.maximum(flux, 1.0)
+    changes = term.variance_change(flux, x=stars.x_0)
+    slopes = [(after - before) / step for after, before in
+              zip(term.variance_change(flux + step, x=stars.x_0), changes)]
+    signs = np.sign(stars.flux)[:, None, None]
+    out, derivative = model.copy(), d_flux.copy()
+    for pattern, change, slope in zip(PATTERNS, changes, slopes):
+        change = np.broadcast_to(change, flux.shape)[:, None, None]
+        slope = np.broadcast_to(slope, flux.shape)[:, None, None]
+        pattern_model = apply_pattern(model, pattern)
+        out += change * pattern_model
+        derivative += change * apply_pattern(d_flux, pattern) + signs * slope * pattern_model
+    return out, derivative
 
 
 def _gauss_newton(stars, model, jacobian, variance, usable):
@@ -462,6 +490,10 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     include_bf : bool, optional
         Subtract each star's BF term F_i**2 R[p_i] (default). False gives the static ePSF of
         the same stars, for comparison.
+    empirical : bfpsf.model.empirical.EmpiricalTerm, optional
+        The EMPIRICAL term of a refined calibration: each star's model carries it at its
+        flux and column (so P0 does not absorb it), and the fitted model applies it
+        (``psf.empirical``). Left out with ``include_bf=False``.
     grid : (int, int), optional
         (nx, ny) nodes over the image, from edge to edge
         (`~bfpsf.model.gridded.grid_node_positions`): every node's P0 is fitted jointly from
@@ -543,6 +575,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     if not include_bf:
         shift_sets = [shift_sets[0].scaled(0.0)]
         image_set = np.zeros(len(images), dtype=int)
+        psf_kwargs.pop("empirical", None)
     star_set = image_set[image_index[flags == 0]]
     node_indices, node_weights = bilinear_weights(stars.x_0, stars.y_0, x_nodes, y_nodes)
     dense_weights = _dense_weights(node_indices, node_weights, n_nodes)

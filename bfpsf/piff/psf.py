@@ -27,6 +27,7 @@ I/O: the gain, boundary shifts and amplifier sections are written into the Piff 
 """
 
 import copy
+import json
 
 import galsim
 import numpy as np
@@ -34,6 +35,7 @@ import piff
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..io.amplifiers import parse_section
+from ..model.empirical import EmpiricalTerm
 from ..model.redistribution import redistribute
 from ..shifts import BoundaryShifts
 
@@ -60,9 +62,14 @@ class AmplifierBF:
     section : (int, int, int, int) or None
         x1, x2, y1, y2: the amplifier's pixels in Piff's image coordinates, 1-based inclusive
         (an IRAF DETSEC); None for the whole chip.
+    empirical : bfpsf.model.empirical.EmpiricalTerm or None
+        The EMPIRICAL term of a calibration refined by ``bfpsf diagnose --output-calib``:
+        added to every star after the redistribution, at the star's flux (the stamp's
+        charge) and column, as `bfpsf.model.psf.FluxDependentPSF` applies it.
     """
 
-    def __init__(self, name, gain, shifts, section=None):
+    def __init__(self, name, gain, shifts, section=None, empirical=None):
+        self.empirical = empirical
         self.name = str(name)
         self.gain = float(gain)
         if not (np.isfinite(self.gain) and self.gain > 0):
@@ -82,16 +89,23 @@ class AmplifierBF:
         x1, x2, y1, y2 = self.section
         return x1 - 0.5 <= x < x2 + 0.5 and y1 - 0.5 <= y < y2 + 0.5
 
-    def apply(self, image):
-        """Redistribute a model image in place (image units): g^-1 redistribute(g image)."""
+    def apply(self, image, x=None):
+        """Redistribute a model image of one star in place (image units): g^-1
+        redistribute(g image), plus the EMPIRICAL term of a refined calibration at the
+        star's charge and at Piff column ``x`` (1-based; bfpsf's columns are 0-based)."""
         charge = np.asarray(image.array, dtype=float) * self.gain
-        image.array[:, :] = redistribute(charge, self.shifts, workers=1) / self.gain
+        collected = redistribute(charge, self.shifts, workers=1)
+        if self.empirical is not None:
+            collected = collected + self.empirical.delta(
+                collected, abs(charge.sum()), None if x is None else x - 1.0)
+        image.array[:, :] = collected / self.gain
         return image
 
 
 def _amplifiers_from(calibration, sections):
     """`AmplifierBF` list from a Calibration or DetectorCalibration (or a path to one)."""
     from ..calibration.product import amplifiers_of, read_calibration
+    from ..model.empirical import empirical_of
 
     if isinstance(calibration, (str, bytes)) or hasattr(calibration, "__fspath__"):
         calibration = read_calibration(calibration)
@@ -114,7 +128,8 @@ def _amplifiers_from(calibration, sections):
         if text is not None:
             parsed = parse_section(text, keyword=f"amplifiers[{name!r}]", where="bfpsf.piff")
             section = (parsed.x.start + 1, parsed.x.stop, parsed.y.start + 1, parsed.y.stop)
-        result.append(AmplifierBF(name, calib.gain, calib.shifts, section))
+        result.append(AmplifierBF(name, calib.gain, calib.shifts, section,
+                                  empirical_of(calib)))
     return result
 
 
@@ -251,7 +266,7 @@ class BrighterFatterPSF(piff.PSF):
     def _with_bf(self, model_star, star):
         """The inner model star with its pixels redistributed at the star's flux."""
         image = model_star.image
-        self._star_amplifier(star).apply(image)
+        self._star_amplifier(star).apply(image, star.image_pos.x)
         return model_star
 
     # -- fitting ------------------------------------------------------------------------------
@@ -316,7 +331,8 @@ class BrighterFatterPSF(piff.PSF):
     def _without_bf(self, star):
         """The star with the BF term of the current model at its flux subtracted."""
         model = self.psf.drawStar(star).image
-        bf_term = self._star_amplifier(star).apply(model.copy()).array - model.array
+        bf_term = (self._star_amplifier(star).apply(model.copy(), star.image_pos.x).array
+                   - model.array)
         image = star.data.image.copy()
         image.array[:, :] -= bf_term
         return piff.Star(star.data.withNew(image=image), star.fit)
@@ -370,7 +386,7 @@ class BrighterFatterPSF(piff.PSF):
                                 stamp_size=stamp_size, image=image, logger=logger, **kwargs)
         drawn = self.psf.draw(x, y, chipnum=chipnum, flux=flux, center=center, offset=offset,
                               stamp_size=stamp_size, image=image, logger=logger, **kwargs)
-        return self.amplifier_at(chipnum, x, y).apply(drawn)
+        return self.amplifier_at(chipnum, x, y).apply(drawn, x)
 
     # -- I/O ----------------------------------------------------------------------------------
     def _finish_write(self, writer, logger):
@@ -379,11 +395,15 @@ class BrighterFatterPSF(piff.PSF):
                                       "nremoved": self.nremoved, "niter": self.niter})
         rows = [(chip, amp) for chip, amps in self.amplifiers.items() for amp in amps]
         size = max(amp.shifts.north.shape[0] for _, amp in rows)
+        # the EMPIRICAL term of each amplifier, as JSON ('' without one)
+        terms = ["" if amp.empirical is None else json.dumps(amp.empirical.to_dict())
+                 for _, amp in rows]
         table = np.zeros(len(rows), dtype=[
             ("chip", "U64"), ("has_chip", bool), ("chip_is_int", bool), ("amplifier", "U64"),
             ("gain", "f8"), ("section", "i8", (4,)), ("north", "f8", (size, size)),
-            ("east", "f8", (size, size))])
-        for row, (chip, amp) in zip(table, rows):
+            ("east", "f8", (size, size)),
+            ("empirical", f"U{max(1, max(len(term) for term in terms))}")])
+        for row, (chip, amp), term in zip(table, rows, terms):
             row["chip"] = "" if chip is None else str(chip)
             row["has_chip"] = chip is not None
             row["chip_is_int"] = isinstance(chip, (int, np.integer))
@@ -393,6 +413,7 @@ class BrighterFatterPSF(piff.PSF):
             pad = (size - amp.shifts.north.shape[0]) // 2
             row["north"] = np.pad(amp.shifts.north, pad)
             row["east"] = np.pad(amp.shifts.east, pad)
+            row["empirical"] = term
         writer.write_table("bf_calib", table, metadata={"calibfil": self.calib_name[:60]})
         self.psf._write(writer, "inner", logger)  # noqa: SLF001 (Piff's composite API)
 
@@ -412,9 +433,12 @@ class BrighterFatterPSF(piff.PSF):
             section = tuple(int(value) for value in row["section"])
             shifts = BoundaryShifts(np.array(row["north"], dtype=float),
                                     np.array(row["east"], dtype=float), check=False)
+            term = (str(row["empirical"]).strip() if "empirical" in table.dtype.names
+                    else "")
             self.amplifiers.setdefault(chip, []).append(
                 AmplifierBF(str(row["amplifier"]).strip(), float(row["gain"]), shifts,
-                            None if section[0] < 0 else section))
+                            None if section[0] < 0 else section,
+                            EmpiricalTerm.from_dict(json.loads(term)) if term else None))
         self.psf = piff.PSF._read(reader, "inner", logger)  # noqa: SLF001
         self.set_num(None)
         if self.wcs is not None:
