@@ -412,3 +412,25 @@ def test_messages_name_the_file_and_the_problem(workdir, capsys, argv, message):
     assert code == 1
     assert err.startswith(f"bfpsf {argv[0]}: error: {message}") and err.count("\n") == 1
     assert snapshot(workdir) == before
+
+
+def test_ctrl_c_pressed_again_during_the_clean_up_is_ignored(monkeypatch, capsys):
+    """Ctrl-C three times in a row with Dask workers: the second and third came while the
+    first was closing the cluster and escaped as a traceback. They are ignored until the
+    clean-up is done, and the handler of SIGINT is restored afterwards."""
+    import bfpsf.cli as cli
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    def close_while_pressed_again():
+        os.kill(os.getpid(), signal.SIGINT)  # the user presses Ctrl-C again
+        time.sleep(0.2)
+
+    monkeypatch.setattr(cli, "_close_dask_quietly", close_while_pressed_again)
+    monkeypatch.setattr(cli, "_apply_common_options", lambda args: setattr(args, "_run",
+                                                                             interrupted))
+    before = signal.getsignal(signal.SIGINT)
+    assert main(["slope", "stars.ecsv"]) == 130
+    assert capsys.readouterr().err == "bfpsf slope: interrupted; no partial output was left\n"
+    assert signal.getsignal(signal.SIGINT) is before

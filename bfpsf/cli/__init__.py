@@ -10,11 +10,14 @@ codes), ``-v`` / ``-q`` (logging to stderr: warnings by default, ``-v`` info, ``
 """
 
 import argparse
+import contextlib
 import importlib
 import logging
 import math
 import os
+import signal
 import sys
+import threading
 
 from .. import __version__
 from ..errors import BFPSFError, BFPSFValueError
@@ -162,8 +165,12 @@ def main(argv=None):
         print(f"{command}: error: {_one_line(error)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        _close_dask_quietly()
-        print(f"{command}: interrupted; no partial output was left", file=sys.stderr)
+        # more Ctrl-C while the interrupt is being handled (the user presses it again) would
+        # break the clean-up with a traceback: they are ignored until it is done (bounded by
+        # the clusters' close timeout)
+        with _interrupts_ignored():
+            _close_dask_quietly()
+            print(f"{command}: interrupted; no partial output was left", file=sys.stderr)
         return EXIT_INTERRUPTED
     except OSError as error:  # an operating-system error no library function turned into ours
         where = f"{error.filename}: " if error.filename else ""
@@ -183,6 +190,19 @@ def main(argv=None):
         return 1
 
 
+@contextlib.contextmanager
+def _interrupts_ignored():
+    """SIGINT ignored inside the block (in the main thread; elsewhere nothing changes)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _close_dask_quietly():
     """Close the local Dask clusters an interrupt left behind (one may be half-started),
     without the tracebacks Dask's own exit handler prints for a half-started one."""
@@ -190,7 +210,6 @@ def _close_dask_quietly():
     if spec is None:
         return
     import atexit
-    import contextlib
     import io
 
     logging.getLogger("distributed").setLevel(logging.CRITICAL)
