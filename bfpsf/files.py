@@ -15,7 +15,7 @@ import math
 import os
 import tempfile
 import warnings
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,8 @@ __all__ = ["refuse_overwrite", "check_outputs", "refuse_inputs", "input_files", 
            "reading", "about", "refuse_duplicates",
            "read_table",
            "open_product", "atomic_path", "make_directory", "write_json",
-           "write_text", "write_fits", "write_table", "save_figure", "json_safe"]
+           "write_text", "write_fits", "write_table", "save_figure", "json_safe",
+           "all_or_nothing"]
 
 
 def refuse_overwrite(path, overwrite, *, how="overwrite=True (--overwrite)"):
@@ -98,7 +99,8 @@ def refuse_inputs(outputs, inputs):
             raise BFPSFInputError(msg, str(path))
 
 
-def check_outputs(paths, overwrite, *, how="--overwrite", directories=(), inputs=()):
+def check_outputs(paths, overwrite, *, how="--overwrite", directories=(), inputs=(),
+                  folders=()):
     """Check every output before any work: distinct, not an input, in a writable directory,
     free.
 
@@ -117,6 +119,11 @@ def check_outputs(paths, overwrite, *, how="--overwrite", directories=(), inputs
     inputs : iterable of str, path-like or None, optional
         The command's input files: no output may be one of them, even with ``overwrite``
         (`refuse_inputs`).
+    folders : iterable of (str or path-like or None, tuple of str), optional
+        Output folders whose files are named only as they are written (plots, reports), each
+        with the glob patterns of those files (e.g. ``("*.png", "*/*.png")``): checked as
+        ``directories``, and one that already holds such a file is refused unless
+        ``overwrite`` (so a long run does not stop at its end on an earlier run's figure).
 
     Raises
     ------
@@ -128,8 +135,16 @@ def check_outputs(paths, overwrite, *, how="--overwrite", directories=(), inputs
     """
     paths = [path for path in paths if path is not None]
     refuse_inputs(paths, inputs)
+    folders = [(Path(folder), patterns) for folder, patterns in folders if folder is not None]
+    for folder, patterns in folders:
+        earlier = sorted(path for pattern in patterns for path in folder.glob(pattern)
+                         if path.is_file()) if folder.is_dir() else []
+        if earlier and not overwrite:
+            msg = (f"{folder} already holds {earlier[0].relative_to(folder)} (an earlier run's); "
+                   f"pass {how} to replace it or give another folder")
+            raise BFPSFFileExistsError(msg, str(earlier[0]))
     created = []
-    for directory in directories:
+    for directory in [*directories, *(folder for folder, _ in folders)]:
         if directory is None:
             continue
         directory = Path(directory)
@@ -338,7 +353,10 @@ def atomic_path(path):
     try:
         temporary.unlink()  # writers that refuse an existing file (astropy) see none
         yield temporary
+        new = not path.exists()
         os.replace(temporary, path)
+        if new and _NEW_OUTPUTS is not None:
+            _NEW_OUTPUTS.append(path)
     except BaseException as error:
         temporary.unlink(missing_ok=True)
         if isinstance(error, OSError) and not isinstance(error, BFPSFError):
@@ -357,10 +375,41 @@ def _output_error(path, error):
 
 def make_directory(directory):
     """``mkdir -p`` with a one-line `BFPSFOutputError` on failure."""
+    directory = Path(directory)
+    missing = [directory, *directory.parents]
+    missing = [folder for folder in missing if not folder.exists()]
     try:
-        Path(directory).mkdir(parents=True, exist_ok=True)
+        directory.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise _output_error(directory, error) from error
+    if _NEW_OUTPUTS is not None:
+        _NEW_OUTPUTS.extend(reversed(missing))  # parents first
+
+
+#: The files and directories the running command has created (`all_or_nothing`), or None.
+_NEW_OUTPUTS = None
+
+
+@contextmanager
+def all_or_nothing():
+    """A command's outputs, all or none: the files (`atomic_path`) and directories
+    (`make_directory`) created in the block are removed again if it raises (an error, an
+    interrupt), so a command that stops leaves none of its new outputs beside complete
+    earlier ones. A file it replaced (``--overwrite``) keeps its new, complete content."""
+    global _NEW_OUTPUTS
+    outer, _NEW_OUTPUTS = _NEW_OUTPUTS, []
+    try:
+        yield
+    except BaseException:
+        for path in reversed(_NEW_OUTPUTS):
+            with suppress(OSError):  # a directory that holds other files stays
+                path.rmdir() if path.is_dir() else path.unlink()
+        raise
+    else:
+        if outer is not None:
+            outer.extend(_NEW_OUTPUTS)
+    finally:
+        _NEW_OUTPUTS = outer
 
 
 def json_safe(value):

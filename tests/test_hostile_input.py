@@ -434,3 +434,42 @@ def test_ctrl_c_pressed_again_during_the_clean_up_is_ignored(monkeypatch, capsys
     assert main(["slope", "stars.ecsv"]) == 130
     assert capsys.readouterr().err == "bfpsf slope: interrupted; no partial output was left\n"
     assert signal.getsignal(signal.SIGINT) is before
+
+
+def test_a_command_that_stops_leaves_none_of_its_new_outputs(workdir, capsys, monkeypatch):
+    """measure writes its table, then fails on its JSON (an error or an interrupt there):
+    the table it had written is removed, so 'no partial output' holds across outputs (a
+    Ctrl-C between `slope`'s plot and JSON left the plot)."""
+    import bfpsf.cli.measure as measure_command
+    from bfpsf.errors import BFPSFOutputError
+
+    def failing(path, summary, **kwargs):
+        raise BFPSFOutputError(f"cannot write {path}: No space left on device", str(path))
+
+    monkeypatch.setattr(measure_command, "write_json", failing)
+    before = snapshot(workdir)
+    code, err = run(capsys, "measure", "img.fits", "--gain", "1.5", "-o", "m.ecsv",
+                    "--json", "m.json")
+    assert (code, err) == (1, "bfpsf measure: error: cannot write m.json: No space left on "
+                              "device\n")
+    assert snapshot(workdir) == before
+
+
+@pytest.mark.parametrize("argv, earlier", [
+    (["calibrate", *FLATS, "-o", "c.fits", "--plots", "plots"], "plots/ptc.png"),
+    (["diagnose", "--flats", *FLATS, "--images", "img.fits", "--report", "plots"],
+     "plots/old.png"),
+])
+def test_a_folder_holding_an_earlier_run_is_refused_before_any_work(workdir, capsys, argv,
+                                                                    earlier):
+    """The plots or report of an earlier run: refused at once (it was refused after the
+    whole computation, with the calibration already written)."""
+    Path(earlier).parent.mkdir()
+    Path(earlier).write_bytes(b"earlier")
+    before = snapshot(workdir)
+    start = time.monotonic()
+    code, err = run(capsys, *argv)
+    assert code == 1 and time.monotonic() - start < 5
+    assert err == (f"bfpsf {argv[0]}: error: plots already holds {Path(earlier).name} (an "
+                   "earlier run's); pass --overwrite to replace it or give another folder\n")
+    assert snapshot(workdir) == before

@@ -21,6 +21,7 @@ import threading
 
 from .. import __version__
 from ..errors import BFPSFError, BFPSFValueError
+from ..files import all_or_nothing
 
 #: Sub-commands in data-flow order; each name is a module of this package.
 COMMANDS = ["simulate", "calibrate", "measure", "slope", "psf", "photometry", "validate",
@@ -160,7 +161,8 @@ def main(argv=None):
             parser.print_help()
             return 2
         _apply_common_options(args)
-        return args._run(args) or 0
+        with all_or_nothing():  # a command that stops leaves none of its new outputs
+            return args._run(args) or 0
     except BFPSFError as error:
         print(f"{command}: error: {_one_line(error)}", file=sys.stderr)
         return 1

@@ -163,8 +163,8 @@ def run(args):
     check_time(MONTE_CARLO_SECONDS * args.n_monte_carlo, option=f"--n-monte-carlo "
                f"{args.n_monte_carlo}", what="sampling the boundary shifts' errors")
     check_outputs([*outputs.values(), args.json, args.export_ptc], args.overwrite,
-                  directories=[args.plots, None if "" in detectors else args.output],
-                  inputs=inputs)
+                  directories=[None if "" in detectors else args.output],
+                  folders=[(args.plots, ("*.png", "*/*.png"))], inputs=inputs)
 
     if args.from_ptc:
         from ..calibration import calibrate_from_ptc

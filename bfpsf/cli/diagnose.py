@@ -117,7 +117,7 @@ def _observables(args):
 def run(args):
     from ..diagnosis.loop import diagnose
     from ..files import check_outputs, input_files, write_json
-    from ..validation.report import write_diagnosis_report
+    from ..validation.report import REPORT_FILES, write_diagnosis_report
 
     if args.list_measured:
         from ..data import measured_sets
@@ -129,7 +129,7 @@ def run(args):
     report = Path(args.report) / "report.md" if args.report else None
     check_outputs([args.json, report, args.output_calib,
                    Path(args.report) / "signatures.png" if args.report else None],
-                  args.overwrite, directories=[args.report],
+                  args.overwrite, folders=[(args.report, REPORT_FILES)],
                   inputs=input_files(args.flats, args.images, args.correlations, args.sizes))
     if args.output_calib and not (args.flats and args.images):
         msg = ("--output-calib needs images mode (--flats and --images): it refines their "

@@ -100,11 +100,12 @@ def _print_table(result):
 def run(args):
     from ..files import check_outputs, write_json
     from ..resources import check_flat_simulation, check_spot_simulation
-    from ..validation.report import write_validation_report
+    from ..validation.report import REPORT_FILES, write_validation_report
     from ..validation.validate import validate
 
     report = Path(args.report) / "report.md" if args.report else None
-    check_outputs([args.json, report], args.overwrite, directories=[args.report])
+    check_outputs([args.json, report], args.overwrite,
+                  folders=[(args.report, REPORT_FILES)])
     config = _config(args)
     check_flat_simulation(config.flat_size, 2 * config.flat_pairs * len(config.flat_levels_e),
                           config.flat_nsteps,

@@ -12,6 +12,10 @@ from ..files import refuse_overwrite, save_figure, write_text
 
 __all__ = ["write_diagnosis_report", "write_validation_report", "format_number"]
 
+#: What a report folder holds (`write_diagnosis_report`, `write_validation_report` and the
+#: figures the commands add): an earlier report there is replaced only with --overwrite.
+REPORT_FILES = ("report.md", "*.png")
+
 
 def format_number(value, digits=3):
     """Compact text of a number (None and NaN as 'n/a')."""
