@@ -13,7 +13,7 @@ from astropy.table import Table
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import make_psf_photometry
 from ..model.base import BFPSFModel
-from .sources import DETECTION_THRESHOLD, measure_sources
+from .sources import DETECTION_THRESHOLD, sources_with_companions
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 
@@ -22,35 +22,13 @@ PHOTOMETRY_COLUMNS = ["x_fit", "y_fit", "flux_fit", "flux_err", "flags"]
 
 
 def _initial_positions(image_e, detection_threshold):
-    """Detections of `bfpsf.measure.sources.measure_sources`, as photutils' initial table,
-    plus the companions a merged segment hides: peaks of the smoothed image (those that make
-    `measure_sources` flag a segment ``BLENDED``) more than 2.5 pixels from every detection,
-    flagged ``BLENDED``. A segment is one detection however many stars it holds; fitted as
-    one, a close pair gives one star with both fluxes (a dense field: -250 mmag)."""
-    from scipy.spatial import cKDTree
-
-    from .sources import SourceFlag, smoothed_peaks
-
-    sources = measure_sources(image_e, threshold=detection_threshold)
-    x = np.asarray(sources["x"], dtype=float)
-    y = np.asarray(sources["y"], dtype=float)
-    flux = np.asarray(sources["flux_e"], dtype=float)
-    flags = np.asarray(sources["flags"], dtype=np.int64)
-    peaks = smoothed_peaks(image_e, threshold=detection_threshold)
-    if len(peaks) and len(x):
-        distance, _ = cKDTree(np.column_stack([x, y])).query(peaks)
-        peaks = peaks[distance > 2.5]
-    if len(peaks):
-        rows = np.clip(np.rint(peaks[:, 1]).astype(int), 2, image_e.shape[0] - 3)
-        columns = np.clip(np.rint(peaks[:, 0]).astype(int), 2, image_e.shape[1] - 3)
-        boxes = [np.nansum(image_e[row - 2:row + 3, column - 2:column + 3])
-                 for row, column in zip(rows, columns)]
-        x, y = np.r_[x, peaks[:, 0]], np.r_[y, peaks[:, 1]]
-        flux = np.r_[flux, np.maximum(boxes, 1.0)]
-        flags = np.r_[flags, np.full(len(peaks), SourceFlag.BLENDED, dtype=np.int64)]
+    """Every source (`bfpsf.measure.sources.sources_with_companions`: the detections and the
+    companions a merged segment hides, flagged ``BLENDED``) as photutils' initial table.
+    Fitted as one, a close pair gives one star with both fluxes (a dense field: -250 mmag)."""
+    sources = sources_with_companions(image_e, threshold=detection_threshold)
     table = Table()
-    table["x_init"], table["y_init"], table["flux_init"] = x, y, flux
-    table["source_flags"] = flags
+    table["x_init"], table["y_init"] = sources["x"], sources["y"]
+    table["flux_init"], table["source_flags"] = sources["flux_e"], sources["flags"]
     return table
 
 
