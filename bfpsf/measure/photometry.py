@@ -4,7 +4,9 @@ Each star is fitted with F p + F |F| R[p] at its own flux and sub-pixel phase
 (`bfpsf.model.psf.FluxDependentPSF`), so bright and faint stars are measured with the shape
 they actually have and the faint-to-bright flux scale is free of the brighter-fatter bias a
 static PSF from bright stars carries. Pixels and their noise are left untouched; the pixel
-weights come from the fitted model, not from the noisy pixel values (``weights``).
+weights come from the fitted model, not from the noisy pixel values (``weights``). Blends
+are fitted together (photutils' ``SourceGrouper``), and every group's final fit is made on
+the data minus the models of the stars outside it.
 """
 
 import numpy as np
@@ -43,6 +45,77 @@ def _refit_init(init, result):
             start = np.asarray(result[f"{column}_init"], dtype=float)
         refit[f"{column}_init"] = np.where(np.isfinite(fitted), fitted, start)
     return refit
+
+
+def _model_image(photometry, table, shape, rows=None):
+    """Image of the models of the stars of a result table (all, or ``rows``) with finite
+    fitted parameters, e- (`photutils.datasets.make_model_image`, as photutils'
+    ``make_model_image``)."""
+    from photutils.datasets import make_model_image
+
+    model = photometry.psf_model
+    names = ("x_fit", "y_fit", "flux_fit")
+    values = [np.asarray(table[name], dtype=float) for name in names]
+    keep = np.all(np.isfinite(values), axis=0)
+    if rows is not None:
+        keep &= rows
+    if not keep.any():
+        return np.zeros(shape)
+    params = Table({name: value[keep] for name, value in zip(("x_0", "y_0", "flux"), values)})
+    return make_model_image(shape, model, params, x_name="x_0", y_name="y_0")
+
+
+def _fit_without_neighbours(photometry, psf, data, mask, error, init, previous, rows=None):
+    """photutils' fit of the stars ``rows`` of ``init`` (default all), each group on the data
+    minus the models of every other star from ``previous`` (a result table of the same stars).
+
+    photutils fits each group within its fit boxes and leaves a neighbour outside the group
+    in the pixels: in a dense field a bright neighbour's wings in a faint star's fit box. Here
+    every other star's model is subtracted first. Groups no model of one of which reaches the
+    fit boxes of another are fitted in one photutils call (a greedy colouring of the groups);
+    the others in further calls, each on its own neighbour-subtracted image.
+    """
+    from scipy.spatial import cKDTree
+
+    n_stars = len(previous)
+    rows = np.ones(n_stars, dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
+    start = _refit_init(init, previous)
+    start["id"] = np.asarray(previous["id"], dtype=int)
+    xy = np.column_stack([np.asarray(start["x_init"], float), np.asarray(start["y_init"], float)])
+    groups = np.unique(np.asarray(previous["group_id"]), return_inverse=True)[1].ravel()
+    # a star's model reaches the support's half-width; its fit box the box's half-width
+    box = float(np.max(np.atleast_1d(photometry.fit_shape)))
+    support = getattr(psf, "half_size", None)
+    support = box / 2 if support is None else support + 0.5
+    reach = box / 2 + support + 1.0
+    chosen = np.flatnonzero(rows)
+    pairs = cKDTree(xy[chosen]).query_pairs(reach, output_type="ndarray")
+    n_groups = int(groups.max()) + 1
+    conflicts = [set() for _ in range(n_groups)]
+    for first, second in groups[chosen][pairs] if len(pairs) else ():
+        if first != second:
+            conflicts[first].add(second)
+            conflicts[second].add(first)
+    colour = np.full(n_groups, -1)
+    for group in np.unique(groups[chosen]):
+        taken = {colour[other] for other in conflicts[group]}
+        colour[group] = next(value for value in range(n_groups + 1) if value not in taken)
+    others = _model_image(photometry, previous, data.shape)
+    fits, offset = [], 0
+    for value in range(int(colour.max()) + 1):
+        mine = rows & (colour[groups] == value)
+        if not mine.any():
+            continue
+        image = data - others + _model_image(photometry, previous, data.shape, mine)
+        fit = photometry(image, mask=mask, error=error, init_params=start[mine])
+        fit["group_id"] = np.asarray(fit["group_id"]) + offset
+        offset = int(np.max(fit["group_id"]))
+        fits.append(fit)
+    from astropy.table import vstack
+
+    result = vstack(fits, metadata_conflicts="silent")
+    result.sort("id")
+    return result
 
 
 def _add_stamp(image, stamp, row, column):
@@ -172,7 +245,9 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         Pixel variances of the fit. ``'model'`` (default): a first fit with the variance of
         the pixel values, then the final fit with the variance of the fitted model,
         ``background_e + model + read_noise_e**2`` (at least 1 e-**2), so the weights do not
-        depend on each pixel's own noise. ``'data'``: one fit with the variance of the pixel
+        depend on each pixel's own noise, each group on the data minus the first fit's models
+        of every other star (a neighbour outside the group leaves its wings in the fit box
+        otherwise: +0.82 against +0.43 mmag bright-minus-faint in a dense field). ``'data'``: one fit with the variance of the pixel
         values, ``max(image_e, 0) + read_noise_e**2``; on noisy images this under-estimates
         every flux by about one e- per fitted pixel (a pixel that fluctuates low gets more
         weight, Neyman's chi-square bias): -1.0e-3 (1.1 mmag) for a 3 ke- peak star on a
@@ -266,18 +341,18 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
             # with it): the sky is what is left beyond their total-flux model
             prepared = prepared.with_glow(_glow(psf, result, data.shape))
             sky, data = prepared.sky, prepared.sky_subtracted
-        model = np.clip(photometry.make_model_image(data.shape), 0.0, None)
+        model = np.clip(_model_image(photometry, result, data.shape), 0.0, None)
         variance = np.clip(sky.image(), 0.0, None) + model + read_noise_e**2
         error = np.sqrt(np.maximum(variance, 1.0))
-        result = photometry(data, mask=mask, error=error, init_params=_refit_init(init, result))
+        result = _fit_without_neighbours(photometry, psf, data, mask, error, init, result)
     n_cross = 0
     if cross_terms and bfpsf_model and "group_size" in result.colnames:
         blended = np.asarray(result["group_size"]) > 1
         for _ in range(int(cross_terms) if blended.any() else 0):
             # Refit the blended stars on the data minus their BF on each other.
             cross = _cross_term_image(psf, result, data.shape)
-            refit = photometry(data - cross, mask=mask, error=error,
-                               init_params=_refit_init(init, result)[blended])
+            refit = _fit_without_neighbours(photometry, psf, data - cross, mask, error, init,
+                                            result, blended)
             for name in refit.colnames:
                 if name in result.colnames and name not in ("id", "group_id", "group_size"):
                     result[name][blended] = refit[name]
