@@ -8,7 +8,10 @@ command line give the same numbers:
    (`bfpsf.measure.sky.estimate_sky`; a known sky with ``background_e``).
 2. `psf_from_images`: isolated stars of every prepared image, the joint P0 fit with each
    image's boundary shifts (`bfpsf.model.psf_fit.fit_psf`, the build-up and the EMPIRICAL
-   term of a refined calibration included), the total-flux correction measured from the bright isolated stars
+   term of a refined calibration included; every other source, blends included, fitted
+   alongside and subtracted from the stars' cutouts, not used for P0), the sky fitted jointly
+   with the wings of all those stars, the total-flux correction measured from the bright
+   isolated stars
    (`bfpsf.measure.total_flux.flux_correction`), and the product metadata (calibration,
    linearity correction, per-amplifier shifts).
 3. `bfpsf.measure.photometry.psf_photometry` with the PSF product: the same sky model, the
@@ -207,18 +210,21 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         calibrations = [calibrations] * len(images)
     saturation = np.broadcast_to(np.asarray(saturation_e if saturation_e is not None
                                             else np.nan, dtype=float), (len(images),))
-    positions, per_image = [], []
+    positions, others, per_image = [], [], []
     for index, prepared in enumerate(images):
         data = prepared.sky_subtracted
         # the level in the sky-subtracted image: below it wherever the sky is highest (a
         # clipped pixel minus a sloped sky falls under the level minus the sky's mean)
         level = None if not np.isfinite(saturation[index]) else float(
             saturation[index] - prepared.sky.image().max())
-        xy, n_detected = isolated_stars(data, size, threshold=threshold, saturation_e=level)
+        xy, n_detected, neighbours = isolated_stars(data, size, threshold=threshold,
+                                                    saturation_e=level)
         excluded = np.zeros(len(xy), dtype=bool)
         if exclude is not None and exclude[index] is not None and len(xy):
             excluded = np.asarray(exclude[index](xy, data.shape), dtype=bool)
         positions.append(xy[~excluded])
+        # every other source (and an excluded star) is modelled in the P0 fit, not used
+        others.append(np.concatenate([neighbours, xy[excluded]]))
         per_image.append({"n_detected": int(n_detected), "n_isolated": int(np.sum(~excluded)),
                           "n_excluded": int(np.sum(excluded)),
                           "background_e": prepared.sky.level,
@@ -251,7 +257,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                        sky_e=[max(prepared.sky.level, 0.0) for prepared in images],
                        include_bf=include_bf, max_iterations=max_iterations,
                        flux_unit="electron", gain=gain, grid=grid, progress=None,
-                       **options)
+                       neighbours=others, **options)
 
     n_stars = int(sum(len(xy) for xy in positions))
     if n_stars < 3:
@@ -270,14 +276,14 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         skies, wings = fit_sky_and_wings(
             [prepared.image_e - prepared.sky.image() if known else prepared.image_e
              for prepared in images],
-            _stars_of_images(result.stars, len(images)), half_size=size // 2,
+            _stars_of_images(result, len(images)), half_size=size // 2,
             degree=0 if known else images[0].sky.degree)
         if known:
             break
         images = [prepared.with_sky(prepared.sky if prepared.sky.method == "known" else sky,
                                     _glow(wings, stars, prepared.image_e.shape))
                   for prepared, sky, stars in zip(
-                      images, skies, _stars_of_images(result.stars, len(images)))]
+                      images, skies, _stars_of_images(result, len(images)))]
         result = fit()
     for entry, prepared in zip(per_image, images):
         entry.update(background_e=prepared.sky.level, sky_slope=list(prepared.sky.slope),
@@ -300,11 +306,15 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
 
 
 
-def _stars_of_images(stars, n_images):
-    """Per image, (x, y, flux) of the fitted stars of `fit_psf`'s star table (used ones)."""
-    used = np.asarray(stars["flags"]) == 0
-    image = np.asarray(stars["image"], dtype=int)
-    return [tuple(np.asarray(stars[name], float)[used & (image == index)]
+def _stars_of_images(result, n_images):
+    """Per image, (x, y, flux) of the stars `fit_psf` fitted: the used stars of its star table
+    and the neighbours it modelled (every source of the image)."""
+    parts = [result.stars[np.asarray(result.stars["flags"]) == 0]]
+    if result.neighbours is not None and len(result.neighbours):
+        parts.append(result.neighbours)
+    images = [np.asarray(part["image"], dtype=int) for part in parts]
+    return [tuple(np.concatenate([np.asarray(part[name], float)[image == index]
+                                  for part, image in zip(parts, images)])
                   for name in ("x_fit", "y_fit", "flux_fit")) for index in range(n_images)]
 
 

@@ -4,7 +4,9 @@ Each star is fitted with F p + F |F| R[p] at its own flux and sub-pixel phase
 (`bfpsf.model.psf.FluxDependentPSF`), so bright and faint stars are measured with the shape
 they actually have and the faint-to-bright flux scale is free of the brighter-fatter bias a
 static PSF from bright stars carries. Pixels and their noise are left untouched; the pixel
-weights come from the fitted model, not from the noisy pixel values (``weights``).
+weights come from the fitted model, not from the noisy pixel values (``weights``). Blends
+are fitted together (photutils' ``SourceGrouper``), and every group's final fit is made on
+the data minus the models of the stars outside it.
 """
 
 import numpy as np
@@ -13,7 +15,7 @@ from astropy.table import Table
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import make_psf_photometry
 from ..model.base import BFPSFModel
-from .sources import DETECTION_THRESHOLD, measure_sources
+from .sources import DETECTION_THRESHOLD, sources_with_companions
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 
@@ -22,35 +24,13 @@ PHOTOMETRY_COLUMNS = ["x_fit", "y_fit", "flux_fit", "flux_err", "flags"]
 
 
 def _initial_positions(image_e, detection_threshold):
-    """Detections of `bfpsf.measure.sources.measure_sources`, as photutils' initial table,
-    plus the companions a merged segment hides: peaks of the smoothed image (those that make
-    `measure_sources` flag a segment ``BLENDED``) more than 2.5 pixels from every detection,
-    flagged ``BLENDED``. A segment is one detection however many stars it holds; fitted as
-    one, a close pair gives one star with both fluxes (a dense field: -250 mmag)."""
-    from scipy.spatial import cKDTree
-
-    from .sources import SourceFlag, smoothed_peaks
-
-    sources = measure_sources(image_e, threshold=detection_threshold)
-    x = np.asarray(sources["x"], dtype=float)
-    y = np.asarray(sources["y"], dtype=float)
-    flux = np.asarray(sources["flux_e"], dtype=float)
-    flags = np.asarray(sources["flags"], dtype=np.int64)
-    peaks = smoothed_peaks(image_e, threshold=detection_threshold)
-    if len(peaks) and len(x):
-        distance, _ = cKDTree(np.column_stack([x, y])).query(peaks)
-        peaks = peaks[distance > 2.5]
-    if len(peaks):
-        rows = np.clip(np.rint(peaks[:, 1]).astype(int), 2, image_e.shape[0] - 3)
-        columns = np.clip(np.rint(peaks[:, 0]).astype(int), 2, image_e.shape[1] - 3)
-        boxes = [np.nansum(image_e[row - 2:row + 3, column - 2:column + 3])
-                 for row, column in zip(rows, columns)]
-        x, y = np.r_[x, peaks[:, 0]], np.r_[y, peaks[:, 1]]
-        flux = np.r_[flux, np.maximum(boxes, 1.0)]
-        flags = np.r_[flags, np.full(len(peaks), SourceFlag.BLENDED, dtype=np.int64)]
+    """Every source (`bfpsf.measure.sources.sources_with_companions`: the detections and the
+    companions a merged segment hides, flagged ``BLENDED``) as photutils' initial table.
+    Fitted as one, a close pair gives one star with both fluxes (a dense field: -250 mmag)."""
+    sources = sources_with_companions(image_e, threshold=detection_threshold)
     table = Table()
-    table["x_init"], table["y_init"], table["flux_init"] = x, y, flux
-    table["source_flags"] = flags
+    table["x_init"], table["y_init"] = sources["x"], sources["y"]
+    table["flux_init"], table["source_flags"] = sources["flux_e"], sources["flags"]
     return table
 
 
@@ -65,6 +45,77 @@ def _refit_init(init, result):
             start = np.asarray(result[f"{column}_init"], dtype=float)
         refit[f"{column}_init"] = np.where(np.isfinite(fitted), fitted, start)
     return refit
+
+
+def _model_image(photometry, table, shape, rows=None):
+    """Image of the models of the stars of a result table (all, or ``rows``) with finite
+    fitted parameters, e- (`photutils.datasets.make_model_image`, as photutils'
+    ``make_model_image``)."""
+    from photutils.datasets import make_model_image
+
+    model = photometry.psf_model
+    names = ("x_fit", "y_fit", "flux_fit")
+    values = [np.asarray(table[name], dtype=float) for name in names]
+    keep = np.all(np.isfinite(values), axis=0)
+    if rows is not None:
+        keep &= rows
+    if not keep.any():
+        return np.zeros(shape)
+    params = Table({name: value[keep] for name, value in zip(("x_0", "y_0", "flux"), values)})
+    return make_model_image(shape, model, params, x_name="x_0", y_name="y_0")
+
+
+def _fit_without_neighbours(photometry, psf, data, mask, error, init, previous, rows=None):
+    """photutils' fit of the stars ``rows`` of ``init`` (default all), each group on the data
+    minus the models of every other star from ``previous`` (a result table of the same stars).
+
+    photutils fits each group within its fit boxes and leaves a neighbour outside the group
+    in the pixels: in a dense field a bright neighbour's wings in a faint star's fit box. Here
+    every other star's model is subtracted first. Groups no model of one of which reaches the
+    fit boxes of another are fitted in one photutils call (a greedy colouring of the groups);
+    the others in further calls, each on its own neighbour-subtracted image.
+    """
+    from scipy.spatial import cKDTree
+
+    n_stars = len(previous)
+    rows = np.ones(n_stars, dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
+    start = _refit_init(init, previous)
+    start["id"] = np.asarray(previous["id"], dtype=int)
+    xy = np.column_stack([np.asarray(start["x_init"], float), np.asarray(start["y_init"], float)])
+    groups = np.unique(np.asarray(previous["group_id"]), return_inverse=True)[1].ravel()
+    # a star's model reaches the support's half-width; its fit box the box's half-width
+    box = float(np.max(np.atleast_1d(photometry.fit_shape)))
+    support = getattr(psf, "half_size", None)
+    support = box / 2 if support is None else support + 0.5
+    reach = box / 2 + support + 1.0
+    chosen = np.flatnonzero(rows)
+    pairs = cKDTree(xy[chosen]).query_pairs(reach, output_type="ndarray")
+    n_groups = int(groups.max()) + 1
+    conflicts = [set() for _ in range(n_groups)]
+    for first, second in groups[chosen][pairs] if len(pairs) else ():
+        if first != second:
+            conflicts[first].add(second)
+            conflicts[second].add(first)
+    colour = np.full(n_groups, -1)
+    for group in np.unique(groups[chosen]):
+        taken = {colour[other] for other in conflicts[group]}
+        colour[group] = next(value for value in range(n_groups + 1) if value not in taken)
+    others = _model_image(photometry, previous, data.shape)
+    fits, offset = [], 0
+    for value in range(int(colour.max()) + 1):
+        mine = rows & (colour[groups] == value)
+        if not mine.any():
+            continue
+        image = data - others + _model_image(photometry, previous, data.shape, mine)
+        fit = photometry(image, mask=mask, error=error, init_params=start[mine])
+        fit["group_id"] = np.asarray(fit["group_id"]) + offset
+        offset = int(np.max(fit["group_id"]))
+        fits.append(fit)
+    from astropy.table import vstack
+
+    result = vstack(fits, metadata_conflicts="silent")
+    result.sort("id")
+    return result
 
 
 def _add_stamp(image, stamp, row, column):
@@ -194,7 +245,9 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         Pixel variances of the fit. ``'model'`` (default): a first fit with the variance of
         the pixel values, then the final fit with the variance of the fitted model,
         ``background_e + model + read_noise_e**2`` (at least 1 e-**2), so the weights do not
-        depend on each pixel's own noise. ``'data'``: one fit with the variance of the pixel
+        depend on each pixel's own noise, each group on the data minus the first fit's models
+        of every other star (a neighbour outside the group leaves its wings in the fit box
+        otherwise: +0.82 against +0.43 mmag bright-minus-faint in a dense field). ``'data'``: one fit with the variance of the pixel
         values, ``max(image_e, 0) + read_noise_e**2``; on noisy images this under-estimates
         every flux by about one e- per fitted pixel (a pixel that fluctuates low gets more
         weight, Neyman's chi-square bias): -1.0e-3 (1.1 mmag) for a 3 ke- peak star on a
@@ -290,18 +343,18 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
             # with it): the sky is what is left beyond their total-flux model
             prepared = prepared.with_glow(_glow(psf, result, data.shape))
             sky, data = prepared.sky, prepared.sky_subtracted
-        model = np.clip(photometry.make_model_image(data.shape), 0.0, None)
+        model = np.clip(_model_image(photometry, result, data.shape), 0.0, None)
         variance = np.clip(sky.image(), 0.0, None) + model + read_noise_e**2
         error = np.sqrt(np.maximum(variance, 1.0))
-        result = photometry(data, mask=mask, error=error, init_params=_refit_init(init, result))
+        result = _fit_without_neighbours(photometry, psf, data, mask, error, init, result)
     n_cross = 0
     if cross_terms and bfpsf_model and "group_size" in result.colnames:
         blended = np.asarray(result["group_size"]) > 1
         for _ in range(int(cross_terms) if blended.any() else 0):
             # Refit the blended stars on the data minus their BF on each other.
             cross = _cross_term_image(psf, result, data.shape)
-            refit = photometry(data - cross, mask=mask, error=error,
-                               init_params=_refit_init(init, result)[blended])
+            refit = _fit_without_neighbours(photometry, psf, data - cross, mask, error, init,
+                                            result, blended)
             for name in refit.colnames:
                 if name in result.colnames and name not in ("id", "group_id", "group_size"):
                     result[name][blended] = refit[name]

@@ -19,9 +19,10 @@ star's wings are masked further than a faint one's; a dense field, where that le
 over a field of bright stars they are a glow (8 e- per pixel for 60 Kolmogorov stars of peaks
 3-120 ke- on 300^2 pixels) that a sky between the stars takes for sky. So the sky is fitted
 beyond the stars' total-flux model: ``bfpsf psf`` fits every image's plane jointly with the
-stars' wings beyond P0's support (`bfpsf.measure.total_flux.fit_sky_and_wings`), and the PSF
-product keeps that wing law; photometry fits the plane, then again beyond the glow of its
-fitted stars' wings (``glow_e``), in its model-weighted refit. Fitting the plane to the image
+wings beyond P0's support of every source its P0 fit models, neighbours and blends too
+(`bfpsf.measure.total_flux.fit_sky_and_wings`), and the PSF product keeps that wing law;
+photometry fits the plane, then again beyond the glow of its fitted stars' wings
+(``glow_e``), in its model-weighted refit. Fitting the plane to the image
 minus the stars' models within P0's support alone was tried and rejected: their wings beyond
 the support, left in the pixels the masks no longer cover, biased it more (0.77 e- against
 0.31 e- for 64 bright Moffat stars on a sky of 0, tests/test_gridded.py's field).

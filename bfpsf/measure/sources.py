@@ -20,7 +20,7 @@ from .moments_result import MomentsFlag
 from .shapes import distortion
 
 __all__ = ["SourceFlag", "measure_sources", "isolated_stars", "sky_level", "source_flag_string",
-           "aperture_fraction", "total_flux",
+           "aperture_fraction", "total_flux", "sources_with_companions",
            "STAR_COLUMNS"]
 
 #: columns every star table holds (the ``bfpsf measure`` contract)
@@ -461,9 +461,57 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     return table
 
 
+def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, **kwargs):
+    """Every source of an image: the detections of `measure_sources` and the companions a
+    merged segment hides (peaks of the smoothed image, `smoothed_peaks`, more than 2.5
+    pixels from every detection, flagged ``BLENDED``; their ``flux_e`` the sum of the 5 x 5
+    pixels around the peak). A segment is one detection however many stars it holds.
+
+    Parameters
+    ----------
+    image_e : ndarray [y, x]
+        Sky-subtracted image, e-; non-finite pixels count as 0.
+    threshold : float, optional
+        Detection threshold (`measure_sources`).
+    **kwargs
+        Passed to `measure_sources`.
+
+    Returns
+    -------
+    astropy.table.Table
+        ``x``, ``y``, ``flux_e``, ``flags`` (`SourceFlag`); the detections first, then the
+        companions; ``meta['n_detected']`` the detections.
+    """
+    from astropy.table import Table
+    from scipy.spatial import cKDTree
+
+    image = np.where(np.isfinite(image_e), image_e, 0.0)
+    sources = measure_sources(image, threshold=threshold, **kwargs)
+    x = np.asarray(sources["x"], dtype=float)
+    y = np.asarray(sources["y"], dtype=float)
+    flux = np.asarray(sources["flux_e"], dtype=float)
+    flags = np.asarray(sources["flags"], dtype=np.int64)
+    peaks = smoothed_peaks(image, threshold=threshold)
+    if len(peaks) and len(x):
+        distance, _ = cKDTree(np.column_stack([x, y])).query(peaks)
+        peaks = peaks[distance > 2.5]
+    if len(peaks):
+        rows = np.clip(np.rint(peaks[:, 1]).astype(int), 2, image.shape[0] - 3)
+        columns = np.clip(np.rint(peaks[:, 0]).astype(int), 2, image.shape[1] - 3)
+        boxes = [np.sum(image[row - 2:row + 3, column - 2:column + 3])
+                 for row, column in zip(rows, columns)]
+        x, y = np.r_[x, peaks[:, 0]], np.r_[y, peaks[:, 1]]
+        flux = np.r_[flux, np.maximum(boxes, 1.0)]
+        flags = np.r_[flags, np.full(len(peaks), SourceFlag.BLENDED, dtype=np.int64)]
+    table = Table({"x": x, "y": y, "flux_e": flux, "flags": flags})
+    table.meta["n_detected"] = len(sources)
+    return table
+
+
 def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None):
     """Clean, unsaturated detections isolated within ``size`` pixels: the stars a P0 fit
-    (`bfpsf.model.psf_fit.fit_psf`) takes.
+    (`bfpsf.model.psf_fit.fit_psf`) takes; and every other source (`sources_with_companions`),
+    the neighbours the P0 fit models alongside them.
 
     Parameters
     ----------
@@ -481,14 +529,18 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
     positions : ndarray (N, 2)
         (x, y) of the stars, pixels.
     n_detected : int
-        All detections, flagged ones included.
+        All detections, flagged ones included (companions not counted).
+    others : ndarray (M, 2)
+        (x, y) of every other source: flagged detections and the companions of merged
+        segments.
     """
-    sources = measure_sources(image_e, threshold=threshold, blend_radius=size / 2 + 2,
-                              saturation=saturation_e, stamp_size=size + 6)
+    sources = sources_with_companions(image_e, threshold=threshold,
+                                      blend_radius=size / 2 + 2, saturation=saturation_e,
+                                      stamp_size=size + 6)
+    xy = np.column_stack([np.asarray(sources["x"], dtype=float),
+                          np.asarray(sources["y"], dtype=float)])
     clean = np.asarray(sources["flags"]) == 0
-    positions = np.column_stack([np.asarray(sources["x"], dtype=float)[clean],
-                                 np.asarray(sources["y"], dtype=float)[clean]])
-    return positions, len(sources)
+    return xy[clean], int(sources.meta["n_detected"]), xy[~clean]
 
 
 def _match_colours(table, colour, colour_columns, match_radius):

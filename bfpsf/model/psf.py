@@ -551,10 +551,11 @@ class FluxDependentPSF(BFPSFModel):
             else:
                 base = pixelised_stamp(self)
                 response = self.electrons_per_unit * redistribution_delta(base, self.shifts)
-            # pixels the BF term lowers, that P0 itself holds above -1 % of its peak (a fitted
-            # P0 can be slightly negative in its wings)
+            # pixels the BF term lowers where P0 is positive (a fitted P0 can be slightly
+            # negative in its noisy wings: a pixel at -0.9997 % of the peak, just inside the
+            # margin, with a response of 1e-13 gave a limit of 1e6 e- for a grid node)
             margin = base + 0.01 * base.max()
-            shrinking = (response < 0) & (margin > 0)
+            shrinking = (response < 0) & (base > 0)
             limit = np.inf
             if np.any(shrinking):
                 limit = float(np.min(margin[shrinking] / -response[shrinking]))

@@ -13,11 +13,15 @@ construction of Anderson & King (2000) and photutils' `~photutils.psf.EPSFBuilde
 1. start from the stack of d_i / F_i on the oversampled grid (nearest node, inverse-variance
    weights, grid nodes solved jointly, empty nodes filled from their neighbours);
 2. one weighted Gauss-Newton step of every star's F_i (and, after ``hold_positions``
-   iterations at the flux-weighted centroids, x_i and y_i), with pixel variances from the model
-   (sky and read noise included), not from the noisy data;
+   iterations at the positions given, x_i and y_i) on its cutout minus the models of the
+   other stars and of the neighbours (``neighbours``: blends and other sources, fitted with P0
+   but not used for it), with pixel variances from the model (sky, read noise and the
+   neighbours' light included), not from the noisy data;
 3. add to each P0_k the least-squares solution, in each oversampled pixel, for the normalised
    residuals (d_i - model_i) / F_i predicted after the star step (a K x K system per pixel
-   couples the grid nodes), without its translation, then renormalise;
+   couples the grid nodes), without its translation, then renormalise every sub-pixel phase
+   (`_normalise`: a star's flux and the sum of the sublattice of nodes its phase samples are
+   degenerate);
 4. once P0 has nearly settled, fix the positions (P0's odd part and the positions share a
    weakly constrained direction along which alternating updates creep); stop when the largest
    change of P0 is below ``tolerance`` times its peak; recentre P0 on its centroid and refit
@@ -74,6 +78,9 @@ class PSFFitResult:
     converged : bool
     changes : ndarray
         Largest change of P0 at each iteration, relative to its peak.
+    neighbours : astropy.table.Table
+        One row per neighbour modelled (``neighbours`` of `fit_psf` whose centre is in its
+        image): ``image``, ``x_fit``, ``y_fit``, ``flux_fit`` (e-, with P0), ``flags``.
     """
 
     psf: FluxDependentPSF
@@ -81,6 +88,7 @@ class PSFFitResult:
     iterations: int
     converged: bool
     changes: np.ndarray
+    neighbours: Table = None
 
 
 def _as_star_list(images, positions):
@@ -106,26 +114,60 @@ class _Stars:
 
     Attributes: ``data`` (N, n, n) e-; ``column``, ``row`` (N,) pixel of the cutout's first
     column / row; ``floor`` (N,) variance floor, e-**2; ``flux``, ``x_0``, ``y_0`` (N,) the
-    current estimates (first: sum and flux-weighted centroid); ``flags`` (N,) `STAR_FLAGS`.
+    current estimates (first: the cutout's sum and the positions given); ``flags`` (N,)
+    `STAR_FLAGS`; ``image`` (N,) image of each; ``valid`` (N, n, n) pixels inside the image;
+    ``p0`` (N,) True for the stars P0 is fitted to, False for the neighbours (modelled only).
     """
 
-    def __init__(self, data, column, row, floor, x_0, y_0):
+    def __init__(self, data, column, row, floor, x_0, y_0, image, valid, p0):
         self.data, self.column, self.row, self.floor = data, column, row, floor
-        positive = np.clip(data, 0.0, None)
+        self.image, self.valid, self.p0 = image, valid, p0
         self.flux = data.sum(axis=(1, 2))
-        size = data.shape[1]
-        total = positive.sum(axis=(1, 2))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            self.x_0 = np.where(total > 0, column + (positive.sum(axis=1) @ np.arange(size))
-                                / total, x_0)
-            self.y_0 = np.where(total > 0, row + (positive.sum(axis=2) @ np.arange(size))
-                                / total, y_0)
+        # the positions given (a centroid of the whole cutout would be pulled towards a
+        # neighbour's light; one of its central pixels towards the pixel centre, a bias of
+        # the held positions that made the grid fit diverge)
+        self.x_0, self.y_0 = np.array(x_0, dtype=float), np.array(y_0, dtype=float)
         self.flags = np.zeros(len(data), dtype=int)
         self.x_start, self.y_start = self.x_0.copy(), self.y_0.copy()
 
+    def others(self, model, shapes):
+        """Per star, the light of every other star's model in its cutout, e-: the
+        neighbours subtracted from each cutout."""
+        size = model.shape[1]
+        own = np.where(self.valid, model, 0.0)
+        canvases = [np.zeros((ny + 2 * size, nx + 2 * size)) for ny, nx in shapes]
+        rows = self.row.astype(int) + size
+        columns = self.column.astype(int) + size
+        for star in range(len(model)):
+            canvases[self.image[star]][rows[star]:rows[star] + size,
+                                       columns[star]:columns[star] + size] += own[star]
+        return np.array([canvases[self.image[star]][rows[star]:rows[star] + size,
+                                                    columns[star]:columns[star] + size]
+                         for star in range(len(model))]) - own
 
-def _cut_stars(images, positions, half, floors):
-    """Flags of every star (bits 1, 2, 4 of `STAR_FLAGS`), its image, and the usable ones."""
+
+def _cut_neighbours(images, neighbours, half):
+    """Cutouts of the neighbours (centres inside their image): image index, cutout (0 beyond
+    the image), valid pixels, corner (column, row) and centre (x, y) of each."""
+    found = ([], [], [], [], [])
+    for index, (image, xy) in enumerate(zip(images, neighbours)):
+        ny, nx = image.shape
+        padded = np.pad(image, half, constant_values=np.nan)
+        for x_0, y_0 in np.atleast_2d(np.asarray(xy, dtype=float)).reshape(-1, 2):
+            column, row = int(np.rint(x_0)), int(np.rint(y_0))
+            if not (0 <= column < nx and 0 <= row < ny):
+                continue
+            cutout = padded[row:row + 2 * half + 1, column:column + 2 * half + 1]
+            valid = np.isfinite(cutout)
+            for values, value in zip(found, (index, np.where(valid, cutout, 0.0), valid,
+                                             (column - half, row - half), (x_0, y_0))):
+                values.append(value)
+    return found
+
+
+def _cut_stars(images, positions, half, floors, neighbours=None):
+    """Flags of every star (bits 1, 2, 4 of `STAR_FLAGS`), its image, and the usable ones
+    followed by the neighbours (``p0`` False)."""
     flags, image_index, cutouts, corners, star_floors, centres = [], [], [], [], [], []
     for index, (image, xy) in enumerate(zip(images, positions)):
         ny, nx = image.shape
@@ -151,12 +193,26 @@ def _cut_stars(images, positions, half, floors):
             star_floors.append(floors[index])
             centres.append((x_0, y_0))
     flags = np.array(flags, dtype=int)
+    image_index = np.array(image_index, dtype=int)
     if not cutouts:
-        return flags, np.array(image_index, dtype=int), None
+        return flags, image_index, None
+    n_stars = len(cutouts)
+    images_of = list(image_index[flags == 0])
+    valid = [np.ones_like(cutout, dtype=bool) for cutout in cutouts]
+    if neighbours is not None:
+        index, cut, inside, corner, centre = _cut_neighbours(images, neighbours, half)
+        images_of += index
+        cutouts += cut
+        valid += inside
+        corners += corner
+        centres += centre
+        star_floors += [floors[one] for one in index]
     corners, centres = np.array(corners, dtype=float), np.array(centres, dtype=float)
     stars = _Stars(np.array(cutouts, dtype=float), corners[:, 0], corners[:, 1],
-                   np.array(star_floors, dtype=float), centres[:, 0], centres[:, 1])
-    return flags, np.array(image_index, dtype=int), stars
+                   np.array(star_floors, dtype=float), centres[:, 0], centres[:, 1],
+                   np.array(images_of, dtype=int), np.array(valid),
+                   np.arange(len(cutouts)) < n_stars)
+    return flags, image_index, stars
 
 def _fill_empty(stack, weight):
     """Fill nodes without samples by normalised Gaussian interpolation from their neighbours."""
@@ -177,7 +233,17 @@ def _fill_empty(stack, weight):
 
 
 def _normalise(data, oversampling, where=None):
-    """P0 scaled to unit total flux; ``where`` names the grid node in the error."""
+    """P0 normalised to unit flux in every sub-pixel phase: each of the ``oy * ox`` sublattices
+    of the oversampled grid (the nodes a star at one phase samples) sums to 1. ``where``
+    names the grid node in the error.
+
+    A star's flux and the sum of the sublattice its pixels sample are degenerate (a star at
+    phase 0 sees the even nodes, one at phase 1/2 the odd ones): left free, the sublattices
+    drift apart, each star's flux compensating, and P0 holds a checkerboard whose flux
+    depends on the phase (0.68-1.47 in a dense field of blends, fluxes 40 % off). A
+    well-sampled PSF has equal sublattice sums (its transform vanishes at the pixel
+    frequency), so each is scaled to 1.
+    """
     oy, ox = oversampling
     total = data.sum()
     if not total > 0:
@@ -187,7 +253,13 @@ def _normalise(data, oversampling, where=None):
             msg = (f"P0 at grid node {where} has non-positive total {total:.3g}: too few "
                    "stars there for the grid; use fewer grid nodes or more images")
         raise BFPSFInputError(msg, total)
-    return data * (oy * ox / total)
+    data = data * (oy * ox / total)
+    sums = np.array([[data[a::oy, b::ox].sum() for b in range(ox)] for a in range(oy)])
+    if np.all(sums > 0):
+        for a in range(oy):
+            for b in range(ox):
+                data[a::oy, b::ox] /= sums[a, b]
+    return data
 
 
 def _normalise_nodes(data, oversampling, x_nodes, y_nodes, dense_weights):
@@ -346,12 +418,13 @@ def _with_empirical(term, model, d_flux, stars):
     return out, derivative
 
 
-def _gauss_newton(stars, model, jacobian, variance, usable):
-    """One weighted Gauss-Newton step of every star's (F[, x_0, y_0]); returns the residuals
-    predicted after the step and flags bit 8 where the step fails."""
+def _gauss_newton(stars, data, model, jacobian, variance, usable):
+    """One weighted Gauss-Newton step of every star's (F[, x_0, y_0]) on its cutout ``data``
+    (the neighbours subtracted); returns the residuals predicted after the step and flags
+    bit 8 where the step fails."""
     n_stars, n_params = jacobian.shape[:2]
     jac = jacobian.reshape(n_stars, n_params, -1)
-    residual = (stars.data - model).reshape(n_stars, -1)
+    residual = (data - model).reshape(n_stars, -1)
     weighted = jac / variance.reshape(n_stars, 1, -1)
     normal = weighted @ np.swapaxes(jac, 1, 2)
     gradient = np.einsum("ipq,iq->ip", weighted, residual)
@@ -375,7 +448,7 @@ def _gauss_newton(stars, model, jacobian, variance, usable):
     stars.flux[ok] = flux[ok]
     step[~ok] = 0.0
     stars.flags[failed] |= 8
-    return (residual - np.einsum("ip,ipq->iq", step, jac)).reshape(stars.data.shape)
+    return (residual - np.einsum("ip,ipq->iq", step, jac)).reshape(data.shape)
 
 
 def _node_solution(values, sample_weights, dense_weights, xs, ys, n_data):
@@ -460,7 +533,7 @@ def _recentred(data, oversampling):
 def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, read_noise=0.0,
             sky_e=0.0, include_bf=True, grid=None, initial=None, hold_positions=5,
             damping=1.0, max_iterations=40, tolerance=3e-4, strict=False, progress=False,
-            **psf_kwargs):
+            neighbours=None, **psf_kwargs):
     """Fit the base PSF P0 of `FluxDependentPSF` from isolated stars of all fluxes, on one
     node or on a grid of nodes over the image (`GriddedFluxDependentPSF`).
 
@@ -470,7 +543,9 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         Background-subtracted images in electrons (all of one shape when ``grid`` is given:
         the grid covers the image).
     positions : (N, 2) array_like of (x, y), or a sequence of them (one per image)
-        Approximate star centres, pixels. Stars must be isolated within ``size`` pixels.
+        Star centres, pixels (held for the first ``hold_positions`` iterations: give
+        centroids, e.g. `bfpsf.measure.sources.isolated_stars`). Another source within
+        ``size`` pixels is to be given in ``neighbours``.
     shifts : BoundaryShifts or Calibration, or a sequence of them (one per image)
         Boundary shifts a^X, 1/e- (G15 eq. def-a). With one per image (e.g. the amplifiers of
         a detector, each an image with its own calibration), each star's BF term uses the
@@ -505,8 +580,8 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         ``(size * oversampling + 1,)*2`` for even oversampling, ``size * oversampling``
         squared for odd); default the stack of the stars.
     hold_positions : int, optional
-        Iterations during which the star positions stay at their flux-weighted centroids
-        (only fluxes are refitted). Default 5.
+        Iterations during which the star positions stay at the positions given (only fluxes
+        are refitted). Default 5.
     damping : float, optional
         Fraction of the binned residual added to P0 at each iteration (0 < damping <= 1).
         Default 1.
@@ -520,6 +595,11 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         ``converged``. Default False.
     progress : bool or None, optional
         Show a tqdm progress bar of the iterations (None: only on a terminal). Default False.
+    neighbours : (M, 2) array_like of (x, y), or a sequence of them (one per image), optional
+        Other sources of the images (blends, stars too close to another): each is fitted with
+        P0 (flux and position) alongside the stars and its model subtracted from every
+        cutout it reaches, its light counted in the pixel variances, but it is not used for
+        P0. The stars' models are subtracted from each other's cutouts too. Default None.
     **psf_kwargs
         Passed to `FluxDependentPSF`; the images are in e-, so ``flux_unit`` must be
         'electron' (``gain`` is then only recorded). In ``mode='table'`` (default) every
@@ -565,10 +645,12 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     check_psf_fit(sum(len(xy) for xy in positions), size, over,
                   None if grid is None else (x_nodes.size, y_nodes.size), max_iterations)
     half = size // 2 + 1  # cutouts one pixel wider than P0: every node gets samples
+    if neighbours is not None:
+        neighbours = _as_star_list(images, neighbours)[1]
     flags, image_index, stars = _cut_stars(images, positions, half,
-                                           read_noise**2 + skies + 1.0)
-    if stars is None or len(stars.data) < 3:
-        n_usable = 0 if stars is None else len(stars.data)
+                                           read_noise**2 + skies + 1.0, neighbours)
+    if stars is None or np.sum(stars.p0) < 3:
+        n_usable = 0 if stars is None else int(np.sum(stars.p0))
         msg = f"need at least 3 usable stars to fit a PSF, got {n_usable} of {len(flags)}"
         raise BFPSFInputError(msg, n_usable)
     shift_sets, image_set = _shift_sets(shifts, len(images))
@@ -576,7 +658,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         shift_sets = [shift_sets[0].scaled(0.0)]
         image_set = np.zeros(len(images), dtype=int)
         psf_kwargs.pop("empirical", None)
-    star_set = image_set[image_index[flags == 0]]
+    star_set = image_set[stars.image]
     node_indices, node_weights = bilinear_weights(stars.x_0, stars.y_0, x_nodes, y_nodes)
     dense_weights = _dense_weights(node_indices, node_weights, n_nodes)
 
@@ -584,14 +666,15 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     shape = (npix, npix)
     cardinal = _cardinal_splines(npix)
     origin = ((npix - 1) / 2.0,) * 2
-    usable = np.ones(len(stars.data), dtype=bool)
+    shapes = [image.shape for image in images]
     if initial is None:
         xs = _Sampling(stars.column, stars.x_0, 2 * half + 1, over, origin[0], cardinal)
         ys = _Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
         flux = stars.flux[:, None, None]
         variance = np.clip(stars.data, 0.0, None) + stars.floor[:, None, None]
-        data = _node_solution(stars.data / flux, flux**2 / variance, dense_weights, xs, ys,
-                              npix)
+        data = _node_solution(stars.data / flux, np.where(stars.p0[:, None, None],
+                                                          flux**2 / variance, 0.0),
+                              dense_weights, xs, ys, npix)
     else:
         data = np.asarray(initial, dtype=float)
         if data.shape[-2:] != shape or data.size != n_nodes * npix * npix:
@@ -610,7 +693,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                                                       None if progress is None else True),
                desc="P0 fit", unit="it", leave=False)
     for iteration in bar:
-        # Hold the centroids while P0 is far from converged: free positions would absorb a
+        # Hold the positions while P0 is far from converged: free positions would absorb a
         # phase-dependent distortion of the first stack (bright stars at different phases
         # carry different BF), a near-degeneracy the iteration would not leave.
         # Then free them until P0 has nearly settled, and finish with them fixed: P0 and the
@@ -618,18 +701,17 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         # star's centre) along which alternating updates creep; with the positions fixed the
         # remaining problem is linear in P0 and the fluxes and converges in a few steps.
         free_positions = iteration > hold_positions and not positions_settled
-        stars.flags[:] = 0
-        model, jacobian, xs, ys = _star_models(fitted, dense_weights, stars, free_positions)
-        variance = np.clip(model, 0.0, None) + stars.floor[:, None, None]
-        chi2 = float(np.nansum(((stars.data - model)**2 / variance)[usable]))
+        model, residual, variance, xs, ys, chi2 = _fit_step(fitted, dense_weights, stars,
+                                                            free_positions, shapes)
         if best is None or chi2 < best[0]:
             best = (chi2, fitted, stars.flux.copy(), stars.x_0.copy(), stars.y_0.copy())
-        residual = _gauss_newton(stars, model, jacobian, variance, usable)
         # Nodes and samples follow the stars' new positions.
         xs = _Sampling(stars.column, stars.x_0, 2 * half + 1, over, origin[0], cardinal)
         ys = _Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
         flux = stars.flux[:, None, None]
-        weight = np.where((stars.flags & 8)[:, None, None] == 0, flux**2 / variance, 0.0)
+        # the neighbours are modelled, not used for P0
+        weight = np.where(((stars.flags & 8) == 0)[:, None, None] & stars.p0[:, None, None],
+                          flux**2 / variance, 0.0)
         update = _node_solution(residual / flux, weight, dense_weights, xs, ys, npix)
         new_data = _normalise_nodes(
             [node + damping * _without_translation(step, node)
@@ -661,13 +743,11 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                    y_nodes, shift_sets, star_set, over, psf_kwargs)
     fitted.cardinal = cardinal
     for _ in range(3):  # final positions and fluxes with the final P0
-        stars.flags[:] = 0
-        model, jacobian, _, _ = _star_models(fitted, dense_weights, stars, True)
-        variance = np.clip(model, 0.0, None) + stars.floor[:, None, None]
-        _gauss_newton(stars, model, jacobian, variance, usable)
+        variance = _fit_step(fitted, dense_weights, stars, True, shapes)[2]
     if len(shift_sets) > 1:  # the model carries the mean of the stars' shifts
         fitted = _Grid(fitted.data, x_nodes, y_nodes,
-                       [_mean_shifts(shift_sets, star_set[(stars.flags & 8) == 0])],
+                       [_mean_shifts(shift_sets,
+                                     star_set[((stars.flags & 8) == 0) & stars.p0])],
                        np.zeros_like(star_set), over, psf_kwargs)
     psf = (fitted.nodes[0] if grid is None
            else GriddedFluxDependentPSF(fitted.nodes, x_nodes, y_nodes))
@@ -678,7 +758,8 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                "fits failed): check the sky level and the star list")
         raise BFPSFInputError(msg, n_kept)
     return PSFFitResult(psf=psf, stars=table,
-                        iterations=len(changes), converged=converged, changes=np.array(changes))
+                        iterations=len(changes), converged=converged, changes=np.array(changes),
+                        neighbours=_neighbour_table(stars))
 
 
 def _shift_sets(shifts, n_images):
@@ -728,18 +809,48 @@ def _grid_nodes(grid, images):
     return grid_node_positions(int(grid[0]), nx), grid_node_positions(int(grid[1]), ny)
 
 
+def _fit_step(fitted, dense_weights, stars, free_positions, shapes):
+    """Every star's model and one Gauss-Newton step on its cutout minus its neighbours'
+    models: (model, residual predicted after the step, pixel variance, xs, ys, chi-square of
+    the P0 stars before the step)."""
+    stars.flags[:] = 0
+    model, jacobian, xs, ys = _star_models(fitted, dense_weights, stars, free_positions)
+    others = stars.others(model, shapes)
+    # the neighbours' light is noise in every cutout; pixels beyond the image weigh nothing
+    variance = np.where(stars.valid, np.clip(model + others, 0.0, None)
+                        + stars.floor[:, None, None], np.inf)
+    chi2 = float(np.nansum(((stars.data - others - model)**2 / variance)[stars.p0]))
+    residual = _gauss_newton(stars, stars.data - others, model, jacobian, variance,
+                             np.ones(len(model), dtype=bool))
+    return model, residual, variance, xs, ys, chi2
+
+
+def _neighbour_table(stars):
+    """One row per neighbour the fit modelled (see `PSFFitResult`)."""
+    mine = ~stars.p0
+    table = Table()
+    table["image"] = stars.image[mine]
+    for name, values in (("x_fit", stars.x_0), ("y_fit", stars.y_0), ("flux_fit", stars.flux)):
+        table[name] = values[mine]
+    table["flux_fit"].unit = "electron"
+    table["flags"] = stars.flags[mine]
+    return table
+
+
 def _star_table(flags, image_index, positions, stars, variance):
     """One row per input star (see `PSFFitResult`)."""
     used = np.flatnonzero(flags == 0)
     flags = flags.copy()
-    flags[used] |= stars.flags
-    share = np.where(stars.flags & 8, 0.0, stars.flux**2 / variance.mean(axis=(1, 2)))
+    mine = stars.p0
+    flags[used] |= stars.flags[mine]
+    share = np.where(stars.flags[mine] & 8, 0.0,
+                     stars.flux[mine]**2 / variance[mine].mean(axis=(1, 2)))
     table = Table()
     table["image"] = image_index
     table["x_init"] = np.concatenate([np.asarray(xy)[:, 0] for xy in positions if xy.size])
     table["y_init"] = np.concatenate([np.asarray(xy)[:, 1] for xy in positions if xy.size])
-    for name, values in (("x_fit", stars.x_0), ("y_fit", stars.y_0),
-                         ("flux_fit", stars.flux), ("weight", share / share.sum())):
+    for name, values in (("x_fit", stars.x_0[mine]), ("y_fit", stars.y_0[mine]),
+                         ("flux_fit", stars.flux[mine]), ("weight", share / share.sum())):
         column = np.full(len(flags), np.nan if name != "weight" else 0.0)
         column[used] = values
         table[name] = column

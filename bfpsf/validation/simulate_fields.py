@@ -2,8 +2,8 @@
 exposure, sparse or dense, and every electron of every star counted.
 
 `simulate_field` draws stars of a GalSim profile (a Moffat, or a Kolmogorov atmosphere
-convolved with an optical PSF: wings unlike a Moffat's) on a large stamp each (64 pixels: the
-light beyond a PSF model's support is drawn too), through a GalSim `SiliconSensor` (photon
+convolved with an optical PSF: wings unlike a Moffat's) on a large stamp each (64 pixels by
+default: the light beyond a PSF model's support is drawn too; ``stamp`` for wider wings), through a GalSim `SiliconSensor` (photon
 shooting, the brighter-fatter truth) or with bfpsf's own redistribution of given boundary
 shifts, and adds a sky plane with Poisson noise and read noise. The truth table holds each
 star's total charge as simulated (``flux_e``: the sum of its stamp, before the sky).
@@ -17,7 +17,7 @@ from ..errors import BFPSFValueError
 
 __all__ = ["SimulatedField", "simulate_field", "kolmogorov_optical"]
 
-#: Side of the stamp each star is drawn on, pixels.
+#: Default side of the stamp each star is drawn on, pixels (``simulate_field(stamp=...)``).
 STAMP = 64
 
 
@@ -60,7 +60,7 @@ class SimulatedField:
 
 def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
                    peak_range_e=(3e3, 1.2e5), min_separation=30.0, sky_range_e=(20.0, 610.0),
-                   sensor="lsst_e2v_50_8", shifts=None, read_noise_e=5.0, seed=0):
+                   sensor="lsst_e2v_50_8", shifts=None, read_noise_e=5.0, seed=0, stamp=STAMP):
     """Star fields of one profile, each image with its own sloped sky.
 
     Parameters
@@ -91,6 +91,13 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
     read_noise_e : float, optional
         Default 5 e-.
     seed : int, optional
+    stamp : int, optional
+        Side of the square each star is drawn on, pixels (default `STAMP`, 64). The light
+        beyond it is not drawn, and the truth's ``flux_e`` is what is drawn: a profile with
+        wide wings loses it (a Kolmogorov atmosphere with an optical PSF, 0.8 % of its flux
+        beyond 32 pixels), and a sky fitted with a model of the whole wings comes out low
+        there. Give a larger stamp for such profiles (photon shooting through a sensor is
+        slower on a larger stamp).
 
     Returns
     -------
@@ -119,18 +126,18 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
         fluxes = []
         for (x, y), peak in zip(xy, peaks):
             column, row = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
-            stamp = galsim.ImageD(galsim.BoundsI(column - STAMP // 2, column + STAMP // 2,
-                                                 row - STAMP // 2, row + STAMP // 2), scale=1.0)
+            box = galsim.ImageD(galsim.BoundsI(column - stamp // 2, column + stamp // 2,
+                                               row - stamp // 2, row + stamp // 2), scale=1.0)
             star_profile = profile_at(x, y)
             star = star_profile.withFlux(float(peak / peak_fraction(star_profile)))
             if sensor_object is None:
-                star.drawImage(stamp, center=galsim.PositionD(x, y))
+                star.drawImage(box, center=galsim.PositionD(x, y))
             else:
-                star.drawImage(stamp, center=galsim.PositionD(x, y), method="phot",
+                star.drawImage(box, center=galsim.PositionD(x, y), method="phot",
                                sensor=sensor_object, rng=galsim_rng, poisson_flux=False)
-            overlap = stamp.bounds & image.bounds
-            fluxes.append(float(stamp[overlap].array.sum()))
-            image[overlap] += stamp[overlap]
+            overlap = box.bounds & image.bounds
+            fluxes.append(float(box[overlap].array.sum()))
+            image[overlap] += box[overlap]
         array = image.array.copy()
         if sensor_object is None:
             if shifts is not None:
@@ -148,7 +155,7 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
         truths.append(Table({"x": xy[:, 0], "y": xy[:, 1], "flux_e": np.array(fluxes),
                              "peak_e": peaks}))
         skies.append(sky)
-    parameters = dict(n_images=n_images, shape=(ny, nx), n_stars=n_stars,
+    parameters = dict(n_images=n_images, shape=(ny, nx), n_stars=n_stars, stamp=int(stamp),
                       peak_range_e=tuple(peak_range_e), min_separation=min_separation,
                       sky_range_e=tuple(sky_range_e), sensor=sensor, seed=seed,
                       read_noise_e=read_noise_e)
