@@ -253,6 +253,16 @@ def test_amplifier_sections_overlapping_or_outside(workdir, capsys, sections, me
     assert snapshot(workdir) == before
 
 
+def test_an_amplifier_selected_twice_is_refused(workdir, capsys):
+    """`--amp A1 --amp A1` measured every star twice."""
+    _amplifier_file("two.fits", DATASEC="[1:10,1:20]", DETSEC="[1:10,1:20]")
+    before = snapshot(workdir)
+    assert run(capsys, "measure", "two.fits", "--gain", "1", "--amp", "A1", "--amp", "A1",
+               "-o", "m.ecsv") == (
+        1, "bfpsf measure: error: two.fits: amplifier 'A1' selected more than once (--amp)\n")
+    assert snapshot(workdir) == before
+
+
 @pytest.mark.parametrize("argv, message", [
     (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--max-iterations", "0"],
      "argument --max-iterations: expected a positive integer, got '0'"),

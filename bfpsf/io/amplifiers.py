@@ -264,6 +264,10 @@ def _select(path, layouts, amps):
     if amps is None:
         return layouts
     amps = [amps] if isinstance(amps, str) else list(amps)
+    repeated = sorted({name for name in amps if amps.count(name) > 1})
+    if repeated:  # its stars or pairs would be counted twice
+        msg = f"{path}: amplifier {', '.join(map(repr, repeated))} selected more than once (--amp)"
+        raise BFPSFInputError(msg, repeated)
     by_name = {layout.name: layout for layout in layouts}
     missing = [name for name in amps if name not in by_name]
     if missing:
