@@ -48,6 +48,10 @@ def add_parser(subparsers):
     data.add_argument("--background", type=background_option, default=None, metavar="ADU",
                       help="sky level of the images, ADU per pixel (0 for sky-subtracted "
                            "images); default the sigma-clipped median of each image")
+    data.add_argument("--saturation", type=float, default=None, metavar="ADU",
+                      help="saturation level of the images, ADU: saturated stars are not used "
+                           "(default the header's SATURATE or a variant; the calibration's "
+                           "linearity turnoff where lower)")
     data.add_argument("--maxlag", type=maxlag_option, default="auto", metavar="auto|N",
                       help="calibration lags: 'auto' (default, as bfpsf calibrate) or an "
                            "integer")
@@ -108,7 +112,7 @@ def _observables(args):
                                                 fit_b=args.fit_b, amp=args.amp,
                                                 holdout_fraction=args.holdout_fraction,
                                                 background=args.background,
-                                                progress=None,
+                                                saturation=args.saturation, progress=None,
                                                 position_bins=args.position_bins)
     msg = ("give --flats and --images, or --correlations and --sizes, or --measured NAME")
     raise BFPSFInputError(msg)

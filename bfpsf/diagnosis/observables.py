@@ -567,7 +567,7 @@ def interleaved(n, fraction):
 def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=10, gain=None,
                             calibration=None, fit_b=True, amp=None, holdout_fraction=0.5,
                             n_monte_carlo=30, background=None, progress=False,
-                            position_bins=1):
+                            position_bins=1, saturation=None):
     """Observables from flat-field FITS and spot / star images (ADU, bias subtracted).
 
     The flats are calibrated (`bfpsf.calibrate`, with ``n_monte_carlo`` bootstrap samples of
@@ -577,7 +577,10 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     `bfpsf.calibrate` (False for a few small flats, whose b term is unconstrained). The loop
     works on one amplifier: ``amp`` names it in multi-amplifier files (flats and images are
     read by `bfpsf.io.amplifiers`). ``background`` is the images' sky level, ADU per pixel
-    (default: the sigma-clipped median of each image). ``position_bins`` > 1 also splits
+    (default: the sigma-clipped median of each image). ``saturation`` is the images'
+    saturation level, ADU (default the header's SATURATE or a variant; the calibration's
+    turnoff where lower): saturated stars are flagged and not used. ``position_bins`` > 1
+    also splits
     the bins by the stars' column (`_binned_sizes`): the residual's dependence on the distance
     from the amplifier, each row then carrying its stars' mean column (``x_detector``). Every
     row carries the stars' mean skewness (`bfpsf.diagnosis.odd_moments.star_skewness`), the
@@ -633,7 +636,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
             None if background is None else float(background) * gain))
         data = prepared.image_e
         # saturated spots (header SATURATE, calibration turnoff) are flagged, not used
-        level = saturation_e(amplifiers[0], gain, None, cal)
+        level = saturation_e(amplifiers[0], gain, saturation, cal)
         table = measure_sources(data, saturation=level)
         # the P0 fit below works on the sky-subtracted pixels: the level under the highest sky
         levels.append(None if level is None else level - float(prepared.sky.image().max()))
