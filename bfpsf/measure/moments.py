@@ -302,7 +302,8 @@ def adaptive_moments_batch(stamps, *, guess_sigma=None, centroid=None, weight=No
             raise BFPSFInputError(msg, weight)
         pixel_weight = np.broadcast_to(pixel_weight, stack.shape)
         usable = usable & (pixel_weight > 0)
-        image = np.where(usable, stack * np.where(usable, pixel_weight, 0.0), 0.0)
+        with np.errstate(invalid="ignore"):  # inf * 0 where unusable: not used
+            image = np.where(usable, stack * np.where(usable, pixel_weight, 0.0), 0.0)
     else:
         image = np.where(usable, stack, 0.0)
     flags = flags | np.where(usable.sum(axis=(1, 2)) < _MIN_PIXELS, MomentsFlag.TOO_FEW_PIXELS, 0)

@@ -151,7 +151,10 @@ def source_mask(image_e, *, threshold=2.0, reach=3.0, grow=2, smoothing_fwhm=3.0
 
     image = np.asarray(image_e, dtype=float)
     bad = ~np.isfinite(image)
-    filled = np.where(bad, np.nanmedian(image), image)
+    if bad.all():
+        msg = "the image has no finite pixel"
+        raise BFPSFInputError(msg, image.shape)
+    filled = np.where(bad, np.median(image[~bad]), image)
     smoothed = ndimage.gaussian_filter(filled, smoothing_fwhm / 2.3548, mode="nearest")
     _, level, rms = sigma_clipped_stats(smoothed[~bad], sigma=3.0, maxiters=5)
     # a rough sky that follows a gradient: a wide median of the smoothed image
@@ -231,7 +234,7 @@ def estimate_sky(image_e, *, glow_e=None, mask=None, degree=1, clip_nsigma=3.0,
         free = np.isfinite(image)  # nearly every pixel is a star: fit what there is
         rows, columns = np.nonzero(free)
         if rows.size == 0:
-            msg = "image has no finite pixel: no sky"
+            msg = "the image has no finite pixel"
             raise BFPSFInputError(msg, image.shape)
     step = max(1, rows.size // _MAX_FIT_PIXELS)
     rows, columns = rows[::step], columns[::step]
