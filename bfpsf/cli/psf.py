@@ -202,7 +202,9 @@ def run(args):
         print(f"WARNING: P0 did not converge in {result.iterations} iterations (last change "
               f"{result.changes[-1]:.3g} of the peak): raise --max-iterations or check the "
               "stars", file=sys.stderr)
-    print(f"P0 from {summary['n_used']} of {summary['n_stars']} stars in "
+    n_detected = sum(entry["n_detected"] for entry in per_image)
+    print(f"P0 from {summary['n_used']} of {summary['n_stars']} isolated stars ({n_detected} "
+          f"sources detected; the others blended, near an edge or with bad pixels) in "
           f"{len(args.images)} image(s), {result.iterations} iterations "
           f"({'converged' if result.converged else 'NOT converged'}); "
           f"{summary['n_saturated']} saturated stars left out; "
