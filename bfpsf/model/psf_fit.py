@@ -20,7 +20,7 @@ construction of Anderson & King (2000) and photutils' `~photutils.psf.EPSFBuilde
 3. add to each P0_k the least-squares solution, in each oversampled pixel, for the normalised
    residuals (d_i - model_i) / F_i predicted after the star step (a K x K system per pixel
    couples the grid nodes), without its translation, then renormalise every sub-pixel phase
-   (`_normalise`: a star's flux and the sum of the sublattice of nodes its phase samples are
+   (`normalise`: a star's flux and the sum of the sublattice of nodes its phase samples are
    degenerate);
 4. once P0 has nearly settled, fix the positions (P0's odd part and the positions share a
    weakly constrained direction along which alternating updates creep); stop when the largest
@@ -38,28 +38,21 @@ all stars at once: 3600 stars and a 3 x 3 grid take about a minute on one core
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.ndimage
 from astropy.table import Table
-from scipy.interpolate import make_interp_spline
 
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
 from ..resources import check_psf_fit
 from ..shifts import BoundaryShifts, as_shifts
 from .gridded import GriddedFluxDependentPSF, bilinear_weights, grid_node_positions
 from .psf import FluxDependentPSF
+from .psf_fit_grid import (Grid, Sampling, cardinal_splines, dense_weights_of, node_solution,
+                           normalise_nodes, project, recentred, without_translation)
+from .psf_fit_stars import STAR_FLAGS, as_star_list, cut_stars, neighbour_table, star_table
 
 __all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS", "DEFAULT_SIZE"]
 
 #: Default side of P0's support and of the star cutouts, pixels (``bfpsf psf --size``).
 DEFAULT_SIZE = 25
-
-#: Per-star flags of `fit_psf` (bit values).
-STAR_FLAGS = {
-    1: "cutout outside the image (star not used)",
-    2: "non-finite pixel in the cutout (star not used)",
-    4: "non-positive flux estimate (star not used)",
-    8: "position fit failed or moved more than 1 pixel (star not used in the last iteration)",
-}
 
 
 @dataclass(frozen=True)
@@ -91,262 +84,6 @@ class PSFFitResult:
     neighbours: Table = None
 
 
-def _as_star_list(images, positions):
-    if isinstance(images, np.ndarray) and images.ndim == 2:
-        images, positions = [images], [positions]
-    images = [np.asarray(image, dtype=float) for image in images]
-    positions = [np.atleast_2d(np.asarray(xy, dtype=float)) for xy in positions]
-    if len(images) != len(positions):
-        msg = f"got {len(images)} images but {len(positions)} position lists"
-        raise BFPSFInputError(msg, len(positions))
-    for index, (image, xy) in enumerate(zip(images, positions)):
-        if image.ndim != 2:
-            msg = f"image {index} must be 2-D [y, x], got shape {image.shape}"
-            raise BFPSFInputError(msg, image.shape)
-        if xy.size and (xy.ndim != 2 or xy.shape[1] != 2):
-            msg = f"positions of image {index} must be an (N, 2) array of (x, y), got {xy.shape}"
-            raise BFPSFInputError(msg, xy.shape)
-    return images, positions
-
-
-class _Stars:
-    """Cutouts of the usable stars, stacked for vectorised fitting.
-
-    Attributes: ``data`` (N, n, n) e-; ``column``, ``row`` (N,) pixel of the cutout's first
-    column / row; ``floor`` (N,) variance floor, e-**2; ``flux``, ``x_0``, ``y_0`` (N,) the
-    current estimates (first: the cutout's sum and the positions given); ``flags`` (N,)
-    `STAR_FLAGS`; ``image`` (N,) image of each; ``valid`` (N, n, n) pixels inside the image;
-    ``p0`` (N,) True for the stars P0 is fitted to, False for the neighbours (modelled only).
-    """
-
-    def __init__(self, data, column, row, floor, x_0, y_0, image, valid, p0):
-        self.data, self.column, self.row, self.floor = data, column, row, floor
-        self.image, self.valid, self.p0 = image, valid, p0
-        self.flux = data.sum(axis=(1, 2))
-        # the positions given (a centroid of the whole cutout would be pulled towards a
-        # neighbour's light; one of its central pixels towards the pixel centre, a bias of
-        # the held positions that made the grid fit diverge)
-        self.x_0, self.y_0 = np.array(x_0, dtype=float), np.array(y_0, dtype=float)
-        self.flags = np.zeros(len(data), dtype=int)
-        self.x_start, self.y_start = self.x_0.copy(), self.y_0.copy()
-
-    def others(self, model, shapes):
-        """Per star, the light of every other star's model in its cutout, e-: the
-        neighbours subtracted from each cutout."""
-        size = model.shape[1]
-        own = np.where(self.valid, model, 0.0)
-        canvases = [np.zeros((ny + 2 * size, nx + 2 * size)) for ny, nx in shapes]
-        rows = self.row.astype(int) + size
-        columns = self.column.astype(int) + size
-        for star in range(len(model)):
-            canvases[self.image[star]][rows[star]:rows[star] + size,
-                                       columns[star]:columns[star] + size] += own[star]
-        return np.array([canvases[self.image[star]][rows[star]:rows[star] + size,
-                                                    columns[star]:columns[star] + size]
-                         for star in range(len(model))]) - own
-
-
-def _cut_neighbours(images, neighbours, half):
-    """Cutouts of the neighbours (centres inside their image): image index, cutout (0 beyond
-    the image), valid pixels, corner (column, row) and centre (x, y) of each."""
-    found = ([], [], [], [], [])
-    for index, (image, xy) in enumerate(zip(images, neighbours)):
-        ny, nx = image.shape
-        padded = np.pad(image, half, constant_values=np.nan)
-        for x_0, y_0 in np.atleast_2d(np.asarray(xy, dtype=float)).reshape(-1, 2):
-            column, row = int(np.rint(x_0)), int(np.rint(y_0))
-            if not (0 <= column < nx and 0 <= row < ny):
-                continue
-            cutout = padded[row:row + 2 * half + 1, column:column + 2 * half + 1]
-            valid = np.isfinite(cutout)
-            for values, value in zip(found, (index, np.where(valid, cutout, 0.0), valid,
-                                             (column - half, row - half), (x_0, y_0))):
-                values.append(value)
-    return found
-
-
-def _cut_stars(images, positions, half, floors, neighbours=None):
-    """Flags of every star (bits 1, 2, 4 of `STAR_FLAGS`), its image, and the usable ones
-    followed by the neighbours (``p0`` False)."""
-    flags, image_index, cutouts, corners, star_floors, centres = [], [], [], [], [], []
-    for index, (image, xy) in enumerate(zip(images, positions)):
-        ny, nx = image.shape
-        for x_0, y_0 in xy:
-            image_index.append(index)
-            if not (np.isfinite(x_0) and np.isfinite(y_0)):
-                flags.append(1)
-                continue
-            column, row = int(np.rint(x_0)) - half, int(np.rint(y_0)) - half
-            if column < 0 or row < 0 or column + 2 * half >= nx or row + 2 * half >= ny:
-                flags.append(1)
-                continue
-            cutout = image[row:row + 2 * half + 1, column:column + 2 * half + 1]
-            if not np.all(np.isfinite(cutout)):
-                flags.append(2)
-                continue
-            if not cutout.sum() > 0:
-                flags.append(4)
-                continue
-            flags.append(0)
-            cutouts.append(cutout)
-            corners.append((column, row))
-            star_floors.append(floors[index])
-            centres.append((x_0, y_0))
-    flags = np.array(flags, dtype=int)
-    image_index = np.array(image_index, dtype=int)
-    if not cutouts:
-        return flags, image_index, None
-    n_stars = len(cutouts)
-    images_of = list(image_index[flags == 0])
-    valid = [np.ones_like(cutout, dtype=bool) for cutout in cutouts]
-    if neighbours is not None:
-        index, cut, inside, corner, centre = _cut_neighbours(images, neighbours, half)
-        images_of += index
-        cutouts += cut
-        valid += inside
-        corners += corner
-        centres += centre
-        star_floors += [floors[one] for one in index]
-    corners, centres = np.array(corners, dtype=float), np.array(centres, dtype=float)
-    stars = _Stars(np.array(cutouts, dtype=float), corners[:, 0], corners[:, 1],
-                   np.array(star_floors, dtype=float), centres[:, 0], centres[:, 1],
-                   np.array(images_of, dtype=int), np.array(valid),
-                   np.arange(len(cutouts)) < n_stars)
-    return flags, image_index, stars
-
-def _fill_empty(stack, weight):
-    """Fill nodes without samples by normalised Gaussian interpolation from their neighbours."""
-    empty = weight <= 0
-    if not empty.any():
-        return stack
-    filled = stack.copy()
-    have = (~empty).astype(float)
-    for sigma in (0.7, 1.5, 3.0):
-        numerator = scipy.ndimage.gaussian_filter(np.where(empty, 0.0, filled), sigma)
-        denominator = scipy.ndimage.gaussian_filter(have, sigma)
-        ok = empty & (denominator > 1e-3)
-        filled[ok] = numerator[ok] / denominator[ok]
-        have = np.where(ok, 1.0, have)
-        empty = empty & ~ok
-    filled[empty] = 0.0
-    return filled
-
-
-def _normalise(data, oversampling, where=None):
-    """P0 normalised to unit flux in every sub-pixel phase: each of the ``oy * ox`` sublattices
-    of the oversampled grid (the nodes a star at one phase samples) sums to 1. ``where``
-    names the grid node in the error.
-
-    A star's flux and the sum of the sublattice its pixels sample are degenerate (a star at
-    phase 0 sees the even nodes, one at phase 1/2 the odd ones): left free, the sublattices
-    drift apart, each star's flux compensating, and P0 holds a checkerboard whose flux
-    depends on the phase (0.68-1.47 in a dense field of blends, fluxes 40 % off). A
-    well-sampled PSF has equal sublattice sums (its transform vanishes at the pixel
-    frequency), so each is scaled to 1.
-    """
-    oy, ox = oversampling
-    total = data.sum()
-    if not total > 0:
-        if where is None:
-            msg = f"the stacked PSF has non-positive total {total:.3g}; check the star list"
-        else:
-            msg = (f"P0 at grid node {where} has non-positive total {total:.3g}: too few "
-                   "stars there for the grid; use fewer grid nodes or more images")
-        raise BFPSFInputError(msg, total)
-    data = data * (oy * ox / total)
-    sums = np.array([[data[a::oy, b::ox].sum() for b in range(ox)] for a in range(oy)])
-    if np.all(sums > 0):
-        for a in range(oy):
-            for b in range(ox):
-                data[a::oy, b::ox] /= sums[a, b]
-    return data
-
-
-def _normalise_nodes(data, oversampling, x_nodes, y_nodes, dense_weights):
-    """`_normalise` of every node, an error naming the node (its place and star weight)."""
-    if len(data) == 1:
-        return np.array([_normalise(data[0], oversampling)])
-    weights = dense_weights.sum(axis=0)
-    return np.array([_normalise(node, oversampling, where=(
-        f"{k + 1} of {len(data)} (x {x_nodes[k % x_nodes.size]:.0f}, y "
-        f"{y_nodes[k // x_nodes.size]:.0f}; the stars there weigh {weights[k]:.1f})"))
-        for k, node in enumerate(data)])
-
-
-class _Sampling:
-    """Where each star's pixels fall on the oversampled P0 grid, along one axis.
-
-    ``matrix[i, j, a]`` is the not-a-knot cubic interpolating spline through the unit vector a
-    of the P0 grid, evaluated at pixel j of star i: the same spline as
-    `FluxDependentPSF` (scipy's ``RectBivariateSpline`` with ``s=0`` is its tensor product), so
-    ``Ly @ P0 @ Lx.T`` is the model's ``evaluate`` of P0 at every pixel of every cutout.
-    ``derivative`` is d/d(pixel offset); ``node`` the nearest grid node of each pixel; pixels
-    beyond the data (``outside``) have zero rows, as the model is zero there.
-    """
-
-    def __init__(self, start, centre, size, oversampling, origin, cardinal):
-        n_data = cardinal[0].c.shape[0]
-        coords = oversampling * (start[:, None] + np.arange(size) - centre[:, None]) + origin
-        self.outside = (coords < 0) | (coords > n_data - 1)
-        flat = np.clip(coords, 0, n_data - 1).ravel()
-        shape = coords.shape + (n_data,)
-        self.matrix = cardinal[0](flat).reshape(shape)
-        self.derivative = oversampling * cardinal[1](flat).reshape(shape)
-        self.matrix[self.outside] = 0.0
-        self.derivative[self.outside] = 0.0
-        self.node = np.clip(np.rint(coords).astype(int), 0, n_data - 1)
-
-
-def _cardinal_splines(n_data):
-    spline = make_interp_spline(np.arange(n_data), np.eye(n_data), k=3)
-    return spline, spline.derivative()
-
-
-def _project(rows, grid, columns):
-    """``rows @ grid @ columns.T`` per star: (N, n, M) @ (N or 1, M, M) @ (N, M, n)."""
-    return (rows @ grid) @ np.swapaxes(columns, 1, 2)
-
-
-class _Grid:
-    """The node P0s being fitted, their node models for each set of shifts (one per
-    amplifier), and each star's interpolation weights and set of shifts."""
-
-    def __init__(self, data, x_nodes, y_nodes, shift_sets, star_set, oversampling, psf_kwargs):
-        self.data = data                    # (K, M, M)
-        self.x_nodes, self.y_nodes = x_nodes, y_nodes
-        self.oversampling, self.psf_kwargs = oversampling, psf_kwargs
-        self.star_set = star_set            # (N,) index into shift_sets
-        psf_kwargs = dict(psf_kwargs)
-        self.empirical = psf_kwargs.pop("empirical", None)
-        self.set_nodes = [[FluxDependentPSF(node, shifts, oversampling=oversampling,
-                                            **psf_kwargs) for node in data]
-                          for shifts in shift_sets]
-        for node in (node for nodes in self.set_nodes for node in nodes):
-            node.empirical = self.empirical  # the exact mode's evaluate applies it
-        self.nodes = self.set_nodes[0]
-        self.table = self.nodes[0].mode == "table"
-
-    def per_star(self, cube, weights):
-        """Each star's bilinear mix of a node cube: (1, M, M) for one node, else (N, M, M)."""
-        if len(cube) == 1:
-            return cube
-        return (weights @ cube.reshape(len(cube), -1)).reshape((-1,) + cube.shape[1:])
-
-    def star_tables(self, weights):
-        """Each star's BF table (its amplifier's shifts, its bilinear mix of the nodes)."""
-        cube = np.array([[node.bf_table for node in nodes] for nodes in self.set_nodes])
-        if len(cube) == 1:
-            return self.per_star(cube[0], weights)
-        return np.einsum("nk,nkab->nab", weights, cube[self.star_set])
-
-
-
-def _dense_weights(indices, weights, n_nodes):
-    dense = np.zeros((len(indices), n_nodes))
-    np.add.at(dense, (np.arange(len(indices))[:, None], indices), weights)
-    return dense
-
-
 def _exact_bf_terms(grid, weights, stars):
     """Each star's BF term (e-) from the node models' own evaluation (modes other than
     'table': exact phase, build-up), weighted over the nodes."""
@@ -370,14 +107,14 @@ def _star_models(grid, weights, stars, free_positions):
     over = grid.oversampling
     origin = grid.nodes[0].origin
     cardinal = grid.cardinal
-    xs = _Sampling(stars.column, stars.x_0, size, over, origin[0], cardinal)
-    ys = _Sampling(stars.row, stars.y_0, size, over, origin[1], cardinal)
+    xs = Sampling(stars.column, stars.x_0, size, over, origin[0], cardinal)
+    ys = Sampling(stars.row, stars.y_0, size, over, origin[1], cardinal)
     p0 = grid.per_star(grid.data, weights)
-    base = _project(ys.matrix, p0, xs.matrix)
+    base = project(ys.matrix, p0, xs.matrix)
     flux = stars.flux[:, None, None]
     if grid.table:
         tables = grid.star_tables(weights)
-        bf_unit = _project(ys.matrix, tables, xs.matrix)
+        bf_unit = project(ys.matrix, tables, xs.matrix)
         bf = flux * np.abs(flux) * bf_unit
         d_flux = base + 2 * np.abs(flux) * bf_unit
         charge = flux * p0 + flux * np.abs(flux) * tables
@@ -391,8 +128,8 @@ def _star_models(grid, weights, stars, free_positions):
         model, d_flux = _with_empirical(grid.empirical, model, d_flux, stars)
     jacobian = [d_flux]
     if free_positions:
-        jacobian.append(-_project(ys.matrix, charge, xs.derivative))
-        jacobian.append(-_project(ys.derivative, charge, xs.matrix))
+        jacobian.append(-project(ys.matrix, charge, xs.derivative))
+        jacobian.append(-project(ys.derivative, charge, xs.matrix))
     return model, np.stack(jacobian, axis=1), xs, ys
 
 
@@ -449,85 +186,6 @@ def _gauss_newton(stars, data, model, jacobian, variance, usable):
     step[~ok] = 0.0
     stars.flags[failed] |= 8
     return (residual - np.einsum("ip,ipq->iq", step, jac)).reshape(data.shape)
-
-
-def _node_solution(values, sample_weights, dense_weights, xs, ys, n_data):
-    """Least-squares node values that best give ``values`` at every star pixel.
-
-    In the nearest-node approximation the model of pixel j of star i is
-    sum_k w_ik v_k[c_ij], with c_ij the oversampled node of the pixel and w_ik the star's
-    bilinear weight of grid node k: for each oversampled node c, the grid nodes' values
-    v_k[c] solve a small K x K weighted normal system (one value per c for one node: the
-    weighted average). Nodes without samples are filled from their neighbours.
-
-    Parameters
-    ----------
-    values, sample_weights : ndarray (N, n, n)
-    dense_weights : ndarray (N, K)
-        Bilinear weight of every grid node for every star.
-    xs, ys : _Sampling
-    n_data : int
-        M, the side of the oversampled grid.
-
-    Returns
-    -------
-    ndarray (K, M, M)
-    """
-    n_stars, n_nodes = dense_weights.shape
-    n_cells = n_data * n_data
-    inside = ~(ys.outside[:, :, None] | xs.outside[:, None, :])
-    cell = ys.node[:, :, None] * n_data + xs.node[:, None, :]
-    flat = (np.arange(n_stars)[:, None, None] * n_cells + cell)[inside]
-    # Per star and oversampled node: sum of weight x value, and of weight.
-    weighted = np.bincount(flat, weights=(sample_weights * values)[inside],
-                           minlength=n_stars * n_cells).reshape(n_stars, n_cells)
-    weight = np.bincount(flat, weights=sample_weights[inside],
-                         minlength=n_stars * n_cells).reshape(n_stars, n_cells)
-    right = (dense_weights.T @ weighted).T                              # (M*M, K)
-    pairs = (dense_weights[:, :, None] * dense_weights[:, None, :]).reshape(n_stars, -1)
-    normal = (pairs.T @ weight).T.reshape(n_cells, n_nodes, n_nodes)   # (M*M, K, K)
-    diagonal = np.einsum("ckk->ck", normal).copy()
-    empty = diagonal <= 0
-    # Unsampled grid nodes of a cell get an identity row (value 0, filled below). A ridge of
-    # 1 % of the diagonal damps cells where grid nodes are seen only in nearly the same
-    # mixture (few stars); it shrinks each update, not the converged P0 (update 0).
-    normal[empty[:, :, None] & np.eye(n_nodes, dtype=bool)[None]] = 1.0
-    if n_nodes > 1:
-        normal += 1e-2 * np.einsum("ck,kl->ckl", np.where(empty, 0.0, diagonal),
-                                   np.eye(n_nodes))
-    solution = np.linalg.solve(normal, right[..., None])[..., 0]
-    solution[empty] = 0.0
-    shape = (n_nodes, n_data, n_data)
-    solution, diagonal = solution.T.reshape(shape), diagonal.T.reshape(shape)
-    return np.array([_fill_empty(node, node_weight)
-                     for node, node_weight in zip(solution, diagonal)])
-
-
-def _without_translation(update, data):
-    """The update minus its least-squares projection on a shift of P0 (its x and y
-    gradients): a shift of P0 with every star moved alike fits the data as well, so that
-    direction is left to the star positions instead of letting P0 drift."""
-    gradients = np.array(np.gradient(data)).reshape(2, -1)
-    amplitudes = np.linalg.lstsq(gradients.T, update.ravel(), rcond=None)[0]
-    return update - (amplitudes @ gradients).reshape(update.shape)
-
-
-def _recentred(data, oversampling):
-    """P0 shifted so that its centroid is the origin (the centre of the grid), normalised.
-
-    A shift of P0 with every star moved alike fits the data as well; the iteration leaves that
-    direction alone (`_without_translation`) and the converged P0 is recentred once, so the
-    fitted star positions are centroids of the PSF (photutils' `~photutils.psf.EPSFBuilder`
-    recentres its ePSF too).
-    """
-    weights = np.clip(data, 0.0, None)
-    centre = (np.asarray(data.shape) - 1) / 2.0
-    offsets = [(weights * np.arange(n).reshape(shape)).sum() / weights.sum() - c
-               for n, shape, c in ((data.shape[0], (-1, 1), centre[0]),
-                                   (data.shape[1], (1, -1), centre[1]))]
-    shifted = scipy.ndimage.shift(data, [-offset for offset in offsets], order=3,
-                                  mode="constant")
-    return _normalise(shifted, (oversampling, oversampling))
 
 
 def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, read_noise=0.0,
@@ -634,7 +292,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     if over < 1 or over != oversampling:
         msg = f"oversampling must be an integer >= 1, got {oversampling!r}"
         raise BFPSFValueError(msg, oversampling)
-    images, positions = _as_star_list(images_e, positions)
+    images, positions = as_star_list(images_e, positions)
     skies = np.broadcast_to(np.asarray(sky_e, dtype=float), (len(images),))
     if np.any(~np.isfinite(skies)) or np.any(skies < 0):
         msg = f"sky_e must be finite and >= 0 e- per pixel, got {sky_e!r}"
@@ -646,8 +304,8 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                   None if grid is None else (x_nodes.size, y_nodes.size), max_iterations)
     half = size // 2 + 1  # cutouts one pixel wider than P0: every node gets samples
     if neighbours is not None:
-        neighbours = _as_star_list(images, neighbours)[1]
-    flags, image_index, stars = _cut_stars(images, positions, half,
+        neighbours = as_star_list(images, neighbours)[1]
+    flags, image_index, stars = cut_stars(images, positions, half,
                                            read_noise**2 + skies + 1.0, neighbours)
     if stars is None or np.sum(stars.p0) < 3:
         n_usable = 0 if stars is None else int(np.sum(stars.p0))
@@ -660,19 +318,19 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         psf_kwargs.pop("empirical", None)
     star_set = image_set[stars.image]
     node_indices, node_weights = bilinear_weights(stars.x_0, stars.y_0, x_nodes, y_nodes)
-    dense_weights = _dense_weights(node_indices, node_weights, n_nodes)
+    dense_weights = dense_weights_of(node_indices, node_weights, n_nodes)
 
     npix = size * over + (1 - over % 2)
     shape = (npix, npix)
-    cardinal = _cardinal_splines(npix)
+    cardinal = cardinal_splines(npix)
     origin = ((npix - 1) / 2.0,) * 2
     shapes = [image.shape for image in images]
     if initial is None:
-        xs = _Sampling(stars.column, stars.x_0, 2 * half + 1, over, origin[0], cardinal)
-        ys = _Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
+        xs = Sampling(stars.column, stars.x_0, 2 * half + 1, over, origin[0], cardinal)
+        ys = Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
         flux = stars.flux[:, None, None]
         variance = np.clip(stars.data, 0.0, None) + stars.floor[:, None, None]
-        data = _node_solution(stars.data / flux, np.where(stars.p0[:, None, None],
+        data = node_solution(stars.data / flux, np.where(stars.p0[:, None, None],
                                                           flux**2 / variance, 0.0),
                               dense_weights, xs, ys, npix)
     else:
@@ -682,8 +340,8 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                    f"{size}, got {data.shape}")
             raise BFPSFValueError(msg, data.shape)
         data = data.reshape((n_nodes,) + shape)
-    data = _normalise_nodes(data, (over, over), x_nodes, y_nodes, dense_weights)
-    fitted = _Grid(data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs)
+    data = normalise_nodes(data, (over, over), x_nodes, y_nodes, dense_weights)
+    fitted = Grid(data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs)
     fitted.cardinal = cardinal
     changes = []
     converged = False
@@ -706,22 +364,22 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         if best is None or chi2 < best[0]:
             best = (chi2, fitted, stars.flux.copy(), stars.x_0.copy(), stars.y_0.copy())
         # Nodes and samples follow the stars' new positions.
-        xs = _Sampling(stars.column, stars.x_0, 2 * half + 1, over, origin[0], cardinal)
-        ys = _Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
+        xs = Sampling(stars.column, stars.x_0, 2 * half + 1, over, origin[0], cardinal)
+        ys = Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
         flux = stars.flux[:, None, None]
         # the neighbours are modelled, not used for P0
         weight = np.where(((stars.flags & 8) == 0)[:, None, None] & stars.p0[:, None, None],
                           flux**2 / variance, 0.0)
-        update = _node_solution(residual / flux, weight, dense_weights, xs, ys, npix)
-        new_data = _normalise_nodes(
-            [node + damping * _without_translation(step, node)
+        update = node_solution(residual / flux, weight, dense_weights, xs, ys, npix)
+        new_data = normalise_nodes(
+            [node + damping * without_translation(step, node)
              for node, step in zip(fitted.data, update)], (over, over), x_nodes, y_nodes,
             dense_weights)
         change = float(max(np.abs(new - old).max() / np.abs(old).max()
                            for new, old in zip(new_data, fitted.data)))
         changes.append(change)
         bar.set_postfix(change=f"{change:.2e}")
-        fitted = _Grid(new_data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs)
+        fitted = Grid(new_data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs)
         fitted.cardinal = cardinal
         if free_positions:
             free_iterations += 1
@@ -739,19 +397,19 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         # iteration can leave the optimum again (a 3 x 3 grid on 200 stars: chi-square
         # 148e3 at iteration 12, 189e3 at 40, node e1 off by up to 0.03)
         _, fitted, stars.flux[:], stars.x_0[:], stars.y_0[:] = best
-    fitted = _Grid(np.array([_recentred(node, over) for node in fitted.data]), x_nodes,
+    fitted = Grid(np.array([recentred(node, over) for node in fitted.data]), x_nodes,
                    y_nodes, shift_sets, star_set, over, psf_kwargs)
     fitted.cardinal = cardinal
     for _ in range(3):  # final positions and fluxes with the final P0
         variance = _fit_step(fitted, dense_weights, stars, True, shapes)[2]
     if len(shift_sets) > 1:  # the model carries the mean of the stars' shifts
-        fitted = _Grid(fitted.data, x_nodes, y_nodes,
+        fitted = Grid(fitted.data, x_nodes, y_nodes,
                        [_mean_shifts(shift_sets,
                                      star_set[((stars.flags & 8) == 0) & stars.p0])],
                        np.zeros_like(star_set), over, psf_kwargs)
     psf = (fitted.nodes[0] if grid is None
            else GriddedFluxDependentPSF(fitted.nodes, x_nodes, y_nodes))
-    table = _star_table(flags, image_index, positions, stars, variance)
+    table = star_table(flags, image_index, positions, stars, variance)
     n_kept = int(np.sum(table["flags"] == 0))
     if n_kept < 3:  # a P0 that no star's fit holds is not a result
         msg = (f"the P0 fit kept {n_kept} of {len(table)} stars (the others' flux or position "
@@ -759,7 +417,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         raise BFPSFInputError(msg, n_kept)
     return PSFFitResult(psf=psf, stars=table,
                         iterations=len(changes), converged=converged, changes=np.array(changes),
-                        neighbours=_neighbour_table(stars))
+                        neighbours=neighbour_table(stars))
 
 
 def _shift_sets(shifts, n_images):
@@ -825,35 +483,3 @@ def _fit_step(fitted, dense_weights, stars, free_positions, shapes):
     return model, residual, variance, xs, ys, chi2
 
 
-def _neighbour_table(stars):
-    """One row per neighbour the fit modelled (see `PSFFitResult`)."""
-    mine = ~stars.p0
-    table = Table()
-    table["image"] = stars.image[mine]
-    for name, values in (("x_fit", stars.x_0), ("y_fit", stars.y_0), ("flux_fit", stars.flux)):
-        table[name] = values[mine]
-    table["flux_fit"].unit = "electron"
-    table["flags"] = stars.flags[mine]
-    return table
-
-
-def _star_table(flags, image_index, positions, stars, variance):
-    """One row per input star (see `PSFFitResult`)."""
-    used = np.flatnonzero(flags == 0)
-    flags = flags.copy()
-    mine = stars.p0
-    flags[used] |= stars.flags[mine]
-    share = np.where(stars.flags[mine] & 8, 0.0,
-                     stars.flux[mine]**2 / variance[mine].mean(axis=(1, 2)))
-    table = Table()
-    table["image"] = image_index
-    table["x_init"] = np.concatenate([np.asarray(xy)[:, 0] for xy in positions if xy.size])
-    table["y_init"] = np.concatenate([np.asarray(xy)[:, 1] for xy in positions if xy.size])
-    for name, values in (("x_fit", stars.x_0[mine]), ("y_fit", stars.y_0[mine]),
-                         ("flux_fit", stars.flux[mine]), ("weight", share / share.sum())):
-        column = np.full(len(flags), np.nan if name != "weight" else 0.0)
-        column[used] = values
-        table[name] = column
-    table["flux_fit"].unit = "electron"
-    table["flags"] = flags
-    return table

@@ -1,0 +1,177 @@
+"""The stars of a P0 fit (`bfpsf.model.psf_fit.fit_psf`): their cutouts, stacked for
+vectorised fitting, the neighbours modelled beside them, their flags and the result tables."""
+
+import numpy as np
+from astropy.table import Table
+
+from ..errors import BFPSFInputError
+
+__all__ = ["STAR_FLAGS", "Stars", "as_star_list", "cut_stars", "cut_neighbours", "star_table",
+           "neighbour_table"]
+
+
+#: Per-star flags of `fit_psf` (bit values).
+STAR_FLAGS = {
+    1: "cutout outside the image (star not used)",
+    2: "non-finite pixel in the cutout (star not used)",
+    4: "non-positive flux estimate (star not used)",
+    8: "position fit failed or moved more than 1 pixel (star not used in the last iteration)",
+}
+
+
+def as_star_list(images, positions):
+    if isinstance(images, np.ndarray) and images.ndim == 2:
+        images, positions = [images], [positions]
+    images = [np.asarray(image, dtype=float) for image in images]
+    positions = [np.atleast_2d(np.asarray(xy, dtype=float)) for xy in positions]
+    if len(images) != len(positions):
+        msg = f"got {len(images)} images but {len(positions)} position lists"
+        raise BFPSFInputError(msg, len(positions))
+    for index, (image, xy) in enumerate(zip(images, positions)):
+        if image.ndim != 2:
+            msg = f"image {index} must be 2-D [y, x], got shape {image.shape}"
+            raise BFPSFInputError(msg, image.shape)
+        if xy.size and (xy.ndim != 2 or xy.shape[1] != 2):
+            msg = f"positions of image {index} must be an (N, 2) array of (x, y), got {xy.shape}"
+            raise BFPSFInputError(msg, xy.shape)
+    return images, positions
+
+
+class Stars:
+    """Cutouts of the usable stars, stacked for vectorised fitting.
+
+    Attributes: ``data`` (N, n, n) e-; ``column``, ``row`` (N,) pixel of the cutout's first
+    column / row; ``floor`` (N,) variance floor, e-**2; ``flux``, ``x_0``, ``y_0`` (N,) the
+    current estimates (first: the cutout's sum and the positions given); ``flags`` (N,)
+    `STAR_FLAGS`; ``image`` (N,) image of each; ``valid`` (N, n, n) pixels inside the image;
+    ``p0`` (N,) True for the stars P0 is fitted to, False for the neighbours (modelled only).
+    """
+
+    def __init__(self, data, column, row, floor, x_0, y_0, image, valid, p0):
+        self.data, self.column, self.row, self.floor = data, column, row, floor
+        self.image, self.valid, self.p0 = image, valid, p0
+        self.flux = data.sum(axis=(1, 2))
+        # the positions given (a centroid of the whole cutout would be pulled towards a
+        # neighbour's light; one of its central pixels towards the pixel centre, a bias of
+        # the held positions that made the grid fit diverge)
+        self.x_0, self.y_0 = np.array(x_0, dtype=float), np.array(y_0, dtype=float)
+        self.flags = np.zeros(len(data), dtype=int)
+        self.x_start, self.y_start = self.x_0.copy(), self.y_0.copy()
+
+    def others(self, model, shapes):
+        """Per star, the light of every other star's model in its cutout, e-: the
+        neighbours subtracted from each cutout."""
+        size = model.shape[1]
+        own = np.where(self.valid, model, 0.0)
+        canvases = [np.zeros((ny + 2 * size, nx + 2 * size)) for ny, nx in shapes]
+        rows = self.row.astype(int) + size
+        columns = self.column.astype(int) + size
+        for star in range(len(model)):
+            canvases[self.image[star]][rows[star]:rows[star] + size,
+                                       columns[star]:columns[star] + size] += own[star]
+        return np.array([canvases[self.image[star]][rows[star]:rows[star] + size,
+                                                    columns[star]:columns[star] + size]
+                         for star in range(len(model))]) - own
+
+
+def cut_neighbours(images, neighbours, half):
+    """Cutouts of the neighbours (centres inside their image): image index, cutout (0 beyond
+    the image), valid pixels, corner (column, row) and centre (x, y) of each."""
+    found = ([], [], [], [], [])
+    for index, (image, xy) in enumerate(zip(images, neighbours)):
+        ny, nx = image.shape
+        padded = np.pad(image, half, constant_values=np.nan)
+        for x_0, y_0 in np.atleast_2d(np.asarray(xy, dtype=float)).reshape(-1, 2):
+            column, row = int(np.rint(x_0)), int(np.rint(y_0))
+            if not (0 <= column < nx and 0 <= row < ny):
+                continue
+            cutout = padded[row:row + 2 * half + 1, column:column + 2 * half + 1]
+            valid = np.isfinite(cutout)
+            for values, value in zip(found, (index, np.where(valid, cutout, 0.0), valid,
+                                             (column - half, row - half), (x_0, y_0))):
+                values.append(value)
+    return found
+
+
+def cut_stars(images, positions, half, floors, neighbours=None):
+    """Flags of every star (bits 1, 2, 4 of `STAR_FLAGS`), its image, and the usable ones
+    followed by the neighbours (``p0`` False)."""
+    flags, image_index, cutouts, corners, star_floors, centres = [], [], [], [], [], []
+    for index, (image, xy) in enumerate(zip(images, positions)):
+        ny, nx = image.shape
+        for x_0, y_0 in xy:
+            image_index.append(index)
+            if not (np.isfinite(x_0) and np.isfinite(y_0)):
+                flags.append(1)
+                continue
+            column, row = int(np.rint(x_0)) - half, int(np.rint(y_0)) - half
+            if column < 0 or row < 0 or column + 2 * half >= nx or row + 2 * half >= ny:
+                flags.append(1)
+                continue
+            cutout = image[row:row + 2 * half + 1, column:column + 2 * half + 1]
+            if not np.all(np.isfinite(cutout)):
+                flags.append(2)
+                continue
+            if not cutout.sum() > 0:
+                flags.append(4)
+                continue
+            flags.append(0)
+            cutouts.append(cutout)
+            corners.append((column, row))
+            star_floors.append(floors[index])
+            centres.append((x_0, y_0))
+    flags = np.array(flags, dtype=int)
+    image_index = np.array(image_index, dtype=int)
+    if not cutouts:
+        return flags, image_index, None
+    n_stars = len(cutouts)
+    images_of = list(image_index[flags == 0])
+    valid = [np.ones_like(cutout, dtype=bool) for cutout in cutouts]
+    if neighbours is not None:
+        index, cut, inside, corner, centre = cut_neighbours(images, neighbours, half)
+        images_of += index
+        cutouts += cut
+        valid += inside
+        corners += corner
+        centres += centre
+        star_floors += [floors[one] for one in index]
+    corners, centres = np.array(corners, dtype=float), np.array(centres, dtype=float)
+    stars = Stars(np.array(cutouts, dtype=float), corners[:, 0], corners[:, 1],
+                   np.array(star_floors, dtype=float), centres[:, 0], centres[:, 1],
+                   np.array(images_of, dtype=int), np.array(valid),
+                   np.arange(len(cutouts)) < n_stars)
+    return flags, image_index, stars
+
+
+def neighbour_table(stars):
+    """One row per neighbour the fit modelled (see `PSFFitResult`)."""
+    mine = ~stars.p0
+    table = Table()
+    table["image"] = stars.image[mine]
+    for name, values in (("x_fit", stars.x_0), ("y_fit", stars.y_0), ("flux_fit", stars.flux)):
+        table[name] = values[mine]
+    table["flux_fit"].unit = "electron"
+    table["flags"] = stars.flags[mine]
+    return table
+
+
+def star_table(flags, image_index, positions, stars, variance):
+    """One row per input star (see `PSFFitResult`)."""
+    used = np.flatnonzero(flags == 0)
+    flags = flags.copy()
+    mine = stars.p0
+    flags[used] |= stars.flags[mine]
+    share = np.where(stars.flags[mine] & 8, 0.0,
+                     stars.flux[mine]**2 / variance[mine].mean(axis=(1, 2)))
+    table = Table()
+    table["image"] = image_index
+    table["x_init"] = np.concatenate([np.asarray(xy)[:, 0] for xy in positions if xy.size])
+    table["y_init"] = np.concatenate([np.asarray(xy)[:, 1] for xy in positions if xy.size])
+    for name, values in (("x_fit", stars.x_0[mine]), ("y_fit", stars.y_0[mine]),
+                         ("flux_fit", stars.flux[mine]), ("weight", share / share.sum())):
+        column = np.full(len(flags), np.nan if name != "weight" else 0.0)
+        column[used] = values
+        table[name] = column
+    table["flux_fit"].unit = "electron"
+    table["flags"] = flags
+    return table
