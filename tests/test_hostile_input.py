@@ -98,6 +98,8 @@ def run_subprocess(argv, *, cap=None, fsize=None, timeout=REFUSAL_SECONDS):
 
 
 FLATS = [f"f{int(t)}_{m}.fits" for _, t in LEVELS for m in (1, 2)]
+FLAT_LEVEL = ("a flat level from 0 to 1e+06 e- per pixel (10 times a CCD's full well; GalSim's "
+              "SiliconSensor pixel areas diverge beyond a few 1e6 e-)")
 SAME_FILE = "give the output another path (--overwrite replaces earlier outputs, never an input)"
 
 
@@ -266,6 +268,46 @@ def test_amplifier_sections_overlapping_or_outside(workdir, capsys, sections, me
      "argument --grid: expected a positive integer, got '0'"),
     (["measure", "img.fits", "--gain", "1.5", "-o", "m.ecsv", "--stamp-size", "4"],
      "argument --stamp-size: expected an integer >= 8 pixels, got '4'"),
+    # issue 25, second pass: numbers a new user typed
+    *[(["simulate", "flats", "--size", "32", option, value, "-o", "sim"],
+       f"argument {option}: expected {expected}, got '{value}'")
+      for option, value, expected in (
+          *[("--levels", level, FLAT_LEVEL) for level in ("1e12", "1e9", "3e7", "-5", "nan")],
+          ("--defect-clusters", "-1", "an integer >= 0"),
+          ("--seed", "-1", "an integer >= 0"),
+          ("--nonlinearity", "nan", "a finite number"),
+          ("--exptime-per-e", "0", "a positive finite number"),
+          ("--readout-correlation", "5", "a fraction of the previous pixel's charge, -1 < c < 1"),
+          ("--gain", "inf", "a positive finite number"),
+          ("--read-noise", "-2", "a finite number >= 0"),
+          ("--hot-columns", "-3", "an integer >= 0"))],
+    (["slope", "stars.ecsv", "--color-max-peak", "-5"],
+     "argument --color-max-peak: expected a positive finite peak in e-, got '-5'"),
+    (["slope", "stars.ecsv", "--min-peak", "nan"],
+     "argument --min-peak: expected a positive finite peak in e-, got 'nan'"),
+    (["slope", "stars.ecsv", "--max-peak", "inf"],
+     "argument --max-peak: expected a positive finite peak in e-, got 'inf'"),
+    *[([*argv, "--saturation", level],
+       f"argument --saturation: expected a positive finite level in ADU, got '{level}'")
+      for argv, level in ((["calibrate", *FLATS, "-o", "v.fits"], "-1"),
+                          (["measure", "img.fits", "-o", "m.ecsv"], "0"),
+                          (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits"], "nan"),
+                          (["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv"],
+                           "inf"))],
+    (["calibrate", *FLATS, "-o", "v.fits", "--seed", "-1"],
+     "argument --seed: expected an integer >= 0, got '-1'"),
+    (["calibrate", *FLATS, "-o", "v.fits", "--thickness", "0"],
+     "argument --thickness: expected a positive finite number, got '0'"),
+    (["validate", "--quick", "--fwhm", "-1"],
+     "argument --fwhm: expected a positive finite number, got '-1'"),
+    (["validate", "--quick", "--beta", "1"],
+     "argument --beta: expected a Moffat index > 1.1 (GalSim's untruncated Moffat), got '1'"),
+    (["validate", "--quick", "--peaks", "5e4", "nan"],
+     "argument --peaks: expected a positive finite number, got 'nan'"),
+    (["validate", "--quick", "--flat-levels", "1e9"],
+     f"argument --flat-levels: expected {FLAT_LEVEL}, got '1e9'"),
+    (["validate", "--quick", "--seed", "-1"],
+     "argument --seed: expected an integer >= 0, got '-1'"),
 ])
 def test_invalid_counts_are_refused_not_reinterpreted(workdir, capsys, argv, message):
     before = snapshot(workdir)
@@ -330,6 +372,25 @@ def test_time_guard_names_the_options(workdir, monkeypatch, capsys):
                           "--pairs 1: simulating 16 flats would take about ")
     assert err.endswith(" h, more than the 0.0167 h limit (BFPSF_TIME_LIMIT, s); use smaller "
                         "values\n")
+    assert snapshot(workdir) == before
+
+
+@pytest.mark.parametrize("variable, setting, message", [
+    ("BFPSF_TIME_LIMIT", "-1", "BFPSF_TIME_LIMIT must be a positive number of seconds, got '-1'"),
+    ("BFPSF_TIME_LIMIT", "soon", "BFPSF_TIME_LIMIT must be a positive number of seconds, got "
+                                 "'soon'"),
+    ("BFPSF_MEMORY_LIMIT", "-8G", "BFPSF_MEMORY_LIMIT must be a number of bytes (e.g. 8G), got "
+                                  "'-8G'"),
+])
+@pytest.mark.parametrize("argv", [["measure", "img.fits", "--gain", "1.5", "-o", "m.ecsv"],
+                                  ["slope", "stars.ecsv"],
+                                  ["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits"]])
+def test_limit_settings_are_refused_by_every_command(workdir, monkeypatch, capsys, variable,
+                                                      setting, message, argv):
+    """measure never estimates a cost, yet refuses a bad limit like psf does (before: exit 0)."""
+    monkeypatch.setenv(variable, setting)
+    before = snapshot(workdir)
+    assert run(capsys, *argv) == (1, f"bfpsf {argv[0]}: error: {message}\n")
     assert snapshot(workdir) == before
 
 

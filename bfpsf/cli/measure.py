@@ -11,7 +11,7 @@ from ..errors import BFPSFInputError
 from ..files import (about, check_outputs, input_files, read_table, refuse_duplicates,
                      write_json, write_table)
 from ..measure.sources import DETECTION_THRESHOLD
-from . import stamp_size_option
+from . import saturation_option, stamp_size_option
 from ._files import place_stars, read_image
 
 
@@ -58,7 +58,7 @@ def add_parser(subparsers):
                              f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--stamp-size", type=stamp_size_option, default=32,
                         help="measurement stamp side, pixels (default 32)")
-    parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
+    parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help="saturation level of the raw image, ADU (flags, does not drop; "
                              "default the header's SATURATE or a variant; with --calib, the "
                              "linearity turnoff where lower)")

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..files import about, check_outputs, input_files, write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD, SourceFlag
-from . import background_option
+from . import background_option, saturation_option
 from ._files import place_stars, read_image
 
 
@@ -48,7 +48,7 @@ def add_parser(subparsers):
                              f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--fit-shape", type=int, default=None,
                         help="fit box, pixels, odd (default about 3 FWHM)")
-    parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
+    parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help="saturation level of the raw images, ADU: stars with a pixel at "
                              "or above it in the fit box are flagged (column saturated and bit 8 "
                              "of source_flags; "

@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import BFPSFInputError
 from ..files import about, check_outputs, input_files, refuse_duplicates, write_json
 from ..measure.sources import DETECTION_THRESHOLD
-from . import background_option, positive_int, stamp_size_option
+from . import background_option, positive_int, saturation_option, stamp_size_option
 from ..model.psf_fit import DEFAULT_SIZE
 from ._files import read_image
 
@@ -53,7 +53,7 @@ def add_parser(subparsers):
                         help="sky level of the images, ADU per pixel (0 for sky-subtracted "
                              "images); default the sigma-clipped median of each image, which "
                              "the wings of dense bright stars bias high")
-    parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
+    parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help="saturation level, ADU: saturated stars are not used (default "
                              "the header's SATURATE or a variant; the calibration's linearity "
                              "turnoff where lower)")
