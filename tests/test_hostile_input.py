@@ -394,6 +394,45 @@ def test_limit_settings_are_refused_by_every_command(workdir, monkeypatch, capsy
     assert snapshot(workdir) == before
 
 
+@pytest.mark.parametrize("option", ["--bins", "--position-bins"])
+@pytest.mark.parametrize("mode", [["--measured", "itl3800c002"],
+                                  ["--correlations", "c.txt", "--sizes", "s.csv"]])
+def test_diagnose_refuses_bins_its_tables_do_not_take(workdir, capsys, option, mode):
+    """The published tables come binned: --bins 1000000000 was ignored, exit 0."""
+    before = snapshot(workdir)
+    named = "--measured" if mode[0] == "--measured" else "--correlations/--sizes"
+    assert run(capsys, "diagnose", *mode, option, "1000000000", "--json", "d.json") == (
+        1, f"bfpsf diagnose: error: {option} bins the stars of images mode (--flats and "
+           f"--images); the sizes of {named} come binned already\n")
+    assert snapshot(workdir) == before
+
+
+def test_diagnose_refuses_more_bins_than_stars(workdir):
+    """Images mode: more bins than stars (--bins 1000000000 would allocate 8 GB of edges)."""
+    from test_product import calibration as calibration_fixture
+
+    from bfpsf.diagnosis.observables import observables_from_images
+    from bfpsf.errors import BFPSFInputError
+
+    y, x = np.mgrid[0:128, 0:128]
+    image = np.full((128, 128), 100.0)
+    for k, (x0, y0) in enumerate((20.0 + 29 * i, 20.3 + 29 * j) for i in range(4)
+                                 for j in range(4)):
+        image += 2e4 * (1 + k) * np.exp(-((x - x0)**2 + (y - y0)**2) / 8.0) / (8 * np.pi)
+    image = np.random.default_rng(3).poisson(image) / 1.5
+    fits.PrimaryHDU(image.astype(np.float32),
+                    header=fits.Header({"EXPTIME": 1.0, "GAIN": 1.5})).writeto("img16.fits")
+    before = snapshot(workdir)
+    with pytest.raises(BFPSFInputError) as error:  # the command passes --bins as n_bins
+        observables_from_images([], ["img16.fits"], calibration=calibration_fixture.__wrapped__(),
+                                n_bins=1000000000)
+    assert str(error.value) == (
+        "img16.fits: 16 clean stars cannot fill 1000000000 peak bins x 1 position bin(s) of 3 "
+        "or more stars; give --bins N --position-bins M (n_bins, position_bins) with "
+        "N x M <= 5")
+    assert snapshot(workdir) == before
+
+
 def test_unconverged_psf_fit_is_reported(workdir, capsys):
     """A P0 fit stopped by --max-iterations is flagged in the product, the JSON and on
     stderr, never reported as converged."""

@@ -66,7 +66,8 @@ def add_parser(subparsers):
     parser.add_argument("--n-monte-carlo", type=non_negative_int, default=100,
                         help="samples of the boundary shifts drawn from the calibration error, "
                              "kept for error propagation (default 100)")
-    parser.add_argument("--seed", type=seed_option, default=0, help="seed of the samples (default 0)")
+    parser.add_argument("--seed", type=seed_option, default=0,
+                        help="seed of the samples (default 0)")
     parallel = parser.add_mutually_exclusive_group()
     parallel.add_argument("--workers", type=positive_int, default=default_workers(), metavar="N",
                           help="processes measuring the pairs (Dask LocalCluster; 1: in this "

@@ -33,12 +33,14 @@ def _add_flats(targets):
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--sensor", default="lsst_itl_50_8",
                         help="GalSim SiliconSensor name (lsst_itl_50_8, lsst_e2v_50_8, ...)")
-    parser.add_argument("--levels", type=flat_level_option, nargs="+", default=list(DEFAULT_LEVELS_E),
+    parser.add_argument("--levels", type=flat_level_option, nargs="+",
+                        default=list(DEFAULT_LEVELS_E),
                         metavar="E", help="flat levels, electrons per pixel")
     parser.add_argument("--pairs", type=positive_int, default=1, help="pairs per level")
     parser.add_argument("--size", type=positive_int, default=256, help="image side, pixels")
     parser.add_argument("--gain", type=positive_float, default=1.5, help="gain, e-/ADU")
-    parser.add_argument("--read-noise", type=non_negative_float, default=5.0, help="read noise, e- rms")
+    parser.add_argument("--read-noise", type=non_negative_float, default=5.0,
+                        help="read noise, e- rms")
     parser.add_argument("--nsteps", type=positive_int, default=20,
                         help="charge increments per flat (covariance bias ~ 1/nsteps^2)")
     parser.add_argument("--seed", type=seed_option, default=0, help="random seed")

@@ -38,7 +38,8 @@ def add_parser(subparsers):
     parser.add_argument("--flat-size", type=positive_int, default=None, help="flat side, pixels")
     parser.add_argument("--flat-pairs", type=positive_int, default=None,
                         help="pairs per flat level")
-    parser.add_argument("--flat-levels", type=flat_level_option, nargs="+", default=None, metavar="E",
+    parser.add_argument("--flat-levels", type=flat_level_option, nargs="+", default=None,
+                        metavar="E",
                         help="flat levels, electrons (default: the configuration's)")
     parser.add_argument("--model-shifts", choices=("flats", "truth"), default="flats",
                         help="shifts for P(F), the inverse and the loop: from the simulated "
