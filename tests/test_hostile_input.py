@@ -294,6 +294,14 @@ def test_amplifier_sections_overlapping_or_outside(workdir, capsys, sections, me
                           (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits"], "nan"),
                           (["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv"],
                            "inf"))],
+    (["measure", "img.fits", "--gain", "-1", "-o", "m.ecsv"],
+     "argument --gain: expected a positive finite number, got '-1'"),
+    (["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv", "--gain", "0"],
+     "argument --gain: expected a positive finite number, got '0'"),
+    (["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv", "--read-noise", "nan"],
+     "argument --read-noise: expected a finite number >= 0, got 'nan'"),
+    (["diagnose", "--measured", "itl3800c002", "--gain", "-2"],
+     "argument --gain: expected a positive finite number, got '-2'"),
     (["calibrate", *FLATS, "-o", "v.fits", "--seed", "-1"],
      "argument --seed: expected an integer >= 0, got '-1'"),
     (["calibrate", *FLATS, "-o", "v.fits", "--thickness", "0"],
@@ -430,6 +438,37 @@ def test_diagnose_refuses_more_bins_than_stars(workdir):
         "img16.fits: 16 clean stars cannot fill 1000000000 peak bins x 1 position bin(s) of 3 "
         "or more stars; give --bins N --position-bins M (n_bins, position_bins) with "
         "N x M <= 5")
+    assert snapshot(workdir) == before
+
+
+@pytest.mark.parametrize("argv, message", [
+    # before: "the gain must be positive e-/ADU, got 0.0", no file named
+    (["measure", "gain0.fits", "-o", "x.ecsv"],
+     "gain0.fits: header GAIN = 0 is not a gain (a positive number of e-/ADU); give --gain G"),
+    (["measure", "gainneg.fits", "-o", "x.ecsv"],
+     "gainneg.fits: header GAIN = -1.5 is not a gain (a positive number of e-/ADU); give "
+     "--gain G"),
+    # before: "a DetectorCalibration needs at least one amplifier"
+    (["psf", "img.fits", "--calib", "cal_missing.fits", "-o", "z.fits"],
+     "cal_missing.fits is an incomplete bfpsf calibration file (Extension 'SUMMARY' not "
+     "found)"),
+    (["measure", "img.fits", "--calib", "cal_missing.fits", "-o", "z.ecsv"],
+     "cal_missing.fits is an incomplete bfpsf calibration file (Extension 'SUMMARY' not "
+     "found)"),
+    # before: "internal error: IORegistryError: Format could not be identified ..."
+    (["measure", "img.fits", "--gain", "1.5", "--catalog", "text.fits", "--color", "g", "-o",
+      "w.ecsv"], "text.fits is not a readable catalog (truncated, damaged or another format)"),
+])
+def test_bad_files_are_named(workdir, capsys, argv, message):
+    for name, gain in (("gain0.fits", 0), ("gainneg.fits", -1.5)):
+        with fits.open("img.fits") as hdul:
+            hdul[0].header["GAIN"] = gain
+            hdul.writeto(name)
+    with fits.open("cal.fits") as hdul:
+        fits.HDUList([hdu for hdu in hdul if hdu.name != "SUMMARY"]).writeto("cal_missing.fits")
+    Path("text.fits").write_text("x y g\n1 2 0.5\n")
+    before = snapshot(workdir)
+    assert run(capsys, *argv) == (1, f"bfpsf {argv[0]}: error: {message}\n")
     assert snapshot(workdir) == before
 
 

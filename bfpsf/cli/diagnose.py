@@ -25,7 +25,7 @@ from pathlib import Path
 
 from ..diagnosis.signature import describe_entry
 from ..errors import BFPSFInputError
-from . import background_option, maxlag_option, positive_int
+from . import background_option, maxlag_option, positive_float, positive_int
 
 __all__ = ["add_parser", "run"]
 
@@ -62,7 +62,7 @@ def add_parser(subparsers):
     tables.add_argument("--correlations", metavar="FILE",
                         help="measured a / correlation table (corr_meas, Poisson_CCD, cp_pipe)")
     tables.add_argument("--sizes", metavar="FILE", help="size-vs-flux table (Lage ITL or BOT)")
-    tables.add_argument("--gain", type=float, help="e-/ADU of a size table in ADU")
+    tables.add_argument("--gain", type=positive_float, help="e-/ADU of a size table in ADU")
     tables.add_argument("--measured", metavar="NAME",
                         help="a measured data set shipped with bfpsf, by short name (e.g. "
                              "itl3800c002; see --list-measured)")
