@@ -302,6 +302,18 @@ def test_amplifier_sections_overlapping_or_outside(workdir, capsys, sections, me
      "argument --read-noise: expected a finite number >= 0, got 'nan'"),
     (["diagnose", "--measured", "itl3800c002", "--gain", "-2"],
      "argument --gain: expected a positive finite number, got '-2'"),
+    (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--oversampling", "0"],
+     "argument --oversampling: expected a positive integer, got '0'"),
+    (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--exposure-order", "nan"],
+     "argument --exposure-order: expected a finite number, got 'nan'"),
+    *[([*argv, "--threshold", "nan"],
+       "argument --threshold: expected a positive finite number, got 'nan'")
+      for argv in (["measure", "img.fits", "-o", "m.ecsv"],
+                   ["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits"],
+                   ["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv"])],
+    # 0 was the default box; an even box is refused by photometry itself (test_bad_input)
+    (["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv", "--fit-shape", "0"],
+     "argument --fit-shape: expected a positive integer, got '0'"),
     (["calibrate", *FLATS, "-o", "v.fits", "--seed", "-1"],
      "argument --seed: expected an integer >= 0, got '-1'"),
     (["calibrate", *FLATS, "-o", "v.fits", "--thickness", "0"],

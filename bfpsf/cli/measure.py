@@ -53,7 +53,7 @@ def add_parser(subparsers):
     parser.add_argument("--amp", action="append", metavar="NAME",
                         help="measure only this amplifier (EXTNAME) of multi-extension "
                              "images; repeatable")
-    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+    parser.add_argument("--threshold", type=positive_float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--stamp-size", type=stamp_size_option, default=32,

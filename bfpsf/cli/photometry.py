@@ -10,7 +10,8 @@ import numpy as np
 
 from ..files import about, check_outputs, input_files, write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD, SourceFlag
-from . import background_option, non_negative_float, positive_float, saturation_option
+from . import (background_option, non_negative_float, positive_float, positive_int,
+               saturation_option)
 from ._files import place_stars, read_image
 
 
@@ -43,10 +44,10 @@ def add_parser(subparsers):
                         help="sky level of the images, ADU per pixel (0 for sky-subtracted "
                              "images); default the sigma-clipped median of each image, which "
                              "the wings of dense bright stars bias high")
-    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+    parser.add_argument("--threshold", type=positive_float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")
-    parser.add_argument("--fit-shape", type=int, default=None,
+    parser.add_argument("--fit-shape", type=positive_int, default=None,
                         help="fit box, pixels, odd (default about 3 FWHM)")
     parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help="saturation level of the raw images, ADU: stars with a pixel at "
