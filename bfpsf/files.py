@@ -206,11 +206,12 @@ def reading(path, what):
     """Turn the low-level errors of reading ``path`` into one-line `BFPSFInputError` s.
 
     A file that is truncated, damaged or of another format makes astropy and numpy raise
-    OSError, ValueError, TypeError or UnicodeDecodeError (or astropy only warn that the file
-    is shorter than its header says), and a missing extension or column a KeyError; inside
-    this block each becomes a message naming the file. bfpsf's own errors pass through, and
-    other warnings are passed on.
+    OSError, ValueError, TypeError, UnicodeDecodeError or IORegistryError (or astropy only
+    warn that the file is shorter than its header says), and a missing extension or column a
+    KeyError; inside this block each becomes a message naming the file. bfpsf's own errors
+    pass through, and other warnings are passed on.
     """
+    from astropy.io.registry import IORegistryError  # Table.read: no format fits the file
     from astropy.utils.exceptions import AstropyUserWarning
 
     unreadable = f"{path} is not a readable {what} (truncated, damaged or another format)"
@@ -230,7 +231,8 @@ def reading(path, what):
     except PermissionError as error:
         msg = f"cannot read {path}: permission denied"
         raise BFPSFInputError(msg, str(path)) from error
-    except (OSError, ValueError, TypeError, EOFError) as error:  # UnicodeDecodeError included
+    except (OSError, ValueError, TypeError, EOFError,  # UnicodeDecodeError included
+            IORegistryError) as error:
         raise BFPSFInputError(unreadable, str(path)) from error
     finally:
         truncated = False

@@ -22,9 +22,9 @@ from contextlib import contextmanager
 
 from .errors import BFPSFResourceError
 
-__all__ = ["DEFAULT_TIME_LIMIT", "memory_limit", "time_limit", "check_memory", "check_time",
-           "format_bytes", "psf_fit_cost", "check_psf_fit", "check_pixels", "resource_option",
-           "check_flat_simulation", "check_spot_simulation"]
+__all__ = ["DEFAULT_TIME_LIMIT", "memory_limit", "time_limit", "check_settings", "check_memory",
+           "check_time", "format_bytes", "psf_fit_cost", "check_psf_fit", "check_pixels",
+           "resource_option", "check_flat_simulation", "check_spot_simulation"]
 
 #: Default bound on the estimated run time of one computation, s (3 hours).
 DEFAULT_TIME_LIMIT = 3 * 3600.0
@@ -115,6 +115,14 @@ def time_limit():
         msg = f"BFPSF_TIME_LIMIT must be a positive number of seconds, got {text!r}"
         raise BFPSFResourceError(msg, text)
     return value
+
+
+def check_settings():
+    """Parse ``BFPSF_TIME_LIMIT`` and ``BFPSF_MEMORY_LIMIT`` when set: every command refuses a
+    bad setting before any work, whether or not it estimates a cost."""
+    time_limit()
+    if os.environ.get("BFPSF_MEMORY_LIMIT"):
+        memory_limit()
 
 
 def check_memory(estimate, *, option, what):

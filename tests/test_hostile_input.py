@@ -98,6 +98,8 @@ def run_subprocess(argv, *, cap=None, fsize=None, timeout=REFUSAL_SECONDS):
 
 
 FLATS = [f"f{int(t)}_{m}.fits" for _, t in LEVELS for m in (1, 2)]
+FLAT_LEVEL = ("a flat level from 0 to 1e+06 e- per pixel (10 times a CCD's full well; GalSim's "
+              "SiliconSensor pixel areas diverge beyond a few 1e6 e-)")
 SAME_FILE = "give the output another path (--overwrite replaces earlier outputs, never an input)"
 
 
@@ -276,6 +278,66 @@ def test_an_amplifier_selected_twice_is_refused(workdir, capsys):
      "argument --grid: expected a positive integer, got '0'"),
     (["measure", "img.fits", "--gain", "1.5", "-o", "m.ecsv", "--stamp-size", "4"],
      "argument --stamp-size: expected an integer >= 8 pixels, got '4'"),
+    # issue 25, second pass: numbers a new user typed
+    *[(["simulate", "flats", "--size", "32", option, value, "-o", "sim"],
+       f"argument {option}: expected {expected}, got '{value}'")
+      for option, value, expected in (
+          *[("--levels", level, FLAT_LEVEL) for level in ("1e12", "1e9", "3e7", "-5", "nan")],
+          ("--defect-clusters", "-1", "an integer >= 0"),
+          ("--seed", "-1", "an integer >= 0"),
+          ("--nonlinearity", "nan", "a finite number"),
+          ("--exptime-per-e", "0", "a positive finite number"),
+          ("--readout-correlation", "5", "a fraction of the previous pixel's charge, -1 < c < 1"),
+          ("--gain", "inf", "a positive finite number"),
+          ("--read-noise", "-2", "a finite number >= 0"),
+          ("--hot-columns", "-3", "an integer >= 0"))],
+    (["slope", "stars.ecsv", "--color-max-peak", "-5"],
+     "argument --color-max-peak: expected a positive finite peak in e-, got '-5'"),
+    (["slope", "stars.ecsv", "--min-peak", "nan"],
+     "argument --min-peak: expected a positive finite peak in e-, got 'nan'"),
+    (["slope", "stars.ecsv", "--max-peak", "inf"],
+     "argument --max-peak: expected a positive finite peak in e-, got 'inf'"),
+    *[([*argv, "--saturation", level],
+       f"argument --saturation: expected a positive finite level in ADU, got '{level}'")
+      for argv, level in ((["calibrate", *FLATS, "-o", "v.fits"], "-1"),
+                          (["measure", "img.fits", "-o", "m.ecsv"], "0"),
+                          (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits"], "nan"),
+                          (["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv"],
+                           "inf"))],
+    (["measure", "img.fits", "--gain", "-1", "-o", "m.ecsv"],
+     "argument --gain: expected a positive finite number, got '-1'"),
+    (["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv", "--gain", "0"],
+     "argument --gain: expected a positive finite number, got '0'"),
+    (["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv", "--read-noise", "nan"],
+     "argument --read-noise: expected a finite number >= 0, got 'nan'"),
+    (["diagnose", "--measured", "itl3800c002", "--gain", "-2"],
+     "argument --gain: expected a positive finite number, got '-2'"),
+    (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--oversampling", "0"],
+     "argument --oversampling: expected a positive integer, got '0'"),
+    (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--exposure-order", "nan"],
+     "argument --exposure-order: expected a finite number, got 'nan'"),
+    *[([*argv, "--threshold", "nan"],
+       "argument --threshold: expected a positive finite number, got 'nan'")
+      for argv in (["measure", "img.fits", "-o", "m.ecsv"],
+                   ["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits"],
+                   ["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv"])],
+    # 0 was the default box; an even box is refused by photometry itself (test_bad_input)
+    (["photometry", "img.fits", "--psf", "psf.fits", "-o", "p.ecsv", "--fit-shape", "0"],
+     "argument --fit-shape: expected a positive integer, got '0'"),
+    (["calibrate", *FLATS, "-o", "v.fits", "--seed", "-1"],
+     "argument --seed: expected an integer >= 0, got '-1'"),
+    (["calibrate", *FLATS, "-o", "v.fits", "--thickness", "0"],
+     "argument --thickness: expected a positive finite number, got '0'"),
+    (["validate", "--quick", "--fwhm", "-1"],
+     "argument --fwhm: expected a positive finite number, got '-1'"),
+    (["validate", "--quick", "--beta", "1"],
+     "argument --beta: expected a Moffat index > 1.1 (GalSim's untruncated Moffat), got '1'"),
+    (["validate", "--quick", "--peaks", "5e4", "nan"],
+     "argument --peaks: expected a positive finite number, got 'nan'"),
+    (["validate", "--quick", "--flat-levels", "1e9"],
+     f"argument --flat-levels: expected {FLAT_LEVEL}, got '1e9'"),
+    (["validate", "--quick", "--seed", "-1"],
+     "argument --seed: expected an integer >= 0, got '-1'"),
 ])
 def test_invalid_counts_are_refused_not_reinterpreted(workdir, capsys, argv, message):
     before = snapshot(workdir)
@@ -340,6 +402,95 @@ def test_time_guard_names_the_options(workdir, monkeypatch, capsys):
                           "--pairs 1: simulating 16 flats would take about ")
     assert err.endswith(" h, more than the 0.0167 h limit (BFPSF_TIME_LIMIT, s); use smaller "
                         "values\n")
+    assert snapshot(workdir) == before
+
+
+@pytest.mark.parametrize("variable, setting, message", [
+    ("BFPSF_TIME_LIMIT", "-1", "BFPSF_TIME_LIMIT must be a positive number of seconds, got '-1'"),
+    ("BFPSF_TIME_LIMIT", "soon", "BFPSF_TIME_LIMIT must be a positive number of seconds, got "
+                                 "'soon'"),
+    ("BFPSF_MEMORY_LIMIT", "-8G", "BFPSF_MEMORY_LIMIT must be a number of bytes (e.g. 8G), got "
+                                  "'-8G'"),
+])
+@pytest.mark.parametrize("argv", [["measure", "img.fits", "--gain", "1.5", "-o", "m.ecsv"],
+                                  ["slope", "stars.ecsv"],
+                                  ["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits"]])
+def test_limit_settings_are_refused_by_every_command(workdir, monkeypatch, capsys, variable,
+                                                      setting, message, argv):
+    """measure never estimates a cost, yet refuses a bad limit like psf does (before: exit 0)."""
+    monkeypatch.setenv(variable, setting)
+    before = snapshot(workdir)
+    assert run(capsys, *argv) == (1, f"bfpsf {argv[0]}: error: {message}\n")
+    assert snapshot(workdir) == before
+
+
+@pytest.mark.parametrize("option", ["--bins", "--position-bins"])
+@pytest.mark.parametrize("mode", [["--measured", "itl3800c002"],
+                                  ["--correlations", "c.txt", "--sizes", "s.csv"]])
+def test_diagnose_refuses_bins_its_tables_do_not_take(workdir, capsys, option, mode):
+    """The published tables come binned: --bins 1000000000 was ignored, exit 0."""
+    before = snapshot(workdir)
+    named = "--measured" if mode[0] == "--measured" else "--correlations/--sizes"
+    assert run(capsys, "diagnose", *mode, option, "1000000000", "--json", "d.json") == (
+        1, f"bfpsf diagnose: error: {option} bins the stars of images mode (--flats and "
+           f"--images); the sizes of {named} come binned already\n")
+    assert snapshot(workdir) == before
+
+
+def test_diagnose_refuses_more_bins_than_stars(workdir):
+    """Images mode: more bins than stars (--bins 1000000000 would allocate 8 GB of edges)."""
+    from test_product import calibration as calibration_fixture
+
+    from bfpsf.diagnosis.observables import observables_from_images
+    from bfpsf.errors import BFPSFInputError
+
+    y, x = np.mgrid[0:128, 0:128]
+    image = np.full((128, 128), 100.0)
+    for k, (x0, y0) in enumerate((20.0 + 29 * i, 20.3 + 29 * j) for i in range(4)
+                                 for j in range(4)):
+        image += 2e4 * (1 + k) * np.exp(-((x - x0)**2 + (y - y0)**2) / 8.0) / (8 * np.pi)
+    image = np.random.default_rng(3).poisson(image) / 1.5
+    fits.PrimaryHDU(image.astype(np.float32),
+                    header=fits.Header({"EXPTIME": 1.0, "GAIN": 1.5})).writeto("img16.fits")
+    before = snapshot(workdir)
+    with pytest.raises(BFPSFInputError) as error:  # the command passes --bins as n_bins
+        observables_from_images([], ["img16.fits"], calibration=calibration_fixture.__wrapped__(),
+                                n_bins=1000000000)
+    assert str(error.value) == (
+        "img16.fits: 16 clean stars cannot fill 1000000000 peak bins x 1 position bin(s) of 3 "
+        "or more stars; give --bins N --position-bins M (n_bins, position_bins) with "
+        "N x M <= 5")
+    assert snapshot(workdir) == before
+
+
+@pytest.mark.parametrize("argv, message", [
+    # before: "the gain must be positive e-/ADU, got 0.0", no file named
+    (["measure", "gain0.fits", "-o", "x.ecsv"],
+     "gain0.fits: header GAIN = 0 is not a gain (a positive number of e-/ADU); give --gain G"),
+    (["measure", "gainneg.fits", "-o", "x.ecsv"],
+     "gainneg.fits: header GAIN = -1.5 is not a gain (a positive number of e-/ADU); give "
+     "--gain G"),
+    # before: "a DetectorCalibration needs at least one amplifier"
+    (["psf", "img.fits", "--calib", "cal_missing.fits", "-o", "z.fits"],
+     "cal_missing.fits is an incomplete bfpsf calibration file (Extension 'SUMMARY' not "
+     "found)"),
+    (["measure", "img.fits", "--calib", "cal_missing.fits", "-o", "z.ecsv"],
+     "cal_missing.fits is an incomplete bfpsf calibration file (Extension 'SUMMARY' not "
+     "found)"),
+    # before: "internal error: IORegistryError: Format could not be identified ..."
+    (["measure", "img.fits", "--gain", "1.5", "--catalog", "text.fits", "--color", "g", "-o",
+      "w.ecsv"], "text.fits is not a readable catalog (truncated, damaged or another format)"),
+])
+def test_bad_files_are_named(workdir, capsys, argv, message):
+    for name, gain in (("gain0.fits", 0), ("gainneg.fits", -1.5)):
+        with fits.open("img.fits") as hdul:
+            hdul[0].header["GAIN"] = gain
+            hdul.writeto(name)
+    with fits.open("cal.fits") as hdul:
+        fits.HDUList([hdu for hdu in hdul if hdu.name != "SUMMARY"]).writeto("cal_missing.fits")
+    Path("text.fits").write_text("x y g\n1 2 0.5\n")
+    before = snapshot(workdir)
+    assert run(capsys, *argv) == (1, f"bfpsf {argv[0]}: error: {message}\n")
     assert snapshot(workdir) == before
 
 

@@ -569,8 +569,14 @@ def read_calibration(path):
 
 
 def _group_names(hdul):
-    """``{amplifier name: EXTVER}`` of the HDU groups of a calibration file (schema 1: one)."""
-    return {str(hdu.header.get("AMPNAME", "")): hdu.ver for hdu in hdul if hdu.name == "SUMMARY"}
+    """``{amplifier name: EXTVER}`` of the HDU groups of a calibration file (schema 1: one);
+    each group has a SUMMARY HDU, so a file without one is incomplete (a KeyError, that
+    `bfpsf.files.reading` turns into one line naming the file and the HDU)."""
+    groups = {str(hdu.header.get("AMPNAME", "")): hdu.ver for hdu in hdul
+              if hdu.name == "SUMMARY"}
+    if not groups:
+        raise KeyError("Extension 'SUMMARY' not found.")
+    return groups
 
 
 def _table_hdu(table, name):

@@ -67,16 +67,56 @@ def non_negative_int(text):
     return _integer(text, 0, "an integer >= 0")
 
 
-def background_option(text):
-    """``--background``: a finite sky level (ADU per pixel)."""
+def _real(text, accept, expected):
+    """A finite float option that ``accept(value)`` takes, else argparse's usage error."""
     try:
         value = float(text)
     except ValueError:
         value = float("nan")
-    if not math.isfinite(value):
-        msg = f"expected a finite sky level in ADU, got {text!r}"
+    if not (math.isfinite(value) and accept(value)):
+        msg = f"expected {expected}, got {text!r}"
         raise argparse.ArgumentTypeError(msg)
     return value
+
+
+def background_option(text):
+    """``--background``: a finite sky level (ADU per pixel)."""
+    return _real(text, lambda value: True, "a finite sky level in ADU")
+
+
+def finite_float(text):
+    """A float option that may take any finite value (e.g. a non-linearity coefficient)."""
+    return _real(text, lambda value: True, "a finite number")
+
+
+def positive_float(text):
+    """A float option that must be positive and finite (sizes, gains, times, peaks)."""
+    return _real(text, lambda value: value > 0, "a positive finite number")
+
+
+def non_negative_float(text):
+    """A float option that may be 0 but must be finite (e.g. a read noise)."""
+    return _real(text, lambda value: value >= 0, "a finite number >= 0")
+
+
+def saturation_option(text):
+    """``--saturation``: a positive finite level, ADU."""
+    return _real(text, lambda value: value > 0, "a positive finite level in ADU")
+
+
+def seed_option(text):
+    """``--seed``: an integer >= 0 (what numpy's generators take)."""
+    return _integer(text, 0, "an integer >= 0")
+
+
+def flat_level_option(text):
+    """``--levels`` / ``--flat-levels``: a flat level, electrons per pixel, from 0 to
+    `bfpsf.validation.simulate_flats.MAX_LEVEL_E`."""
+    from ..validation.simulate_flats import MAX_LEVEL_E
+
+    return _real(text, lambda value: 0 <= value <= MAX_LEVEL_E,
+                 f"a flat level from 0 to {MAX_LEVEL_E:.0e} e- per pixel (10 times a CCD's "
+                 "full well; GalSim's SiliconSensor pixel areas diverge beyond a few 1e6 e-)")
 
 
 def add_common_options(parser):
@@ -115,6 +155,9 @@ def _apply_common_options(args):
         logger.addHandler(handler)
     if args.progress is None:
         args.progress = sys.stderr.isatty()
+    from ..resources import check_settings
+
+    check_settings()
     threads = args.threads
     if threads is None and os.environ.get("OMP_NUM_THREADS", "").strip().isdigit():
         threads = int(os.environ["OMP_NUM_THREADS"])

@@ -11,7 +11,8 @@ from pathlib import Path
 from ..errors import BFPSFInputError
 from ..files import check_outputs, input_files, make_directory, write_json
 from ..resources import check_time
-from . import maxlag_option, non_negative_int, positive_int
+from . import (maxlag_option, non_negative_int, positive_float, positive_int, saturation_option,
+               seed_option)
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 AMPLIFIER_PLOT = "amplifiers.png"
@@ -53,19 +54,20 @@ def add_parser(subparsers):
     parser.add_argument("--model", choices=("full", "exponential", "quadratic"), default="full",
                         help="PTC model: Astier+19 eq. 20 'full' (default), eq. 16 "
                              "'exponential', or G15's 'quadratic'")
-    parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
+    parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help="mask pixels at or above this level (ADU)")
     parser.add_argument("--shift-method", choices=("electrostatic", "ei"),
                         default="electrostatic",
                         help="solver of the boundary shifts: the electrostatic sensor model of "
                              "Astier & Regnault 2023 (default) or G15's Ei smoothing model")
-    parser.add_argument("--thickness", type=float, default=10.0, metavar="PIXELS",
+    parser.add_argument("--thickness", type=positive_float, default=10.0, metavar="PIXELS",
                         help="sensor thickness in pixels for the electrostatic model "
                              "(default 10: 100 um with 10 um pixels)")
     parser.add_argument("--n-monte-carlo", type=non_negative_int, default=100,
                         help="samples of the boundary shifts drawn from the calibration error, "
                              "kept for error propagation (default 100)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the samples (default 0)")
+    parser.add_argument("--seed", type=seed_option, default=0,
+                        help="seed of the samples (default 0)")
     parallel = parser.add_mutually_exclusive_group()
     parallel.add_argument("--workers", type=positive_int, default=default_workers(), metavar="N",
                           help="processes measuring the pairs (Dask LocalCluster; 1: in this "

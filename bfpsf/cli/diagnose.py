@@ -25,7 +25,7 @@ from pathlib import Path
 
 from ..diagnosis.signature import describe_entry
 from ..errors import BFPSFInputError
-from . import background_option, maxlag_option, positive_int
+from . import background_option, maxlag_option, positive_float, positive_int
 
 __all__ = ["add_parser", "run"]
 
@@ -57,16 +57,16 @@ def add_parser(subparsers):
                            "integer")
     data.add_argument("--no-fit-b", dest="fit_b", action="store_false",
                       help="calibrate without the Astier+19 b term (few or small flats)")
-    data.add_argument("--bins", type=positive_int, default=10,
+    data.add_argument("--bins", type=positive_int, default=None,
                       help="peak bins of the measured sizes (default 10)")
-    data.add_argument("--position-bins", type=positive_int, default=1, metavar="N",
+    data.add_argument("--position-bins", type=positive_int, default=None, metavar="N",
                       help="also split the bins in N ranges of column (distance from the "
                            "amplifier), for the residual's position dependence (default 1)")
     tables = parser.add_argument_group("table mode")
     tables.add_argument("--correlations", metavar="FILE",
                         help="measured a / correlation table (corr_meas, Poisson_CCD, cp_pipe)")
     tables.add_argument("--sizes", metavar="FILE", help="size-vs-flux table (Lage ITL or BOT)")
-    tables.add_argument("--gain", type=float, help="e-/ADU of a size table in ADU")
+    tables.add_argument("--gain", type=positive_float, help="e-/ADU of a size table in ADU")
     tables.add_argument("--measured", metavar="NAME",
                         help="a measured data set shipped with bfpsf, by short name (e.g. "
                              "itl3800c002; see --list-measured)")
@@ -118,6 +118,22 @@ def _observables(args):
     raise BFPSFInputError(msg)
 
 
+def _check_binning(args):
+    """--bins and --position-bins bin the stars measured in images mode; the tables of the
+    other modes come binned: refuse them there rather than ignore them (a user who asks for
+    1000 bins expects 1000 bins or an error, not the default's result). Then the defaults."""
+    given = [option for option, value in (("--bins", args.bins),
+                                          ("--position-bins", args.position_bins))
+             if value is not None]
+    if given and not (args.flats or args.images):
+        mode = "--measured" if args.measured else "--correlations/--sizes"
+        msg = (f"{given[0]} bins the stars of images mode (--flats and --images); the sizes "
+               f"of {mode} come binned already")
+        raise BFPSFInputError(msg)
+    args.bins = 10 if args.bins is None else args.bins
+    args.position_bins = 1 if args.position_bins is None else args.position_bins
+
+
 def run(args):
     from ..diagnosis.loop import diagnose
     from ..files import check_outputs, input_files, write_json
@@ -130,6 +146,7 @@ def run(args):
             print(f"{name}: {description}")
         return 0
 
+    _check_binning(args)
     report = Path(args.report) / "report.md" if args.report else None
     check_outputs([args.json, report, args.output_calib,
                    Path(args.report) / "signatures.png" if args.report else None],

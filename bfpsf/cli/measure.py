@@ -11,7 +11,7 @@ from ..errors import BFPSFInputError
 from ..files import (about, check_outputs, input_files, read_table, refuse_duplicates,
                      write_json, write_table)
 from ..measure.sources import DETECTION_THRESHOLD
-from . import stamp_size_option
+from . import positive_float, saturation_option, stamp_size_option
 from ._files import place_stars, read_image
 
 
@@ -43,7 +43,7 @@ def add_parser(subparsers):
     gain = parser.add_mutually_exclusive_group()
     gain.add_argument("--calib", metavar="CALIB.fits",
                       help="take the gain (e-/ADU) from this calibration file")
-    gain.add_argument("--gain", type=float, metavar="G",
+    gain.add_argument("--gain", type=positive_float, metavar="G",
                       help="gain, e-/ADU (default: header GAIN of each image)")
     parser.add_argument("--color", "--colour", dest="colour", action="append", metavar="COLUMN",
                         help="colour column to pass through, read from --catalog or from the "
@@ -53,12 +53,12 @@ def add_parser(subparsers):
     parser.add_argument("--amp", action="append", metavar="NAME",
                         help="measure only this amplifier (EXTNAME) of multi-extension "
                              "images; repeatable")
-    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+    parser.add_argument("--threshold", type=positive_float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--stamp-size", type=stamp_size_option, default=32,
                         help="measurement stamp side, pixels (default 32)")
-    parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
+    parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help="saturation level of the raw image, ADU (flags, does not drop; "
                              "default the header's SATURATE or a variant; with --calib, the "
                              "linearity turnoff where lower)")
@@ -71,16 +71,21 @@ def _gain(args, header, path, calibration, amplifier):
     from ..calibration.product import calibration_of_amplifier
 
     if args.gain is not None:
-        gain = args.gain
-    elif calibration is not None:
+        return float(args.gain)  # positive and finite (positive_float)
+    if calibration is not None:
         gain = calibration_of_amplifier(calibration, amplifier, str(path)).gain
+        where = f"{args.calib}: the gain of amplifier {amplifier!r}"
     elif "GAIN" in header:
-        gain = float(header["GAIN"])
+        where = f"{path}: header GAIN = {header['GAIN']!r}"
+        try:
+            gain = float(header["GAIN"])
+        except (TypeError, ValueError):
+            gain = float("nan")
     else:
         msg = f"{path}: no gain: give --gain G or --calib CALIB.fits (no GAIN header)"
         raise BFPSFInputError(msg, path)
     if not (np.isfinite(gain) and gain > 0):
-        msg = f"the gain must be positive e-/ADU, got {gain!r}"
+        msg = f"{where} is not a gain (a positive number of e-/ADU); give --gain G"
         raise BFPSFInputError(msg, gain)
     return float(gain)
 

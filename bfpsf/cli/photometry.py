@@ -10,7 +10,8 @@ import numpy as np
 
 from ..files import about, check_outputs, input_files, write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD, SourceFlag
-from . import background_option
+from . import (background_option, non_negative_float, positive_float, positive_int,
+               saturation_option)
 from ._files import place_stars, read_image
 
 
@@ -34,21 +35,21 @@ def add_parser(subparsers):
                         help="PSF product written by 'bfpsf psf'")
     parser.add_argument("-o", "--output", required=True, metavar="PHOT.ecsv",
                         help="photometry table to write (ECSV)")
-    parser.add_argument("--gain", type=float, default=None,
+    parser.add_argument("--gain", type=positive_float, default=None,
                         help="e-/ADU (default: the gain stored in the PSF product)")
-    parser.add_argument("--read-noise", type=float, default=0.0, metavar="E",
+    parser.add_argument("--read-noise", type=non_negative_float, default=0.0, metavar="E",
                         help="read noise, e- rms, for the pixel errors (with --background 0 "
                              "on sky-subtracted images: include the sky's noise; default 0)")
     parser.add_argument("--background", type=background_option, default=None, metavar="ADU",
                         help="sky level of the images, ADU per pixel (0 for sky-subtracted "
                              "images); default the sigma-clipped median of each image, which "
                              "the wings of dense bright stars bias high")
-    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+    parser.add_argument("--threshold", type=positive_float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")
-    parser.add_argument("--fit-shape", type=int, default=None,
+    parser.add_argument("--fit-shape", type=positive_int, default=None,
                         help="fit box, pixels, odd (default about 3 FWHM)")
-    parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
+    parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help="saturation level of the raw images, ADU: stars with a pixel at "
                              "or above it in the fit box are flagged (column saturated and bit 8 "
                              "of source_flags; "
@@ -108,8 +109,9 @@ def run(args):
     if psf.flux_unit != "electron":
         psf = psf.with_flux_unit("electron")  # the images are converted to e- below
     gain = psf.gain if args.gain is None else float(args.gain)
-    if gain is not None and not (np.isfinite(gain) and gain > 0):
-        msg = f"the gain must be positive e-/ADU, got {gain!r}"
+    if gain is not None and not (np.isfinite(gain) and gain > 0):  # --gain is checked
+        msg = (f"{args.psf}: the PSF product's GAIN = {gain!r} is not a gain (a positive "
+               "number of e-/ADU); give --gain G")
         raise BFPSFInputError(msg, gain)
     calibration = read_calibration(args.calib) if args.calib else None
     tables, per_image = [], []

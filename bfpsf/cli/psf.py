@@ -18,7 +18,8 @@ import numpy as np
 from ..errors import BFPSFInputError
 from ..files import about, check_outputs, input_files, refuse_duplicates, write_json
 from ..measure.sources import DETECTION_THRESHOLD
-from . import background_option, positive_int, stamp_size_option
+from . import (background_option, finite_float, positive_float, positive_int, saturation_option,
+               stamp_size_option)
 from ..model.psf_fit import DEFAULT_SIZE
 from ._files import read_image
 
@@ -42,25 +43,25 @@ def add_parser(subparsers):
                         help="calibration (boundary shifts, gain, read noise)")
     parser.add_argument("-o", "--output", required=True, metavar="PSF.fits",
                         help="PSF product to write (FITS)")
-    parser.add_argument("--oversampling", type=int, default=2,
+    parser.add_argument("--oversampling", type=positive_int, default=2,
                         help="oversampling of P0 (default 2; 4 needs several hundred stars)")
     parser.add_argument("--size", type=stamp_size_option, default=DEFAULT_SIZE,
                         help="support of P0 and star cutouts, pixels, odd (default 25)")
-    parser.add_argument("--threshold", type=float, default=DETECTION_THRESHOLD,
+    parser.add_argument("--threshold", type=positive_float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--background", type=background_option, default=None, metavar="ADU",
                         help="sky level of the images, ADU per pixel (0 for sky-subtracted "
                              "images); default the sigma-clipped median of each image, which "
                              "the wings of dense bright stars bias high")
-    parser.add_argument("--saturation", type=float, default=None, metavar="ADU",
+    parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help="saturation level, ADU: saturated stars are not used (default "
                              "the header's SATURATE or a variant; the calibration's linearity "
                              "turnoff where lower)")
     parser.add_argument("--grid", type=positive_int, nargs=2, metavar=("NX", "NY"), default=None,
                         help="fit P0 on NX x NY nodes over the image (P(F, x, y), bilinear "
                              "between nodes, as photutils GriddedPSFModel); default one P0")
-    parser.add_argument("--exposure-order", type=float, default=None, metavar="T",
+    parser.add_argument("--exposure-order", type=finite_float, default=None, metavar="T",
                         help="exposure order of the images in the night, for a refined "
                              "calibration's EMPIRICAL term that changes over the night "
                              "(default the middle of the exposures it was learned on)")

@@ -9,9 +9,17 @@ added to ``TARGETS``).
 
 import argparse
 
-from . import add_common_options, positive_int
+from . import (_real, add_common_options, finite_float, flat_level_option, non_negative_float,
+               non_negative_int, positive_float, positive_int, seed_option)
 
 __all__ = ["add_parser", "run", "TARGETS"]
+
+
+def readout_correlation_option(text):
+    """``--readout-correlation``: the fraction c of the previous pixel's charge added to each
+    pixel (R(1, 0) = c / (1 + c^2) for a flat): -1 < c < 1."""
+    return _real(text, lambda value: -1 < value < 1,
+                 "a fraction of the previous pixel's charge, -1 < c < 1")
 
 
 def _add_flats(targets):
@@ -25,24 +33,26 @@ def _add_flats(targets):
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--sensor", default="lsst_itl_50_8",
                         help="GalSim SiliconSensor name (lsst_itl_50_8, lsst_e2v_50_8, ...)")
-    parser.add_argument("--levels", type=float, nargs="+", default=list(DEFAULT_LEVELS_E),
+    parser.add_argument("--levels", type=flat_level_option, nargs="+",
+                        default=list(DEFAULT_LEVELS_E),
                         metavar="E", help="flat levels, electrons per pixel")
     parser.add_argument("--pairs", type=positive_int, default=1, help="pairs per level")
     parser.add_argument("--size", type=positive_int, default=256, help="image side, pixels")
-    parser.add_argument("--gain", type=float, default=1.5, help="gain, e-/ADU")
-    parser.add_argument("--read-noise", type=float, default=5.0, help="read noise, e- rms")
+    parser.add_argument("--gain", type=positive_float, default=1.5, help="gain, e-/ADU")
+    parser.add_argument("--read-noise", type=non_negative_float, default=5.0,
+                        help="read noise, e- rms")
     parser.add_argument("--nsteps", type=positive_int, default=20,
                         help="charge increments per flat (covariance bias ~ 1/nsteps^2)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed")
-    parser.add_argument("--exptime-per-e", type=float, default=1e-3,
+    parser.add_argument("--seed", type=seed_option, default=0, help="random seed")
+    parser.add_argument("--exptime-per-e", type=positive_float, default=1e-3,
                         help="EXPTIME per electron of level, s")
-    parser.add_argument("--nonlinearity", type=float, default=0.0,
+    parser.add_argument("--nonlinearity", type=finite_float, default=0.0,
                         help="quadratic non-linearity, 1/e-: signal = q (1 + NL q)")
-    parser.add_argument("--readout-correlation", type=float, default=0.0,
+    parser.add_argument("--readout-correlation", type=readout_correlation_option, default=0.0,
                         help="serial readout correlation c (G15 pedestal, R(1,0) ~ c)")
-    parser.add_argument("--hot-columns", type=int, nargs="*", default=[], metavar="X",
+    parser.add_argument("--hot-columns", type=non_negative_int, nargs="*", default=[], metavar="X",
                         help="columns with 2%% extra charge")
-    parser.add_argument("--defect-clusters", type=int, default=0,
+    parser.add_argument("--defect-clusters", type=non_negative_int, default=0,
                         help="number of 3x3 defect clusters")
     parser.add_argument("-o", "--output", required=True, metavar="DIR",
                         help="output directory (created if missing)")

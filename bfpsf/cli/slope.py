@@ -24,7 +24,13 @@ record, label ``'empirical'``; in the prediction and the residual), or None.
 import numpy as np
 
 from ..errors import BFPSFInputError
+from . import _real
 from ..files import check_outputs, input_files, read_table, save_figure, write_json
+
+
+def peak_option(text):
+    """``--min-peak``, ``--max-peak``, ``--color-max-peak``: a positive finite peak, e-."""
+    return _real(text, lambda value: value > 0, "a positive finite peak in e-")
 
 
 def add_parser(subparsers):
@@ -37,11 +43,11 @@ def add_parser(subparsers):
                         help="flux-dependent PSF product: adds prediction (the slopes the model predicts, with the calibration error) and model_residual")
     parser.add_argument("--color", "--colour", dest="colour", metavar="COLUMN",
                         help="correct the size-colour relation with this column first")
-    parser.add_argument("--color-max-peak", dest="colour_max_peak", type=float, metavar="E",
+    parser.add_argument("--color-max-peak", dest="colour_max_peak", type=peak_option, metavar="E",
                         help="peak limit of the colour-fit stars, e- (default: faintest half)")
-    parser.add_argument("--min-peak", type=float, default=None, metavar="E",
+    parser.add_argument("--min-peak", type=peak_option, default=None, metavar="E",
                         help="smallest peak fitted, e- (default: all)")
-    parser.add_argument("--max-peak", type=float, default=None, metavar="E",
+    parser.add_argument("--max-peak", type=peak_option, default=None, metavar="E",
                         help="largest peak fitted, e- (G15: below blooming; default: all "
                              "unflagged stars)")
     parser.add_argument("--unweighted", action="store_true",

@@ -7,10 +7,16 @@ chain, print the side-by-side table, write the JSON summary and the Markdown rep
 import sys
 from pathlib import Path
 
-from . import positive_int
+from . import (_real, flat_level_option, positive_float, positive_int, seed_option)
 
 
 __all__ = ["add_parser", "run"]
+
+
+def moffat_beta_option(text):
+    """``--beta``: a Moffat index GalSim draws untruncated, > 1.1."""
+    return _real(text, lambda value: value > 1.1, "a Moffat index > 1.1 (GalSim's untruncated "
+                                                  "Moffat)")
 
 
 def add_parser(subparsers):
@@ -23,22 +29,23 @@ def add_parser(subparsers):
                         help="small run (under 3 minutes on 2 cores); the README's command")
     parser.add_argument("--sensor", default=None,
                         help="SiliconSensor name (default lsst_itl_50_8)")
-    parser.add_argument("--fwhm", type=float, default=None, help="Moffat FWHM, pixels")
-    parser.add_argument("--beta", type=float, default=None, help="Moffat index")
-    parser.add_argument("--peaks", type=float, nargs="+", default=None, metavar="E",
+    parser.add_argument("--fwhm", type=positive_float, default=None, help="Moffat FWHM, pixels")
+    parser.add_argument("--beta", type=moffat_beta_option, default=None, help="Moffat index")
+    parser.add_argument("--peaks", type=positive_float, nargs="+", default=None, metavar="E",
                         help="spot peak levels, e-")
     parser.add_argument("--spots-per-level", type=positive_int, default=None, dest="n_per_level",
                         help="spots per peak level (default: the configuration's)")
     parser.add_argument("--flat-size", type=positive_int, default=None, help="flat side, pixels")
     parser.add_argument("--flat-pairs", type=positive_int, default=None,
                         help="pairs per flat level")
-    parser.add_argument("--flat-levels", type=float, nargs="+", default=None, metavar="E",
+    parser.add_argument("--flat-levels", type=flat_level_option, nargs="+", default=None,
+                        metavar="E",
                         help="flat levels, electrons (default: the configuration's)")
     parser.add_argument("--model-shifts", choices=("flats", "truth"), default="flats",
                         help="shifts for P(F), the inverse and the loop: from the simulated "
                              "flats (default, the path a user takes) or SiliconSensor's landing "
                              "truth (a diagnostic, labelled as such)")
-    parser.add_argument("--seed", type=int, default=None,
+    parser.add_argument("--seed", type=seed_option, default=None,
                         help="random seed (default: the configuration's)")
     parser.add_argument("--report", metavar="DIR", help="write report.md and PNG figures")
     parser.add_argument("--json", metavar="FILE", help="write the JSON summary")

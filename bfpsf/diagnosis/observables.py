@@ -658,6 +658,12 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean star(s), too few to "
                "diagnose (9 or more)")
         raise BFPSFInputError(msg, fluxes.size)
+    if n_bins * position_bins > fluxes.size:  # more bins than stars; before they allocate
+        msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean stars cannot fill "
+               f"{n_bins} peak bins x {position_bins} position bin(s) of 3 or more stars; "
+               f"give --bins N --position-bins M (n_bins, position_bins) with N x M <= "
+               f"{max(fluxes.size // 3, 1)}")
+        raise BFPSFInputError(msg, n_bins)
     sizes = _binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
                           f"{len(images)} images",
                           # one position bin: the bins' mean columns differ by chance only

@@ -27,13 +27,18 @@ import numpy as np
 from ..errors import BFPSFFileExistsError, BFPSFValueError
 from ..files import write_fits
 
-__all__ = ["simulate_flat", "simulate_flats", "write_flats", "DEFAULT_LEVELS_E"]
+__all__ = ["simulate_flat", "simulate_flats", "write_flats", "DEFAULT_LEVELS_E", "MAX_LEVEL_E"]
 
 log = logging.getLogger(__name__)
 
 #: Default flat levels, electrons: a PTC from low flux to about 100 ke-.
 DEFAULT_LEVELS_E = (5_000.0, 10_000.0, 20_000.0, 35_000.0, 50_000.0, 65_000.0, 80_000.0,
                     100_000.0)
+
+#: Highest flat level, electrons per pixel: ten times a CCD's full well (~1e5 e-). GalSim's
+#: SiliconSensor pixel areas diverge beyond a few 1e6 e- (numpy's Poisson then refuses the
+#: infinite means: "lam value too large", seen at 1e7 e-).
+MAX_LEVEL_E = 1e6
 
 _zero_charge_areas = {}
 
@@ -176,10 +181,11 @@ def simulate_flats(sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, pairs=1
         float64 [y, x] in ADU; the header holds EXPTIME, BUNIT and the true parameters
         (SIMGAIN, SIMNOISE, SENSOR, SIMLEVEL, SEED, ...).
     """
-    sensor_object = _sensor(sensor)
-    sensor_name = sensor if isinstance(sensor, str) else getattr(sensor, "name", repr(sensor))
     levels_e = np.atleast_1d(np.asarray(levels_e, dtype=float))
     _validate(levels_e, pairs, size, gain, read_noise_e, hot_columns)
+    _validate_readout(seed, exptime_per_e, nonlinearity, readout_correlation, defect_clusters)
+    sensor_object = _sensor(sensor)
+    sensor_name = sensor if isinstance(sensor, str) else getattr(sensor, "name", repr(sensor))
     if not (np.isfinite(lamp_jitter) and 0 <= lamp_jitter < 0.5):
         msg = f"lamp_jitter must be a relative rms in [0, 0.5), got {lamp_jitter!r}"
         raise BFPSFValueError(msg, lamp_jitter)
@@ -237,8 +243,9 @@ def simulate_flats(sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, pairs=1
 
 
 def _validate(levels_e, pairs, size, gain, read_noise_e, hot_columns):
-    if levels_e.size == 0 or np.any(levels_e < 0) or not np.all(np.isfinite(levels_e)):
-        msg = f"the flat levels must be finite charges >= 0 e-, got {levels_e.tolist()}"
+    if levels_e.size == 0 or not np.all((levels_e >= 0) & (levels_e <= MAX_LEVEL_E)):
+        msg = (f"the flat levels must be charges from 0 to {MAX_LEVEL_E:.0e} e- (MAX_LEVEL_E), "
+               f"got {levels_e.tolist()}")
         raise BFPSFValueError(msg, levels_e)
     if int(pairs) != pairs or pairs < 1:
         msg = f"pairs must be a positive integer, got {pairs}"
@@ -246,16 +253,33 @@ def _validate(levels_e, pairs, size, gain, read_noise_e, hot_columns):
     if int(size) != size or size < 8:
         msg = f"size must be an integer of at least 8 pixels, got {size}"
         raise BFPSFValueError(msg, size)
-    if not gain > 0:
+    if not 0 < gain < np.inf:
         msg = f"gain must be positive (e-/ADU), got {gain}"
         raise BFPSFValueError(msg, gain)
-    if not read_noise_e >= 0:
+    if not 0 <= read_noise_e < np.inf:
         msg = f"read_noise_e must be >= 0 electrons, got {read_noise_e}"
         raise BFPSFValueError(msg, read_noise_e)
     for column in hot_columns:
         if not 0 <= int(column) < size:
             msg = f"hot column {column} is outside the image (0..{size - 1})"
             raise BFPSFValueError(msg, column)
+
+
+def _validate_readout(seed, exptime_per_e, nonlinearity, readout_correlation,
+                      defect_clusters):
+    checks = (
+        (float(seed).is_integer() and seed >= 0, "seed must be an integer >= 0", seed),
+        (0 < exptime_per_e < np.inf, "exptime_per_e must be a positive finite time (s)",
+         exptime_per_e),
+        (np.isfinite(nonlinearity), "nonlinearity must be finite (1/e-)", nonlinearity),
+        (-1 < readout_correlation < 1, "readout_correlation must be a fraction of the previous "
+                                       "pixel's charge, -1 < c < 1", readout_correlation),
+        (float(defect_clusters).is_integer() and defect_clusters >= 0,
+         "defect_clusters must be an integer >= 0", defect_clusters))
+    for passes, requirement, value in checks:
+        if not passes:
+            msg = f"{requirement}, got {value}"
+            raise BFPSFValueError(msg, value)
 
 
 def _add_features(charge, level, hot_columns, hot_column_fraction, defect_corners,
