@@ -25,7 +25,8 @@ from pathlib import Path
 
 from ..diagnosis.signature import describe_entry
 from ..errors import BFPSFInputError
-from . import background_option, maxlag_option, positive_float, positive_int
+from . import (background_option, maxlag_option, positive_float, positive_int,
+               saturation_option)
 
 __all__ = ["add_parser", "run"]
 
@@ -48,7 +49,7 @@ def add_parser(subparsers):
     data.add_argument("--background", type=background_option, default=None, metavar="ADU",
                       help="sky level of the images, ADU per pixel (0 for sky-subtracted "
                            "images); default the sigma-clipped median of each image")
-    data.add_argument("--saturation", type=float, default=None, metavar="ADU",
+    data.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                       help="saturation level of the images, ADU: saturated stars are not used "
                            "(default the header's SATURATE or a variant; the calibration's "
                            "linearity turnoff where lower)")
