@@ -56,8 +56,10 @@ def add_parser(subparsers):
     data.add_argument("--maxlag", type=maxlag_option, default="auto", metavar="auto|N",
                       help="calibration lags: 'auto' (default, as bfpsf calibrate) or an "
                            "integer")
-    data.add_argument("--no-fit-b", dest="fit_b", action="store_false",
-                      help="calibrate without the Astier+19 b term (few or small flats)")
+    data.add_argument("--no-fit-b", dest="fit_b", action="store_const", const="none",
+                      default="off-origin",
+                      help="calibrate without the Astier+19 b term (few or small flats); by "
+                           "default b is fitted off the origin, as bfpsf calibrate does")
     data.add_argument("--bins", type=positive_int, default=None,
                       help="peak bins of the measured sizes (default 10)")
     data.add_argument("--position-bins", type=positive_int, default=None, metavar="N",

@@ -565,16 +565,17 @@ def interleaved(n, fraction):
 
 
 def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=10, gain=None,
-                            calibration=None, fit_b=True, amp=None, holdout_fraction=0.5,
-                            n_monte_carlo=30, background=None, progress=False,
-                            position_bins=1, saturation=None):
+                            calibration=None, fit_b="off-origin", amp=None,
+                            holdout_fraction=0.5, n_monte_carlo=30, background=None,
+                            progress=False, position_bins=1, saturation=None):
     """Observables from flat-field FITS and spot / star images (ADU, bias subtracted).
 
     The flats are calibrated (`bfpsf.calibrate`, with ``n_monte_carlo`` bootstrap samples of
     the shifts), the sources of every image measured (`bfpsf.measure.sources.measure_sources`,
     unflagged sources only) and their sizes averaged in ``n_bins`` quantile bins of flux for
     each image (rows labelled by exposure, for the held-out split). ``fit_b`` is passed to
-    `bfpsf.calibrate` (False for a few small flats, whose b term is unconstrained). The loop
+    `bfpsf.calibrate` (its default, 'off-origin', as ``bfpsf calibrate``; False for a few
+    small flats, whose b term is unconstrained). The loop
     works on one amplifier: ``amp`` names it in multi-amplifier files (flats and images are
     read by `bfpsf.io.amplifiers`). ``background`` is the images' sky level, ADU per pixel
     (default: the sigma-clipped median of each image). ``saturation`` is the images'
