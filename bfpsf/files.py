@@ -171,6 +171,10 @@ def check_outputs(paths, overwrite, *, how="--overwrite", directories=(), inputs
         if path.is_dir():
             msg = f"output {path} is a directory"
             raise BFPSFInputError(msg, str(path))
+        if path.exists() and not path.is_file():  # a device, a pipe, a socket
+            msg = (f"output {path} is not a regular file (a device or a pipe); --overwrite "
+                   "would replace it: give a file path")
+            raise BFPSFInputError(msg, str(path))
         parent = resolved.parent
         if any(parent == directory or directory in parent.parents for directory in created):
             continue
@@ -261,13 +265,35 @@ def about(path):
         raise type(error)(msg, error.value) from None
 
 
-def read_table(path, what, *, format=None):  # noqa: A002
-    """An `astropy.table.Table` read from ``path``, with one-line errors naming the file."""
+def read_table(path, what, *, format=None, numeric=()):  # noqa: A002
+    """An `astropy.table.Table` read from ``path``, with one-line errors naming the file.
+
+    ``numeric``: columns that must hold numbers where present (a column of text is refused
+    naming the file, the column and a value, not found later as a failed conversion)."""
     from astropy.table import Table
 
     path = check_input(path, what)
     with reading(path, what):
-        return Table.read(path, format=format)
+        table = Table.read(path, format=format)
+    for name in numeric:
+        if name in table.colnames and table[name].dtype.kind not in "biuf":
+            values = np.asarray(table[name])
+            try:
+                values.astype(float)
+            except (TypeError, ValueError):
+                example = next((value for value in values.ravel()
+                                if not _is_number(value)), values.ravel()[0])
+                msg = f"{path}: column {name} holds {str(example)!r}, not numbers"
+                raise BFPSFInputError(msg, name) from None
+    return table
+
+
+def _is_number(value):
+    try:
+        float(value)
+    except (TypeError, ValueError):
+        return False
+    return True
 
 
 def refuse_duplicates(paths, what):

@@ -634,3 +634,38 @@ def test_a_folder_holding_an_earlier_run_is_refused_before_any_work(workdir, cap
     assert err == (f"bfpsf {argv[0]}: error: plots already holds {Path(earlier).name} (an "
                    "earlier run's); pass --overwrite to replace it or give another folder\n")
     assert snapshot(workdir) == before
+
+
+@pytest.mark.parametrize("argv, message", [
+    # a pipe (or a device) given as an output was replaced by a regular file with --overwrite
+    (["measure", "img.fits", "--gain", "1.5", "-o", "fifo", "--overwrite"],
+     "output fifo is not a regular file (a device or a pipe); --overwrite would replace it: "
+     "give a file path"),
+    # text where numbers belong failed later as an internal error
+    (["slope", "text.ecsv"], "text.ecsv: column peak_e holds 'bright', not numbers"),
+    (["measure", "img.fits", "--gain", "1.5", "--catalog", "text.ecsv", "--color", "g", "-o",
+      "m.ecsv"], "text.ecsv: column x holds 'a', not numbers"),
+])
+def test_special_outputs_and_text_columns(workdir, capsys, argv, message):
+    os.mkfifo("fifo")
+    Table({"x": ["a", "b"], "y": [1.0, 2.0], "g": [0.1, 0.2],
+           "peak_e": ["bright", "faint"]}).write("text.ecsv")
+    before = {name: data for name, data in snapshot(workdir).items()}
+    code, err = run(capsys, *argv)
+    assert (code, err) == (1, f"bfpsf {argv[0]}: error: {message}\n")
+    assert snapshot(workdir) == before and Path("fifo").is_fifo()
+
+
+def test_a_field_without_sky_between_its_stars_is_named(workdir, capsys):
+    """Stars closer than P0's support everywhere: no sky pixel left (an internal error)."""
+    y, x = np.mgrid[0:128, 0:128]
+    field = np.full((128, 128), 50.0)
+    for x0 in range(13, 128, 26):  # 25 stars 26 px apart: P0's 25-px supports tile the image
+        for y0 in range(13, 128, 26):
+            field += 2e5 * np.exp(-((x - x0)**2 + (y - y0)**2) / 8.0) / (8 * np.pi)
+    fits.PrimaryHDU(np.random.default_rng(3).poisson(field).astype(np.float32)).writeto(
+        "crowded.fits")
+    code, err = run(capsys, "psf", "crowded.fits", "--calib", "cal.fits", "-o", "p.fits")
+    assert code == 1 and err.startswith("bfpsf psf: error: crowded.fits: ") and \
+        "too few for its sky; give the sky (--background) or a smaller --size" in err
+    assert err.count("\n") == 1

@@ -103,7 +103,8 @@ def run(args):
     check_outputs([args.output, args.json], args.overwrite,
                   inputs=input_files(args.images, args.calib, args.catalog))
     refuse_duplicates(args.images, "image")
-    external = read_table(args.catalog, "catalog") if args.catalog else None
+    external = (read_table(args.catalog, "catalog", numeric=("x", "y", *(args.colour or ())))
+                if args.catalog else None)
     tables, summary_images = [], []
     # read_calibration names a missing or foreign file itself
     calibration = read_calibration(args.calib) if args.calib else None

@@ -101,7 +101,9 @@ def run(args):
     if args.psf_plot and not args.psf:
         msg = "--psf-plot needs --psf PSF.fits"
         raise BFPSFInputError(msg, args.psf_plot)
-    stars = read_table(args.stars, "star table", format="ascii.ecsv")
+    stars = read_table(args.stars, "star table", format="ascii.ecsv",
+                       numeric=("peak_e", "flux", "sigma_x", "sigma_y", "e1", "e2", "x", "y",
+                                "flags", *([args.colour] if args.colour else [])))
     colour_fit = None
     if args.colour:
         stars, colour_fit = correct_size_colour(stars, args.colour,

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import BFPSFInputError
+
 __all__ = ["WingModel", "fit_sky_and_wings", "wing_image"]
 
 #: Outer radius of the wings fitted and of a star's glow (`wing_image`), in support
@@ -157,6 +159,11 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         # the fitted stars' supports and every source's core (a star not fitted, e.g. a
         # blend, would otherwise put its light in the sky) are left out
         keep = ~inside & ~core[rows, columns]
+        if keep.sum() < 10 * n_terms:  # a field filled with stars: no sky to fit
+            msg = (f"image {index + 1}: {int(keep.sum())} pixels lie beyond the stars' supports "
+                   f"({2 * int(half_size) + 1} px) and the sources' cores, too few for its sky; "
+                   "give the sky (--background) or a smaller --size")
+            raise BFPSFInputError(msg, int(keep.sum()))
         new_index = np.cumsum(keep) - 1
         chosen = keep[pixel]
         pair_sets.append((new_index[pixel[chosen]] + offsets[-1], radius[chosen],
