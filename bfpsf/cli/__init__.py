@@ -104,11 +104,6 @@ def saturation_option(text):
     return _real(text, lambda value: value > 0, "a positive finite level in ADU")
 
 
-def seed_option(text):
-    """``--seed``: an integer >= 0 (what numpy's generators take)."""
-    return _integer(text, 0, "an integer >= 0")
-
-
 def flat_level_option(text):
     """``--levels`` / ``--flat-levels``: a flat level, electrons per pixel, from 0 to
     `bfpsf.validation.simulate_flats.MAX_LEVEL_E`."""

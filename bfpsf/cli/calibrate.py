@@ -11,8 +11,7 @@ from pathlib import Path
 from ..errors import BFPSFInputError
 from ..files import check_outputs, input_files, make_directory, write_json
 from ..resources import check_time
-from . import (maxlag_option, non_negative_int, positive_float, positive_int, saturation_option,
-               seed_option)
+from . import maxlag_option, non_negative_int, positive_float, positive_int, saturation_option
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 AMPLIFIER_PLOT = "amplifiers.png"
@@ -66,7 +65,7 @@ def add_parser(subparsers):
     parser.add_argument("--n-monte-carlo", type=non_negative_int, default=100,
                         help="samples of the boundary shifts drawn from the calibration error, "
                              "kept for error propagation (default 100)")
-    parser.add_argument("--seed", type=seed_option, default=0,
+    parser.add_argument("--seed", type=non_negative_int, default=0,
                         help="seed of the samples (default 0)")
     parallel = parser.add_mutually_exclusive_group()
     parallel.add_argument("--workers", type=positive_int, default=default_workers(), metavar="N",

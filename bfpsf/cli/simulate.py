@@ -10,7 +10,7 @@ added to ``TARGETS``).
 import argparse
 
 from . import (_real, add_common_options, finite_float, flat_level_option, non_negative_float,
-               non_negative_int, positive_float, positive_int, seed_option)
+               non_negative_int, positive_float, positive_int)
 
 __all__ = ["add_parser", "run", "TARGETS"]
 
@@ -43,7 +43,7 @@ def _add_flats(targets):
                         help="read noise, e- rms")
     parser.add_argument("--nsteps", type=positive_int, default=20,
                         help="charge increments per flat (covariance bias ~ 1/nsteps^2)")
-    parser.add_argument("--seed", type=seed_option, default=0, help="random seed")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="random seed")
     parser.add_argument("--exptime-per-e", type=positive_float, default=1e-3,
                         help="EXPTIME per electron of level, s")
     parser.add_argument("--nonlinearity", type=finite_float, default=0.0,

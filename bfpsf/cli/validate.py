@@ -7,7 +7,7 @@ chain, print the side-by-side table, write the JSON summary and the Markdown rep
 import sys
 from pathlib import Path
 
-from . import (_real, flat_level_option, positive_float, positive_int, seed_option)
+from . import _real, flat_level_option, non_negative_int, positive_float, positive_int
 
 
 __all__ = ["add_parser", "run"]
@@ -45,7 +45,7 @@ def add_parser(subparsers):
                         help="shifts for P(F), the inverse and the loop: from the simulated "
                              "flats (default, the path a user takes) or SiliconSensor's landing "
                              "truth (a diagnostic, labelled as such)")
-    parser.add_argument("--seed", type=seed_option, default=None,
+    parser.add_argument("--seed", type=non_negative_int, default=None,
                         help="random seed (default: the configuration's)")
     parser.add_argument("--report", metavar="DIR", help="write report.md and PNG figures")
     parser.add_argument("--json", metavar="FILE", help="write the JSON summary")
