@@ -33,10 +33,9 @@ def fill_empty(stack, weight):
     return filled
 
 
-def normalise(data, oversampling, where=None):
+def normalise(data, oversampling):
     """P0 normalised to unit flux in every sub-pixel phase: each of the ``oy * ox`` sublattices
-    of the oversampled grid (the nodes a star at one phase samples) sums to 1. ``where``
-    names the grid node in the error.
+    of the oversampled grid (the nodes a star at one phase samples) sums to 1.
 
     A star's flux and the sum of the sublattice its pixels sample are degenerate (a star at
     phase 0 sees the even nodes, one at phase 1/2 the odd ones): left free, the sublattices
@@ -48,11 +47,7 @@ def normalise(data, oversampling, where=None):
     oy, ox = oversampling
     total = data.sum()
     if not total > 0:
-        if where is None:
-            msg = f"the stacked PSF has non-positive total {total:.3g}; check the star list"
-        else:
-            msg = (f"P0 at grid node {where} has non-positive total {total:.3g}: too few "
-                   "stars there for the grid; use fewer grid nodes or more images")
+        msg = f"the stacked PSF has non-positive total {total:.3g}; check the star list"
         raise BFPSFInputError(msg, total)
     data = data * (oy * ox / total)
     sums = np.array([[data[a::oy, b::ox].sum() for b in range(ox)] for a in range(oy)])
@@ -64,14 +59,22 @@ def normalise(data, oversampling, where=None):
 
 
 def normalise_nodes(data, oversampling, x_nodes, y_nodes, dense_weights):
-    """`normalise` of every node, an error naming the node (its place and star weight)."""
+    """`normalise` of every node; on a grid, a node that cannot be normalised is named in the
+    error, with its place and the stars' weight there."""
     if len(data) == 1:
         return np.array([normalise(data[0], oversampling)])
-    weights = dense_weights.sum(axis=0)
-    return np.array([normalise(node, oversampling, where=(
-        f"{k + 1} of {len(data)} (x {x_nodes[k % x_nodes.size]:.0f}, y "
-        f"{y_nodes[k // x_nodes.size]:.0f}; the stars there weigh {weights[k]:.1f})"))
-        for k, node in enumerate(data)])
+    nodes = []
+    for k, node in enumerate(data):
+        try:
+            nodes.append(normalise(node, oversampling))
+        except BFPSFInputError as error:
+            msg = (f"P0 at grid node {k + 1} of {len(data)} (x {x_nodes[k % x_nodes.size]:.0f}, "
+                   f"y {y_nodes[k // x_nodes.size]:.0f}; the stars there weigh "
+                   f"{dense_weights[:, k].sum():.1f}) has non-positive total "
+                   f"{error.value:.3g}: too few stars there for the grid; use fewer grid "
+                   "nodes or more images")
+            raise BFPSFInputError(msg, error.value) from None
+    return np.array(nodes)
 
 
 class Sampling:
