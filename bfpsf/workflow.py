@@ -26,7 +26,7 @@ import numpy as np
 
 from .calibration.linearity import linearise
 from .errors import BFPSFInputError, BFPSFValueError
-from .measure.sky import SkyModel, estimate_sky
+from .measure.sky import SkyModel, estimate_sky, sky_pixels
 from .resources import check_psf_fit
 
 __all__ = ["PreparedImage", "electrons", "prepare_image", "linearity_of", "psf_from_images",
@@ -69,9 +69,15 @@ class PreparedImage:
 
     def with_glow(self, glow_e):
         """The image with the sky re-estimated beyond ``glow_e`` (a known sky is kept)."""
-        sky = self.sky if self.sky.method == "known" else estimate_sky(
-            self.image_e, glow_e=glow_e, degree=self.sky.degree)
-        return self.with_sky(sky, glow_e)
+        if self.sky.method == "known":
+            return self.with_sky(self.sky, glow_e)
+        if "sky_pixels" not in self._cache:
+            self._cache["sky_pixels"] = sky_pixels(self.image_e)
+        sky = estimate_sky(self.image_e, glow_e=glow_e, degree=self.sky.degree,
+                           sky_pixels_mask=self._cache["sky_pixels"])
+        prepared = self.with_sky(sky, glow_e)
+        prepared._cache["sky_pixels"] = self._cache["sky_pixels"]
+        return prepared
 
     def with_sky(self, sky, glow_e=None):
         """The image with another sky model and glow."""
@@ -124,12 +130,16 @@ def prepare_image(data, *, gain=1.0, linearity_c_per_1e5=0.0, background_e=None,
     PreparedImage
     """
     image_e = electrons(data, gain=gain, linearity_c_per_1e5=linearity_c_per_1e5)
-    if background_e is None:
-        sky = estimate_sky(image_e, degree=sky_degree)
-    else:
+    if background_e is not None:
         _check_known_sky(float(background_e), image_e)
         sky = SkyModel.constant(background_e, image_e.shape)
-    return PreparedImage(image_e, sky, float(gain), float(linearity_c_per_1e5))
+        return PreparedImage(image_e, sky, float(gain), float(linearity_c_per_1e5))
+    free = sky_pixels(image_e)
+    prepared = PreparedImage(image_e, estimate_sky(image_e, degree=sky_degree,
+                                                   sky_pixels_mask=free),
+                             float(gain), float(linearity_c_per_1e5))
+    prepared._cache["sky_pixels"] = free  # the sky again beyond the glow: `with_glow`
+    return prepared
 
 
 def _check_known_sky(background_e, image_e):

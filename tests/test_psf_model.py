@@ -80,13 +80,17 @@ def test_table_is_exact_at_table_phases(psf):
 def test_charge_conservation_and_quadratic_scaling(psf):
     y, x = np.mgrid[:41, :41]
     one = psf.evaluate(x, y, 1.0, 20.2, 19.7)
+    base = psf.evaluate_base(x - 20.2, y - 19.7)
+    # the BF term per F |F|, from a star bright enough that P(F) - F P0 loses no digits (at
+    # F = 1 the term is 1e-10 of P0, and the difference keeps 6 of its digits)
+    reference = 1e5
+    bf_unit = (psf.evaluate(x, y, reference, 20.2, 19.7) - reference * base) / reference**2
     for flux in (1e4, 1e6, -1e6):
         model = psf.evaluate(x, y, flux, 20.2, 19.7)
         # The BF term moves charge, it creates none (G15 eq. scrambling_model conserves Q);
         # the spline between table phases conserves it to 1.2e-9 of the flux (measured).
         assert model.sum() == pytest.approx(flux * one.sum(), rel=1e-8)
-        bf = model - flux * psf.evaluate_base(x - 20.2, y - 19.7)
-        bf_unit = one - psf.evaluate_base(x - 20.2, y - 19.7)
+        bf = model - flux * base
         # F |F| scaling: odd in F, quadratic in |F|.
         np.testing.assert_allclose(bf, flux * abs(flux) * bf_unit, atol=1e-12 * abs(flux))
 

@@ -40,7 +40,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 
-__all__ = ["SkyModel", "estimate_sky", "source_mask"]
+__all__ = ["SkyModel", "estimate_sky", "sky_pixels", "source_mask"]
 
 #: Pixels at most used in the surface fit (a regular subsample of the free pixels beyond).
 _MAX_FIT_PIXELS = 250_000
@@ -184,8 +184,21 @@ def source_mask(image_e, *, threshold=2.0, reach=3.0, grow=2, smoothing_fwhm=3.0
     return mask
 
 
+def sky_pixels(image_e):
+    """The pixels beyond the sources that `estimate_sky` fits (True = sky), ndarray of bool.
+
+    `source_mask` out to 3 radii of each source; a dense field, which leaves less than 15 %
+    of the image free at that reach, is masked out to fewer radii (2, 1.5, then 1).
+    """
+    for reach in (3.0, 2.0, 1.5, 1.0):
+        free = ~source_mask(image_e, reach=reach)
+        if free.mean() >= _MIN_FREE_FRACTION:
+            break
+    return free
+
+
 def estimate_sky(image_e, *, glow_e=None, mask=None, degree=1, clip_nsigma=3.0,
-                 max_iterations=10):
+                 max_iterations=10, sky_pixels_mask=None):
     """The sky surface of an image (module docstring for the choice).
 
     Parameters
@@ -205,6 +218,9 @@ def estimate_sky(image_e, *, glow_e=None, mask=None, degree=1, clip_nsigma=3.0,
         (default 3: cosmic rays, faint undetected stars).
     max_iterations : int, optional
         Clipping iterations at most (default 10).
+    sky_pixels_mask : ndarray of bool, optional
+        The pixels beyond the sources (`sky_pixels` of this image), when known already: the
+        sky again beyond the stars' glow reuses the first estimate's mask.
 
     Returns
     -------
@@ -221,11 +237,11 @@ def estimate_sky(image_e, *, glow_e=None, mask=None, degree=1, clip_nsigma=3.0,
     residual, method = image, "masked"
     if glow_e is not None:
         residual, method = image - np.asarray(glow_e, dtype=float), "masked, wings subtracted"
-    # a dense field leaves few pixels beyond 3 radii: mask less, down to 1 radius
-    for reach in (3.0, 2.0, 1.5, 1.0):
-        free = ~source_mask(image, reach=reach)
-        if free.mean() >= _MIN_FREE_FRACTION:
-            break
+    free = sky_pixels(image) if sky_pixels_mask is None else np.array(sky_pixels_mask,
+                                                                       dtype=bool)
+    if free.shape != image.shape:
+        msg = f"sky_pixels_mask has shape {free.shape}, the image {image.shape}"
+        raise BFPSFInputError(msg, free.shape)
     if mask is not None:
         free &= ~np.asarray(mask, dtype=bool)
     free &= np.isfinite(residual)
