@@ -150,7 +150,7 @@ def evaluate_empirical(term, sizes, fluxes, model_sigma, residual, response=None
         with errors, ``photometry_bias_mmag`` (faintest to brightest entry, as the loop's
         summary); ``n`` entries.
     """
-    from .loop import slope_residuals
+    from .problem import slope_residuals
 
     change = predicted_size_change(term, sizes, fluxes, model_sigma, response)
     out = {"n": len(sizes)}

@@ -49,7 +49,8 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from ..files import json_safe
 from ..least_squares import weighted_least_squares
 from .catalogue import CATALOGUE
-from .observables import interleaved as _interleaved
+from .heldout import split_observables, with_empirical, with_heldout
+from .problem import build_problem, effect_design, effect_values, slope_residuals, summarise
 from .signature import (SIGNATURE_ALPHA, contradiction, parity_test, signature_parts,
                         signature_test)
 from .unexplained import (STAR_CHI2_FACTOR, UNEXPLAINED_NSIGMA, describe_unexplained,
@@ -64,199 +65,6 @@ _FOLDABLE = ("calibration_scale", "xy_anisotropy", "gain_nonlinearity")
 #: Delta BIC below which a candidate is added (Kass & Raftery 1995: "very strong").
 DEFAULT_THRESHOLD = -10.0
 
-_MAG_PER_FRACTION = 2.5 / np.log(10.0)
-
-
-@dataclass(frozen=True)
-class _Problem:
-    """The stacked residual vector of every observable and the base nuisance design."""
-
-    keys: tuple            # observable key of each block
-    slices: dict           # key -> slice into the vector
-    residual: np.ndarray   # data - fixed base prediction
-    sigma: np.ndarray
-    nuisance: np.ndarray   # (N, m)
-    global_columns: tuple = ()  # nuisance columns held fixed on held-out data (size scale)
-
-
-def _size_block(observables):
-    """Size residuals; nuisance: an intercept per group and axis and, when the observables
-    carry the calibration's BF amplitude error (``meta['scale_err']``), a common scale of the
-    shifts within it (a Gaussian prior, one pseudo data point): the prediction is no better
-    than its flats. The scale is a global nuisance: fitted in-sample, fixed on held-out data.
-    """
-    from .catalogue import get_effect
-
-    sizes, model = observables.sizes, observables.spot_model
-    predicted_x, predicted_y = model.sizes(sizes.peak_e)
-    residual = np.concatenate([sizes.sigma_x - predicted_x, sizes.sigma_y - predicted_y])
-    sigma = np.concatenate([sizes.sigma_x_err, sizes.sigma_y_err])
-    n, groups = len(sizes), sizes.n_groups
-    nuisance = np.zeros((2 * n, 2 * groups))
-    for axis in range(2):
-        nuisance[axis * n + np.arange(n), axis * groups + sizes.group] = 1.0
-    scale_err = float(observables.meta.get("scale_err", 0.0) or 0.0)
-    if not scale_err > 0:
-        return residual, sigma, nuisance
-    template = get_effect("calibration_scale").templates(observables)["sizes"]
-    nuisance = np.hstack([nuisance, template])
-    prior_design = np.zeros((1, nuisance.shape[1]))
-    prior_design[0, -1] = 1.0
-    return (residual, sigma, nuisance, (prior_design, np.array([scale_err])),
-            (nuisance.shape[1] - 1,))
-
-
-def _linearity_block(observables):
-    table = observables.linearity
-    nuisance = np.column_stack([table.exptime, np.ones_like(table.exptime)])
-    return table.mean_e.copy(), table.mean_err_e.copy(), nuisance
-
-
-def _correlation_block(observables):
-    table = observables.correlations
-    n, n_lags = table.r.shape
-    nuisance = np.zeros((n * n_lags, n_lags))
-    for lag in range(n_lags):
-        nuisance[lag * n:(lag + 1) * n, lag] = table.mean_e
-    return table.r.T.ravel(), table.r_err.T.ravel(), nuisance
-
-
-def _ptc_block(observables):
-    """PTC residuals; nuisance: read noise, gain and the sum-rule a(0, 0) within its error.
-
-    The error of the sum-rule a(0, 0) is common to every pair (a term delta_a m^2): it is a
-    nuisance column with a Gaussian prior of that width, entered as one extra pseudo data
-    point (zero, with that error) so the weighted least squares stays diagonal.
-    """
-    table = observables.ptc
-    scaled = table.mean_e / 1e5
-    if not table.sum_rule_err > 0:
-        # a(0, 0) taken as exact: no freedom in the m^2 term
-        nuisance = np.column_stack([np.ones_like(scaled), scaled])
-        return table.residual_e, table.var_err_e.copy(), nuisance
-    nuisance = np.column_stack([np.ones_like(scaled), scaled, scaled ** 2])
-    prior_design = np.array([[0.0, 0.0, 1.0]])
-    prior_sigma = np.array([table.sum_rule_err * 1e10])
-    return table.residual_e, table.var_err_e.copy(), nuisance, (prior_design, prior_sigma)
-
-
-_BLOCKS = {"sizes": _size_block, "linearity": _linearity_block,
-           "correlations": _correlation_block, "ptc": _ptc_block}
-
-
-def _build_problem(observables):
-    keys, slices, residuals, sigmas, nuisances, global_columns = [], {}, [], [], [], []
-    start = 0
-    for key, block in _BLOCKS.items():
-        if getattr(observables, key) is None:
-            continue
-        residual, sigma, nuisance, *prior = block(observables)
-        if len(prior) == 2:
-            offset = sum(n.shape[1] for n in nuisances)
-            global_columns += [offset + column for column in prior.pop()]
-        keys.append(key)
-        slices[key] = slice(start, start + residual.size)
-        start += residual.size
-        if prior:
-            # prior rows of the block's nuisance: pseudo data (zero) outside the key's slice,
-            # so no effect template reaches them
-            prior_design, prior_sigma = prior[0]
-            residual = np.concatenate([residual, np.zeros(prior_sigma.size)])
-            sigma = np.concatenate([sigma, prior_sigma])
-            nuisance = np.vstack([nuisance, prior_design])
-            start += prior_sigma.size
-        residuals.append(residual)
-        sigmas.append(sigma)
-        nuisances.append(nuisance)
-    total = sum(n.shape[1] for n in nuisances)
-    design = np.zeros((start, total))
-    column = 0
-    for key, nuisance in zip(keys, nuisances):
-        rows = slice(slices[key].start, slices[key].start + nuisance.shape[0])
-        design[rows, column:column + nuisance.shape[1]] = nuisance
-        column += nuisance.shape[1]
-    return _Problem(tuple(keys), slices, np.concatenate(residuals), np.concatenate(sigmas),
-                    design, tuple(global_columns))
-
-
-def _effect_design(problem, templates):
-    """Full-length (N, k) design of one effect from its per-observable templates."""
-    k = next(iter(templates.values())).shape[1]
-    design = np.zeros((problem.residual.size, k))
-    for key, template in templates.items():
-        if key in problem.slices:
-            design[problem.slices[key]] = template
-    return design
-
-
-def slope_residuals(sizes, residual_x, residual_y):
-    """BF slope residual in X and Y, percent of the raw measured slope, and the raw slopes.
-
-    Parameters
-    ----------
-    sizes : SizeTable
-    residual_x, residual_y : ndarray
-        Measured minus model sigma, pixels.
-
-    Returns
-    -------
-    dict
-        ``raw_slope_x``, ``raw_slope_y`` (pixels per 100 ke- of peak), ``slope_x_percent``,
-        ``slope_y_percent`` and their errors (percent).
-    """
-    from ..measure.slopes import fit_bf_slope
-
-    out = {}
-    for axis, measured, error, residual in (("x", sizes.sigma_x, sizes.sigma_x_err, residual_x),
-                                            ("y", sizes.sigma_y, sizes.sigma_y_err, residual_y)):
-        # the given errors, not rescaled by the scatter (the chi2 is reported apart)
-        raw = fit_bf_slope(sizes.peak_e, measured, size_err=error, group=sizes.group,
-                           scale_errors=False, clip_nsigma=None).slope
-        fit = fit_bf_slope(sizes.peak_e, residual, size_err=error, group=sizes.group,
-                           scale_errors=False, clip_nsigma=None)
-        out[f"raw_slope_{axis}"] = raw
-        out[f"slope_{axis}_percent"] = 100.0 * fit.slope / raw
-        out[f"slope_{axis}_percent_err"] = 100.0 * fit.slope_err / abs(raw)
-    return out
-
-
-def _summary(problem, observables, model):
-    """Residual summary of data - (fixed base prediction + fitted model)."""
-    residual = problem.residual - model
-    out = {"chi2": float(((residual / problem.sigma) ** 2).sum()), "n": int(residual.size)}
-    for key in problem.keys:
-        block = problem.slices[key]
-        part = residual[block] / problem.sigma[block]
-        out[f"{key}_chi2_per_point"] = float(np.mean(part ** 2))
-    sizes = observables.sizes
-    if sizes is not None:
-        block = residual[problem.slices["sizes"]]
-        n = len(sizes)
-        residual_x, residual_y = block[:n], block[n:]
-        out.update(slope_residuals(sizes, residual_x, residual_y))
-        # photometry bias implied by the size residual between the faintest and brightest
-        mean_sigma = 0.5 * (sizes.sigma_x.mean() + sizes.sigma_y.mean())
-        span = (sizes.peak_e.max() - sizes.peak_e.min()) / 1e5
-        slopes = [out[f"raw_slope_{a}"] * out[f"slope_{a}_percent"] / 100.0 for a in "xy"]
-        out["photometry_bias_mmag"] = float(1e3 * _MAG_PER_FRACTION * np.mean(slopes) * span
-                                            / mean_sigma)
-        out["size_rms_x_pix"] = float(np.std(residual_x))
-        out["size_rms_y_pix"] = float(np.std(residual_y))
-    if observables.correlations is not None:
-        out["correlation_rms"] = float(np.std(residual[problem.slices["correlations"]]))
-    if observables.linearity is not None:
-        block = residual[problem.slices["linearity"]]
-        out["linearity_max_frac_residual"] = float(
-            np.max(np.abs(block / observables.linearity.mean_e)))
-    if observables.ptc is not None:
-        block = residual[problem.slices["ptc"]]
-        out["ptc_max_frac_residual"] = float(np.max(np.abs(block / observables.ptc.var_e)))
-    star = observables.meta.get("star_residual")
-    if star is not None:
-        # the stars' stacked residual is a fixed diagnostic (no candidate changes it)
-        out["star_residual_rms_over_peak"] = star["rms_over_peak"]
-        out["star_residual_chi2_per_pixel"] = star["chi2_per_pixel"]
-    return out
 
 
 @dataclass(frozen=True)
@@ -400,12 +208,12 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
         fit_part, heldout = split_observables(observables, holdout_fraction)
         result, state = _run_loop(fit_part, catalogue, threshold, max_rounds, prefer_physical,
                                   signature_alpha)
-        result = _with_heldout(result, state, heldout, holdout_fraction)
-        return _with_verdict(_with_empirical(result, state, heldout, observables), observables)
+        result = with_heldout(result, state, heldout, holdout_fraction)
+        return _with_verdict(with_empirical(result, state, heldout, observables), observables)
     result, state = _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                               signature_alpha)
     result = _with_unexplained(result, state, observables)
-    return _with_verdict(_with_empirical(result, state, None, observables), observables)
+    return _with_verdict(with_empirical(result, state, None, observables), observables)
 
 
 def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
@@ -414,7 +222,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     if not threshold < 0:
         msg = f"threshold must be a negative Delta BIC, got {threshold!r}"
         raise BFPSFValueError(msg, threshold)
-    problem = _build_problem(observables)
+    problem = build_problem(observables)
     n_points = problem.residual.size
     if n_points <= problem.nuisance.shape[1] + 1:
         msg = (f"{n_points} data points cannot constrain {problem.nuisance.shape[1]} base "
@@ -427,7 +235,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     designs = {}
     for effect in catalogue:
         templates = effect.templates(observables)
-        design = _effect_design(problem, templates) if templates else None
+        design = effect_design(problem, templates) if templates else None
         if design is not None and not np.all(np.isfinite(design)):
             design = None     # the template could not be computed: not testable
         designs[effect.name] = design
@@ -546,7 +354,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
         offset = sum(fixed[name] for name in physical_names)
         local = np.delete(problem.nuisance, list(problem.global_columns), axis=1)
         model_physical = weighted_least_squares(problem.residual - offset, problem.sigma, local)[3] + offset
-        residual_physical = _summary(problem, observables, model_physical)
+        residual_physical = summarise(problem, observables, model_physical)
         residual_physical["effects"] = physical_names
     params, covariance, _, model_after = fit(selected)
     parameters = {}
@@ -615,13 +423,13 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     values = fit(foldable)[0]
     folded = {"names": foldable,
               "effects": {name: np.asarray(value).tolist() for name, value in
-                          _effect_values(values, problem, foldable, fixed, by_name,
+                          effect_values(values, problem, foldable, fixed, by_name,
                                          family).items()},
               "scale_nuisance": (float(values[problem.global_columns[0]])
                                  if problem.global_columns else None)}
-    result = DiagnosisResult(residual_before=_summary(problem, observables, model_before),
+    result = DiagnosisResult(residual_before=summarise(problem, observables, model_before),
                              candidates=candidates, selected=selected,
-                             residual_after=_summary(problem, observables, model_after),
+                             residual_after=summarise(problem, observables, model_after),
                              parameters=parameters, threshold=float(threshold), curves=curves,
                              ambiguous=ambiguous, residual_physical=residual_physical,
                              ptc_curves=ptc_curves, nuisance=nuisance, folded=folded,
@@ -634,248 +442,11 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
         names = selected[:k]
         values, _, _, model = fit(names)
         steps.append({"names": names, "global": values[list(problem.global_columns)],
-                      "effects": _effect_values(values, problem, names, fixed, by_name, family),
+                      "effects": effect_values(values, problem, names, fixed, by_name, family),
                       "model": model})
     state = {"problem": problem, "steps": steps, "fixed": fixed, "family": family,
              "by_name": by_name, "observables": observables}
     return result, state
-
-
-def _effect_values(values, problem, names, fixed, by_name, family):
-    """name -> parameter vector of each effect of a joint fit over ``names``."""
-    out = {}
-    column = problem.nuisance.shape[1]
-    for name in names:
-        effect = by_name[family(name)]
-        if name in fixed:
-            out[name] = np.asarray(effect.physical_value, float)
-            continue
-        out[name] = values[column:column + effect.k]
-        column += effect.k
-    return out
-
-
-
-
-# -- held-out split ------------------------------------------------------------------------------
-def split_observables(observables, fraction=0.5):
-    """Split the observables into a part to fit and a held-out part.
-
-    Sizes: by exposure when the table has it (``SizeTable.exposure``: whole exposures held
-    out, evenly interleaved), otherwise alternate peak bins within each group. Flat tables
-    (linearity, correlations, PTC): alternate flat pairs in order of mean signal. The spot
-    model and ``meta`` are shared.
-
-    Returns
-    -------
-    (Observables, Observables)
-    """
-    from .observables import CorrelationTable, LinearityTable, Observables, PTCTable
-
-    if not 0 < fraction < 1:
-        msg = f"holdout_fraction must be between 0 and 1 (exclusive), got {fraction!r}"
-        raise BFPSFValueError(msg, fraction)
-    parts = {"fit": {}, "heldout": {}}
-    how = None
-    sizes = observables.sizes
-    if sizes is not None:
-        exposures = None if sizes.exposure is None else np.unique(sizes.exposure)
-        if exposures is not None and exposures.size >= 2:
-            held_exposures = exposures[_interleaved(exposures.size, fraction)]
-            held = np.isin(sizes.exposure, held_exposures)
-            how = "exposure"
-        else:
-            held = np.zeros(len(sizes), bool)
-            for group in np.unique(sizes.group):
-                members = np.flatnonzero(sizes.group == group)
-                members = members[np.argsort(sizes.peak_e[members])]
-                held[members[_interleaved(members.size, fraction)]] = True
-            how = "alternate peak bins"
-        for part, rows in (("fit", ~held), ("heldout", held)):
-            if rows.sum() < 3 or len(np.unique(sizes.group[rows])) < sizes.n_groups:
-                msg = (f"the {part} part of a {fraction:g} held-out split holds {rows.sum()} "
-                       "size entries: too few (at least 3 and every group); give more "
-                       "exposures or no held-out split (--holdout-fraction 0)")
-                raise BFPSFInputError(msg, int(rows.sum()))
-            parts[part]["sizes"] = sizes.subset(rows)
-
-    def rows_by_mean(mean):
-        order = np.argsort(mean)
-        held = np.zeros(mean.size, bool)
-        held[order[_interleaved(mean.size, fraction)]] = True
-        return held
-
-    table = observables.linearity
-    if table is not None:
-        held = rows_by_mean(table.mean_e)
-        for part, rows in (("fit", ~held), ("heldout", held)):
-            parts[part]["linearity"] = LinearityTable(table.exptime[rows], table.mean_e[rows],
-                                                      table.mean_err_e[rows],
-                                                      error_floor=table.error_floor)
-    table = observables.correlations
-    if table is not None:
-        held = rows_by_mean(table.mean_e)
-        for part, rows in (("fit", ~held), ("heldout", held)):
-            parts[part]["correlations"] = CorrelationTable(table.mean_e[rows], table.lags,
-                                                           table.r[rows], table.r_err[rows])
-    table = observables.ptc
-    if table is not None:
-        held = rows_by_mean(table.mean_e)
-        for part, rows in (("fit", ~held), ("heldout", held)):
-            parts[part]["ptc"] = PTCTable(table.mean_e[rows], table.var_e[rows],
-                                          table.var_err_e[rows], table.model_e[rows],
-                                          table.model_slope[rows],
-                                          sum_rule_err=table.sum_rule_err)
-    meta = dict(observables.meta)
-    meta["holdout_sizes_split_by"] = how
-    return tuple(Observables(spot_model=observables.spot_model, meta=meta, **parts[part])
-                 for part in ("fit", "heldout"))
-
-
-def _evaluate(state, observables, step):
-    """Residual model on ``observables`` with one step's effects and global nuisances fixed
-    at their in-sample values and the local nuisances refitted: (problem, model)."""
-    problem = _build_problem(observables)
-    by_name = state["by_name"]
-    offset = np.zeros_like(problem.residual)
-    for name, values in step["effects"].items():
-        templates = by_name[state["family"](name)].templates(observables)
-        offset += _effect_design(problem, templates) @ np.asarray(values, float)
-    global_columns = list(problem.global_columns)
-    if global_columns:
-        offset += problem.nuisance[:, global_columns] @ step["global"]
-    local = np.delete(problem.nuisance, global_columns, axis=1)
-    _, _, _, model = weighted_least_squares(problem.residual - offset, problem.sigma, local)
-    return problem, model + offset
-
-
-def _kept_step(result, state, confirmed):
-    """The last step of the loop whose effects were all confirmed, with the size scale at
-    zero when it was not confirmed or its signature is contradicted (no explanation
-    either)."""
-    kept = [name for name in result.selected if confirmed.get(name, True)]
-    step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
-    contradicted = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
-    if step.get("global") is not None and (
-            not confirmed.get("calibration_scale (nuisance)", True) or contradicted):
-        step = dict(step, **{"global": np.zeros_like(step["global"])})
-    return step
-
-
-def _size_residual(state, observables, step):
-    """Measured minus predicted sigma_x, sigma_y with one step's effects and global
-    nuisances (no intercepts fitted), pixels."""
-    from .observables import Observables
-
-    only = Observables(sizes=observables.sizes, spot_model=observables.spot_model,
-                       meta=observables.meta)
-    problem = _build_problem(only)
-    offset = np.zeros_like(problem.residual)
-    for name, values in step["effects"].items():
-        templates = state["by_name"][state["family"](name)].templates(only)
-        offset += _effect_design(problem, templates) @ np.asarray(values, float)
-    if problem.global_columns and step.get("global") is not None:
-        offset += problem.nuisance[:, list(problem.global_columns)] @ step["global"]
-    residual = (problem.residual - offset)[problem.slices["sizes"]]
-    n = len(observables.sizes)
-    return residual[:n], residual[n:]
-
-
-def _with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0):
-    """The EMPIRICAL term (`bfpsf.diagnosis.empirical_fit`) when a size residual is left:
-    fitted on the loop's fit part, judged on its held-out exposures and, with at least 4
-    exposures, fitted on the early exposures and judged on a contiguous late block."""
-    import dataclasses
-
-    from .empirical_fit import adaptive_response, early_late, evaluate_empirical, fit_empirical
-
-    left = [entry for entry in result.unexplained if entry["observable"] == "sizes"]
-    if not left or observables.sizes is None:
-        return result
-    position = any((entry.get("position_dependence") or {}).get("kind", "none") != "none"
-                   for entry in left)
-    exposure = any((entry.get("exposure_dependence") or {}).get("kind", "none") != "none"
-                   for entry in left)
-    step = _kept_step(result, state, result.confirmed)
-    model = observables.spot_model
-
-    def inputs(part):
-        sizes = part.sizes
-        return (sizes, model.fluxes(sizes.peak_e), model.sizes(sizes.peak_e),
-                _size_residual(state, part, step))
-
-    response = adaptive_response(model, float(np.median(observables.sizes.peak_e)))
-    options = {"position": position, "exposure": exposure, "response": response}
-    term = fit_empirical(*inputs(state["observables"]), **options)
-    validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
-                  "position_term": position, "exposure_term": exposure}
-    if heldout is not None:
-        validation["heldout"] = evaluate_empirical(term, *inputs(heldout), response)
-    split = early_late(observables, late_fraction)
-    if split is not None:
-        early, late = split
-        early_term = fit_empirical(*inputs(early), **options)
-        validation["late_block"] = dict(evaluate_empirical(early_term, *inputs(late),
-                                                           response),
-                                        exposures=sorted(np.unique(late.sizes.exposure)
-                                                         .tolist()))
-    # applied (refine) only when it lowers the slope residual on every block it did not fit
-    validation["validated"] = all(
-        sum(validation[block]["after"][f"slope_{a}_percent"] ** 2 for a in "xy")
-        < sum(validation[block]["before"][f"slope_{a}_percent"] ** 2 for a in "xy")
-        for block in ("heldout", "late_block") if block in validation)
-    term = dataclasses.replace(term, validation=validation)
-    return dataclasses.replace(result, empirical=term.to_dict())
-
-
-def _with_heldout(result, state, heldout, fraction):
-    """The result with the held-out residuals, the confirmation of each selected effect and
-    the unexplained residuals (judged on the held-out data)."""
-    import dataclasses
-
-    chi2 = []
-    evaluations = []
-    for step in state["steps"]:
-        problem, model = _evaluate(state, heldout, step)
-        evaluations.append((problem, model))
-        chi2.append(float((((problem.residual - model) / problem.sigma) ** 2).sum()))
-    names = ["calibration_scale (nuisance)"] * (len(state["steps"]) - 1 - len(result.selected))
-    names += result.selected
-    confirmed = {name: chi2[k + 1] < chi2[k] for k, name in enumerate(names)}
-    before = _summary(evaluations[0][0], heldout, evaluations[0][1])
-    physical = None
-    if result.residual_physical:
-        names = result.residual_physical["effects"]
-        step = {"names": names, "global": np.zeros(len(state["problem"].global_columns)),
-                "effects": {name: np.asarray(state["by_name"][state["family"](name)]
-                                             .physical_value, float) for name in names}}
-        problem, model = _evaluate(state, heldout, step)
-        physical = _summary(problem, heldout, model)
-        physical["effects"] = names
-    after = _summary(evaluations[-1][0], heldout, evaluations[-1][1])
-    if (result.nuisance.get("calibration_scale") or {}).get("contradicted_by"):
-        # the size scale whose signature the data contradict is not applied (refine) and
-        # is no part of the "after"
-        last = dict(state["steps"][-1])
-        last["global"] = np.zeros_like(last["global"])
-        problem_last, model_last = _evaluate(state, heldout, last)
-        after = _summary(problem_last, heldout, model_last)
-    sizes = heldout.sizes
-    holdout = {"fraction": float(fraction),
-               "sizes_split_by": heldout.meta.get("holdout_sizes_split_by"),
-               "heldout_exposures": (sorted(np.unique(sizes.exposure).tolist())
-                                     if sizes is not None and sizes.exposure is not None
-                                     else None),
-               "n_fit": int(result.residual_after["n"]), "n_heldout": int(after["n"]),
-               "heldout_size_entries": 0 if sizes is None else len(sizes)}
-    # unexplained: judged on the held-out data with the confirmed effects only
-    step = _kept_step(result, state, confirmed)
-    problem, model = _evaluate(state, heldout, step)
-    unexplained = describe_unexplained(problem, heldout, model)
-    return dataclasses.replace(result, residual_before_heldout=before,
-                               residual_after_heldout=after, confirmed=confirmed,
-                               residual_physical_heldout=physical,
-                               holdout=holdout, unexplained=unexplained)
 
 
 def _with_unexplained(result, state, observables):

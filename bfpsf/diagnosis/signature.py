@@ -85,7 +85,7 @@ def signature_parts(problem, observables, *, flux=False):
 
     Parameters
     ----------
-    problem : bfpsf.diagnosis.loop._Problem
+    problem : bfpsf.diagnosis.problem.Problem
         The stacked residual (its ``keys`` and ``slices``).
     observables : Observables
     flux : bool
@@ -140,7 +140,7 @@ def signature_test(residual, sigma, base_design, effect_design, parts, *, alpha=
     base_design : ndarray (N, m)
         Nuisances and the free effects already named.
     effect_design : ndarray (N, k)
-        The candidate's template (`bfpsf.diagnosis.loop._effect_design`).
+        The candidate's template (`bfpsf.diagnosis.problem.effect_design`).
     parts : dict
         `signature_parts`.
     alpha : float

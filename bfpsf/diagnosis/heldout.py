@@ -1,0 +1,237 @@
+"""The loop's "after" on data it never fitted: the held-out split of the observables.
+
+`split_observables` keeps whole exposures apart (evenly interleaved) when the sizes carry
+them, and `with_heldout` measures the selected model's residual on the held-out part
+(parameters fixed from the fitted part); `with_empirical` fits the EMPIRICAL term
+(`bfpsf.diagnosis.empirical_fit`) where nothing physical explains the residual and measures it
+on the held-out exposures and on a contiguous block of late ones.
+"""
+
+import numpy as np
+
+from ..errors import BFPSFInputError, BFPSFValueError
+from ..least_squares import weighted_least_squares
+from .observables import interleaved as _interleaved
+from .problem import build_problem, effect_design, summarise
+from .unexplained import describe_unexplained
+
+__all__ = ["split_observables", "with_heldout", "with_empirical"]
+
+def split_observables(observables, fraction=0.5):
+    """Split the observables into a part to fit and a held-out part.
+
+    Sizes: by exposure when the table has it (``SizeTable.exposure``: whole exposures held
+    out, evenly interleaved), otherwise alternate peak bins within each group. Flat tables
+    (linearity, correlations, PTC): alternate flat pairs in order of mean signal. The spot
+    model and ``meta`` are shared.
+
+    Returns
+    -------
+    (Observables, Observables)
+    """
+    from .observables import CorrelationTable, LinearityTable, Observables, PTCTable
+
+    if not 0 < fraction < 1:
+        msg = f"holdout_fraction must be between 0 and 1 (exclusive), got {fraction!r}"
+        raise BFPSFValueError(msg, fraction)
+    parts = {"fit": {}, "heldout": {}}
+    how = None
+    sizes = observables.sizes
+    if sizes is not None:
+        exposures = None if sizes.exposure is None else np.unique(sizes.exposure)
+        if exposures is not None and exposures.size >= 2:
+            held_exposures = exposures[_interleaved(exposures.size, fraction)]
+            held = np.isin(sizes.exposure, held_exposures)
+            how = "exposure"
+        else:
+            held = np.zeros(len(sizes), bool)
+            for group in np.unique(sizes.group):
+                members = np.flatnonzero(sizes.group == group)
+                members = members[np.argsort(sizes.peak_e[members])]
+                held[members[_interleaved(members.size, fraction)]] = True
+            how = "alternate peak bins"
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            if rows.sum() < 3 or len(np.unique(sizes.group[rows])) < sizes.n_groups:
+                msg = (f"the {part} part of a {fraction:g} held-out split holds {rows.sum()} "
+                       "size entries: too few (at least 3 and every group); give more "
+                       "exposures or no held-out split (--holdout-fraction 0)")
+                raise BFPSFInputError(msg, int(rows.sum()))
+            parts[part]["sizes"] = sizes.subset(rows)
+
+    def rows_by_mean(mean):
+        order = np.argsort(mean)
+        held = np.zeros(mean.size, bool)
+        held[order[_interleaved(mean.size, fraction)]] = True
+        return held
+
+    table = observables.linearity
+    if table is not None:
+        held = rows_by_mean(table.mean_e)
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            parts[part]["linearity"] = LinearityTable(table.exptime[rows], table.mean_e[rows],
+                                                      table.mean_err_e[rows],
+                                                      error_floor=table.error_floor)
+    table = observables.correlations
+    if table is not None:
+        held = rows_by_mean(table.mean_e)
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            parts[part]["correlations"] = CorrelationTable(table.mean_e[rows], table.lags,
+                                                           table.r[rows], table.r_err[rows])
+    table = observables.ptc
+    if table is not None:
+        held = rows_by_mean(table.mean_e)
+        for part, rows in (("fit", ~held), ("heldout", held)):
+            parts[part]["ptc"] = PTCTable(table.mean_e[rows], table.var_e[rows],
+                                          table.var_err_e[rows], table.model_e[rows],
+                                          table.model_slope[rows],
+                                          sum_rule_err=table.sum_rule_err)
+    meta = dict(observables.meta)
+    meta["holdout_sizes_split_by"] = how
+    return tuple(Observables(spot_model=observables.spot_model, meta=meta, **parts[part])
+                 for part in ("fit", "heldout"))
+
+
+def _evaluate(state, observables, step):
+    """Residual model on ``observables`` with one step's effects and global nuisances fixed
+    at their in-sample values and the local nuisances refitted: (problem, model)."""
+    problem = build_problem(observables)
+    by_name = state["by_name"]
+    offset = np.zeros_like(problem.residual)
+    for name, values in step["effects"].items():
+        templates = by_name[state["family"](name)].templates(observables)
+        offset += effect_design(problem, templates) @ np.asarray(values, float)
+    global_columns = list(problem.global_columns)
+    if global_columns:
+        offset += problem.nuisance[:, global_columns] @ step["global"]
+    local = np.delete(problem.nuisance, global_columns, axis=1)
+    _, _, _, model = weighted_least_squares(problem.residual - offset, problem.sigma, local)
+    return problem, model + offset
+
+
+def _kept_step(result, state, confirmed):
+    """The last step of the loop whose effects were all confirmed, with the size scale at
+    zero when it was not confirmed or its signature is contradicted (no explanation
+    either)."""
+    kept = [name for name in result.selected if confirmed.get(name, True)]
+    step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
+    contradicted = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
+    if step.get("global") is not None and (
+            not confirmed.get("calibration_scale (nuisance)", True) or contradicted):
+        step = dict(step, **{"global": np.zeros_like(step["global"])})
+    return step
+
+
+def _size_residual(state, observables, step):
+    """Measured minus predicted sigma_x, sigma_y with one step's effects and global
+    nuisances (no intercepts fitted), pixels."""
+    from .observables import Observables
+
+    only = Observables(sizes=observables.sizes, spot_model=observables.spot_model,
+                       meta=observables.meta)
+    problem = build_problem(only)
+    offset = np.zeros_like(problem.residual)
+    for name, values in step["effects"].items():
+        templates = state["by_name"][state["family"](name)].templates(only)
+        offset += effect_design(problem, templates) @ np.asarray(values, float)
+    if problem.global_columns and step.get("global") is not None:
+        offset += problem.nuisance[:, list(problem.global_columns)] @ step["global"]
+    residual = (problem.residual - offset)[problem.slices["sizes"]]
+    n = len(observables.sizes)
+    return residual[:n], residual[n:]
+
+
+def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0):
+    """The EMPIRICAL term (`bfpsf.diagnosis.empirical_fit`) when a size residual is left:
+    fitted on the loop's fit part, judged on its held-out exposures and, with at least 4
+    exposures, fitted on the early exposures and judged on a contiguous late block."""
+    import dataclasses
+
+    from .empirical_fit import adaptive_response, early_late, evaluate_empirical, fit_empirical
+
+    left = [entry for entry in result.unexplained if entry["observable"] == "sizes"]
+    if not left or observables.sizes is None:
+        return result
+    position = any((entry.get("position_dependence") or {}).get("kind", "none") != "none"
+                   for entry in left)
+    exposure = any((entry.get("exposure_dependence") or {}).get("kind", "none") != "none"
+                   for entry in left)
+    step = _kept_step(result, state, result.confirmed)
+    model = observables.spot_model
+
+    def inputs(part):
+        sizes = part.sizes
+        return (sizes, model.fluxes(sizes.peak_e), model.sizes(sizes.peak_e),
+                _size_residual(state, part, step))
+
+    response = adaptive_response(model, float(np.median(observables.sizes.peak_e)))
+    options = {"position": position, "exposure": exposure, "response": response}
+    term = fit_empirical(*inputs(state["observables"]), **options)
+    validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
+                  "position_term": position, "exposure_term": exposure}
+    if heldout is not None:
+        validation["heldout"] = evaluate_empirical(term, *inputs(heldout), response)
+    split = early_late(observables, late_fraction)
+    if split is not None:
+        early, late = split
+        early_term = fit_empirical(*inputs(early), **options)
+        validation["late_block"] = dict(evaluate_empirical(early_term, *inputs(late),
+                                                           response),
+                                        exposures=sorted(np.unique(late.sizes.exposure)
+                                                         .tolist()))
+    # applied (refine) only when it lowers the slope residual on every block it did not fit
+    validation["validated"] = all(
+        sum(validation[block]["after"][f"slope_{a}_percent"] ** 2 for a in "xy")
+        < sum(validation[block]["before"][f"slope_{a}_percent"] ** 2 for a in "xy")
+        for block in ("heldout", "late_block") if block in validation)
+    term = dataclasses.replace(term, validation=validation)
+    return dataclasses.replace(result, empirical=term.to_dict())
+
+
+def with_heldout(result, state, heldout, fraction):
+    """The result with the held-out residuals, the confirmation of each selected effect and
+    the unexplained residuals (judged on the held-out data)."""
+    import dataclasses
+
+    chi2 = []
+    evaluations = []
+    for step in state["steps"]:
+        problem, model = _evaluate(state, heldout, step)
+        evaluations.append((problem, model))
+        chi2.append(float((((problem.residual - model) / problem.sigma) ** 2).sum()))
+    names = ["calibration_scale (nuisance)"] * (len(state["steps"]) - 1 - len(result.selected))
+    names += result.selected
+    confirmed = {name: chi2[k + 1] < chi2[k] for k, name in enumerate(names)}
+    before = summarise(evaluations[0][0], heldout, evaluations[0][1])
+    physical = None
+    if result.residual_physical:
+        names = result.residual_physical["effects"]
+        step = {"names": names, "global": np.zeros(len(state["problem"].global_columns)),
+                "effects": {name: np.asarray(state["by_name"][state["family"](name)]
+                                             .physical_value, float) for name in names}}
+        problem, model = _evaluate(state, heldout, step)
+        physical = summarise(problem, heldout, model)
+        physical["effects"] = names
+    after = summarise(evaluations[-1][0], heldout, evaluations[-1][1])
+    if (result.nuisance.get("calibration_scale") or {}).get("contradicted_by"):
+        # the size scale whose signature the data contradict is not applied (refine) and
+        # is no part of the "after"
+        last = dict(state["steps"][-1])
+        last["global"] = np.zeros_like(last["global"])
+        problem_last, model_last = _evaluate(state, heldout, last)
+        after = summarise(problem_last, heldout, model_last)
+    sizes = heldout.sizes
+    holdout = {"fraction": float(fraction),
+               "sizes_split_by": heldout.meta.get("holdout_sizes_split_by"),
+               "heldout_exposures": (sorted(np.unique(sizes.exposure).tolist())
+                                     if sizes is not None and sizes.exposure is not None
+                                     else None),
+               "n_fit": int(result.residual_after["n"]), "n_heldout": int(after["n"]),
+               "heldout_size_entries": 0 if sizes is None else len(sizes)}
+    # unexplained: judged on the held-out data with the confirmed effects only
+    step = _kept_step(result, state, confirmed)
+    problem, model = _evaluate(state, heldout, step)
+    unexplained = describe_unexplained(problem, heldout, model)
+    return dataclasses.replace(result, residual_before_heldout=before,
+                               residual_after_heldout=after, confirmed=confirmed,
+                               residual_physical_heldout=physical,
+                               holdout=holdout, unexplained=unexplained)
