@@ -21,8 +21,8 @@ from bfpsf.model.density import exact_boundary_density
 from bfpsf.model.redistribution import redistribute
 from bfpsf.diagnosis.catalogue import add_shifts, quadrupole_shifts
 from bfpsf.diagnosis.loop import diagnose
-from bfpsf.diagnosis.observables import (CorrelationTable, LinearityTable, SizeTable,
-                                         observables_from_sizes)
+from bfpsf.diagnosis.observables import observables_from_sizes
+from bfpsf.diagnosis.tables import CorrelationTable, LinearityTable, SizeTable
 
 PEAKS = np.linspace(1.5e4, 1.5e5, 8)
 SIGMA = 1.2
@@ -290,7 +290,8 @@ def _calibrated_flats(nonlinearity):
 
 
 def _flat_observables(cal):
-    from bfpsf.diagnosis.observables import Observables, flat_observables, ptc_observable
+    from bfpsf.diagnosis.observables import flat_observables, ptc_observable
+    from bfpsf.diagnosis.tables import Observables
 
     linearity, correlations = flat_observables(cal)
     return Observables(linearity=linearity, correlations=correlations,

@@ -13,8 +13,8 @@ import pytest
 
 from bfpsf.diagnosis.catalogue import CATALOGUE, get_effect, quadrupole_shifts
 from bfpsf.diagnosis.loop import diagnose, split_observables
-from bfpsf.diagnosis.observables import (Observables, SizeTable, flat_observables,
-                                         lamp_error_floor, ptc_observable)
+from bfpsf.diagnosis.observables import flat_observables, lamp_error_floor, ptc_observable
+from bfpsf.diagnosis.tables import Observables, SizeTable
 from bfpsf.calibration.linearity import linearise
 from bfpsf.diagnosis.refine import refine_calibration
 from bfpsf.errors import BFPSFInputError, BFPSFValueError

@@ -12,8 +12,8 @@ from bfpsf.model.redistribution import redistribute
 from bfpsf.shifts import BoundaryShifts
 from bfpsf.diagnosis.catalogue import (CATALOGUE, add_shifts, effect_names, get_effect,
                                        quadrupole_shifts)
-from bfpsf.diagnosis.observables import (CorrelationTable, LinearityTable, Observables, PTCTable,
-                                         SizeTable)
+from bfpsf.diagnosis.tables import (CorrelationTable, LinearityTable, Observables, PTCTable,
+                                    SizeTable)
 from bfpsf.diagnosis.spot_model import SpotForwardModel
 
 

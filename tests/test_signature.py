@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bfpsf.diagnosis.signature import contradiction, parity_test, signature_test
-from bfpsf.diagnosis.observables import SizeTable
+from bfpsf.diagnosis.tables import SizeTable
 
 
 def _problem(rng, n=40):

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BFPSFValueError
-from .observables import SizeTable
+from .tables import SizeTable
 from .odd_moments import skewness
 
 __all__ = ["OUTSIDE_EFFECTS", "CATALOGUE_CASES", "BenchSpots", "draw_bench_spots",

@@ -170,7 +170,7 @@ def evaluate_empirical(term, sizes, fluxes, model_sigma, residual, response=None
 def early_late(observables, late_fraction=1.0 / 3.0):
     """Sizes-only observables of the early exposures and of a contiguous block of late ones
     (the last ``late_fraction`` of the night), or None with fewer than 4 exposures."""
-    from .observables import Observables
+    from .tables import Observables
 
     sizes = observables.sizes
     if sizes is None or sizes.exposure is None:

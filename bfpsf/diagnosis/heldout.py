@@ -11,8 +11,9 @@ import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
-from .observables import interleaved as _interleaved
 from .problem import build_problem, effect_design, summarise
+from .tables import CorrelationTable, LinearityTable, Observables, PTCTable
+from .tables import interleaved as _interleaved
 from .unexplained import describe_unexplained
 
 __all__ = ["split_observables", "with_heldout", "with_empirical"]
@@ -29,8 +30,6 @@ def split_observables(observables, fraction=0.5):
     -------
     (Observables, Observables)
     """
-    from .observables import CorrelationTable, LinearityTable, Observables, PTCTable
-
     if not 0 < fraction < 1:
         msg = f"holdout_fraction must be between 0 and 1 (exclusive), got {fraction!r}"
         raise BFPSFValueError(msg, fraction)
@@ -124,7 +123,6 @@ def _kept_step(result, state, confirmed):
 def _size_residual(state, observables, step):
     """Measured minus predicted sigma_x, sigma_y with one step's effects and global
     nuisances (no intercepts fitted), pixels."""
-    from .observables import Observables
 
     only = Observables(sizes=observables.sizes, spot_model=observables.spot_model,
                        meta=observables.meta)

@@ -30,7 +30,7 @@ Base model and its nuisance parameters:
 * linearity: flat mean = k t + b (both free).
 * correlations: R(dx, dy) = a(dx, dy) mu (eq. covar), a free per lag (no intercept).
 * ptc (images mode): flat-pair variance minus the calibrated PTC model with the sum-rule
-  a(0, 0) (`bfpsf.diagnosis.observables.PTCTable`); a free constant (read noise), a free
+  a(0, 0) (`bfpsf.diagnosis.tables.PTCTable`); a free constant (read noise), a free
   term linear in the mean (gain), and a term in mean^2 (the sum-rule a(0, 0)) free within
   its error (a Gaussian prior, one pseudo data point).
 

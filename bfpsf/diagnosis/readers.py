@@ -9,7 +9,8 @@ import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import polynomial_fit
-from .observables import SizeTable, observables_from_sizes
+from .observables import observables_from_sizes
+from .tables import SizeTable
 
 __all__ = ["read_lage_spot_table", "read_bot_spot_table", "observables_from_tables",
            "observables_from_measured", "MEASURED_SETS"]

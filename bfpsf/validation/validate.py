@@ -360,7 +360,8 @@ def _stage_inverse(spots, raw, twin_sizes, shifts):
 
 def _stage_diagnose(config, spots, sizes_x, sizes_y, shifts, cal):
     from ..diagnosis.loop import diagnose
-    from ..diagnosis.observables import SizeTable, flat_observables, observables_from_sizes
+    from ..diagnosis.observables import flat_observables, observables_from_sizes
+    from ..diagnosis.tables import SizeTable
 
     sigma_x, err_x = _level_means(spots, sizes_x)
     sigma_y, err_y = _level_means(spots, sizes_y)
