@@ -149,7 +149,7 @@ class SpotForwardModel:
         (`bfpsf.model.redistribution.exact_boundary_density`); the charges are the base
         PSF's pixelised P0 when there is one."""
         from ..model.density import exact_boundary_density
-        from ..model.psf import pixelised_stamp
+        from ..model.bf_term import pixelised_stamp
 
         s, n = self.oversampling, self.stamp_size
         fine = self.profile.drawImage(nx=n * s, ny=n * s, scale=1.0 / s, method="no_pixel",

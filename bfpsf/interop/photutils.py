@@ -143,11 +143,11 @@ def static_image_psf(psf, flux=None):
     -------
     photutils.psf.ImagePSF or photutils.psf.GriddedPSFModel
         Data ``P0 + F R[P0]`` on the oversampled grid (R of each phase, table of
-        `~bfpsf.model.psf.bf_response_table`), normalised like P0.
+        `~bfpsf.model.bf_term.bf_response_table`), normalised like P0.
     """
     from photutils.psf import ImagePSF
 
-    from ..model.psf import bf_response_table
+    from ..model.bf_term import bf_response_table
 
     if psf.varies_over_field:
         return _static_gridded_psf(psf, flux)

@@ -45,6 +45,58 @@ from ..errors import BFPSFValueError
 
 __all__ = ["BFPSFModel"]
 
+#: How `bfpsf.model.psf.FluxDependentPSF` computes its BF term (a table of R at every phase,
+#: or R at the exact phase of each evaluation).
+MODES = ("table", "exact")
+#: The flux units of a model: e- or ADU (with its gain).
+FLUX_UNITS = ("electron", "adu")
+
+
+def validate_oversampling(oversampling):
+    values = np.atleast_1d(np.asarray(oversampling))
+    if values.size == 1:
+        values = np.repeat(values, 2)
+    if (values.size != 2 or not np.all(np.isfinite(values))
+            or np.any(values != np.round(values)) or np.any(values < 1)):
+        msg = f"oversampling must be one or two (y, x) integers >= 1, got {oversampling!r}"
+        raise BFPSFValueError(msg, oversampling)
+    return values.astype(int)
+
+
+def validate_units(flux_unit, gain):
+    """(flux_unit, gain) of a model; a gain without a stated flux unit is refused."""
+    if gain is not None:
+        if not (np.isfinite(gain) and gain > 0):
+            msg = f"gain must be a positive number of e-/ADU, got {gain!r}"
+            raise BFPSFValueError(msg, gain)
+        gain = float(gain)
+        if flux_unit is None:
+            msg = ("gain given without flux_unit: say flux_unit='adu' (fluxes and images in "
+                   "ADU, the BF term scaled by the gain) or flux_unit='electron' (the gain "
+                   "only recorded for converting images)")
+            raise BFPSFValueError(msg, gain)
+    flux_unit = "electron" if flux_unit is None else flux_unit
+    if flux_unit not in FLUX_UNITS:
+        msg = f"flux_unit must be one of {FLUX_UNITS}, got {flux_unit!r}"
+        raise BFPSFValueError(msg, flux_unit)
+    if flux_unit == "adu" and gain is None:
+        msg = "flux_unit='adu' needs the gain (e-/ADU) that turns the fluxes into charge"
+        raise BFPSFValueError(msg, flux_unit)
+    return flux_unit, gain
+
+
+def validate_data(data):
+    if not isinstance(data, np.ndarray) or data.ndim != 2:
+        msg = f"data must be a 2-D numpy array [y, x], got {type(data).__name__}"
+        raise BFPSFValueError(msg, getattr(data, "shape", None))
+    if not np.all(np.isfinite(data)):
+        msg = f"data has {np.count_nonzero(~np.isfinite(data))} non-finite values"
+        raise BFPSFValueError(msg)
+    if min(data.shape) < 4:
+        msg = f"data must be at least 4 x 4 (cubic spline), got shape {data.shape}"
+        raise BFPSFValueError(msg, data.shape)
+    return np.array(data, dtype=float)
+
 #: Metadata every kind carries (name -> default factory), copied by the derived models.
 _METADATA = {"calibration": str, "linearity_c_per_1e5": float,
              "flux_correction": lambda: 1.0, "flux_correction_err": lambda: float("nan"),

@@ -28,7 +28,8 @@ from astropy.modeling import Parameter
 
 from ..errors import BFPSFValueError
 from .base import BFPSFModel
-from .psf import FluxDependentPSF, star_phases
+from .bf_term import star_phases
+from .psf import FluxDependentPSF
 
 __all__ = ["GriddedFluxDependentPSF", "bilinear_weights", "grid_node_positions"]
 

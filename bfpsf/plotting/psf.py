@@ -36,7 +36,7 @@ def plot_psf(psf, *, ax=None, oversampled=True, log=True):
     """
     from matplotlib.colors import LogNorm
 
-    from ..model.psf import pixelised_stamp
+    from ..model.bf_term import pixelised_stamp
 
     figure, ax = _figure(ax, figsize=(5, 4.4))
     if oversampled:
@@ -85,7 +85,7 @@ def plot_bf_difference(psf, fluxes, *, axes=None, half_size=6, x_phase=0.0, y_ph
     """
     import matplotlib.pyplot as plt
 
-    from ..model.psf import pixelised_stamp
+    from ..model.bf_term import pixelised_stamp
 
     fluxes = list(fluxes)
     if axes is None:
