@@ -47,7 +47,7 @@ __all__ = ["BrighterFatterSensorBuilder", "build_sensor"]
 
 @functools.lru_cache(maxsize=8)
 def _read(path, modified):  # keyed by the file's modification time: a rewritten file is reread
-    from .calibration.product import read_calibration
+    from .calibration.detector import read_calibration
 
     return read_calibration(path)
 
@@ -61,7 +61,7 @@ def build_sensor(calib, *, amp=None, gain=1.0, nsteps=1):
         The file is missing or no calibration, has no shifts, or has several amplifiers and
         ``amp`` names none of them.
     """
-    from .calibration.product import amplifiers_of, calibration_of_amplifier
+    from .calibration.detector import amplifiers_of, calibration_of_amplifier
 
     path = os.fspath(calib)
     if not os.path.exists(path):

@@ -7,7 +7,8 @@ from astropy.io import fits
 
 from bfpsf.calibration import calibrate
 from bfpsf.calibration.flats import pair_flats, read_flats
-from bfpsf.calibration.product import Calibration, DetectorCalibration, read_calibration
+from bfpsf.calibration.detector import DetectorCalibration, read_calibration
+from bfpsf.calibration.product import Calibration
 from bfpsf.cli import main
 from bfpsf.errors import BFPSFInputError
 from bfpsf.io.amplifiers import (amplifier_layout, parse_section, read_amplifiers,
@@ -256,7 +257,7 @@ def test_measure_uses_each_amplifiers_gain_and_flags_the_boundary(tmp_path):
     # a calibration per amplifier (only the gains are used by measure)
     from dataclasses import replace
 
-    from bfpsf.calibration.product import DetectorCalibration
+    from bfpsf.calibration.detector import DetectorCalibration
 
     base = _tiny_calibration()
     detector = DetectorCalibration({"C00": replace(base, gain=1.4, amplifier="C00"),
@@ -298,7 +299,7 @@ def test_photometry_applies_each_amplifiers_gain_and_shifts(tmp_path, capsys):
     from astropy.table import Table
 
     from bfpsf.calibration import calibrate_from_ptc
-    from bfpsf.calibration.product import DetectorCalibration
+    from bfpsf.calibration.detector import DetectorCalibration
     from bfpsf.calibration.cp_pipe import ptc_table_hdu
     from bfpsf.model.psf import FluxDependentPSF
     from test_cp_pipe import cp_pipe_table

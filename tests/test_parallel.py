@@ -8,7 +8,8 @@ import pytest
 from astropy.io import fits
 
 from bfpsf.calibration import calibrate_detectors
-from bfpsf.calibration.product import Calibration, read_calibration
+from bfpsf.calibration.detector import read_calibration
+from bfpsf.calibration.product import Calibration
 from bfpsf.cli import main
 from bfpsf.parallel import _Blocks, dask_available, parallel_map, parallel_session
 from bfpsf.validation.simulate_camera import write_amplifier_file

@@ -21,7 +21,7 @@ piff = pytest.importorskip("piff")
 
 import bfpsf.piff  # noqa: E402  (registers the PSF type)
 from bfpsf import BFSensor, calibrate  # noqa: E402
-from bfpsf.calibration.product import DetectorCalibration  # noqa: E402
+from bfpsf.calibration.detector import DetectorCalibration  # noqa: E402
 from bfpsf.errors import BFPSFInputError  # noqa: E402
 from bfpsf.interop.silicon_truth import silicon_boundary_shifts  # noqa: E402
 from bfpsf.model.redistribution import redistribute  # noqa: E402

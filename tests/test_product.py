@@ -192,7 +192,7 @@ def _with_samples(calibration, amplifier="", warnings=("a warning",), method="el
 
 
 def test_per_amplifier_groups_carry_samples_method_and_warnings(calibration, tmp_path):
-    from bfpsf.calibration.product import DetectorCalibration, read_calibration
+    from bfpsf.calibration.detector import DetectorCalibration, read_calibration
 
     left = _with_samples(calibration, "C00", ("no measurable brighter-fatter",))
     right = _with_samples(calibration, "C01", (), method="ei")

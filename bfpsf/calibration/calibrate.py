@@ -26,7 +26,7 @@ def calibrate(sources, *, exptimes=None, maxlag="auto", ptc_model="full", fit_b=
 
     Returns a `~bfpsf.calibration.product.Calibration` when the flats have one amplifier
     (single-image files or arrays, or ``amps`` naming one), else a
-    `~bfpsf.calibration.product.DetectorCalibration` of one per amplifier.
+    `~bfpsf.calibration.detector.DetectorCalibration` of one per amplifier.
 
     Parameters
     ----------
@@ -133,7 +133,7 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="f
     """
     from ..parallel import parallel_session
     from .flats import group_amplifiers, pair_flats, read_flats
-    from .product import DetectorCalibration
+    from .detector import DetectorCalibration
 
     parameters, options = _settings(
         maxlag=maxlag, ptc_model=ptc_model, fit_b=fit_b, saturation=saturation,
@@ -249,7 +249,7 @@ def calibrate_from_ptc(path, *, amps=None, maxlag="auto", ptc_model="full", fit_
     """
     from .cp_pipe import read_ptc_dataset
     from .maxlag import check_maxlag
-    from .product import DetectorCalibration
+    from .detector import DetectorCalibration
 
     maxlag = check_maxlag(maxlag)
     dataset = read_ptc_dataset(path)

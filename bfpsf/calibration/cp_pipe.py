@@ -225,7 +225,7 @@ def ptc_dataset_table(calibration):
     """
     from astropy.table import Table
 
-    from .product import amplifiers_of
+    from .detector import amplifiers_of
 
     amplifiers = amplifiers_of(calibration)
     for name, one in amplifiers.items():

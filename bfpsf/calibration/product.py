@@ -45,9 +45,7 @@ from ..shifts import BoundaryShifts
 from .linearity import Linearity
 from .pedestal import Pedestal
 
-__all__ = ["Calibration", "DetectorCalibration", "read_calibration", "amplifiers_of",
-           "calibration_of_amplifier",
-           "SCHEMA_VERSION"]
+__all__ = ["Calibration", "SCHEMA_VERSION"]
 
 #: Version of the FITS layout written by `Calibration.write`; `Calibration.read` refuses newer.
 #: 2: the shift solver (header SHIFTMTH), samples of the shifts and the warnings (single
@@ -380,7 +378,7 @@ class Calibration:
         """
         with open_product(path, keyword="BFSCHEMA", version=SCHEMA_VERSION,
                           kind="calibration") as hdul:
-            groups = _group_names(hdul)
+            groups = group_names(hdul)
             if amp is None and len(groups) > 1:
                 msg = (f"{path} holds {len(groups)} amplifiers ({', '.join(groups)}); choose "
                        "one with amp=NAME, or read them all with DetectorCalibration.read")
@@ -455,120 +453,7 @@ class Calibration:
             amplifier=str(group.get("AMPNAME", "")))
 
 
-@dataclass(frozen=True, eq=False)
-class DetectorCalibration:
-    """The calibrations of the amplifiers of one detector: one file, one HDU group each.
-
-    Attributes
-    ----------
-    amplifiers : dict of str to Calibration
-        In readout (file) order.
-    detector : str
-        Detector name ('' when not known).
-    """
-
-    amplifiers: dict
-    detector: str = ""
-
-    def __post_init__(self):
-        object.__setattr__(self, "amplifiers", dict(self.amplifiers))
-        if not self.amplifiers:
-            msg = "a DetectorCalibration needs at least one amplifier"
-            raise BFPSFInputError(msg)
-
-    @property
-    def names(self):
-        """Amplifier names, in order."""
-        return list(self.amplifiers)
-
-    def __getitem__(self, name):
-        return self.amplifiers[name]
-
-    def __len__(self):
-        return len(self.amplifiers)
-
-    def __repr__(self):
-        return (f"DetectorCalibration(detector={self.detector!r}, amplifiers="
-                f"{', '.join(f'{name}: gain {cal.gain:.4g}' for name, cal in self.amplifiers.items())})")
-
-    @property
-    def warnings(self):
-        """The warnings of every amplifier, each prefixed by its amplifier's name."""
-        return tuple(f"{name}: {text}" for name, calibration in self.amplifiers.items()
-                     for text in calibration.warnings)
-
-    def to_json_dict(self):
-        """``{'detector', 'warnings', 'amplifiers': [{'name', <the keys of
-        Calibration.to_json_dict>}]}`` (each amplifier with its own ``warnings`` and
-        ``shift_method``; the detector's ``warnings`` are all of them, prefixed by amplifier)."""
-        return {"detector": self.detector, "n_amplifiers": len(self),
-                "schema_version": SCHEMA_VERSION, "bfpsf_version": __version__,
-                "warnings": list(self.warnings),
-                "amplifiers": [{"name": name, **calibration.to_json_dict()}
-                               for name, calibration in self.amplifiers.items()]}
-
-    def write(self, path, *, overwrite=False):
-        """Write one file: the primary header, then the HDU group of each amplifier
-        (`Calibration.group_hdus`, EXTVER 1, 2, ...)."""
-        from astropy.io import fits
-
-        refuse_overwrite(path, overwrite)
-        primary = fits.PrimaryHDU()
-        primary.header["BFSCHEMA"] = (SCHEMA_VERSION, "bfpsf calibration schema version")
-        primary.header["BFVERSIO"] = (__version__, "bfpsf version that wrote the file")
-        primary.header["NAMP"] = (len(self), "amplifiers (HDU groups) in the file")
-        primary.header["DETECTOR"] = (self.detector, "detector name")
-        first = next(iter(self.amplifiers.values()))
-        primary.header["MODEL"] = (first.model, "PTC model of the first amplifier")
-        hdus = [primary]
-        for extver, calibration in enumerate(self.amplifiers.values(), start=1):
-            hdus += calibration.group_hdus(extver)
-        write_fits(fits.HDUList(hdus), path, overwrite=overwrite)
-
-    @classmethod
-    def read(cls, path):
-        """Read a calibration file of any number of amplifiers (schema 1 files: one)."""
-        with open_product(path, keyword="BFSCHEMA", version=SCHEMA_VERSION,
-                          kind="calibration") as hdul:
-            groups = _group_names(hdul)
-            return cls({name: Calibration.from_group(hdul, extver)
-                        for name, extver in groups.items()},
-                       detector=str(hdul[0].header.get("DETECTOR", "")))
-
-
-def amplifiers_of(calibration):
-    """``{amplifier name: Calibration}`` of a `Calibration` (one) or a `DetectorCalibration`."""
-    if isinstance(calibration, DetectorCalibration):
-        return dict(calibration.amplifiers)
-    return {calibration.amplifier: calibration}
-
-
-def calibration_of_amplifier(calibration, name, where=""):
-    """The `Calibration` that applies to amplifier ``name``: the one of that name in a
-    `DetectorCalibration`, or a one-amplifier calibration for any amplifier.
-
-    Raises
-    ------
-    BFPSFInputError
-        A calibration of several amplifiers has none named ``name``.
-    """
-    amplifiers = amplifiers_of(calibration)
-    if len(amplifiers) == 1:
-        return next(iter(amplifiers.values()))
-    if name not in amplifiers:
-        msg = (f"{where}{': ' if where else ''}amplifier {name!r} is not in the calibration "
-               f"(it has {', '.join(map(repr, amplifiers))})")
-        raise BFPSFInputError(msg, name)
-    return amplifiers[name]
-
-
-def read_calibration(path):
-    """A `Calibration` for a one-amplifier file, a `DetectorCalibration` for several."""
-    detector = DetectorCalibration.read(path)
-    return detector if len(detector) > 1 else next(iter(detector.amplifiers.values()))
-
-
-def _group_names(hdul):
+def group_names(hdul):
     """``{amplifier name: EXTVER}`` of the HDU groups of a calibration file (schema 1: one);
     each group has a SUMMARY HDU, so a file without one is incomplete (a KeyError, that
     `bfpsf.files.reading` turns into one line naming the file and the HDU)."""

@@ -119,7 +119,7 @@ def _plot_paths(args, calibration):
 
 
 def _print(detector, calibration):
-    from ..calibration.product import amplifiers_of
+    from ..calibration.detector import amplifiers_of
 
     for name, one in amplifiers_of(calibration).items():
         label = " ".join(part for part in (detector, name) if part)

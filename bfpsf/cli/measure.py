@@ -68,7 +68,7 @@ def add_parser(subparsers):
 
 
 def _gain(args, header, path, calibration, amplifier):
-    from ..calibration.product import calibration_of_amplifier
+    from ..calibration.detector import calibration_of_amplifier
 
     if args.gain is not None:
         return float(args.gain)  # positive and finite (positive_float)
@@ -93,7 +93,7 @@ def _gain(args, header, path, calibration, amplifier):
 def run(args):
     from astropy.table import vstack
 
-    from ..calibration.product import calibration_of_amplifier, read_calibration
+    from ..calibration.detector import calibration_of_amplifier, read_calibration
     from ..io.amplifiers import shared_sides
     from ..io.saturation import saturation_e
     from ..measure.moments import MomentsFlag

@@ -72,7 +72,7 @@ def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, stati
     --output-calib'); else the PSF product's, with the amplifier's own shifts where the
     product has them (`BFPSFModel.for_amplifier`). With --static the model fitted is the
     static P0."""
-    from ..calibration.product import calibration_of_amplifier
+    from ..calibration.detector import calibration_of_amplifier
     from ..interop.photutils import static_image_psf
 
     from ..model.empirical import empirical_of
@@ -95,7 +95,7 @@ def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, stati
 def run(args):
     from astropy.table import vstack
 
-    from ..calibration.product import calibration_of_amplifier, read_calibration
+    from ..calibration.detector import calibration_of_amplifier, read_calibration
     from ..errors import BFPSFInputError
     from ..interop.photutils import default_fit_shape
     from ..io.amplifiers import shared_sides

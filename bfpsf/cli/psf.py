@@ -104,7 +104,7 @@ def _star_weighted(used):
 
 
 def run(args):
-    from ..calibration.product import calibration_of_amplifier, read_calibration
+    from ..calibration.detector import calibration_of_amplifier, read_calibration
     from ..io.amplifiers import near_shared_side, shared_sides
     from ..io.saturation import count_saturated_regions, saturation_e
     from ..resources import check_psf_fit, resource_option

@@ -104,7 +104,7 @@ class AmplifierBF:
 
 def _amplifiers_from(calibration, sections):
     """`AmplifierBF` list from a Calibration or DetectorCalibration (or a path to one)."""
-    from ..calibration.product import amplifiers_of, read_calibration
+    from ..calibration.detector import amplifiers_of, read_calibration
     from ..model.empirical import empirical_of
 
     if isinstance(calibration, (str, bytes)) or hasattr(calibration, "__fspath__"):

@@ -24,7 +24,7 @@ def plot_amplifiers(calibration, axes=None):
     """
     import matplotlib.pyplot as plt
 
-    from ..calibration.product import amplifiers_of
+    from ..calibration.detector import amplifiers_of
 
     amplifiers = amplifiers_of(calibration)
     if axes is None:
