@@ -37,7 +37,8 @@ Readers of schema 6 refuse these files rather than drop the term.
 import numpy as np
 
 from .errors import BFPSFValueError
-from .files import open_product, refuse_overwrite, write_fits
+from .files import open_product, refuse_overwrite
+from .outputs import write_fits
 
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 

@@ -10,7 +10,8 @@ from astropy.table import Table
 
 from bfpsf.cli import main
 from bfpsf.errors import BFPSFFileExistsError, BFPSFInputError
-from bfpsf.files import check_outputs, save_figure, write_fits, write_json, write_table
+from bfpsf.files import check_outputs
+from bfpsf.outputs import save_figure, write_fits, write_json, write_table
 
 
 def _fail_half_way(path, payload=b"SIMPLE  =                    T"):
@@ -132,7 +133,7 @@ def test_tables_carry_units_on_errors_schema_and_version_and_no_object_reprs(tmp
     import astropy.units as u
 
     from bfpsf import __version__
-    from bfpsf.files import TABLE_SCHEMA_VERSION
+    from bfpsf.outputs import TABLE_SCHEMA_VERSION
 
     table = Table({"sigma_x": [1.0] * u.pix, "sigma_x_err": [0.1], "flux_e": [5.0] * u.electron,
                    "flux_e_err": [0.5]})

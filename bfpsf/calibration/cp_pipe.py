@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import write_fits
+from ..outputs import write_fits
 
 __all__ = ["PTC_COLUMNS", "PTC_VERSION", "PTCAmplifier", "read_ptc_dataset",
            "write_ptc_dataset", "ptc_dataset_table", "ptc_table_hdu"]

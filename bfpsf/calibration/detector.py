@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 from .. import __version__
 from ..errors import BFPSFInputError
-from ..files import open_product, refuse_overwrite, write_fits
+from ..files import open_product, refuse_overwrite
+from ..outputs import write_fits
 from .product import SCHEMA_VERSION, Calibration, group_names
 
 __all__ = ["DetectorCalibration", "read_calibration", "amplifiers_of",

@@ -40,7 +40,8 @@ import numpy as np
 
 from .. import __version__
 from ..errors import BFPSFInputError
-from ..files import open_product, refuse_overwrite, write_fits
+from ..files import open_product, refuse_overwrite
+from ..outputs import write_fits
 from ..shifts import BoundaryShifts
 from .linearity import Linearity
 from .pedestal import Pedestal

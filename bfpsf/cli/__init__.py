@@ -21,7 +21,7 @@ import threading
 
 from .. import __version__
 from ..errors import BFPSFError, BFPSFValueError
-from ..files import all_or_nothing
+from ..outputs import all_or_nothing
 
 #: Sub-commands in data-flow order; each name is a module of this package.
 COMMANDS = ["simulate", "calibrate", "measure", "slope", "psf", "photometry", "validate",

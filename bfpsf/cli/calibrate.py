@@ -9,7 +9,8 @@ import sys
 from pathlib import Path
 
 from ..errors import BFPSFInputError
-from ..files import check_outputs, input_files, make_directory, write_json
+from ..files import check_outputs, input_files
+from ..outputs import make_directory, write_json
 from ..resources import check_time
 from . import maxlag_option, non_negative_int, positive_float, positive_int, saturation_option
 
@@ -211,7 +212,7 @@ def run(args):
 def _save_plots(calibration, directory, overwrite):
     """The calibration plots; for several amplifiers, those of each in DIR/AMP/ and the
     comparison of all in DIR/amplifiers.png."""
-    from ..files import save_figure
+    from ..outputs import save_figure
     from ..plotting.amplifiers import plot_amplifiers
     from ..plotting.calibration import save_calibration_plots
 

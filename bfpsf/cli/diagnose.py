@@ -139,7 +139,8 @@ def _check_binning(args):
 
 def run(args):
     from ..diagnosis.loop import diagnose
-    from ..files import check_outputs, input_files, write_json
+    from ..files import check_outputs, input_files
+    from ..outputs import write_json
     from ..validation.report import REPORT_FILES, write_diagnosis_report
 
     if args.list_measured:
@@ -239,7 +240,7 @@ def run(args):
 def _add_signature_report(result, directory):
     """signatures.png and a section of report.md: what was rejected and why, what is left,
     the EMPIRICAL term and the verdict (issue 22)."""
-    from ..files import save_figure, write_text
+    from ..outputs import save_figure, write_text
     from ..plotting.diagnose import plot_signatures
 
     save_figure(plot_signatures(result), directory / "signatures.png", overwrite=True, dpi=110)

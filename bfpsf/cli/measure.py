@@ -8,8 +8,8 @@ Parse, read the images (ADU, converted to electrons with the gain), call
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import (about, check_outputs, input_files, read_table, refuse_duplicates,
-                     write_json, write_table)
+from ..files import about, check_outputs, input_files, read_table, refuse_duplicates
+from ..outputs import write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD
 from . import positive_float, saturation_option, stamp_size_option
 from ._files import place_stars, read_image

@@ -8,7 +8,8 @@ PSF), write the table (fluxes in e-) and the JSON summary.
 
 import numpy as np
 
-from ..files import about, check_outputs, input_files, write_json, write_table
+from ..files import about, check_outputs, input_files
+from ..outputs import write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD, SourceFlag
 from . import (background_option, non_negative_float, positive_float, positive_int,
                saturation_option)

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFInputError
-from ..files import about, check_outputs, input_files, refuse_duplicates, write_json
+from ..files import about, check_outputs, input_files, refuse_duplicates
+from ..outputs import write_json
 from ..measure.sources import DETECTION_THRESHOLD
 from . import (background_option, finite_float, positive_float, positive_int, saturation_option,
                stamp_size_option)

@@ -25,7 +25,8 @@ import numpy as np
 
 from ..errors import BFPSFInputError
 from . import _real
-from ..files import check_outputs, input_files, read_table, save_figure, write_json
+from ..files import check_outputs, input_files, read_table
+from ..outputs import save_figure, write_json
 
 
 def peak_option(text):

@@ -105,7 +105,8 @@ def _print_table(result):
 
 
 def run(args):
-    from ..files import check_outputs, write_json
+    from ..files import check_outputs
+    from ..outputs import write_json
     from ..resources import check_flat_simulation, check_spot_simulation
     from ..validation.report import REPORT_FILES, write_validation_report
     from ..validation.validate import validate

@@ -46,7 +46,7 @@ import numpy as np
 from scipy.stats import chi2 as _chi2
 
 from ..errors import BFPSFInputError, BFPSFValueError
-from ..files import json_safe
+from ..outputs import json_safe
 from ..least_squares import weighted_least_squares
 from .catalogue import CATALOGUE
 from .heldout import split_observables, with_empirical, with_heldout

@@ -31,7 +31,7 @@ import dataclasses
 import numpy as np
 
 from ..errors import BFPSFValueError
-from ..files import json_safe
+from ..outputs import json_safe
 from ..calibration.linearity import linearise
 from .catalogue import add_shifts, quadrupole_shifts
 

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFValueError
-from ..files import refuse_overwrite, save_figure
+from ..files import refuse_overwrite
+from ..outputs import save_figure
 
 __all__ = ["plot_ptc", "plot_correlation_map", "plot_area_profile", "plot_area_matrix",
            "save_calibration_plots"]

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..files import refuse_overwrite, save_figure, write_text
+from ..files import refuse_overwrite
+from ..outputs import save_figure, write_text
 
 __all__ = ["write_diagnosis_report", "write_validation_report", "format_number"]
 

@@ -9,7 +9,7 @@ by side along x on the detector. Used by the tests and benchmarks of `bfpsf.io.a
 import numpy as np
 
 from ..errors import BFPSFValueError
-from ..files import write_fits
+from ..outputs import write_fits
 
 __all__ = ["amplifier_hdus", "write_amplifier_file"]
 

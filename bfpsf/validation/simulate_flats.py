@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BFPSFFileExistsError, BFPSFValueError
-from ..files import write_fits
+from ..outputs import write_fits
 
 __all__ = ["simulate_flat", "simulate_flats", "write_flats", "DEFAULT_LEVELS_E", "MAX_LEVEL_E"]
 

@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
-from ..files import refuse_overwrite, write_fits
+from ..files import refuse_overwrite
+from ..outputs import write_fits
 
 __all__ = ["SpotSet", "StarField", "simulate_spots", "simulate_star_field", "write_image_adu",
            "peak_fraction", "bf_free_sensor", "simulate_varying_exposures"]
