@@ -1,4 +1,4 @@
-"""Input files of the commands: FITS images (outputs: `bfpsf.outputs`, their checks: `bfpsf.files`)."""
+"""Input files of the commands: FITS images (outputs: `bfpsf.outputs`)."""
 
 import numpy as np
 
