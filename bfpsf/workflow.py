@@ -210,7 +210,8 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     -------
     PSFFromImages
     """
-    from .measure.sources import DETECTION_THRESHOLD, isolated_stars
+    from .measure.neighbours import isolated_stars
+    from .measure.sources import DETECTION_THRESHOLD
     from .model.psf_fit import DEFAULT_SIZE, fit_psf
 
     size = DEFAULT_SIZE if size is None else int(size)

@@ -333,7 +333,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     from ..calibration.product import Calibration
     from ..io.amplifiers import read_amplifiers
     from ..io.saturation import saturation_e
-    from ..measure.sources import aperture_fraction, isolated_stars, measure_sources, sky_level
+    from ..measure.neighbours import isolated_stars
+    from ..measure.sources import aperture_fraction, measure_sources, sky_level
     from ..workflow import prepare_image
     from ..model.psf_fit import DEFAULT_SIZE, fit_psf
     from .star_residual import stacked_star_residual

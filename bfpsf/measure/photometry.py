@@ -15,7 +15,8 @@ from astropy.table import Table
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import make_psf_photometry
 from ..model.base import BFPSFModel
-from .sources import DETECTION_THRESHOLD, sources_with_companions
+from .neighbours import sources_with_companions
+from .sources import DETECTION_THRESHOLD
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 
@@ -24,7 +25,7 @@ PHOTOMETRY_COLUMNS = ["x_fit", "y_fit", "flux_fit", "flux_err", "flags"]
 
 
 def _initial_positions(image_e, detection_threshold):
-    """Every source (`bfpsf.measure.sources.sources_with_companions`: the detections and the
+    """Every source (`bfpsf.measure.neighbours.sources_with_companions`: the detections and the
     companions a merged segment hides, flagged ``BLENDED``) as photutils' initial table.
     Fitted as one, a close pair gives one star with both fluxes (a dense field: -250 mmag)."""
     sources = sources_with_companions(image_e, threshold=detection_threshold)

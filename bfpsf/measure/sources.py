@@ -19,9 +19,8 @@ from .moments import adaptive_moments_batch
 from .moments_result import MomentsFlag
 from .shapes import distortion
 
-__all__ = ["SourceFlag", "measure_sources", "isolated_stars", "sky_level", "source_flag_string",
-           "aperture_fraction", "total_flux", "sources_with_companions",
-           "STAR_COLUMNS"]
+__all__ = ["SourceFlag", "measure_sources", "sky_level", "source_flag_string",
+           "aperture_fraction", "total_flux", "STAR_COLUMNS", "DETECTION_THRESHOLD"]
 
 #: columns every star table holds (the ``bfpsf measure`` contract)
 STAR_COLUMNS = ["x", "y", "flux_e", "peak_e", "mxx", "myy", "mxy", "sigma_x", "sigma_y", "iq",
@@ -161,51 +160,6 @@ def _empty_table(colour_columns):
 #: Default detection threshold of every bfpsf command and function, in units of the RMS of the
 #: smoothed background-subtracted image.
 DETECTION_THRESHOLD = 5.0
-
-
-def smoothed_peaks(image_e, *, threshold=DETECTION_THRESHOLD, detection_fwhm=3.0):
-    """Peaks of the smoothed sky-subtracted image, (x, y) pixels: maxima of a window of
-    ``2 * detection_fwhm + 1`` pixels at least ``threshold + 3`` RMS of the smoothed image
-    (the peaks `measure_sources` counts to flag a segment ``BLENDED``), centroided on their
-    3 x 3 neighbourhood.
-
-    Parameters
-    ----------
-    image_e : ndarray [y, x]
-        Sky-subtracted image, e-; non-finite pixels count as 0.
-    threshold : float, optional
-        Detection threshold, RMS of the smoothed image (default 5).
-    detection_fwhm : float, optional
-        FWHM of the smoothing, pixels (default 3, as `measure_sources`).
-
-    Returns
-    -------
-    ndarray (N, 2)
-    """
-    from astropy.convolution import convolve
-    from astropy.stats import sigma_clipped_stats
-    from photutils.segmentation import make_2dgaussian_kernel
-    from scipy import ndimage
-
-    image = np.where(np.isfinite(image_e), image_e, 0.0)
-    kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
-    smoothed = convolve(image, kernel, normalize_kernel=True)
-    _, _, rms = sigma_clipped_stats(smoothed, sigma=3.0)
-    size = 2 * int(np.ceil(detection_fwhm)) + 1
-    peaks = (smoothed == ndimage.maximum_filter(smoothed, size=size)) & (
-        smoothed >= (threshold + 3.0) * rms)
-    rows, columns = np.nonzero(peaks)
-    inside = ((rows > 0) & (rows < image.shape[0] - 1) & (columns > 0)
-              & (columns < image.shape[1] - 1))
-    rows, columns = rows[inside], columns[inside]
-    offsets = np.arange(-1, 2)
-    windows = smoothed[rows[:, None, None] + offsets[None, :, None],
-                       columns[:, None, None] + offsets[None, None, :]]
-    windows = np.clip(windows - windows.min(axis=(1, 2), keepdims=True), 0, None)
-    total = np.maximum(windows.sum(axis=(1, 2)), 1e-30)
-    x = columns + np.sum(windows.sum(axis=1) * offsets, axis=1) / total
-    y = rows + np.sum(windows.sum(axis=2) * offsets, axis=1) / total
-    return np.column_stack([x, y])
 
 
 def _aperture_flux(stamps, radius2, sigma, aperture_nsigma):
@@ -459,88 +413,6 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     table.meta["threshold"] = float(threshold)
     table.meta["saturation_e"] = None if saturation is None else float(saturation)
     return table
-
-
-def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, **kwargs):
-    """Every source of an image: the detections of `measure_sources` and the companions a
-    merged segment hides (peaks of the smoothed image, `smoothed_peaks`, more than 2.5
-    pixels from every detection, flagged ``BLENDED``; their ``flux_e`` the sum of the 5 x 5
-    pixels around the peak). A segment is one detection however many stars it holds.
-
-    Parameters
-    ----------
-    image_e : ndarray [y, x]
-        Sky-subtracted image, e-; non-finite pixels count as 0.
-    threshold : float, optional
-        Detection threshold (`measure_sources`).
-    **kwargs
-        Passed to `measure_sources`.
-
-    Returns
-    -------
-    astropy.table.Table
-        ``x``, ``y``, ``flux_e``, ``flags`` (`SourceFlag`); the detections first, then the
-        companions; ``meta['n_detected']`` the detections.
-    """
-    from astropy.table import Table
-    from scipy.spatial import cKDTree
-
-    image = np.where(np.isfinite(image_e), image_e, 0.0)
-    sources = measure_sources(image, threshold=threshold, **kwargs)
-    x = np.asarray(sources["x"], dtype=float)
-    y = np.asarray(sources["y"], dtype=float)
-    flux = np.asarray(sources["flux_e"], dtype=float)
-    flags = np.asarray(sources["flags"], dtype=np.int64)
-    peaks = smoothed_peaks(image, threshold=threshold)
-    if len(peaks) and len(x):
-        distance, _ = cKDTree(np.column_stack([x, y])).query(peaks)
-        peaks = peaks[distance > 2.5]
-    if len(peaks):
-        rows = np.clip(np.rint(peaks[:, 1]).astype(int), 2, image.shape[0] - 3)
-        columns = np.clip(np.rint(peaks[:, 0]).astype(int), 2, image.shape[1] - 3)
-        boxes = [np.sum(image[row - 2:row + 3, column - 2:column + 3])
-                 for row, column in zip(rows, columns)]
-        x, y = np.r_[x, peaks[:, 0]], np.r_[y, peaks[:, 1]]
-        flux = np.r_[flux, np.maximum(boxes, 1.0)]
-        flags = np.r_[flags, np.full(len(peaks), SourceFlag.BLENDED, dtype=np.int64)]
-    table = Table({"x": x, "y": y, "flux_e": flux, "flags": flags})
-    table.meta["n_detected"] = len(sources)
-    return table
-
-
-def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None):
-    """Clean, unsaturated detections isolated within ``size`` pixels: the stars a P0 fit
-    (`bfpsf.model.psf_fit.fit_psf`) takes; and every other source (`sources_with_companions`),
-    the neighbours the P0 fit models alongside them.
-
-    Parameters
-    ----------
-    image_e : ndarray [y, x]
-        Background-subtracted image, e-.
-    size : int
-        Side of the P0 support and of the star cutouts, pixels.
-    threshold : float, optional
-        Detection threshold (`measure_sources`).
-    saturation_e : float, optional
-        Saturation level above the background, e-.
-
-    Returns
-    -------
-    positions : ndarray (N, 2)
-        (x, y) of the stars, pixels.
-    n_detected : int
-        All detections, flagged ones included (companions not counted).
-    others : ndarray (M, 2)
-        (x, y) of every other source: flagged detections and the companions of merged
-        segments.
-    """
-    sources = sources_with_companions(image_e, threshold=threshold,
-                                      blend_radius=size / 2 + 2, saturation=saturation_e,
-                                      stamp_size=size + 6)
-    xy = np.column_stack([np.asarray(sources["x"], dtype=float),
-                          np.asarray(sources["y"], dtype=float)])
-    clean = np.asarray(sources["flags"]) == 0
-    return xy[clean], int(sources.meta["n_detected"]), xy[~clean]
 
 
 def _match_colours(table, colour, colour_columns, match_radius):

@@ -202,7 +202,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         the grid covers the image).
     positions : (N, 2) array_like of (x, y), or a sequence of them (one per image)
         Star centres, pixels (held for the first ``hold_positions`` iterations: give
-        centroids, e.g. `bfpsf.measure.sources.isolated_stars`). Another source within
+        centroids, e.g. `bfpsf.measure.neighbours.isolated_stars`). Another source within
         ``size`` pixels is to be given in ``neighbours``.
     shifts : BoundaryShifts or Calibration, or a sequence of them (one per image)
         Boundary shifts a^X, 1/e- (G15 eq. def-a). With one per image (e.g. the amplifiers of
