@@ -24,7 +24,7 @@ PEAK_PER_FLUX = peak_fraction(MOFFAT)
 
 
 def star_field(n_stars, spacing, shifts, seed=0):
-    from bfpsf.interop.galsim_psf import render_stars
+    from bfpsf.model.galsim_profile import render_stars
 
     rng = np.random.default_rng(seed)
     n_side = int(np.ceil(np.sqrt(n_stars)))

@@ -44,7 +44,7 @@ def make_fixtures(directory):
     from astropy.io import fits
 
     import galsim
-    from bfpsf.interop.galsim_psf import render_stars
+    from bfpsf.model.galsim_profile import render_stars
     from bfpsf.validation.simulate_flats import write_flats
 
     directory = Path(directory)

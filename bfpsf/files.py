@@ -2,7 +2,7 @@
 
 No output is overwritten without asking, an input is never an output (even with
 ``--overwrite``), and bad input gets one line naming the file (`reading`, `read_table`).
-Products (`bfpsf.Calibration`, the PSF product of `bfpsf.psf_product`) are FITS files whose
+Products (`bfpsf.Calibration`, the PSF product of `bfpsf.model.product`) are FITS files whose
 primary header carries a schema keyword; a file written by a newer bfpsf is refused rather than
 misread (`open_product`). How outputs are written (atomically, all or nothing) is in
 `bfpsf.outputs`.

@@ -24,7 +24,7 @@ import galsim
 import numpy as np
 
 import bfpsf
-from bfpsf.interop.galsim_psf import render_stars
+from bfpsf.model.galsim_profile import render_stars
 from bfpsf.interop.photutils import static_image_psf
 from bfpsf.measure.photometry import psf_photometry
 from bfpsf.model.psf_fit import fit_psf

@@ -23,7 +23,7 @@ import galsim
 import numpy as np
 
 import bfpsf
-from bfpsf.interop.galsim_psf import to_galsim
+from bfpsf.model.galsim_profile import to_galsim
 
 RADIAL = bfpsf.BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
 SHIFTS = bfpsf.BoundaryShifts(RADIAL.north * 1.3, RADIAL.east * 0.8, check=False)

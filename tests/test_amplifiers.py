@@ -415,7 +415,7 @@ def test_psf_keeps_each_amplifiers_shifts(tmp_path, capsys):
 
     from bfpsf.calibration import calibrate_from_ptc
     from bfpsf.cli.photometry import _amplifier_model
-    from bfpsf.interop.galsim_psf import render_stars
+    from bfpsf.model.galsim_profile import render_stars
     from bfpsf.calibration.cp_pipe import ptc_table_hdu
     from bfpsf.model.psf import FluxDependentPSF
     from test_cp_pipe import cp_pipe_table

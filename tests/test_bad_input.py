@@ -207,7 +207,7 @@ def test_huge_fluxes_warn_where_first_order_breaks():
 
 
 def test_photometry_carries_the_blend_flags_of_the_detection():
-    from bfpsf.interop.galsim_psf import render_stars
+    from bfpsf.model.galsim_profile import render_stars
     from bfpsf.measure.photometry import psf_photometry
     from bfpsf.measure.sources import SourceFlag
     from bfpsf.model.psf import FluxDependentPSF

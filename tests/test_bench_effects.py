@@ -1,11 +1,11 @@
 """The bench's effects outside the catalogue do what they claim, on the electrons: charge
-conserved, the right axis, parity, position and exposure dependence (`bfpsf.diagnosis.bench`).
+conserved, the right axis, parity, position and exposure dependence (`bfpsf.validation.effects_bench`).
 """
 
 import numpy as np
 import pytest
 
-from bfpsf.diagnosis.bench import DETECTOR_WIDTH, OUTSIDE_EFFECTS, apply_effect, draw_bench_spots
+from bfpsf.validation.effects_bench import DETECTOR_WIDTH, OUTSIDE_EFFECTS, apply_effect, draw_bench_spots
 from bfpsf.diagnosis.odd_moments import skewness, star_skewness
 from bfpsf.errors import BFPSFValueError
 from bfpsf.measure.moments import adaptive_moments_batch

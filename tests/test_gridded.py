@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bfpsf.errors import BFPSFValueError
-from bfpsf.interop.galsim_psf import render_stars
+from bfpsf.model.galsim_profile import render_stars
 from bfpsf.model.gridded import GriddedFluxDependentPSF, bilinear_weights, grid_node_positions
 from bfpsf.model.psf import FluxDependentPSF, pixelised_stamp
 from bfpsf.model.psf_fit import fit_psf
@@ -160,7 +160,7 @@ def test_photutils_photometry_with_the_gridded_model(varying_field, fits, iterat
 
 
 def test_galsim_export_at_a_position(fits):
-    from bfpsf.interop.galsim_psf import to_galsim
+    from bfpsf.model.galsim_profile import to_galsim
 
     psf = fits[0].psf
     flux, x, y = 1.5e6, 100.3, 77.8
@@ -178,7 +178,7 @@ def test_galsim_export_at_a_position(fits):
 def test_gridded_product_round_trip(fits, tmp_path):
     from astropy.io import fits as pyfits
 
-    from bfpsf.psf_product import PSF_SCHEMA_VERSION
+    from bfpsf.model.product import PSF_SCHEMA_VERSION
 
     psf = fits[0].psf
     psf.calibration = "cal.fits"

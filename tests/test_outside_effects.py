@@ -1,6 +1,6 @@
 """Effects outside the catalogue are named by their signature, never absorbed (issue 22).
 
-The bench (`bfpsf.diagnosis.bench`): SiliconSensor E2V flats calibrated by bfpsf (the user
+The bench (`bfpsf.validation.effects_bench`): SiliconSensor E2V flats calibrated by bfpsf (the user
 path, not the simulator's truth); spots rendered with those calibrated shifts by bfpsf's own
 forward operator in the quick variant (so the null is exact and any selection is the loop's
 fault), with GalSim SiliconSensor in the slow variant; each case applies one effect to the
@@ -15,7 +15,7 @@ Each outside effect's strength changes the size slope by far more than 3 sigma o
 import numpy as np
 import pytest
 
-from bfpsf.diagnosis.bench import OUTSIDE_EFFECTS, apply_effect, bench_sizes, draw_bench_spots
+from bfpsf.validation.effects_bench import OUTSIDE_EFFECTS, apply_effect, bench_sizes, draw_bench_spots
 from bfpsf.diagnosis.loop import diagnose
 from bfpsf.diagnosis.observables import flat_observables, observables_from_sizes, ptc_observable
 from bfpsf.diagnosis.spot_model import flux_of_peak

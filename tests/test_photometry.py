@@ -8,7 +8,7 @@ import pytest
 from astropy.table import Table
 
 from bfpsf.errors import BFPSFFileExistsError, BFPSFInputError, BFPSFValueError
-from bfpsf.interop.galsim_psf import render_stars
+from bfpsf.model.galsim_profile import render_stars
 from bfpsf.interop.photutils import make_psf_photometry, static_image_psf
 from bfpsf.measure.photometry import psf_photometry
 from bfpsf.model.psf import FluxDependentPSF

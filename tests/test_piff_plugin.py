@@ -254,7 +254,7 @@ def test_config_errors_are_one_line(calibration_file):
 def test_bfpsf_works_without_piff():
     # importing the rest of bfpsf does not import piff
     code = ("import sys, bfpsf, bfpsf.cli, bfpsf.model.psf, bfpsf.interop.galsim_sensor, "
-            "bfpsf.galsim, bfpsf.psf_product; bfpsf.FluxDependentPSF; "
+            "bfpsf.galsim, bfpsf.model.product; bfpsf.FluxDependentPSF; "
             "assert 'piff' not in sys.modules, 'piff imported'")
     subprocess.run([sys.executable, "-c", code], check=True)
     # with piff not installed (its import blocked), bfpsf runs and only bfpsf.piff fails

@@ -142,7 +142,7 @@ def test_psf_product_round_trip_and_schema_checks(tmp_path):
     import galsim
 
     from bfpsf.model.psf import FluxDependentPSF
-    from bfpsf.psf_product import PSF_SCHEMA_VERSION
+    from bfpsf.model.product import PSF_SCHEMA_VERSION
     from bfpsf.shifts import BoundaryShifts
 
     shifts = BoundaryShifts.from_radial_profile(lambda r: 5e-7 * np.exp(-r), 2)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
-from bfpsf.interop.galsim_psf import render_stars
+from bfpsf.model.galsim_profile import render_stars
 from bfpsf.model.psf import FluxDependentPSF, pixelised_stamp
 from bfpsf.model.psf_fit import fit_psf
 from bfpsf.shifts import BoundaryShifts

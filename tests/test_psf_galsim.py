@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
-from bfpsf.interop.galsim_psf import apply_bf_to_rendered, render_stars, to_galsim
+from bfpsf.model.galsim_profile import apply_bf_to_rendered, render_stars, to_galsim
 from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.model.redistribution import redistribute
 from bfpsf.shifts import BoundaryShifts

@@ -18,7 +18,7 @@ from astropy.io import fits
 from astropy.table import Table
 
 from bfpsf.cli import main
-from bfpsf.interop.galsim_psf import render_stars
+from bfpsf.model.galsim_profile import render_stars
 from bfpsf.interop.silicon_truth import silicon_boundary_shifts
 from bfpsf.validation.simulate_flats import write_flats
 

@@ -24,7 +24,7 @@ SATURATE = 30000.0  # ADU
 def clipped_image(tmp_path_factory):
     """A 192^2 image of 36 Moffat stars (fluxes 2e4-3e6 e-, seed 11), clipped at SATURATE,
     with the truth: which stars have a pixel at or above it before clipping."""
-    from bfpsf.interop.galsim_psf import render_stars
+    from bfpsf.model.galsim_profile import render_stars
 
     rng = np.random.default_rng(11)
     grid = np.linspace(21, 171, 6)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from bfpsf.errors import BFPSFValueError
-from bfpsf.interop.galsim_psf import to_galsim
+from bfpsf.model.galsim_profile import to_galsim
 from bfpsf.measure.moment_errors import moment_errors
 from bfpsf.measure.moments import adaptive_moments_batch
 from bfpsf.measure.shapes import distortion

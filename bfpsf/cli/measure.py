@@ -98,7 +98,7 @@ def run(args):
     from ..io.saturation import saturation_e
     from ..measure.moments import MomentsFlag
     from ..measure.sources import measure_sources
-    from ..workflow import electrons, linearity_of
+    from ..measure.prepare import electrons, linearity_of
 
     check_outputs([args.output, args.json], args.overwrite,
                   inputs=input_files(args.images, args.calib, args.catalog))

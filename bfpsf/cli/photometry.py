@@ -77,7 +77,7 @@ def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, stati
     from ..interop.photutils import static_image_psf
 
     from ..model.empirical import empirical_of
-    from ..workflow import linearity_of
+    from ..measure.prepare import linearity_of
 
     model = psf.for_amplifier(amplifier.name)
     if calibration is not None:

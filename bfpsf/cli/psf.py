@@ -108,8 +108,9 @@ def run(args):
     from ..calibration.detector import calibration_of_amplifier, read_calibration
     from ..io.amplifiers import near_shared_side, shared_sides
     from ..io.saturation import count_saturated_regions, saturation_e
+    from ..measure.prepare import linearity_of, prepare_image
     from ..resources import check_psf_fit, resource_option
-    from ..workflow import linearity_of, prepare_image, psf_from_images
+    from ..workflow import psf_from_images
 
     check_outputs([args.output, args.json], args.overwrite,
                   inputs=input_files(args.images, args.calib))

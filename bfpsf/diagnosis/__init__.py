@@ -16,6 +16,6 @@ One module per job:
 - `bfpsf.diagnosis.odd_moments`: the stars' skewness (the odd part of the residual);
 - `bfpsf.diagnosis.empirical_fit`: the EMPIRICAL term learned from what is left, validated
   out of sample (its model: `bfpsf.model.empirical`);
-- `bfpsf.diagnosis.bench`: a bench of effects outside the catalogue (and the null and
+- `bfpsf.validation.effects_bench`: a bench of effects outside the catalogue (and the null and
   catalogue effects) applied to the same simulated spots.
 """

@@ -335,7 +335,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     from ..io.saturation import saturation_e
     from ..measure.neighbours import isolated_stars
     from ..measure.sources import aperture_fraction, measure_sources, sky_level
-    from ..workflow import prepare_image
+    from ..measure.prepare import prepare_image
     from ..model.psf_fit import DEFAULT_SIZE, fit_psf
     from .star_residual import stacked_star_residual
 
@@ -361,7 +361,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
             msg = (f"{path} holds {len(amplifiers)} amplifiers; the closed loop works on one: "
                    "choose it with --amp NAME")
             raise BFPSFInputError(msg, str(path))
-        # the image preparation and sky of every command (bfpsf.workflow.prepare_image)
+        # the image preparation and sky of every command (bfpsf.measure.prepare.prepare_image)
         prepared = prepare_image(amplifiers[0].data, gain=gain, background_e=(
             None if background is None else float(background) * gain))
         data = prepared.image_e

@@ -70,7 +70,7 @@ class SizeTable:
         amplifier), pixels: the position dependence of the residual
         (`bfpsf.diagnosis.signature`).
     skew_x, skew_y, skew_x_err, skew_y_err : ndarray (n,) or None
-        Third standardised moments of the stars along X and Y (`bfpsf.diagnosis.bench.skewness`)
+        Third standardised moments of the stars along X and Y (`bfpsf.validation.effects_bench.skewness`)
         and their errors: the odd (centroid- and skew-like) part of the residual.
     """
 

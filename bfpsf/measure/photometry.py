@@ -218,10 +218,10 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
 
     Parameters
     ----------
-    image_e : array_like [y, x] or bfpsf.workflow.PreparedImage
+    image_e : array_like [y, x] or bfpsf.measure.prepare.PreparedImage
         Image in electrons (the BF term needs charge), sky included, prepared here
         (``background_e``, ``linearity_c_per_1e5``); or an image prepared already
-        (`bfpsf.workflow.prepare_image`: its sky and linearity are used as they are).
+        (`bfpsf.measure.prepare.prepare_image`: its sky and linearity are used as they are).
     psf : FluxDependentPSF or photutils PSF model
         PSF model in electrons (``flux_unit='electron'``; an ADU model is refused). A static photutils model can be passed for
         comparison.
@@ -234,7 +234,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         A known sky level, e- per pixel, subtracted before fitting; default the sky surface
         of the image (`bfpsf.measure.sky.estimate_sky`: a plane fitted beyond the masked
         sources, per image), through the one image preparation of every command
-        (`bfpsf.workflow.prepare_image`, which also undoes the PSF's linearity correction,
+        (`bfpsf.measure.prepare.prepare_image`, which also undoes the PSF's linearity correction,
         ``psf.linearity_c_per_1e5``, of a refined calibration).
     fit_shape : int, optional
         Fit box, pixels (odd); default about 3 FWHM.
@@ -260,7 +260,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         and subtracted from the data. Default True (one refit, the effect being second order
         in a); 0 or False: none. Only for a `FluxDependentPSF`.
     linearity_c_per_1e5 : float, optional
-        Linearity correction undone on input (`bfpsf.workflow.prepare_image`); default the
+        Linearity correction undone on input (`bfpsf.measure.prepare.prepare_image`); default the
         PSF's own (``psf.linearity_c_per_1e5``, 0 for a photutils model).
     **kwargs
         Passed to `photutils.psf.PSFPhotometry`.
@@ -280,7 +280,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         column), ``source_flags`` carries the detection's `bfpsf.measure.sources.SourceFlag`
         bits (``BLENDED``: an unresolved neighbour) to each fitted star.
     """
-    from ..workflow import PreparedImage, prepare_image
+    from .prepare import PreparedImage, prepare_image
 
     prepared = image_e if isinstance(image_e, PreparedImage) else None
     image = np.asarray(image_e.image_e if prepared else image_e, dtype=float)

@@ -1,7 +1,7 @@
 """The sky under the stars: a low-order surface fitted to the pixels the stars leave.
 
 One sky model for every command (``psf``, ``measure``, ``photometry``, ``diagnose`` through the
-image preparation, `bfpsf.workflow.prepare_image`). A user does not know their sky, and three
+image preparation, `bfpsf.measure.prepare.prepare_image`). A user does not know their sky, and three
 things bias the obvious estimators:
 
 * the wings of bright stars reach far: a sigma-clipped median of the image clips the cores but

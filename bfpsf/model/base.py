@@ -22,11 +22,11 @@ these same classes with that metadata, so every kind answers the same calls:
 Every kind is a photutils-compatible model itself (``flux``, ``x_0``, ``y_0``; stateless
 ``evaluate``), so no caller needs to test which kind it holds.
 
-Product metadata carried by every kind (kept by the PSF product, `bfpsf.psf_product`):
+Product metadata carried by every kind (kept by the PSF product, `bfpsf.model.product`):
 ``calibration`` (file name), ``shift_samples`` (the calibration's uncertainty),
 ``amplifier_shifts`` ({EXTNAME: BoundaryShifts}), ``linearity_c_per_1e5`` (a refined
 calibration's linearity correction, applied to the images on input by
-`bfpsf.workflow.prepare_image`), and ``flux_correction`` / ``flux_correction_err``: the ratio of
+`bfpsf.measure.prepare.prepare_image`), and ``flux_correction`` / ``flux_correction_err``: the ratio of
 a star's total flux to the flux P0 holds in its support (the wings beyond it), measured from
 the bright isolated stars, applied by photometry so that ``flux_fit`` is the total flux, with
 the power law of those wings, ``wing_amplitude`` and ``wing_power``
@@ -196,8 +196,8 @@ class BFPSFModel(Fittable2DModel):
 
     def to_galsim(self, flux, x=None, y=None, *, x_phase=0.0, y_phase=0.0, normalise=True):
         """The pixelised PSF of a star of flux F at (x, y) as a GalSim profile; see
-        `bfpsf.interop.galsim_psf.to_galsim` (returns ``(profile, pixel_included)``)."""
-        from ..interop.galsim_psf import to_galsim
+        `bfpsf.model.galsim_profile.to_galsim` (returns ``(profile, pixel_included)``)."""
+        from .galsim_profile import to_galsim
 
         position = None if x is None and y is None else self.position_or_reference(x, y)
         return to_galsim(self, flux, x_phase=x_phase, y_phase=y_phase, normalise=normalise,
@@ -232,19 +232,19 @@ class BFPSFModel(Fittable2DModel):
         """A copy that owns every array."""
         return copy.deepcopy(self)
 
-    # -- the PSF product (bfpsf.psf_product: the model layer knows nothing of files) ---------
+    # -- the PSF product (bfpsf.model.product: the model layer knows nothing of files) ---------
     def write(self, path, *, calibration=None, meta=None, overwrite=False):
-        """Write the PSF product (FITS); see `bfpsf.psf_product.write_psf`."""
-        from ..psf_product import write_psf
+        """Write the PSF product (FITS); see `bfpsf.model.product.write_psf`."""
+        from .product import write_psf
 
         write_psf(self, path, calibration=calibration, meta=meta, overwrite=overwrite)
 
     @classmethod
     def read(cls, path, **kwargs):
-        """Read a PSF product (`bfpsf.psf_product.read_psf`): any kind through this class or
+        """Read a PSF product (`bfpsf.model.product.read_psf`): any kind through this class or
         `FluxDependentPSF` (``reads_any_kind``), only a grid through
         `GriddedFluxDependentPSF`."""
-        from ..psf_product import read_psf
+        from .product import read_psf
 
         from .psf import FluxDependentPSF
 

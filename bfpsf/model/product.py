@@ -36,9 +36,9 @@ Readers of schema 6 refuse these files rather than drop the term.
 
 import numpy as np
 
-from .errors import BFPSFValueError
-from .files import open_product, refuse_overwrite
-from .outputs import write_fits
+from ..errors import BFPSFValueError
+from ..files import open_product, refuse_overwrite
+from ..outputs import write_fits
 
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 
@@ -67,7 +67,7 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     """
     from astropy.io import fits
 
-    from .model.gridded import GriddedFluxDependentPSF
+    from .gridded import GriddedFluxDependentPSF
 
     refuse_overwrite(path, overwrite)
     nodes = psf.nodes if isinstance(psf, GriddedFluxDependentPSF) else None
@@ -166,7 +166,7 @@ def _read_empirical(hdul):
     """The EMPIRICAL term of the ``EMPIRIC`` HDU, or None without it."""
     import json
 
-    from .model.empirical import EmpiricalTerm
+    from .empirical import EmpiricalTerm
 
     if "EMPIRIC" not in hdul:
         return None
@@ -175,7 +175,7 @@ def _read_empirical(hdul):
 
 def _read_amplifier_shifts(hdul):
     """{EXTNAME: BoundaryShifts} from the ``AMPSHIFT`` HDU ({} without it)."""
-    from .shifts import BoundaryShifts
+    from ..shifts import BoundaryShifts
 
     if "AMPSHIFT" not in hdul:
         return {}
@@ -219,8 +219,8 @@ def read_psf(path, *, cls=None, **kwargs):
     BFPSFInputError
         The file is missing, is not a PSF product, or has a newer schema.
     """
-    from .model.psf import FluxDependentPSF
-    from .shifts import BoundaryShifts
+    from .psf import FluxDependentPSF
+    from ..shifts import BoundaryShifts
 
     cls = FluxDependentPSF if cls is None else cls
     with open_product(path, keyword="BFPSFVER", version=PSF_SCHEMA_VERSION,
@@ -265,7 +265,7 @@ def read_psf(path, *, cls=None, **kwargs):
                     and options["mode"] == "table" else None)
     options.update(kwargs)
     if grid is not None:
-        from .model.gridded import GriddedFluxDependentPSF
+        from .gridded import GriddedFluxDependentPSF
 
         options.pop("bf_table", None)
         if grid[3] is not None and options.get("mode") == "table":

@@ -41,8 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BFPSFValueError
-from .tables import SizeTable
-from .odd_moments import skewness
+from ..diagnosis.odd_moments import skewness
+from ..diagnosis.tables import SizeTable
 
 __all__ = ["OUTSIDE_EFFECTS", "CATALOGUE_CASES", "BenchSpots", "draw_bench_spots",
            "apply_effect", "bench_sizes"]
@@ -117,7 +117,7 @@ def draw_bench_spots(*, n_exposures, shifts=None, sensor=None,
     import galsim
 
     from ..model.redistribution import redistribute
-    from ..validation.simulate_spots import simulate_spots
+    from .simulate_spots import simulate_spots
 
     if (sensor is None) == (shifts is None):
         msg = "give either shifts (quick rendering) or a SiliconSensor name, not both"

@@ -13,7 +13,7 @@
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
-from ..model.redistribution import redistribute
+from .redistribution import redistribute
 
 __all__ = ["to_galsim", "apply_bf_to_rendered", "render_stars"]
 
