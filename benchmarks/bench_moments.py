@@ -2,7 +2,7 @@
 
 10^4 noisy Moffat stamps of 32 x 32 pixels (FWHM 4 pixels, beta 3.5, S/N about 200, random
 sub-pixel offsets and small shears). Prints the throughput of
-`bfpsf.measure.moments.adaptive_moments_batch`, of the per-stamp `adaptive_moments`, and of
+`bfpsf.moments.adaptive.adaptive_moments_batch`, of the per-stamp `adaptive_moments`, and of
 `galsim.hsm.FindAdaptiveMom` in a Python loop, and the ratios. Also prints the largest relative
 difference of sigma between the two on stamps both measured.
 
@@ -42,7 +42,7 @@ def main(argv=None):
 
     import galsim
 
-    from bfpsf.measure.moments import adaptive_moments, adaptive_moments_batch
+    from bfpsf.moments.adaptive import adaptive_moments, adaptive_moments_batch
 
     stamps = make_stamps(args.n)
     print(f"{args.n} stamps of {stamps.shape[1]}x{stamps.shape[2]} pixels")

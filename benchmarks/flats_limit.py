@@ -45,7 +45,7 @@ NAMES = ("sigma_x", "sigma_y", "T", "e1")
 
 def shape_measures(stamps):
     """sigma_x, sigma_y, T = Mxx + Myy, e1 of adaptive moments (rows), NaN where flagged."""
-    from bfpsf.measure.moments import adaptive_moments_batch
+    from bfpsf.moments.adaptive import adaptive_moments_batch
 
     moments = adaptive_moments_batch(np.asarray(stamps))
     mxx, myy = (np.where(moments.flags == 0, value, np.nan)

@@ -5,7 +5,7 @@ For the acceptance's varying PSF (tests/test_acceptance_defaults.py, "varying PS
 ``lsst_e2v_50_8`` stars at 9 positions (7 along x at the centre line, 2 at the bottom and top
 edges), each drawn again with BF switched off and the same photons (its twin,
 `simulate_spots`), at peaks of 4 and 100 ke-. The model (`psf.evaluate` at the star's flux,
-position and sub-pixel phase, as `bfpsf.measure.shapes.psf_shapes`) is compared with them:
+position and sub-pixel phase, as `bfpsf.moments.shapes.psf_shapes`) is compared with them:
 
 - P0: twin minus the model at unit flux (sigma_x, sigma_y, e1, e2), per position;
 - BF change of the bright stars: star minus twin against the model's P(F) - P(1), with the
@@ -29,8 +29,8 @@ POSITIONS = [(x, 160) for x in (12, 60, 100, 160, 220, 260, 307)] + [(160, 12), 
 
 def measures(stamps):
     """sigma_x, sigma_y, e1, e2 (rows) of adaptive moments."""
-    from bfpsf.measure.moments import adaptive_moments_batch
-    from bfpsf.measure.shapes import distortion
+    from bfpsf.moments.adaptive import adaptive_moments_batch
+    from bfpsf.moments.shapes import distortion
 
     moments = adaptive_moments_batch(np.asarray(stamps))
     return np.array([np.sqrt(moments.mxx), np.sqrt(moments.myy),

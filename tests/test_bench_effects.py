@@ -8,7 +8,7 @@ import pytest
 from bfpsf.validation.effects_bench import DETECTOR_WIDTH, OUTSIDE_EFFECTS, apply_effect, draw_bench_spots
 from bfpsf.diagnosis.odd_moments import skewness, star_skewness
 from bfpsf.errors import BFPSFValueError
-from bfpsf.measure.moments import adaptive_moments_batch
+from bfpsf.moments.adaptive import adaptive_moments_batch
 from bfpsf.shifts import BoundaryShifts
 
 

@@ -8,7 +8,7 @@ from astropy.table import Table
 from scipy.spatial import cKDTree
 
 from bfpsf.cli import main
-from bfpsf.measure.moments_result import moments_from_hsm
+from bfpsf.moments.result import moments_from_hsm
 from bfpsf.measure.slopes import fit_bf_slope
 from bfpsf.validation.simulate_spots import simulate_spots, simulate_star_field, write_image_adu
 

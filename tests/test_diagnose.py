@@ -16,7 +16,7 @@ import pytest
 
 from bfpsf.calibration.shifts_ei import solve_ei_shifts
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
-from bfpsf.measure.moments import adaptive_moments_batch
+from bfpsf.moments.adaptive import adaptive_moments_batch
 from bfpsf.model.density import exact_boundary_density
 from bfpsf.model.redistribution import redistribute
 from bfpsf.diagnosis.catalogue import add_shifts, quadrupole_shifts

@@ -7,7 +7,7 @@ import pytest
 from scipy.special import exp1
 
 from bfpsf.errors import BFPSFValueError
-from bfpsf.measure.moments import adaptive_moments_batch
+from bfpsf.moments.adaptive import adaptive_moments_batch
 from bfpsf.model.empirical import FLUX_REFERENCE, EmpiricalTerm, apply_pattern
 from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.shifts import BoundaryShifts

@@ -140,7 +140,7 @@ def stamps_of(images, truth, half=12):
 
 def shape_measures(stamps):
     """sigma_x, sigma_y, e1, e2 by adaptive moments (rows), NaN where flagged."""
-    from bfpsf.measure.moments import adaptive_moments_batch
+    from bfpsf.moments.adaptive import adaptive_moments_batch
 
     moments = adaptive_moments_batch(stamps)
     mxx, myy, mxy = (np.where(moments.flags == 0, value, np.nan)

@@ -6,9 +6,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bfpsf.errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
-from bfpsf.measure.moment_errors import moment_errors
-from bfpsf.measure.moments import adaptive_moments, adaptive_moments_batch
-from bfpsf.measure.moments_result import Moments, MomentsFlag, flag_string, moments_from_hsm
+from bfpsf.moments.moment_errors import moment_errors
+from bfpsf.moments.adaptive import adaptive_moments, adaptive_moments_batch
+from bfpsf.moments.result import Moments, MomentsFlag, flag_string, moments_from_hsm
 
 galsim = pytest.importorskip("galsim")
 

@@ -6,9 +6,9 @@ import pytest
 
 from bfpsf.errors import BFPSFValueError
 from bfpsf.model.galsim_profile import to_galsim
-from bfpsf.measure.moment_errors import moment_errors
-from bfpsf.measure.moments import adaptive_moments_batch
-from bfpsf.measure.shapes import distortion
+from bfpsf.moments.moment_errors import moment_errors
+from bfpsf.moments.adaptive import adaptive_moments_batch
+from bfpsf.moments.shapes import distortion
 from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.shifts import BoundaryShifts
 
@@ -89,7 +89,7 @@ def test_psf_diagnostics_figure_shows_the_static_trend(tmp_path):
     the P(F) column none (its binned residuals within 4 sigma of zero)."""
     from astropy.table import Table
 
-    from bfpsf.measure.shapes import shape_residuals
+    from bfpsf.moments.shapes import shape_residuals
     from bfpsf.measure.slopes import fit_bf_slope
     from bfpsf.measure.sources import measure_sources
     from bfpsf.plotting.psf_diagnostics import plot_psf_diagnostics

@@ -5,7 +5,7 @@ import pytest
 from astropy.io import fits
 
 from bfpsf.errors import BFPSFFileExistsError, BFPSFValueError
-from bfpsf.measure.moments import adaptive_moments_batch
+from bfpsf.moments.adaptive import adaptive_moments_batch
 from bfpsf.validation.simulate_spots import simulate_spots, simulate_star_field, write_image_adu
 
 galsim = pytest.importorskip("galsim")

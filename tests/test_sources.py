@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
-from bfpsf.measure.moments import adaptive_moments
+from bfpsf.moments.adaptive import adaptive_moments
 from bfpsf.measure.sources import (STAR_COLUMNS, SourceFlag, measure_sources, sky_level,
                                    source_flag_string)
 from bfpsf.validation.simulate_spots import simulate_star_field

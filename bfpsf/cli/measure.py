@@ -96,7 +96,7 @@ def run(args):
     from ..calibration.detector import calibration_of_amplifier, read_calibration
     from ..io.amplifiers import shared_sides
     from ..io.saturation import saturation_e
-    from ..measure.moments import MomentsFlag
+    from ..moments.adaptive import MomentsFlag
     from ..measure.sources import measure_sources
     from ..measure.prepare import electrons, linearity_of
 

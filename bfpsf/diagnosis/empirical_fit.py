@@ -52,7 +52,7 @@ def adaptive_response(spot_model, peak_e, *, step=0.05):
     the other (a Moffat's Myy follows an X smear by about 15 %). Measured on the model spot at
     ``peak_e``, averaged over its phases.
     """
-    from ..measure.moments import adaptive_moments_batch
+    from ..moments.adaptive import adaptive_moments_batch
     from ..model.empirical import apply_pattern
 
     stamps = spot_model.stamps([peak_e])[0]

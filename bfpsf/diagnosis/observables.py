@@ -56,7 +56,7 @@ def matched_profile(sigma_x, sigma_y, *, beta=None, measure="moments", pixel=Tru
         stamp = profile.drawImage(nx=41, ny=41, scale=1.0, method="auto" if pixel else "no_pixel")
         # GalSim's HSM as the reference estimator here (same definition as bfpsf's moments,
         # robust for the small, exactly centred spots of this model-building step)
-        from ..measure.moments_result import moments_from_hsm
+        from ..moments.result import moments_from_hsm
 
         mxx, myy = moments_from_hsm(galsim.hsm.FindAdaptiveMom(stamp))[:2]
         sx *= sigma_x / np.sqrt(mxx)

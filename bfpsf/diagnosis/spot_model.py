@@ -92,7 +92,7 @@ class SpotForwardModel:
     oversampling : int, optional
         Fine samples per pixel for the exact boundary density (default 10, at least 2).
     measure : {'moments', 'gaussian_fit'}, optional
-        Adaptive moments (`bfpsf.measure.moments`, G15 section 3.2, default) or a
+        Adaptive moments (`bfpsf.moments.adaptive`, G15 section 3.2, default) or a
         pixel-integrated Gaussian fit (as Lage's spot tables).
     base_psf : FluxDependentPSF, optional
         A P0 fitted from the stars (`bfpsf.model.psf_fit.fit_psf`): its pixelised P0 at each
@@ -220,7 +220,7 @@ class SpotForwardModel:
         n_peaks, n_phases = stamps.shape[:2]
         flat = stamps.reshape(-1, self.stamp_size, self.stamp_size)
         if self.measure == "moments":
-            from ..measure.moments import adaptive_moments_batch
+            from ..moments.adaptive import adaptive_moments_batch
 
             result = adaptive_moments_batch(flat)
             sigma_x, sigma_y = np.sqrt(result.mxx), np.sqrt(result.myy)

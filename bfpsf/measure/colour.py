@@ -132,7 +132,7 @@ def fit_size_colour(table, colour_column, *, max_peak_e=None, low_flux_fraction=
     -------
     SizeColourFit
     """
-    from .moments_result import MomentsFlag
+    from ..moments.result import MomentsFlag
 
     if int(degree) != degree or degree < 0:
         msg = f"degree must be a non-negative integer, got {degree!r}"

@@ -246,7 +246,7 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
         and ``'e2'`` (the same straight line fitted to the distortion against peak: slope per
         100 ke- of peak, intercept dimensionless) when the table has those columns.
     """
-    from .moments_result import MomentsFlag
+    from ..moments.result import MomentsFlag
 
     missing = [name for name in ("peak_e", "sigma_x", "sigma_y", "iq") if name not in
                table.colnames]
@@ -325,7 +325,7 @@ def model_size_increments(psf, flux_e, *, x=None, y=None, n_grid=24):
     """Growth of sigma_x, sigma_y, IQ (and change of e1, e2) that a flux-dependent PSF predicts at each flux, pixels.
 
     The PSF's star image at flux F (``psf.star_image``, phase 0) is measured with
-    `~bfpsf.measure.moments.adaptive_moments_batch` on a grid of fluxes spanning ``flux_e``;
+    `~bfpsf.moments.adaptive.adaptive_moments_batch` on a grid of fluxes spanning ``flux_e``;
     the sizes at F = 0 are subtracted and the increments interpolated (linear) to each star's
     flux. A model that varies over the field (``psf.varies_over_field``) is measured at each of
     its ``field_nodes`` and the increments interpolated bilinearly to each star's position
@@ -350,9 +350,9 @@ def model_size_increments(psf, flux_e, *, x=None, y=None, n_grid=24):
         ``{'x': d sigma_x, 'y': d sigma_y, 'iq': d IQ}``, one value per star, pixels, and
         ``'e1'``, ``'e2'``: the change of the distortion.
     """
-    from .moments import adaptive_moments_batch
+    from ..moments.adaptive import adaptive_moments_batch
 
-    from .shapes import distortion
+    from ..moments.shapes import distortion
 
     from ..model.gridded import bilinear_weights
 
@@ -396,7 +396,7 @@ def star_positions(psf, table):
 
 def model_star_sizes(psf, flux_e, *, x=None, y=None):
     """sigma_x, sigma_y, IQ, e1 and e2 of the model of each star: at its own flux, image
-    position and sub-pixel phase (`bfpsf.measure.shapes.psf_shapes`).
+    position and sub-pixel phase (`bfpsf.moments.shapes.psf_shapes`).
 
     What a star measured with the same estimator should show if the model is right: the
     zero-flux size, its variation over the field (a grid's P0 interpolated to the star) and
@@ -419,7 +419,7 @@ def model_star_sizes(psf, flux_e, *, x=None, y=None):
         ``{'x', 'y', 'iq'}`` (pixels) and ``{'e1', 'e2'}``, one value per star; NaN where the
         flux is not positive.
     """
-    from .shapes import psf_shapes
+    from ..moments.shapes import psf_shapes
 
     flux_e = np.asarray(flux_e, dtype=float)
     x_ref, y_ref = psf.reference_position

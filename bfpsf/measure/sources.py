@@ -4,7 +4,7 @@ adaptive moments.
 The star table feeding the size-colour correction and the brighter-fatter slopes (G15
 sections 3.2-3.3). Sources are detected with photutils image segmentation on the smoothed,
 background-subtracted image; each gets a stamp, a local background from an annulus, its peak
-and aperture flux in electrons, and adaptive moments (`bfpsf.measure.moments`). Saturated,
+and aperture flux in electrons, and adaptive moments (`bfpsf.moments.adaptive`). Saturated,
 blended and edge sources are flagged, never dropped.
 """
 
@@ -14,10 +14,10 @@ import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..resources import check_pixels
-from .moment_errors import moment_errors
-from .moments import adaptive_moments_batch
-from .moments_result import MomentsFlag
-from .shapes import distortion
+from ..moments.moment_errors import moment_errors
+from ..moments.adaptive import adaptive_moments_batch
+from ..moments.result import MomentsFlag
+from ..moments.shapes import distortion
 
 __all__ = ["SourceFlag", "measure_sources", "sky_level", "source_flag_string",
            "aperture_fraction", "total_flux", "STAR_COLUMNS", "DETECTION_THRESHOLD"]
@@ -272,7 +272,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
         centroid), ``gauss_flux_e`` (matched Gaussian), ``background_e``,
         ``background_rms_e`` (per pixel), ``mxx``, ``myy``, ``mxy`` (pixel^2), ``sigma_x``,
         ``sigma_y``, ``iq`` (pixels), ``e1``, ``e2`` (distortion,
-        `bfpsf.measure.shapes.distortion`) and their ``*_err``, ``n_iter``, ``flags``
+        `bfpsf.moments.shapes.distortion`) and their ``*_err``, ``n_iter``, ``flags``
         (`SourceFlag`), ``flag_string`` and the colour columns.
     """
     from astropy.convolution import convolve

@@ -42,6 +42,7 @@ import numpy as np
 from astropy.modeling import Fittable2DModel, Parameter
 
 from ..errors import BFPSFValueError
+from ..moments.shapes import psf_shape
 
 __all__ = ["BFPSFModel"]
 
@@ -176,7 +177,7 @@ class BFPSFModel(Fittable2DModel):
         The model of a star of flux F at (x, y) (``evaluate`` on the pixels around it: BF,
         pixel response and, for a field-varying model, the interpolation at (x, y) included,
         exactly what a fitter sees there) is measured with the estimator of the star
-        measurements (`bfpsf.measure.moments.adaptive_moments`).
+        measurements (`bfpsf.moments.adaptive.adaptive_moments`).
 
         Parameters
         ----------
@@ -188,10 +189,8 @@ class BFPSFModel(Fittable2DModel):
 
         Returns
         -------
-        bfpsf.measure.shapes.PSFShape
+        bfpsf.moments.shapes.PSFShape
         """
-        from ..measure.shapes import psf_shape
-
         return psf_shape(self, flux, x=x, y=y)
 
     def to_galsim(self, flux, x=None, y=None, *, x_phase=0.0, y_phase=0.0, normalise=True):

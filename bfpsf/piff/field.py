@@ -251,7 +251,7 @@ def carried_errors(calibration, *, fwhm=3.45, beta=3.5, flux_e=2e6, diffusion=0.
     """
     import galsim
 
-    from ..measure.moments import adaptive_moments
+    from ..moments.adaptive import adaptive_moments
     from ..model.redistribution import redistribute
 
     profile = galsim.Moffat(beta=beta, fwhm=fwhm)

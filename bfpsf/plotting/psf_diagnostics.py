@@ -52,7 +52,7 @@ def plot_psf_diagnostics(stars, psf, *, static_flux=None, n_bins=8, zero_point=2
     """
     import matplotlib.pyplot as plt
 
-    from ..measure.shapes import shape_residuals
+    from ..moments.shapes import shape_residuals
 
     clean = np.asarray(stars["flags"]) == 0 if "flags" in stars.colnames else slice(None)
     stars = stars[clean]

@@ -30,7 +30,7 @@ Catalogue effects applied to the electrons as the flats simulator applies them
 (`bfpsf.validation.simulate_flats`): ``gain_nonlinearity`` (v -> v (1 + c v)) and
 ``serial_readout`` (q[:, i] + c q[:, i - 1]).
 
-`bench_sizes` measures every spot (adaptive moments, `bfpsf.measure.moments`) and its
+`bench_sizes` measures every spot (adaptive moments, `bfpsf.moments.adaptive`) and its
 third moments (odd parity), and bins them per exposure, level and detector column into a
 `SizeTable` with the detector position (``x_detector``) and the skewness columns, one intercept
 group per detector column (the spots of a column share their sub-pixel phase).
@@ -210,7 +210,7 @@ def bench_sizes(spots, stamps_e, *, sky_e=50.0, read_noise_e=5.0, seed=0):
         columns); peaks are the mean measured peak pixel of each bin. The dict holds
         ``peak_e`` and ``flux_e`` (stamp sums) of every spot, for `flux_of_peak`.
     """
-    from ..measure.moments import adaptive_moments_batch
+    from ..moments.adaptive import adaptive_moments_batch
 
     rng = np.random.default_rng(seed)
     noisy = stamps_e + rng.poisson(np.clip(stamps_e, 0, None) + sky_e) - stamps_e - sky_e

@@ -95,7 +95,7 @@ def _slope(peak_e, values, group=None):
 
 
 def _moments(stamps):
-    from ..measure.moments import adaptive_moments_batch
+    from ..moments.adaptive import adaptive_moments_batch
 
     result = adaptive_moments_batch(np.asarray(stamps))
     return np.sqrt(result.mxx), np.sqrt(result.myy), np.asarray(result.flags)

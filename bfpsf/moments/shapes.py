@@ -9,7 +9,7 @@ and ``rho4`` is HSM's weighted fourth moment, ``sum w I rho^4 / sum w I`` with
 ``rho^2 = (r - x0)^T M^-1 (r - x0)`` and the matched weight ``w = exp(-rho^2 / 2)``: 2 for a
 Gaussian, larger for profiles with wings. Stars (`bfpsf.measure.sources.measure_sources`) and
 the PSF model (`psf_shape`, ``FluxDependentPSF.shape``) use the same estimator
-(`bfpsf.measure.moments.adaptive_moments_batch`), so model and stars compare directly.
+(`bfpsf.moments.adaptive.adaptive_moments_batch`), so model and stars compare directly.
 """
 
 from dataclasses import dataclass
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BFPSFValueError
-from .moments import adaptive_moments_batch
+from .adaptive import adaptive_moments_batch
 
 __all__ = ["PSFShape", "distortion", "fourth_moment", "psf_shape", "psf_shapes",
            "model_shapes", "shape_residuals"]
@@ -42,7 +42,7 @@ class PSFShape:
     flux : float
         The flux the model was rendered at, in its ``flux_unit``.
     flags : int
-        `bfpsf.measure.moments_result.MomentsFlag` bits; 0 is a clean measurement.
+        `bfpsf.moments.result.MomentsFlag` bits; 0 is a clean measurement.
     """
 
     sigma: float
@@ -69,7 +69,7 @@ def fourth_moment(stamps, moments):
     Parameters
     ----------
     stamps : ndarray (n, ny, nx)
-    moments : bfpsf.measure.moments_result.Moments
+    moments : bfpsf.moments.result.Moments
         Their batch result.
 
     Returns

@@ -84,7 +84,7 @@ is applied; below S/N ~ 15 the bias exceeds 1e-3 and should be calibrated by sim
 import numpy as np
 
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
-from .moments_result import Moments, MomentsFlag, flag_string
+from .result import Moments, MomentsFlag, flag_string
 
 __all__ = ["adaptive_moments", "adaptive_moments_batch", "validate_stack"]
 

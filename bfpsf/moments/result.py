@@ -1,5 +1,5 @@
 """The result of an adaptive-moments measurement: `Moments`, its bit flags, and the conversion
-from GalSim's HSM (``galsim.hsm.FindAdaptiveMom``); the estimator is `bfpsf.measure.moments`."""
+from GalSim's HSM (``galsim.hsm.FindAdaptiveMom``); the estimator is `bfpsf.moments.adaptive`."""
 
 from dataclasses import dataclass
 

@@ -3,7 +3,7 @@
 import numpy as np
 
 from ..errors import BFPSFInputError
-from .moments import validate_stack
+from .adaptive import validate_stack
 
 __all__ = ["moment_errors"]
 
@@ -36,7 +36,7 @@ def moment_errors(stamps, moments, *, background_variance=0.0, source_variance=T
     -------
     dict of ndarray
         ``mxx_err, myy_err, mxy_err`` (pixel^2), ``sigma_x_err, sigma_y_err, sigma_err``
-        (pixels), ``e1_err, e2_err`` (of the distortion, `bfpsf.measure.shapes.distortion`);
+        (pixels), ``e1_err, e2_err`` (of the distortion, `bfpsf.moments.shapes.distortion`);
         NaN where the moments are NaN.
     """
     stack = np.asarray(stamps, dtype=float)
