@@ -2,7 +2,7 @@
 
 Usage::
 
-    python examples/measured_shifts.py [--plots DIR] [--quick]
+    python examples/measured_shifts.py [--output DIR] [--quick]
 
 G15's Ei solver is shown in detail (its smoothing model is what sets the N/E split); the line
 "electrostatic" gives the split of bfpsf's default solver (`bfpsf.solve_boundary_shifts`) on the
@@ -89,27 +89,27 @@ def report(name, path, plots):
     if plots is not None:
         import matplotlib
         matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
 
+        from bfpsf.outputs import save_figure
         from bfpsf.plotting.shifts import plot_radial_profile
 
         plots.mkdir(parents=True, exist_ok=True)
         fig = plot_radial_profile(solution)
         fig.suptitle(name)
         out = plots / (Path(path).stem + "_radial.png")
-        fig.savefig(out, dpi=100)
-        plt.close(fig)
+        save_figure(fig, out, overwrite=True, dpi=100)
         print(f"  figure: {out}")
     print()
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--plots", type=Path, default=None, help="write the figures here")
+    parser.add_argument("--output", type=Path, default=Path("measured_shifts_output"),
+                        help="output directory (the a(r) figure of each table)")
     parser.add_argument("--quick", action="store_true", help="the first table only")
     args = parser.parse_args(argv)
     for name, (short_name, filename) in list(SETS.items())[:1 if args.quick else None]:
-        report(name, measured_path(short_name, filename), args.plots)
+        report(name, measured_path(short_name, filename), args.output)
 
 
 if __name__ == "__main__":

@@ -66,7 +66,7 @@ def test_measured_shifts(tmp_path, capsys):
                                                   EXAMPLES / "measured_shifts.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    module.main(["--quick", "--plots", str(tmp_path)])
+    module.main(["--quick", "--output", str(tmp_path)])
     out = capsys.readouterr().out
     assert "ITL-3800C-002" in out and "electrostatic" in out
     assert list(tmp_path.glob("*.png"))
