@@ -27,8 +27,12 @@ import numpy as np
 
 from .errors import BFPSFInputError, BFPSFValueError
 from .resources import check_psf_fit
+from .shifts import BoundaryShifts
 
-__all__ = ["psf_from_images", "PSFFromImages"]
+__all__ = ["psf_from_images", "PSFFromImages", "calibration_samples", "PREDICTION_SAMPLES"]
+
+#: Shift samples of the calibration kept in the PSF product, for predictions with errors.
+PREDICTION_SAMPLES = 30
 
 
 @dataclass(frozen=True)
@@ -52,7 +56,7 @@ class PSFFromImages:
 
 def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=None,
                     threshold=None, saturation_e=None, include_bf=True, max_iterations=40,
-                    exclude=None, calibration_name="", shift_samples=(), exposure=None):
+                    exclude=None, calibration_name="", shift_samples=None, exposure=None):
     """Fit the flux-dependent PSF from prepared images (what ``bfpsf psf`` does).
 
     Parameters
@@ -74,7 +78,8 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     calibration_name : str, optional
         Name of the calibration file (product metadata).
     shift_samples : sequence of BoundaryShifts, optional
-        The calibration's uncertainty, kept in the product.
+        The calibration's uncertainty, kept in the product; default the calibrations' own
+        (`PREDICTION_SAMPLES` of them, `calibration_samples`).
     exposure : float, optional
         Exposure order in the night of the images, for the exposure dependence of a refined
         calibration's EMPIRICAL term (default the term's reference, the middle of the
@@ -176,7 +181,13 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     psf = result.psf
     psf.empirical = empirical
     psf.calibration = str(calibration_name)
-    psf.shift_samples = tuple(shift_samples)
+    psf.shift_samples = tuple(calibration_samples(calibrations, counts) if shift_samples is None
+                              else shift_samples)
+    # each amplifier's shifts, for its stars (`BFPSFModel.for_amplifier`)
+    amplifiers = {getattr(calibration, "amplifier", ""): calibration.shifts
+                  for calibration in calibrations}
+    if len({id(calibration) for calibration in calibrations}) > 1 and len(amplifiers) > 1:
+        psf.amplifier_shifts = amplifiers
     linearities = {prepared.linearity_c_per_1e5 for prepared in images}
     if len(linearities) > 1:
         msg = ("the images had different linearity corrections; one PSF product records one "
@@ -189,6 +200,30 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     psf.flux_correction_err = wings.fraction_err
     return PSFFromImages(psf, result, per_image)
 
+
+
+def calibration_samples(calibrations, counts=None):
+    """Shift samples of the calibrations of a PSF product (`PREDICTION_SAMPLES` at most), for
+    its predictions with the calibration's error.
+
+    Those of the one calibration; for several (one per amplifier), sample i is the average of
+    the calibrations' samples i weighted by the number of stars of each image (``counts``,
+    default equal; none unless every calibration has samples).
+    """
+    distinct = {id(one): one for one in calibrations}
+    if len(distinct) == 1:
+        return tuple(calibrations[0].shift_samples(limit=PREDICTION_SAMPLES))
+    weights = np.ones(len(calibrations)) if counts is None else np.array(counts, dtype=float)
+    if weights.sum() == 0:
+        weights[:] = 1.0
+    weights /= weights.sum()
+    per_image = [one.shift_samples(limit=PREDICTION_SAMPLES) for one in calibrations]
+    count = min(len(samples) for samples in per_image)
+    return tuple(
+        BoundaryShifts(sum(weight * entry[i].north for entry, weight in zip(per_image, weights)),
+                       sum(weight * entry[i].east for entry, weight in zip(per_image, weights)),
+                       check=False)
+        for i in range(count))
 
 
 def _stars_of_images(result, n_images):

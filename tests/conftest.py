@@ -3,6 +3,10 @@
 Slow tests run the full-size physics (GalSim SiliconSensor flats and spots); each has a quick
 variant that runs in CI.
 
+`galsim_bf_stars`: stars drawn by GalSim and redistributed by GalSim's own CDModel, not by
+bfpsf: the truth of the tests of bfpsf's model and photometry (issue 24: a test whose stars
+are drawn with the operator it tests cannot find an error in it).
+
 ``e2v_flats_calibration``: the user's calibration of the E2V SiliconSensor, `bfpsf.calibrate` on
 a small simulated flat set (seed 203), shared by the tests that start from flats
 (test_flats_to_psf.py, test_gridded_silicon.py) so that CI simulates it once.
@@ -23,8 +27,31 @@ settings.register_profile("dev")
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE",
                                      "ci" if os.environ.get("CI") else "dev"))
 
-# SiliconSensor uses OpenMP; on a 2-core machine keep it from oversubscribing.
-os.environ.setdefault("OMP_NUM_THREADS", "2")
+def galsim_bf_stars(profile, positions, fluxes, shape, shifts):
+    """Pixelised stars of a GalSim profile (`bfpsf.model.galsim_profile.render_stars` without
+    shifts: GalSim's drawImage), redistributed by GalSim's CDModel (src/CDModel.cpp, G15's
+    first-order operator implemented independently of bfpsf's `redistribution_delta`;
+    `bfpsf.interop.cdmodel.shifts_to_cdmodel` converts the shifts), e-. Agrees with
+    ``bfpsf.redistribute`` to 7e-11 e- on 8e5 e- stars away from the border (GalSim drops
+    terms within the shifts' radius of it)."""
+    from bfpsf.model.galsim_profile import render_stars
+
+    return galsim_redistribute(render_stars(profile, positions, fluxes, shape), shifts)
+
+
+def galsim_redistribute(charge_e, shifts):
+    """``charge_e`` redistributed by GalSim's CDModel (`galsim_bf_stars`), e-."""
+    import galsim
+
+    from bfpsf.interop.cdmodel import shifts_to_cdmodel
+
+    image = galsim.ImageD(np.asarray(charge_e, dtype=float), scale=1.0)
+    return shifts_to_cdmodel(shifts).applyForward(image).array
+
+
+# SiliconSensor uses OpenMP; on a 2-core machine keep it from oversubscribing (one thread in
+# each of the two processes of ``pytest -n 2``).
+os.environ.setdefault("OMP_NUM_THREADS", "1" if os.environ.get("PYTEST_XDIST_WORKER") else "2")
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 

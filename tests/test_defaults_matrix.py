@@ -10,6 +10,7 @@ calibration refined (``refined``: the linearity correction and 4 build-up steps,
 diagnose --output-calib`` writes them); PSF products single, ``--grid 2 2`` and refined.
 """
 
+import dataclasses
 import json
 
 import galsim
@@ -46,7 +47,13 @@ def data(tmp_path_factory):
         write_image_adu(paths[-1], _non_linear(image), gain=GAIN)
     flats = make_calibration(SHIFTS, GAIN, 5.0)
     flats.write(directory / "flats.fits")
-    refined = make_calibration(SHIFTS, GAIN, 5.0)
+    # the refined calibration carries shift samples (its uncertainty), which every PSF
+    # product built from it keeps, the Python path's too
+    samples = [SHIFTS.scaled(scale) for scale in (0.96, 1.0, 1.04)]
+    refined = dataclasses.replace(
+        make_calibration(SHIFTS, GAIN, 5.0),
+        shift_samples_north=np.array([sample.north for sample in samples]),
+        shift_samples_east=np.array([sample.east for sample in samples]))
     refined.refinement.update({"linearity_c_per_1e5": LINEARITY_C, "buildup_steps": 4,
                                "applied": {"gain_nonlinearity": "linearity correction"}})
     refined.write(directory / "refined.fits")
@@ -206,3 +213,19 @@ def test_python_path_gives_the_command_line_numbers(data, products):
     np.testing.assert_allclose(np.asarray(phot["flux_fit"]), np.asarray(cli["flux_fit"]),
                                rtol=1e-6)
     np.testing.assert_allclose(np.asarray(phot["sky_e"]), np.asarray(cli["sky_e"]), rtol=1e-6)
+    # the calibration's uncertainty in both products (slope --psf's prediction errors)
+    assert len(fit.psf.shift_samples) == len(command_line.shift_samples) == 3
+    for mine, theirs in zip(fit.psf.shift_samples, command_line.shift_samples):
+        np.testing.assert_allclose(mine.north, theirs.north, rtol=1e-12)
+    # with --calib, the read noise of the pixel errors is the calibration's, as the README's
+    # Python block passes it
+    output = directory / "phot_python_path.ecsv"
+    assert main(["photometry", images[0], "--psf", str(directory / "psf_refined.fits"),
+                 "--calib", str(directory / "refined.fits"), "-o", str(output), "--json",
+                 str(directory / "phot_python_path.json")]) == 0
+    summary = json.loads((directory / "phot_python_path.json").read_text())
+    assert summary["images"][0]["read_noise_e"] == calibration.noise_e == 5.0
+    phot = bfpsf.psf_photometry(fits.getdata(images[0]) * calibration.gain, command_line,
+                                read_noise_e=calibration.noise_e)
+    np.testing.assert_allclose(np.asarray(phot["flux_fit"]),
+                               np.asarray(Table.read(output)["flux_fit"]), rtol=1e-6)

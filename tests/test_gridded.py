@@ -171,8 +171,12 @@ def test_galsim_export_at_a_position(fits):
     expected = psf.star_image(flux, x=x, y=y, x_phase=0.3, y_phase=-0.2, half_size=10) / flux
     # lanczos5 interpolation of a 2x-sampled PSF: a few 1e-4 of the peak
     assert np.abs(drawn - expected).max() < 2e-3 * expected.max()
-    with pytest.raises(BFPSFValueError, match="position"):
-        to_galsim(psf, flux)
+    # without a position: the model at the grid's reference position (its centre), phase 0,
+    # as star_image with no position
+    profile, _ = to_galsim(psf, flux)
+    drawn = profile.drawImage(nx=21, ny=21, scale=1.0, method="no_pixel").array
+    expected = psf.star_image(flux, half_size=10) / flux
+    assert np.abs(drawn - expected).max() < 2e-3 * expected.max()
 
 
 def test_gridded_product_round_trip(fits, tmp_path):

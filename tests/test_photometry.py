@@ -8,12 +8,12 @@ import pytest
 from astropy.table import Table
 
 from bfpsf.errors import BFPSFFileExistsError, BFPSFInputError, BFPSFValueError
-from bfpsf.model.galsim_profile import render_stars
 from bfpsf.interop.photutils import make_psf_photometry, static_image_psf
 from bfpsf.measure.photometry import psf_photometry
 from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.shifts import BoundaryShifts
 from bfpsf.validation.simulate_spots import peak_fraction
+from conftest import galsim_bf_stars
 
 #: E2V-like shifts: a(0,0) = -2.3e-6 /e- as GalSim's lsst_e2v_50_8 (-2.2e-6).
 SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
@@ -45,7 +45,7 @@ def two_flux_field():
     xy = grid_positions(10, 10, 30, rng)
     faint = np.arange(100) % 2 == 0
     fluxes = np.where(faint, 3e3, 1.2e5) / PEAK_PER_FLUX
-    image = render_stars(MOFFAT, xy, fluxes, (300, 300), shifts=SHIFTS) + SKY
+    image = galsim_bf_stars(MOFFAT, xy, fluxes, (300, 300), SHIFTS) + SKY
     return image, xy, fluxes, faint
 
 
@@ -105,7 +105,7 @@ def test_grouped_overlapping_stars(psf):
     offset = np.column_stack([np.cos(angle), np.sin(angle)]) * half_separation[:, None]
     xy = np.vstack([centres + offset, centres - offset])
     fluxes = np.exp(rng.uniform(np.log(3e3), np.log(1.2e5), 100)) / PEAK_PER_FLUX
-    image = render_stars(MOFFAT, xy, fluxes, (150, 300), shifts=SHIFTS) + SKY
+    image = galsim_bf_stars(MOFFAT, xy, fluxes, (150, 300), SHIFTS) + SKY
     result = psf_photometry(image, psf, positions=xy, background_e=SKY, read_noise_e=5.0)
     assert len(result) == 100 and np.all(result["flags"] == 0)
     assert np.all(result["group_size"] == 2)
@@ -139,7 +139,7 @@ def test_two_models_of_one_class_fitted_in_turn():
     for fwhm in (3.0, 5.0):
         profile = galsim.Moffat(beta=3.0, fwhm=fwhm)
         model = FluxDependentPSF.from_galsim(profile, SHIFTS, oversampling=2, size=25)
-        image = render_stars(profile, xy, fluxes, (60, 120), shifts=SHIFTS) + SKY
+        image = galsim_bf_stars(profile, xy, fluxes, (60, 120), SHIFTS) + SKY
         result = psf_photometry(image, model, positions=xy, background_e=SKY, read_noise_e=5.0)
         assert np.all(result["group_size"] == 2)
         np.testing.assert_allclose(np.asarray(result["flux_fit"]) / fluxes, 1.0, atol=3e-3)
@@ -161,7 +161,7 @@ def test_residual_size_slope(psf):
     xy = grid_positions(10, 6, 30, rng)
     peaks = np.exp(rng.uniform(np.log(3e3), np.log(1.2e5), len(xy)))
     fluxes = peaks / PEAK_PER_FLUX
-    image = render_stars(MOFFAT, xy, fluxes, (180, 300), shifts=SHIFTS)
+    image = galsim_bf_stars(MOFFAT, xy, fluxes, (180, 300), SHIFTS)
     result = psf_photometry(image, psf, positions=xy, background_e=0.0, read_noise_e=5.0)
     half = 8
     data_stamps, model_stamps = [], []
@@ -235,7 +235,7 @@ def cli_files(tmp_path_factory):
     rng = np.random.default_rng(5)
     xy = grid_positions(8, 8, 36, rng)
     peaks = np.exp(rng.uniform(np.log(3e3), np.log(1.0e5), len(xy)))
-    image = render_stars(MOFFAT, xy, peaks / PEAK_PER_FLUX, (288, 288), shifts=SHIFTS) + SKY
+    image = galsim_bf_stars(MOFFAT, xy, peaks / PEAK_PER_FLUX, (288, 288), SHIFTS) + SKY
     image = image + rng.normal(0.0, np.sqrt(image + 25.0))
     write_image_adu(directory / "stars.fits", image, gain=gain)
     return directory, xy, peaks / PEAK_PER_FLUX
@@ -307,7 +307,7 @@ def test_iterative_psf_photometry_finds_the_hidden_companions(psf):
     xy = np.vstack([bright, bright + 9.0 * np.column_stack([np.cos(angle), np.sin(angle)])])
     fluxes = np.concatenate([np.full(len(bright), 1.2e5), np.full(len(bright), 3e3)])
     fluxes = fluxes / PEAK_PER_FLUX
-    image = render_stars(MOFFAT, xy, fluxes, (120, 160), shifts=SHIFTS)
+    image = galsim_bf_stars(MOFFAT, xy, fluxes, (120, 160), SHIFTS)
     data = image + rng.normal(0.0, 5.0, image.shape)
     finder = DAOStarFinder(threshold=50.0, fwhm=3.5, min_separation=12)
     photometry = make_psf_photometry(psf, iterative=True, maxiters=3, finder=finder,

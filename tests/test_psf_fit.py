@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from bfpsf.errors import BFPSFInputError, BFPSFValueError
-from bfpsf.model.galsim_profile import render_stars
 from bfpsf.model.psf import FluxDependentPSF, pixelised_stamp
 from bfpsf.model.psf_fit import fit_psf
 from bfpsf.shifts import BoundaryShifts
 from bfpsf.validation.simulate_spots import peak_fraction
+from conftest import galsim_bf_stars
 
 #: E2V-like shifts: a(0,0) = -2.3e-6 /e- as GalSim's lsst_e2v_50_8 (-2.2e-6).
 SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
@@ -25,7 +25,7 @@ def star_field(n_side, *, spacing=36, peak_range=(3e3, 1.2e5), noise=False, seed
                                                                         (n_side**2, 2))
     peaks = np.exp(rng.uniform(*np.log(peak_range), n_side**2))
     fluxes = peaks / PEAK_PER_FLUX
-    image = render_stars(MOFFAT, xy, fluxes, (n_side * spacing,) * 2, shifts=SHIFTS)
+    image = galsim_bf_stars(MOFFAT, xy, fluxes, (n_side * spacing,) * 2, SHIFTS)
     if noise:
         image = image + rng.normal(0.0, np.sqrt(image + 25.0))
     return image, xy, fluxes, peaks
@@ -191,7 +191,7 @@ def test_each_amplifier_has_its_own_shifts_in_the_p0_fit():
         grid = 36 * (np.arange(7) + 0.5)
         xy = np.array([(x, y) for y in grid for x in grid]) + rng.uniform(-0.5, 0.5, (49, 2))
         fluxes = np.exp(rng.uniform(np.log(3e3), np.log(1.2e5), 49)) / PEAK_PER_FLUX
-        images.append(render_stars(MOFFAT, xy, fluxes, (7 * 36,) * 2, shifts=shifts))
+        images.append(galsim_bf_stars(MOFFAT, xy, fluxes, (7 * 36,) * 2, shifts))
         positions.append(xy)
     truth = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=2, size=21)
     options = dict(oversampling=2, size=21, read_noise=5.0)

@@ -137,6 +137,22 @@ def test_to_galsim_draws_the_star_image(kind):
     expected = psf.star_image(flux, x, y, half_size=8) / flux
     # lanczos5 interpolation of a 2x-sampled PSF: a few 1e-4 of the peak
     assert np.abs(drawn - expected).max() < 2e-3 * expected.max()
+    # at a sub-pixel position: the star at that phase (R and a fitted P0 depend on it), drawn
+    # back centred on its pixel with the same offset, as star_image is
+    x, y = 80.3, 119.6
+    profile, _ = psf.to_galsim(flux, x, y)
+    drawn = profile.drawImage(nx=17, ny=17, scale=1.0, method="no_pixel",
+                              offset=(0.3, -0.4)).array
+    expected = psf.star_image(flux, x, y, half_size=8) / flux
+    assert np.abs(drawn - expected).max() < 2e-3 * expected.max()
+    # the module-level call, as the README writes it, with no position: every kind at its
+    # reference position, phase 0 (as star_image with no position)
+    from bfpsf import to_galsim
+
+    profile, _ = to_galsim(psf, 5e4)
+    reference = psf.star_image(5e4, half_size=8) / 5e4
+    drawn = profile.drawImage(nx=17, ny=17, scale=1.0, method="no_pixel").array
+    assert np.abs(drawn - reference).max() < 2e-3 * reference.max()
 
 
 def test_product_and_pickle_round_trip_by_value(kind, tmp_path):

@@ -38,13 +38,14 @@ def add_parser(subparsers):
                         help="photometry table to write (ECSV)")
     parser.add_argument("--gain", type=positive_float, default=None,
                         help="e-/ADU (default: the gain stored in the PSF product)")
-    parser.add_argument("--read-noise", type=non_negative_float, default=0.0, metavar="E",
+    parser.add_argument("--read-noise", type=non_negative_float, default=None, metavar="E",
                         help="read noise, e- rms, for the pixel errors (with --background 0 "
-                             "on sky-subtracted images: include the sky's noise; default 0)")
+                             "on sky-subtracted images: include the sky's noise; default the "
+                             "calibration's with --calib, else 0)")
     parser.add_argument("--background", type=background_option, default=None, metavar="ADU",
-                        help="sky level of the images, ADU per pixel (0 for sky-subtracted "
-                             "images); default the sigma-clipped median of each image, which "
-                             "the wings of dense bright stars bias high")
+                        help="a known sky level of the images, ADU per pixel (0 for "
+                             "sky-subtracted images); default the sky surface of each image: a "
+                             "plane fitted beyond the masked sources and the stars' wings")
     parser.add_argument("--threshold", type=positive_float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")
@@ -93,6 +94,15 @@ def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, stati
     return float(gain), (static_image_psf(model) if static else model), model
 
 
+def _read_noise(args, calibration):
+    """``--read-noise``, else the amplifier's calibrated read noise (``--calib``), else 0: the
+    Python path (`psf_photometry(..., read_noise_e=cal.noise_e)`) gives the same numbers."""
+    if args.read_noise is not None:
+        return float(args.read_noise)
+    noise = np.nan if calibration is None else float(calibration.noise_e)
+    return noise if np.isfinite(noise) and noise >= 0 else 0.0
+
+
 def run(args):
     from astropy.table import vstack
 
@@ -129,17 +139,18 @@ def run(args):
         for amplifier in amplifiers:
             amp_gain, model, bf_model = _amplifier_model(psf, gain, calibration, amplifier,
                                                          path, args.gain, args.static)
+            one = None if calibration is None else calibration_of_amplifier(
+                calibration, amplifier.name, str(path))
+            read_noise = _read_noise(args, one)
             # the image preparation (linearity, sky) is psf_photometry's, as in Python
             with about(path):
                 table = psf_photometry(amplifier.data * amp_gain, model,
                                        linearity_c_per_1e5=bf_model.linearity_c_per_1e5,
-                                       read_noise_e=args.read_noise, fit_shape=args.fit_shape,
+                                       read_noise_e=read_noise, fit_shape=args.fit_shape,
                                        background_e=(None if args.background is None
                                                      else args.background * amp_gain),
                                        detection_threshold=args.threshold,
                                        cross_terms=not args.no_cross_terms)
-            one = None if calibration is None else calibration_of_amplifier(
-                calibration, amplifier.name, str(path))
             level = saturation_e(amplifier, amp_gain, args.saturation, one)
             table["saturated"] = saturated_stars(
                 amplifier.data * amp_gain, level, table["x_fit"], table["y_fit"],
@@ -154,7 +165,7 @@ def run(args):
             table.add_column(str(path), name="image", index=0)
             tables.append(table)
             per_image.append({"image": str(path), "amplifier": amplifier.name,
-                              "gain": amp_gain,
+                              "gain": amp_gain, "read_noise_e": read_noise,
                               "linearity_c_per_1e5": bf_model.linearity_c_per_1e5,
                               "n_stars": len(table),
                               "n_flagged": int(np.sum((table["flags"] != 0)

@@ -25,10 +25,6 @@ from ..model.psf_fit import DEFAULT_SIZE
 from ._files import read_image
 
 
-#: Shift samples of the calibration kept in the PSF product for predictions with errors.
-PREDICTION_SAMPLES = 30
-
-
 def add_parser(subparsers):
     parser = subparsers.add_parser(
         "psf", help="fit the flux-dependent PSF P(F) = P0 + F R[P0] from stars of all fluxes",
@@ -52,9 +48,9 @@ def add_parser(subparsers):
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--background", type=background_option, default=None, metavar="ADU",
-                        help="sky level of the images, ADU per pixel (0 for sky-subtracted "
-                             "images); default the sigma-clipped median of each image, which "
-                             "the wings of dense bright stars bias high")
+                        help="a known sky level of the images, ADU per pixel (0 for "
+                             "sky-subtracted images); default the sky surface of each image: a "
+                             "plane fitted beyond the masked sources and the stars' wings")
     parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help="saturation level, ADU: saturated stars are not used (default "
                              "the header's SATURATE or a variant; the calibration's linearity "
@@ -73,35 +69,6 @@ def add_parser(subparsers):
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     return parser
-
-
-def _star_weighted(used):
-    """Gain, read noise and shift samples (`PREDICTION_SAMPLES` at most) of the amplifiers
-    the stars came from: those of the one calibration, or for several amplifiers their
-    averages weighted by the number of stars (the P0 fit applies each amplifier's own shifts
-    to its stars; the product keeps them all). Sample i of the average is the weighted
-    average of the amplifiers' samples i (none unless every amplifier has some)."""
-    from ..shifts import BoundaryShifts
-
-    calibrations = {id(one): one for one, _ in used}
-    if len(calibrations) == 1:
-        one = used[0][0]
-        return (float(one.gain), float(one.noise_e),
-                tuple(one.shift_samples(limit=PREDICTION_SAMPLES)))
-    weights = np.array([count for _, count in used], dtype=float)
-    if weights.sum() == 0:
-        weights[:] = 1.0
-    weights /= weights.sum()
-    gain = float(sum(weight * one.gain for (one, _), weight in zip(used, weights)))
-    noise = float(sum(weight * one.noise_e for (one, _), weight in zip(used, weights)))
-    per_entry = [one.shift_samples(limit=PREDICTION_SAMPLES) for one, _ in used]
-    count = min(len(samples) for samples in per_entry)
-    samples = tuple(
-        BoundaryShifts(sum(weight * entry[i].north for entry, weight in zip(per_entry, weights)),
-                       sum(weight * entry[i].east for entry, weight in zip(per_entry, weights)),
-                       check=False)
-        for i in range(count))
-    return gain, noise, samples
 
 
 def run(args):
@@ -162,15 +129,9 @@ def run(args):
         entry.update(n_detected=found["n_detected"], n_isolated=found["n_isolated"],
                      n_amp_boundary=found["n_excluded"], background_e=found["background_e"],
                      sky_slope=found["sky_slope"], sky_method=found["sky_method"])
-    used = [(one, entry["n_isolated"]) for one, entry in zip(calibrations, per_image)]
-    gain, _, samples = _star_weighted(used)
     result = fitted.fit
     psf = fitted.psf
-    psf.shift_samples = samples
-    amplifier_shifts = {entry["amplifier"]: one.shifts
-                        for entry, (one, _) in zip(per_image, used)}
-    if len(amplifier_shifts) > 1:
-        psf.amplifier_shifts = amplifier_shifts
+    gain = float(psf.gain)  # of the images the stars came from, weighted by their stars
     psf.write(args.output, meta={"NSTARS": int(np.sum(result.stars["flags"] == 0)),
                                  "CONVERGD": bool(result.converged),
                                  "BFTERM": bool(args.include_bf)},

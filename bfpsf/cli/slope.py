@@ -66,14 +66,14 @@ def _model_residual(stars, args, colour_fit, psf):
     """Slopes of the sizes measured minus the sizes of the flux-dependent PSF at each star's
     own flux, position and phase (zero-flux size, field variation and BF change together)."""
     from ..measure.slopes import bf_slopes, model_star_sizes, star_positions
-    from ..measure.sources import total_flux
+    from ..measure.sources import model_flux
 
     if "flux_e" not in stars.colnames:
         msg = f"{args.stars} has no flux_e column: --psf needs each star's flux"
         raise BFPSFInputError(msg, args.stars)
     # P(F) takes the total flux; flux_e is an aperture flux (it misses the PSF's wings)
     x, y = star_positions(psf, stars)
-    model = model_star_sizes(psf, total_flux(psf, stars["flux_e"]), x=x, y=y)
+    model = model_star_sizes(psf, model_flux(psf, stars["flux_e"]), x=x, y=y)
     residual = stars.copy()
     for key, column in (("x", "sigma_x"), ("y", "sigma_y"), ("iq", "iq"), ("e1", "e1"),
                         ("e2", "e2")):

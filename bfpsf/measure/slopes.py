@@ -447,9 +447,9 @@ def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors
         (pixels, or for e1 and e2 distortion, per 100 ke- of peak; the error is that of the
         calibration, NaN without samples).
     """
-    from .sources import total_flux
+    from .sources import model_flux
 
-    flux = total_flux(psf, table["flux_e"])  # P(F) takes total fluxes, flux_e is an aperture's
+    flux = model_flux(psf, table["flux_e"])  # the flux P(F) takes; flux_e is an aperture's
     x, y = star_positions(psf, table)
 
     axes = _AXES + tuple(axis for axis in _SHAPE_AXES if axis[1] in table.colnames)

@@ -1,11 +1,11 @@
-"""Source measurement: global sky level, detection, stamps, local background, peak, flux and
-adaptive moments.
+"""Source measurement: detection, stamps, sky, peak, flux and adaptive moments.
 
 The star table feeding the size-colour correction and the brighter-fatter slopes (G15
 sections 3.2-3.3). Sources are detected with photutils image segmentation on the smoothed,
-background-subtracted image; each gets a stamp, a local background from an annulus, its peak
-and aperture flux in electrons, and adaptive moments (`bfpsf.moments.adaptive`). Saturated,
-blended and edge sources are flagged, never dropped.
+sky-subtracted image; each gets a stamp, the sky of every command under it (the plane of
+`bfpsf.measure.sky.estimate_sky`, beyond the masked sources), its peak and aperture flux in
+electrons, and adaptive moments (`bfpsf.moments.adaptive`). Saturated, blended and edge
+sources are flagged, never dropped.
 """
 
 import warnings
@@ -20,7 +20,7 @@ from ..moments.result import MomentsFlag
 from ..moments.shapes import distortion
 
 __all__ = ["SourceFlag", "measure_sources", "sky_level", "source_flag_string",
-           "aperture_fraction", "total_flux", "STAR_COLUMNS", "DETECTION_THRESHOLD"]
+           "aperture_fraction", "model_flux", "STAR_COLUMNS", "DETECTION_THRESHOLD"]
 
 #: columns every star table holds (the ``bfpsf measure`` contract)
 STAR_COLUMNS = ["x", "y", "flux_e", "peak_e", "mxx", "myy", "mxy", "sigma_x", "sigma_y", "iq",
@@ -108,28 +108,6 @@ def _cutouts(image, x_centres, y_centres, size):
     return stamps, ix, iy, crosses
 
 
-def _annulus_background(image, source_mask, x_centres, y_centres, radii):
-    """Sigma-clipped median and RMS of the pixels in an annulus around each source."""
-    from astropy.stats import sigma_clipped_stats
-
-    r_in, r_out = radii
-    ny, nx = image.shape
-    level = np.full(len(x_centres), np.nan)
-    rms = np.full(len(x_centres), np.nan)
-    reach = int(np.ceil(r_out))
-    for index, (x_c, y_c) in enumerate(zip(x_centres, y_centres)):
-        x_lo, x_hi = max(int(x_c) - reach, 0), min(int(x_c) + reach + 2, nx)
-        y_lo, y_hi = max(int(y_c) - reach, 0), min(int(y_c) + reach + 2, ny)
-        yy, xx = np.mgrid[y_lo:y_hi, x_lo:x_hi]
-        radius2 = (xx - x_c)**2 + (yy - y_c)**2
-        window = image[y_lo:y_hi, x_lo:x_hi]
-        select = ((radius2 >= r_in**2) & (radius2 < r_out**2) & np.isfinite(window)
-                  & ~source_mask[y_lo:y_hi, x_lo:x_hi])
-        if select.sum() >= 10:
-            _, level[index], rms[index] = sigma_clipped_stats(window[select], sigma=3.0)
-    return level, rms
-
-
 def _segments_with_several_peaks(smoothed, segment_map, min_level, fwhm):
     """Labels of segments holding more than one local maximum of the smoothed image."""
     from scipy import ndimage
@@ -211,15 +189,18 @@ def aperture_fraction(psf, *, aperture_nsigma=5.0, phases=4, size=32):
     return float(np.mean(_aperture_flux(stamps, radius2, moments.sigma, aperture_nsigma) / total))
 
 
-def total_flux(psf, flux_e, *, aperture_nsigma=5.0):
-    """The total fluxes of stars whose `measure_sources` aperture fluxes are ``flux_e``, e-:
-    the fluxes at which a PSF model of total flux F is to be evaluated (`aperture_fraction`)."""
+def model_flux(psf, flux_e, *, aperture_nsigma=5.0):
+    """The flux F at which the PSF model is evaluated for stars whose `measure_sources`
+    aperture fluxes are ``flux_e``, e-: the flux P0 holds in its support (``flux_e`` over the
+    model's share of it in the aperture, `aperture_fraction`). The star's total flux is this
+    times ``psf.flux_correction`` (the light beyond the support), as `psf_photometry`
+    reports it."""
     return np.asarray(flux_e, dtype=float) / aperture_fraction(psf,
                                                               aperture_nsigma=aperture_nsigma)
 
 
 def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp_size=32, saturation=None,
-                    colour=None, colour_columns=None, match_radius=2.0, annulus=None,
+                    colour=None, colour_columns=None, match_radius=2.0, sky=None,
                     detection_fwhm=3.0, blend_radius=None, deblend=True,
                     aperture_nsigma=5.0):
     """Detect and measure the sources of an image in electrons.
@@ -245,11 +226,13 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
         Columns of ``colour`` passed through (default: every column but ``x`` and ``y``).
     match_radius : float, optional
         Pixels (default 2).
-    annulus : tuple of float, optional
-        Inner and outer radius of the local-background annulus, pixels (default
-        ``(stamp_size / 2 + 4, stamp_size / 2 + 12)``, i.e. 20-28 pixels); pixels of detected
-        sources are excluded. The source's own wings bias the level up: by ~1e-5 of the peak
-        for a Moffat of FWHM 4 pixels and beta 3.5 at 20 pixels (1 e- at 100 ke-).
+    sky : bfpsf.measure.sky.SkyModel, optional
+        The sky under the sources, e- per pixel (a known sky: `SkyModel.constant`); default
+        the sky surface of every command (`bfpsf.measure.sky.estimate_sky` of this image, a
+        plane fitted beyond the masked sources). A local annulus per star was the sky here
+        before: its median holds the star's own wings and its neighbours' (+5 e- for
+        Kolmogorov x Airy stars of 3-100 ke- peaks, issue 21) and the noise of a few hundred
+        pixels.
     detection_fwhm : float, optional
         FWHM of the Gaussian smoothing kernel for detection, pixels (default 3).
     blend_radius : float, optional
@@ -303,11 +286,14 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
             colour_columns = [name for name in colour.colnames if name not in ("x", "y")]
     colour_columns = list(colour_columns or [])
 
-    # the detection pedestal: the sky surface of every command (a plane beyond the masked
-    # sources, bfpsf.measure.sky), so that a sloped sky leaves the threshold where it is
+    # the sky surface of every command (a plane beyond the masked sources, bfpsf.measure.sky):
+    # the detection pedestal (a sloped sky leaves the threshold where it is) and each source's
+    # sky
     from .sky import estimate_sky
 
-    data = np.where(bad, np.nan, image - estimate_sky(np.where(bad, np.nan, image)).image())
+    if sky is None:
+        sky = estimate_sky(np.where(bad, np.nan, image))
+    data = np.where(bad, np.nan, image - sky.image())
     kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
     convolved = convolve(np.where(bad, 0.0, data), kernel, normalize_kernel=True)
     _, _, smooth_rms = sigma_clipped_stats(convolved[~bad], sigma=3.0)
@@ -326,16 +312,11 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     y_detect = np.asarray(catalog.y_centroid, dtype=float)
     n_sources = len(x_detect)
 
-    radii = annulus if annulus is not None else (stamp_size / 2.0 + 4.0,
-                                                 stamp_size / 2.0 + 12.0)
-    source_mask = segments.data > 0
-    background, background_rms = _annulus_background(image, source_mask, x_detect, y_detect,
-                                                     radii)
-    # too few annulus pixels (crowded, edge): fall back to the global level
-    _, global_level, global_rms = sigma_clipped_stats(image[~bad & ~source_mask], sigma=3.0)
-    missing = ~np.isfinite(background)
-    background[missing] = global_level
-    background_rms[missing] = global_rms
+    background = np.asarray(sky(x_detect, y_detect), dtype=float)
+    rms = sky.rms
+    if not np.isfinite(rms):  # a known sky: the clipped scatter of the sky-subtracted pixels
+        _, _, rms = sigma_clipped_stats(data[~bad & (segments.data == 0)], sigma=3.0)
+    background_rms = np.full(n_sources, float(rms))
 
     check_pixels(n_sources * float(stamp_size) ** 2, copies=16, option=f"stamp size {stamp_size}",
                  what=f"measuring {n_sources} sources")

@@ -193,9 +193,10 @@ class BFPSFModel(Fittable2DModel):
         """
         return psf_shape(self, flux, x=x, y=y)
 
-    def to_galsim(self, flux, x=None, y=None, *, x_phase=0.0, y_phase=0.0, normalise=True):
-        """The pixelised PSF of a star of flux F at (x, y) as a GalSim profile; see
-        `bfpsf.model.galsim_profile.to_galsim` (returns ``(profile, pixel_included)``)."""
+    def to_galsim(self, flux, x=None, y=None, *, x_phase=None, y_phase=None, normalise=True):
+        """The pixelised PSF of a star of flux F at (x, y) (at its sub-pixel phase unless the
+        phases are given) as a GalSim profile; see `bfpsf.model.galsim_profile.to_galsim`
+        (returns ``(profile, pixel_included)``)."""
         from .galsim_profile import to_galsim
 
         position = None if x is None and y is None else self.position_or_reference(x, y)

@@ -13,12 +13,13 @@
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from .bf_term import star_phases
 from .redistribution import redistribute
 
 __all__ = ["to_galsim", "apply_bf_to_rendered", "render_stars"]
 
 
-def to_galsim(psf, flux, *, x_phase=0.0, y_phase=0.0, normalise=True, position=None):
+def to_galsim(psf, flux, *, x_phase=None, y_phase=None, normalise=True, position=None):
     """The pixelised PSF of a star of flux F as a GalSim object.
 
     Parameters
@@ -27,13 +28,16 @@ def to_galsim(psf, flux, *, x_phase=0.0, y_phase=0.0, normalise=True, position=N
     flux : float
         Flux of the star, in the PSF's ``flux_unit``.
     x_phase, y_phase : float, optional
-        Star centre minus the centre of its pixel, pixels: R depends on it.
+        Star centre minus the centre of its pixel, pixels: R depends on it (and a fitted P0
+        on its phases). Default the phase of ``position``, 0 without one.
     normalise : bool, optional
         True (default): unit flux, i.e. P(F) = p + F R[p]; False: flux F.
     position : (float, float), optional
-        (x, y) of the star on the image, pixels: needed by a model that varies over the
-        field (``psf.varies_over_field``, a `GriddedFluxDependentPSF`); a `FluxDependentPSF`
-        is the same everywhere.
+        (x, y) of the star on the image, pixels: a model that varies over the field
+        (``psf.varies_over_field``, a `GriddedFluxDependentPSF`) is taken there; default its
+        ``reference_position`` (the grid's centre), as every call of every kind
+        (`bfpsf.model.base.BFPSFModel.star_image`). A `FluxDependentPSF` is the same
+        everywhere.
 
     Returns
     -------
@@ -48,10 +52,8 @@ def to_galsim(psf, flux, *, x_phase=0.0, y_phase=0.0, normalise=True, position=N
     if not np.isfinite(flux) or flux <= 0:
         msg = f"flux must be a positive finite number, got {flux!r}"
         raise BFPSFValueError(msg, flux)
-    if position is None and psf.varies_over_field:
-        msg = "a gridded PSF varies over the image: give position=(x, y)"
-        raise BFPSFValueError(msg, position)
     x, y = (None, None) if position is None else position
+    x_phase, y_phase = star_phases(x, y, x_phase, y_phase)
     # every PSF kind (bfpsf.model.base): a field-varying one is taken at (x, y)
     stamp = psf.star_image(flux, x, y, x_phase=x_phase, y_phase=y_phase)
     if normalise:
