@@ -13,11 +13,12 @@ import warnings
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
-from ..resources import check_pixels
-from ..moments.moment_errors import moment_errors
 from ..moments.adaptive import adaptive_moments_batch
+from ..moments.moment_errors import moment_errors
 from ..moments.result import MomentsFlag
 from ..moments.shapes import distortion
+from ..resources import check_pixels
+from .sky import estimate_sky
 
 __all__ = ["SourceFlag", "measure_sources", "sky_level", "source_flag_string",
            "aperture_fraction", "total_flux", "STAR_COLUMNS", "DETECTION_THRESHOLD"]
@@ -305,8 +306,6 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
 
     # the detection pedestal: the sky surface of every command (a plane beyond the masked
     # sources, bfpsf.measure.sky), so that a sloped sky leaves the threshold where it is
-    from .sky import estimate_sky
-
     data = np.where(bad, np.nan, image - estimate_sky(np.where(bad, np.nan, image)).image())
     kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
     convolved = convolve(np.where(bad, 0.0, data), kernel, normalize_kernel=True)

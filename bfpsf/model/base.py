@@ -196,6 +196,8 @@ class BFPSFModel(Fittable2DModel):
     def to_galsim(self, flux, x=None, y=None, *, x_phase=0.0, y_phase=0.0, normalise=True):
         """The pixelised PSF of a star of flux F at (x, y) as a GalSim profile; see
         `bfpsf.model.galsim_profile.to_galsim` (returns ``(profile, pixel_included)``)."""
+        # imported when called, as write / read import .product: the GalSim conversion is not
+        # part of the interface loaded with every kind
         from .galsim_profile import to_galsim
 
         position = None if x is None and y is None else self.position_or_reference(x, y)
@@ -234,6 +236,8 @@ class BFPSFModel(Fittable2DModel):
     # -- the PSF product (bfpsf.model.product: the model layer knows nothing of files) ---------
     def write(self, path, *, calibration=None, meta=None, overwrite=False):
         """Write the PSF product (FITS); see `bfpsf.model.product.write_psf`."""
+        # imported when called: the deliberate circle (.product builds the kinds, which import
+        # this module), docs/DESIGN.md
         from .product import write_psf
 
         write_psf(self, path, calibration=calibration, meta=meta, overwrite=overwrite)
@@ -243,8 +247,8 @@ class BFPSFModel(Fittable2DModel):
         """Read a PSF product (`bfpsf.model.product.read_psf`): any kind through this class or
         `FluxDependentPSF` (``reads_any_kind``), only a grid through
         `GriddedFluxDependentPSF`."""
+        # imported when called: .product and .psf import this module (the deliberate circle)
         from .product import read_psf
-
         from .psf import FluxDependentPSF
 
         if issubclass(cls, FluxDependentPSF):
