@@ -49,7 +49,6 @@ __all__ = ["BrighterFatterSensorBuilder", "build_sensor"]
 
 @functools.lru_cache(maxsize=8)
 def _read(path, modified):  # keyed by the file's modification time: a rewritten file is reread
-
     return read_calibration(path)
 
 
