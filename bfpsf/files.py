@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import __version__
 from .errors import BFPSFError, BFPSFFileExistsError, BFPSFInputError
 
 __all__ = ["refuse_overwrite", "check_outputs", "refuse_inputs", "input_files", "check_input",
@@ -325,8 +326,6 @@ def open_product(path, *, keyword, version, kind):
         The file is missing, lacks ``keyword``, or has a newer schema.
     """
     from astropy.io import fits
-
-    from . import __version__
 
     path = check_input(path, f"{kind} file")
     try:

@@ -39,16 +39,16 @@ import os
 
 import galsim
 
+from .calibration.detector import amplifiers_of, calibration_of_amplifier, read_calibration
 from .errors import BFPSFInputError
 from .interop.galsim_sensor import BFSensor
+from .model.empirical import empirical_of
 
 __all__ = ["BrighterFatterSensorBuilder", "build_sensor"]
 
 
 @functools.lru_cache(maxsize=8)
 def _read(path, modified):  # keyed by the file's modification time: a rewritten file is reread
-    from .calibration.detector import read_calibration
-
     return read_calibration(path)
 
 
@@ -61,8 +61,6 @@ def build_sensor(calib, *, amp=None, gain=1.0, nsteps=1):
         The file is missing or no calibration, has no shifts, or has several amplifiers and
         ``amp`` names none of them.
     """
-    from .calibration.detector import amplifiers_of, calibration_of_amplifier
-
     path = os.fspath(calib)
     if not os.path.exists(path):
         msg = f"sensor type BrighterFatter: calib {path} does not exist"
@@ -78,7 +76,6 @@ def build_sensor(calib, *, amp=None, gain=1.0, nsteps=1):
     if one.shifts is None:
         msg = f"sensor type BrighterFatter: {path} has no boundary shifts (not solved)"
         raise BFPSFInputError(msg, path)
-    from .model.empirical import empirical_of
 
     # a refined calibration's EMPIRICAL term, as every consumer of a calibration applies it
     return BFSensor(one.shifts, gain=gain, nsteps=nsteps, empirical=empirical_of(one))

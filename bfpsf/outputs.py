@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import __version__
 from .errors import BFPSFError, BFPSFOutputError
 from .files import refuse_overwrite
 
@@ -175,8 +176,6 @@ def product_table(table):
     """A copy of ``table`` as bfpsf writes it: each ``X_err`` column without a unit takes the
     unit of ``X``, the meta holds only plain values (no object reprs), plus ``bfpsf_schema``
     and ``bfpsf_version``."""
-    from . import __version__
-
     table = table.copy(copy_data=False)
     for name in table.colnames:
         base = name[:-len("_err")] if name.endswith("_err") else None

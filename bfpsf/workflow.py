@@ -26,6 +26,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import BFPSFInputError, BFPSFValueError
+from .measure.neighbours import isolated_stars
+from .measure.sources import DETECTION_THRESHOLD
+from .measure.total_flux import fit_sky_and_wings, wing_image
+from .model.empirical import empirical_of
+from .model.psf_fit import DEFAULT_SIZE, fit_psf
 from .resources import check_psf_fit
 from .shifts import BoundaryShifts
 
@@ -89,10 +94,6 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     -------
     PSFFromImages
     """
-    from .measure.neighbours import isolated_stars
-    from .measure.sources import DETECTION_THRESHOLD
-    from .model.psf_fit import DEFAULT_SIZE, fit_psf
-
     size = DEFAULT_SIZE if size is None else int(size)
     threshold = DETECTION_THRESHOLD if threshold is None else float(threshold)
     images = list(images)
@@ -126,7 +127,6 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     options = {}
     if buildups:
         options = {"mode": "exact", "buildup_steps": int(max(buildups))}
-    from .model.empirical import empirical_of
 
     # a refined calibration's EMPIRICAL term: in every star's model during the P0 fit (P0
     # does not absorb it) and in the product, which applies it everywhere
@@ -155,7 +155,6 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         raise BFPSFInputError(msg, n_stars)
     check_psf_fit(n_stars, size, oversampling, grid, max_iterations)
     result = fit()
-    from .measure.total_flux import fit_sky_and_wings
 
     known = all(prepared.sky.method == "known" for prepared in images)
     for _ in range(1 if known else 2):
@@ -239,6 +238,4 @@ def _stars_of_images(result, n_images):
 
 
 def _glow(wings, stars, shape):
-    from .measure.total_flux import wing_image
-
     return wing_image(wings, *stars, shape)

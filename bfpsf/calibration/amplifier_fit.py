@@ -7,6 +7,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import BFPSFCovarianceError, BFPSFInputError, BFPSFValueError
+from .boundary_shifts import SHIFT_METHODS, shift_warnings, solve_boundary_shifts
+from .covariance import pair_covariance
+from .flat_mask import pair_mask
+from .flats import check_pair
+from .linearity import measure_linearity
+from .maxlag import choose_maxlag
+from .pedestal import measure_pedestal, subtract_pedestal
+from .product import Calibration
+from .ptc import covariance_errors, detect_turnoff, fit_ptc, ptc_table, stack_pairs
 from .ptc_full import MAX_FULL_MODEL_MAXLAG, MIN_PAIRS_FULL_MODEL
 
 __all__ = ["PairTask", "FitTask", "measure_pair", "fit_measured_pairs", "fit_amplifier"]
@@ -32,10 +41,6 @@ def measure_pair(task):
     ((str, str), PairCovariance, MaskReport)
         The names of the two flats and their measurements: an entry of `FitTask`.
     """
-    from .covariance import pair_covariance
-    from .flat_mask import pair_mask
-    from .flats import check_pair
-
     flat1 = task.pair.flat1.load(overscan=task.overscan)
     flat2 = task.pair.flat2.load(overscan=task.overscan)
     for flat in (flat1, flat2):
@@ -99,8 +104,6 @@ class FitTask:
 
 def fit_measured_pairs(task):
     """`fit_amplifier` of the measured pairs of one amplifier (a `FitTask`)."""
-    from .ptc import stack_pairs
-
     amplifier, entries, parameters, options = (task.amplifier, task.entries, task.parameters,
                                                task.options)
     covariances = [covariance for _, covariance, _ in entries]
@@ -143,11 +146,6 @@ def fit_amplifier(data, parameters, *, amplifier="", names, n_masked, n_clipped,
     -------
     Calibration
     """
-    from .linearity import measure_linearity
-    from .pedestal import measure_pedestal, subtract_pedestal
-    from .product import Calibration
-    from .ptc import covariance_errors, detect_turnoff, fit_ptc, ptc_table
-
     # The pedestal is the zero-flux intercept of R = C / V, measured below the PTC extremum.
     below, _ = detect_turnoff(data.mean_adu, data.var_adu,
                               covariance_errors(data.cov_adu, data.npix)[:, 0, 0])
@@ -198,8 +196,6 @@ def _fitted_lags(data, below, parameters, ptc_model):
     """``data`` to the lags fitted: for ``maxlag='auto'`` those the flats constrain
     (`bfpsf.calibration.maxlag.choose_maxlag`, on the pairs below the turnoff), recorded in
     ``parameters`` (``maxlag``, ``maxlag_auto``, ``maxlag_ring_sigma``, ``maxlag_reason``)."""
-    from .maxlag import choose_maxlag
-
     parameters["maxlag_auto"] = parameters["maxlag"] == "auto"
     if not parameters["maxlag_auto"]:
         parameters["maxlag"] = data.maxlag
@@ -220,8 +216,6 @@ def _solve_shifts(fit, method, thickness, n_samples, seed, parameters):
     ``parameters['shifts_failure']`` when the flats show no brighter-fatter signal (a(0, 0)
     >= 0): a measurement failure, not a usage error, so the calibration is still returned.
     """
-    from .boundary_shifts import SHIFT_METHODS, shift_warnings, solve_boundary_shifts
-
     area, area_err, area_cov = np.array(fit.a), np.array(fit.a_err), fit.a_cov
     if not area[0, 0] < 0:
         parameters["shifts_failure"] = (f"the flats show no brighter-fatter effect "

@@ -20,6 +20,8 @@ the amplitude is poorly determined.
 import numpy as np
 
 from ..errors import BFPSFValueError
+from .shifts_ei import solve_ei_shifts
+from .shifts_electrostatic import fit_electrostatic
 
 __all__ = ["SHIFT_METHODS", "solve_boundary_shifts", "shift_warnings", "split_fraction"]
 
@@ -63,13 +65,9 @@ def solve_boundary_shifts(area, area_err=None, *, area_cov=None, method="electro
     `~bfpsf.calibration.shifts_ei.ShiftSolution`
     """
     if method == "electrostatic":
-        from .shifts_electrostatic import fit_electrostatic
-
         return fit_electrostatic(area, area_err, area_cov=area_cov, thickness=thickness,
                                  n_samples=n_samples, seed=seed)
     if method == "ei":
-        from .shifts_ei import solve_ei_shifts
-
         return solve_ei_shifts(area, area_err, area_cov=area_cov, n_monte_carlo=n_samples,
                                seed=seed)
     msg = f"method must be one of {SHIFT_METHODS}, got {method!r}"

@@ -10,9 +10,17 @@ import numpy as np
 
 from ..errors import BFPSFValueError
 from ..files import refuse_duplicates
-from .amplifier_fit import (PairTask, fit_amplifier, fit_measured_pairs, fit_task, measure_pair,
-                            lags_to_measure)
-from .ptc_full import MAX_FULL_MODEL_MAXLAG
+from ..parallel import parallel_session
+from .amplifier_fit import (PairTask, fit_amplifier, fit_measured_pairs, fit_task, lags_to_measure,
+                            measure_pair)
+from .boundary_shifts import SHIFT_METHODS
+from .cp_pipe import read_ptc_dataset
+from .detector import DetectorCalibration
+from .flats import group_amplifiers, pair_flats, read_flats
+from .linearity import DEFAULT_LINEARITY_THRESHOLD
+from .maxlag import check_maxlag
+from .ptc import PTC_MODELS
+from .ptc_full import MAX_FULL_MODEL_MAXLAG, b_term_mask
 
 __all__ = ["calibrate", "calibrate_detectors", "calibrate_from_ptc"]
 
@@ -131,10 +139,6 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="f
     dict of str to Calibration or DetectorCalibration
         Per detector, in the order given.
     """
-    from ..parallel import parallel_session
-    from .flats import group_amplifiers, pair_flats, read_flats
-    from .detector import DetectorCalibration
-
     parameters, options = _settings(
         maxlag=maxlag, ptc_model=ptc_model, fit_b=fit_b, saturation=saturation,
         mean_tolerance=mean_tolerance, clip_nsigma=clip_nsigma, pedestal_nsigma=pedestal_nsigma,
@@ -179,12 +183,6 @@ def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsig
               pedestal_nsigma, pedestal_degree, linearity_threshold, solve_shifts,
               shift_method, thickness, n_monte_carlo, seed):
     """Validated parameters (recorded in the product) and the options of `fit_amplifier`."""
-    from .boundary_shifts import SHIFT_METHODS
-    from .linearity import DEFAULT_LINEARITY_THRESHOLD
-    from .maxlag import check_maxlag
-    from .ptc import PTC_MODELS
-    from .ptc_full import b_term_mask
-
     maxlag = check_maxlag(maxlag)
     if ptc_model not in PTC_MODELS:
         msg = f"ptc_model must be one of {PTC_MODELS}, got {ptc_model!r}"
@@ -247,10 +245,6 @@ def calibrate_from_ptc(path, *, amps=None, maxlag="auto", ptc_model="full", fit_
     Calibration or DetectorCalibration
         One amplifier, or several.
     """
-    from .cp_pipe import read_ptc_dataset
-    from .maxlag import check_maxlag
-    from .detector import DetectorCalibration
-
     maxlag = check_maxlag(maxlag)
     dataset = read_ptc_dataset(path)
     if amps is not None:

@@ -21,7 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BFPSFInputError
+from ..files import check_input, reading
 from ..outputs import write_fits
+from .detector import amplifiers_of
+from .ptc import PTCData, covariance_errors
 
 __all__ = ["PTC_COLUMNS", "PTC_VERSION", "PTCAmplifier", "read_ptc_dataset",
            "write_ptc_dataset", "ptc_dataset_table", "ptc_table_hdu"]
@@ -99,8 +102,6 @@ def _pixel_counts(cov_adu, sqrt_weights):
 
 
 def _amplifier(row, path):
-    from .ptc import PTCData
-
     name = str(row["AMPLIFIER_NAME"]).strip()
     where = f"{path}: amplifier {name}"
     side = int(row["COV_MATRIX_SIDE"])
@@ -148,8 +149,6 @@ def read_ptc_dataset(path):
     """
     from astropy.table import Table
 
-    from ..files import check_input, reading
-
     path = check_input(path, "PTC dataset")
     try:
         with reading(path, "cp_pipe PTC dataset (FITS)"):
@@ -175,8 +174,6 @@ def _flat(matrix):
 
 
 def _row(name, calibration):
-    from .ptc import covariance_errors
-
     cov = np.asarray(calibration.covariances_adu, dtype=float)
     npix = np.asarray(calibration.npix, dtype=float)
     with np.errstate(divide="ignore"):
@@ -224,8 +221,6 @@ def ptc_dataset_table(calibration):
         stores them.
     """
     from astropy.table import Table
-
-    from .detector import amplifiers_of
 
     amplifiers = amplifiers_of(calibration)
     for name, one in amplifiers.items():

@@ -14,6 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from ..io.amplifiers import amplifier_layout, read_amplifier
 
 __all__ = ["Flat", "FlatPair", "read_flats", "group_amplifiers", "pair_flats", "check_pair"]
 
@@ -60,7 +61,6 @@ class Flat:
         """This flat with its pixels read (itself if they are already in memory)."""
         if self.data is not None:
             return self
-        from ..io.amplifiers import read_amplifier
 
         amplifier = read_amplifier(self.layout, overscan=overscan)
         return replace(self, data=amplifier.data, header=amplifier.header)
@@ -139,8 +139,6 @@ def read_flats(sources, exptimes=None, *, amps=None, lazy=False, overscan="media
         (`bfpsf.io.amplifiers.amplifier_layout`), has no EXPTIME, an array is not 2-D, or the
         number of ``exptimes`` does not match the number of sources.
     """
-    from ..io.amplifiers import amplifier_layout
-
     if isinstance(sources, (str, os.PathLike, np.ndarray, Flat)):
         sources = [sources]
     sources = list(sources)

@@ -7,6 +7,10 @@ Every command also takes the common options (`add_common_options`): ``--progress
 ``--no-progress`` (default: on only when stderr is a terminal, so a log file never gets escape
 codes), ``-v`` / ``-q`` (logging to stderr: warnings by default, ``-v`` info, ``-vv`` debug,
 ``-q`` errors only) and ``--threads N`` (default ``OMP_NUM_THREADS`` when set, else every CPU).
+
+The modules of ``bfpsf.cli`` import most of the library inside their functions, when a command
+runs, so that ``bfpsf --help`` does not load GalSim, photutils or matplotlib; at the top they
+import only what their options and help texts need.
 """
 
 import argparse

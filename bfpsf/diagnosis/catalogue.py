@@ -54,6 +54,8 @@ Candidates (`CATALOGUE`), parameters in brackets:
 
 import numpy as np
 
+from ..calibration.ei_profile import smoothing_model_area
+from ..calibration.shifts_ei import solve_ei_shifts
 from ..errors import BFPSFValueError
 from ..shifts import BoundaryShifts
 from .spot_model import FLUX_SCALE
@@ -304,9 +306,6 @@ class SumRuleTail(Effect):
 
     def tail_area(self, area):
         """Ei-model area outside the measured window, 1/e- (full plane, (0, 0) excluded)."""
-        from ..calibration.ei_profile import smoothing_model_area
-        from ..calibration.shifts_ei import solve_ei_shifts
-
         solution = solve_ei_shifts(area, n_monte_carlo=0)
         p0, p1 = solution.p0, solution.p1
         big = smoothing_model_area(p0, p1, 200)
@@ -322,7 +321,6 @@ class SumRuleTail(Effect):
         area = observables.meta.get("area")
         if observables.sizes is None or area is None:
             return {}
-        from ..calibration.shifts_ei import solve_ei_shifts
 
         area = np.array(area, dtype=float)
         weights = np.ones_like(area)

@@ -18,7 +18,10 @@ after the term.
 import numpy as np
 
 from ..least_squares import weighted_least_squares
-from ..model.empirical import FLUX_REFERENCE, PATTERNS, EmpiricalTerm
+from ..model.empirical import FLUX_REFERENCE, PATTERNS, EmpiricalTerm, apply_pattern
+from ..moments.adaptive import adaptive_moments_batch
+from .problem import slope_residuals
+from .tables import Observables
 
 __all__ = ["fit_empirical", "evaluate_empirical", "predicted_size_change", "early_late",
            "adaptive_response"]
@@ -52,9 +55,6 @@ def adaptive_response(spot_model, peak_e, *, step=0.05):
     the other (a Moffat's Myy follows an X smear by about 15 %). Measured on the model spot at
     ``peak_e``, averaged over its phases.
     """
-    from ..moments.adaptive import adaptive_moments_batch
-    from ..model.empirical import apply_pattern
-
     stamps = spot_model.stamps([peak_e])[0]
     base = adaptive_moments_batch(stamps)
     out = {}
@@ -150,8 +150,6 @@ def evaluate_empirical(term, sizes, fluxes, model_sigma, residual, response=None
         with errors, ``photometry_bias_mmag`` (faintest to brightest entry, as the loop's
         summary); ``n`` entries.
     """
-    from .problem import slope_residuals
-
     change = predicted_size_change(term, sizes, fluxes, model_sigma, response)
     out = {"n": len(sizes)}
     for label, (rx, ry) in (("before", residual),
@@ -170,8 +168,6 @@ def evaluate_empirical(term, sizes, fluxes, model_sigma, residual, response=None
 def early_late(observables, late_fraction=1.0 / 3.0):
     """Sizes-only observables of the early exposures and of a contiguous block of late ones
     (the last ``late_fraction`` of the night), or None with fewer than 4 exposures."""
-    from .tables import Observables
-
     sizes = observables.sizes
     if sizes is None or sizes.exposure is None:
         return None

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
+from .empirical_fit import adaptive_response, early_late, evaluate_empirical, fit_empirical
 from .problem import build_problem, effect_design, summarise
 from .tables import CorrelationTable, LinearityTable, Observables, PTCTable
 from .tables import interleaved as _interleaved
@@ -143,8 +144,6 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
     fitted on the loop's fit part, judged on its held-out exposures and, with at least 4
     exposures, fitted on the early exposures and judged on a contiguous late block."""
     import dataclasses
-
-    from .empirical_fit import adaptive_response, early_late, evaluate_empirical, fit_empirical
 
     left = [entry for entry in result.unexplained if entry["observable"] == "sizes"]
     if not left or observables.sizes is None:

@@ -9,9 +9,21 @@ of a `Calibration`). The measured-table readers are in `bfpsf.diagnosis.readers`
 
 import numpy as np
 
+from ..calibration import calibrate
+from ..calibration.product import Calibration
+from ..calibration.ptc import covariance_errors, full_covariance_model
 from ..errors import BFPSFInputError, BFPSFValueError
+from ..io.amplifiers import read_amplifiers
+from ..io.saturation import saturation_e
 from ..least_squares import polynomial_fit
+from ..measure.neighbours import isolated_stars
+from ..measure.prepare import prepare_image
+from ..measure.sources import aperture_fraction, measure_sources, sky_level
+from ..model.psf_fit import DEFAULT_SIZE, fit_psf
+from ..moments.result import moments_from_hsm
+from .odd_moments import star_skewness
 from .spot_model import FLUX_SCALE, SpotForwardModel, flux_of_peak
+from .star_residual import stacked_star_residual
 from .tables import (CorrelationTable, LinearityTable, Observables, PTCTable, SizeTable,
                      interleaved)
 
@@ -56,8 +68,6 @@ def matched_profile(sigma_x, sigma_y, *, beta=None, measure="moments", pixel=Tru
         stamp = profile.drawImage(nx=41, ny=41, scale=1.0, method="auto" if pixel else "no_pixel")
         # GalSim's HSM as the reference estimator here (same definition as bfpsf's moments,
         # robust for the small, exactly centred spots of this model-building step)
-        from ..moments.result import moments_from_hsm
-
         mxx, myy = moments_from_hsm(galsim.hsm.FindAdaptiveMom(stamp))[:2]
         sx *= sigma_x / np.sqrt(mxx)
         sy *= sigma_y / np.sqrt(myy)
@@ -259,7 +269,6 @@ def ptc_observable(calibration):
     -------
     PTCTable
     """
-    from ..calibration.ptc import covariance_errors, full_covariance_model
     if calibration.covariances_adu is None or calibration.npix is None:
         msg = "the calibration holds no per-pair covariances: cannot form PTC residuals"
         raise BFPSFInputError(msg)
@@ -329,16 +338,6 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     and the stacked residual of the stars against that P(F) (`stacked_star_residual`, in
     ``meta['star_residual']``, with the stacked image in ``meta['residual_images']``).
     """
-    from ..calibration import calibrate
-    from ..calibration.product import Calibration
-    from ..io.amplifiers import read_amplifiers
-    from ..io.saturation import saturation_e
-    from ..measure.neighbours import isolated_stars
-    from ..measure.sources import aperture_fraction, measure_sources, sky_level
-    from ..measure.prepare import prepare_image
-    from ..model.psf_fit import DEFAULT_SIZE, fit_psf
-    from .star_residual import stacked_star_residual
-
     cal = calibration or calibrate(list(flats), maxlag=maxlag, n_monte_carlo=n_monte_carlo,
                                    fit_b=fit_b, amps=amp)
     if not isinstance(cal, Calibration):
@@ -350,7 +349,6 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         msg = f"the calibration has no boundary shifts ({reason})"
         raise BFPSFInputError(msg)
     gain = cal.gain if gain is None else gain
-    from .odd_moments import star_skewness
 
     fluxes, peaks, sigma_x, sigma_y, exposure = [], [], [], [], []
     columns, skews = [], []

@@ -15,6 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..measure.slopes import fit_bf_slope
+from .catalogue import get_effect
+
 __all__ = ["Problem", "build_problem", "effect_design", "effect_values", "slope_residuals",
            "summarise"]
 
@@ -39,8 +42,6 @@ def _size_block(observables):
     shifts within it (a Gaussian prior, one pseudo data point): the prediction is no better
     than its flats. The scale is a global nuisance: fitted in-sample, fixed on held-out data.
     """
-    from .catalogue import get_effect
-
     sizes, model = observables.sizes, observables.spot_model
     predicted_x, predicted_y = model.sizes(sizes.peak_e)
     residual = np.concatenate([sizes.sigma_x - predicted_x, sizes.sigma_y - predicted_y])
@@ -158,8 +159,6 @@ def slope_residuals(sizes, residual_x, residual_y):
         ``raw_slope_x``, ``raw_slope_y`` (pixels per 100 ke- of peak), ``slope_x_percent``,
         ``slope_y_percent`` and their errors (percent).
     """
-    from ..measure.slopes import fit_bf_slope
-
     out = {}
     for axis, measured, error, residual in (("x", sizes.sigma_x, sizes.sigma_x_err, residual_x),
                                             ("y", sizes.sigma_y, sizes.sigma_y_err, residual_y)):

@@ -7,7 +7,9 @@ E2V spot moments), `observables_from_tables` (a correlation table and a size tab
 
 import numpy as np
 
-from ..errors import BFPSFInputError, BFPSFValueError
+from ..calibration.measured import read_measured_area
+from ..calibration.shifts_ei import solve_ei_shifts
+from ..errors import BFPSFError, BFPSFInputError, BFPSFValueError
 from ..least_squares import polynomial_fit
 from .observables import observables_from_sizes
 from .tables import SizeTable
@@ -127,9 +129,6 @@ def observables_from_tables(correlations, sizes, *, kind=None, gain=None, measur
     Observables
         With ``meta`` holding ``area``, ``area_err``, ``shift_solution`` and the inputs.
     """
-    from ..calibration.shifts_ei import solve_ei_shifts
-    from ..calibration.measured import read_measured_area
-
     measured = read_measured_area(correlations)
     solution = solve_ei_shifts(measured.area, measured.area_err, n_monte_carlo=0)
     with open(sizes) as handle:
@@ -161,9 +160,6 @@ def _area_shift_draws(area, area_err, n_draws=8, seed=0):
     """Shifts of a(dx, dy) drawn within their errors (lags independent), each solved as the
     table's own shifts are (`bfpsf.calibration.shifts_ei.solve_ei_shifts`); draws the
     solver rejects are left out. A measured table carries errors, not bootstrap samples."""
-    from ..calibration.shifts_ei import solve_ei_shifts
-    from ..errors import BFPSFError
-
     area, area_err = np.asarray(area, float), np.asarray(area_err, float)
     if not np.any(area_err > 0):
         return []

@@ -11,6 +11,10 @@ and `bfpsf.redistribute` use.
 import numpy as np
 
 from ..errors import BFPSFValueError
+from ..model.bf_term import pixelised_stamp
+from ..model.density import exact_boundary_density
+from ..model.redistribution import redistribution_delta
+from ..moments.adaptive import adaptive_moments_batch
 from ..shifts import BoundaryShifts
 
 __all__ = ["SpotForwardModel", "flux_of_peak", "FLUX_SCALE"]
@@ -148,9 +152,6 @@ class SpotForwardModel:
         """Pixel charges and exact boundary densities of the unit-flux spot at a phase
         (`bfpsf.model.redistribution.exact_boundary_density`); the charges are the base
         PSF's pixelised P0 when there is one."""
-        from ..model.density import exact_boundary_density
-        from ..model.bf_term import pixelised_stamp
-
         s, n = self.oversampling, self.stamp_size
         fine = self.profile.drawImage(nx=n * s, ny=n * s, scale=1.0 / s, method="no_pixel",
                                       offset=(px * s, py * s)).array
@@ -185,8 +186,6 @@ class SpotForwardModel:
         nonlinearity : float
             c: pixel values v -> v (1 + c v / 1e5).
         """
-        from ..model.redistribution import redistribution_delta
-
         shifts = self.shifts if shifts is None else shifts
         fluxes = self.fluxes(peaks_e)
         out = np.empty((fluxes.size, len(self.phases), self.stamp_size, self.stamp_size))
@@ -220,8 +219,6 @@ class SpotForwardModel:
         n_peaks, n_phases = stamps.shape[:2]
         flat = stamps.reshape(-1, self.stamp_size, self.stamp_size)
         if self.measure == "moments":
-            from ..moments.adaptive import adaptive_moments_batch
-
             result = adaptive_moments_batch(flat)
             sigma_x, sigma_y = np.sqrt(result.mxx), np.sqrt(result.myy)
             failed = np.flatnonzero(np.asarray(result.flags) != 0)

@@ -2,6 +2,8 @@
 
 import numpy as np
 
+from ..plotting.diagnose import radial_profile
+
 __all__ = ["stacked_star_residual"]
 
 
@@ -38,8 +40,6 @@ def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, m
         (rms of the stack / model peak), ``chi2_per_pixel``, ``n_stars``, ``radius`` and
         ``profile`` (azimuthal mean in rings of 0.5 px, `bfpsf.plotting.diagnose`).
     """
-    from ..plotting.diagnose import radial_profile
-
     half = int(psf.half_size if half_size is None else half_size)
     total, variance, model_sum, count = 0.0, 0.0, 0.0, 0
     for image, table in zip(images, tables):

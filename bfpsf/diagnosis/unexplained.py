@@ -9,6 +9,7 @@ expectation (issue 22). Both are used by `bfpsf.diagnosis.loop`.
 import numpy as np
 
 from ..least_squares import weighted_least_squares
+from ..measure.slopes import fit_bf_slope
 
 __all__ = ["describe_unexplained", "verdict", "UNEXPLAINED_NSIGMA", "STAR_CHI2_FACTOR"]
 
@@ -138,8 +139,6 @@ def describe_unexplained(problem, observables, model):
         block = problem.slices[key]
         part, sigma = residual[block], problem.sigma[block]
         if key == "sizes":
-            from ..measure.slopes import fit_bf_slope
-
             sizes = observables.sizes
             n = len(sizes)
             for index, axis in enumerate("xy"):

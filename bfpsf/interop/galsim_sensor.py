@@ -8,6 +8,7 @@ import galsim
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..model.buildup import redistribute_buildup
+from ..model.empirical import empirical_of
 from ..model.redistribution import redistribute
 from ..model.tiles import correlate
 from ..shifts import as_shifts
@@ -136,8 +137,6 @@ class BFSensor(galsim.Sensor):
         #: added to the new charge of each call's image as to one star's (its total and
         #: its charge-weighted column), so draw one object per stamp, as GalSim does
         if empirical is None and getattr(shifts, "refinement", None):
-            from ..model.empirical import empirical_of
-
             empirical = empirical_of(shifts)  # a refined calibration's
         self.empirical = empirical
         self.gain = float(gain)

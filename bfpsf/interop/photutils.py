@@ -10,6 +10,8 @@ choose sensible defaults from the PSF (fit box, grouping distance) and build the
 import numpy as np
 
 from ..errors import BFPSFValueError
+from ..model.base import BFPSFModel
+from ..model.bf_term import bf_response_table
 
 __all__ = ["default_fit_shape", "make_psf_photometry", "static_image_psf", "psf_fwhm"]
 
@@ -17,8 +19,6 @@ __all__ = ["default_fit_shape", "make_psf_photometry", "static_image_psf", "psf_
 def psf_fwhm(psf, x=None, y=None):
     """FWHM of the pixelised P0 along x through its peak, pixels (half-maximum crossing), at
     image position (x, y) (`BFPSFModel.at`; default the model's reference position)."""
-    from ..model.base import BFPSFModel
-
     psf = psf.at(x, y) if isinstance(psf, BFPSFModel) else psf  # or a photutils ImagePSF
     oy, ox = psf.oversampling
     row = psf.data[int(round(psf.origin[1]))]
@@ -36,8 +36,6 @@ def psf_fwhm(psf, x=None, y=None):
 
 def largest_fwhm(psf):
     """The largest `psf_fwhm` over the model's field nodes (any kind), pixels."""
-    from ..model.base import BFPSFModel
-
     if not isinstance(psf, BFPSFModel):
         return psf_fwhm(psf)
     x_nodes, y_nodes = psf.field_nodes
@@ -146,8 +144,6 @@ def static_image_psf(psf, flux=None):
         `~bfpsf.model.bf_term.bf_response_table`), normalised like P0.
     """
     from photutils.psf import ImagePSF
-
-    from ..model.bf_term import bf_response_table
 
     if psf.varies_over_field:
         return _static_gridded_psf(psf, flux)

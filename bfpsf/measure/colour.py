@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from ..moments.result import MomentsFlag
 
 __all__ = ["SizeColourFit", "fit_size_colour", "apply_size_colour", "correct_size_colour"]
 
@@ -132,8 +133,6 @@ def fit_size_colour(table, colour_column, *, max_peak_e=None, low_flux_fraction=
     -------
     SizeColourFit
     """
-    from ..moments.result import MomentsFlag
-
     if int(degree) != degree or degree < 0:
         msg = f"degree must be a non-negative integer, got {degree!r}"
         raise BFPSFValueError(msg, degree)

@@ -13,10 +13,12 @@ import numpy as np
 from astropy.table import Table
 
 from ..errors import BFPSFInputError, BFPSFValueError
-from ..interop.photutils import make_psf_photometry
+from ..interop.photutils import default_fit_shape, make_psf_photometry
 from ..model.base import BFPSFModel
 from .neighbours import sources_with_companions
+from .prepare import PreparedImage, prepare_image
 from .sources import DETECTION_THRESHOLD
+from .total_flux import WingModel, wing_image
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 
@@ -171,8 +173,6 @@ def _cross_term_image(psf, table, shape):
 
 def _glow(psf, table, shape):
     """The light of the fitted stars beyond the PSF support (the PSF's wing model), e-."""
-    from .total_flux import WingModel, wing_image
-
     wings = WingModel(psf.wing_amplitude, psf.wing_power, psf.half_size, 0.0, 0.0, 0)
     return wing_image(wings, np.asarray(table["x_fit"], float),
                       np.asarray(table["y_fit"], float), np.asarray(table["flux_fit"], float),
@@ -190,8 +190,6 @@ def _check_groups(psf, fit_shape, group_separation, init):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
-
-    from ..interop.photutils import default_fit_shape
 
     if len(init) <= MAX_GROUP_SIZE:
         return
@@ -280,8 +278,6 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         column), ``source_flags`` carries the detection's `bfpsf.measure.sources.SourceFlag`
         bits (``BLENDED``: an unresolved neighbour) to each fitted star.
     """
-    from .prepare import PreparedImage, prepare_image
-
     prepared = image_e if isinstance(image_e, PreparedImage) else None
     image = np.asarray(image_e.image_e if prepared else image_e, dtype=float)
     if image.ndim != 2:

@@ -22,6 +22,11 @@ import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
+from ..model.gridded import bilinear_weights
+from ..moments.adaptive import adaptive_moments_batch
+from ..moments.result import MomentsFlag
+from ..moments.shapes import distortion, psf_shapes
+from .sources import model_flux
 
 __all__ = ["SlopeFit", "fit_bf_slope", "bf_slopes", "PEAK_UNIT_E", "model_size_increments",
            "model_star_sizes", "predicted_slopes", "star_positions"]
@@ -246,8 +251,6 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
         and ``'e2'`` (the same straight line fitted to the distortion against peak: slope per
         100 ke- of peak, intercept dimensionless) when the table has those columns.
     """
-    from ..moments.result import MomentsFlag
-
     missing = [name for name in ("peak_e", "sigma_x", "sigma_y", "iq") if name not in
                table.colnames]
     if missing:
@@ -350,12 +353,6 @@ def model_size_increments(psf, flux_e, *, x=None, y=None, n_grid=24):
         ``{'x': d sigma_x, 'y': d sigma_y, 'iq': d IQ}``, one value per star, pixels, and
         ``'e1'``, ``'e2'``: the change of the distortion.
     """
-    from ..moments.adaptive import adaptive_moments_batch
-
-    from ..moments.shapes import distortion
-
-    from ..model.gridded import bilinear_weights
-
     flux_e = np.asarray(flux_e, dtype=float)
     finite = np.isfinite(flux_e)
     top = float(np.max(flux_e[finite], initial=0.0))
@@ -419,8 +416,6 @@ def model_star_sizes(psf, flux_e, *, x=None, y=None):
         ``{'x', 'y', 'iq'}`` (pixels) and ``{'e1', 'e2'}``, one value per star; NaN where the
         flux is not positive.
     """
-    from ..moments.shapes import psf_shapes
-
     flux_e = np.asarray(flux_e, dtype=float)
     x_ref, y_ref = psf.reference_position
     x = np.broadcast_to(x_ref if x is None else np.asarray(x, dtype=float), flux_e.shape)
@@ -447,8 +442,6 @@ def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors
         (pixels, or for e1 and e2 distortion, per 100 ke- of peak; the error is that of the
         calibration, NaN without samples).
     """
-    from .sources import model_flux
-
     flux = model_flux(psf, table["flux_e"])  # the flux P(F) takes; flux_e is an aperture's
     x, y = star_positions(psf, table)
 

@@ -13,11 +13,12 @@ import warnings
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
-from ..resources import check_pixels
-from ..moments.moment_errors import moment_errors
 from ..moments.adaptive import adaptive_moments_batch
+from ..moments.moment_errors import moment_errors
 from ..moments.result import MomentsFlag
 from ..moments.shapes import distortion
+from ..resources import check_pixels
+from .sky import estimate_sky
 
 __all__ = ["SourceFlag", "measure_sources", "sky_level", "source_flag_string",
            "aperture_fraction", "model_flux", "STAR_COLUMNS", "DETECTION_THRESHOLD"]
@@ -289,8 +290,6 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     # the sky surface of every command (a plane beyond the masked sources, bfpsf.measure.sky):
     # the detection pedestal (a sloped sky leaves the threshold where it is) and each source's
     # sky
-    from .sky import estimate_sky
-
     if sky is None:
         sky = estimate_sky(np.where(bad, np.nan, image))
     data = np.where(bad, np.nan, image - sky.image())

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BFPSFInputError
+from .sky import SkyModel, _powers, source_mask
 
 __all__ = ["WingModel", "fit_sky_and_wings", "wing_image"]
 
@@ -142,8 +143,6 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         Its ``fraction`` (flux beyond the support over flux inside it) and the error of that
         fraction: the amplitude's statistical error and the range of p within chi-square + 1.
     """
-    from .sky import SkyModel, _powers, source_mask
-
     n_terms = (degree + 1) * (degree + 2) // 2
     n_columns = 1 + n_terms * len(images_e)
     sky_blocks, values, pair_sets, offsets, templates = [], [], [], [0], []

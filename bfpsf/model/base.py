@@ -43,6 +43,7 @@ from astropy.modeling import Fittable2DModel, Parameter
 
 from ..errors import BFPSFValueError
 from ..moments.shapes import psf_shape
+from .galsim_profile import to_galsim
 
 __all__ = ["BFPSFModel"]
 
@@ -197,8 +198,6 @@ class BFPSFModel(Fittable2DModel):
         """The pixelised PSF of a star of flux F at (x, y) (at its sub-pixel phase unless the
         phases are given) as a GalSim profile; see `bfpsf.model.galsim_profile.to_galsim`
         (returns ``(profile, pixel_included)``)."""
-        from .galsim_profile import to_galsim
-
         position = None if x is None and y is None else self.position_or_reference(x, y)
         return to_galsim(self, flux, x_phase=x_phase, y_phase=y_phase, normalise=normalise,
                          position=position)
@@ -235,6 +234,8 @@ class BFPSFModel(Fittable2DModel):
     # -- the PSF product (bfpsf.model.product: the model layer knows nothing of files) ---------
     def write(self, path, *, calibration=None, meta=None, overwrite=False):
         """Write the PSF product (FITS); see `bfpsf.model.product.write_psf`."""
+        # imported when called: the deliberate circle (.product builds the kinds, which import
+        # this module), docs/DESIGN.md
         from .product import write_psf
 
         write_psf(self, path, calibration=calibration, meta=meta, overwrite=overwrite)
@@ -244,8 +245,8 @@ class BFPSFModel(Fittable2DModel):
         """Read a PSF product (`bfpsf.model.product.read_psf`): any kind through this class or
         `FluxDependentPSF` (``reads_any_kind``), only a grid through
         `GriddedFluxDependentPSF`."""
+        # imported when called: .product and .psf import this module (the deliberate circle)
         from .product import read_psf
-
         from .psf import FluxDependentPSF
 
         if issubclass(cls, FluxDependentPSF):

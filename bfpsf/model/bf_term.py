@@ -16,6 +16,7 @@ from scipy.interpolate import RectBivariateSpline
 from ..errors import BFPSFWarning
 from .buildup import redistribute_buildup
 from .density import exact_boundary_density
+from .empirical import PATTERNS, pattern_tables
 from .redistribution import redistribution_delta
 
 __all__ = ["BFTerm", "bf_response_table", "exact_density_table", "pixelised_stamp",
@@ -191,8 +192,6 @@ class BFTerm:
         star of flux F at column ``x``: sum_k v_k(F, x) B_k[F p + g F |F| R], with B_k of P0
         and of R tabulated at every phase (`bfpsf.model.empirical.pattern_tables`), as
         ``star_image`` applies it to the star's image."""
-        from .empirical import PATTERNS, pattern_tables
-
         # in a dict made by the constructor, so the copies (which share P0 and R) share it
         splines = self._tables.get("pattern_splines")
         if splines is None:

@@ -39,6 +39,10 @@ import numpy as np
 from ..errors import BFPSFValueError
 from ..files import open_product, refuse_overwrite
 from ..outputs import write_fits
+from ..shifts import BoundaryShifts
+from .empirical import EmpiricalTerm
+from .gridded import GriddedFluxDependentPSF
+from .psf import FluxDependentPSF
 
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 
@@ -66,8 +70,6 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
         Replace an existing file. Default False (`~bfpsf.errors.BFPSFFileExistsError`).
     """
     from astropy.io import fits
-
-    from .gridded import GriddedFluxDependentPSF
 
     refuse_overwrite(path, overwrite)
     nodes = psf.nodes if isinstance(psf, GriddedFluxDependentPSF) else None
@@ -166,8 +168,6 @@ def _read_empirical(hdul):
     """The EMPIRICAL term of the ``EMPIRIC`` HDU, or None without it."""
     import json
 
-    from .empirical import EmpiricalTerm
-
     if "EMPIRIC" not in hdul:
         return None
     return EmpiricalTerm.from_dict(json.loads(str(hdul["EMPIRIC"].data["json"][0])))
@@ -175,8 +175,6 @@ def _read_empirical(hdul):
 
 def _read_amplifier_shifts(hdul):
     """{EXTNAME: BoundaryShifts} from the ``AMPSHIFT`` HDU ({} without it)."""
-    from ..shifts import BoundaryShifts
-
     if "AMPSHIFT" not in hdul:
         return {}
     table = hdul["AMPSHIFT"].data
@@ -219,9 +217,6 @@ def read_psf(path, *, cls=None, **kwargs):
     BFPSFInputError
         The file is missing, is not a PSF product, or has a newer schema.
     """
-    from .psf import FluxDependentPSF
-    from ..shifts import BoundaryShifts
-
     cls = FluxDependentPSF if cls is None else cls
     with open_product(path, keyword="BFPSFVER", version=PSF_SCHEMA_VERSION,
                       kind="PSF product") as hdul:
@@ -265,8 +260,6 @@ def read_psf(path, *, cls=None, **kwargs):
                     and options["mode"] == "table" else None)
     options.update(kwargs)
     if grid is not None:
-        from .gridded import GriddedFluxDependentPSF
-
         options.pop("bf_table", None)
         if grid[3] is not None and options.get("mode") == "table":
             options["bf_table"] = grid[3]

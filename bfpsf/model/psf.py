@@ -30,6 +30,7 @@ from ..shifts import as_shifts
 from .base import MODES, BFPSFModel, validate_data, validate_oversampling, validate_units
 from .bf_term import (BFTerm, bf_response_table, exact_density_table, pixelised_stamp,
                       star_phases)
+from .empirical import empirical_of
 
 __all__ = ["FluxDependentPSF", "bf_response_table", "pixelised_stamp", "star_phases"]
 
@@ -174,8 +175,6 @@ class FluxDependentPSF(BFTerm, BFPSFModel):
         #: ``linearity_c_per_1e5``, ``flux_correction`` and its error.
         self._init_metadata()
         if getattr(shifts, "refinement", None):
-            from .empirical import empirical_of
-
             # a calibration refined by `bfpsf diagnose --output-calib`: its EMPIRICAL term
             self.empirical = empirical_of(shifts)
         #: Shifts drawn from the calibration's uncertainty (`Calibration.shift_samples`):

@@ -43,6 +43,7 @@ from astropy.table import Table
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
 from ..resources import check_psf_fit
 from ..shifts import BoundaryShifts, as_shifts
+from .empirical import PATTERNS, apply_pattern
 from .gridded import GriddedFluxDependentPSF, bilinear_weights, grid_node_positions
 from .psf import FluxDependentPSF
 from .psf_fit_grid import (Grid, Sampling, cardinal_splines, dense_weights_of, node_solution,
@@ -137,8 +138,6 @@ def _with_empirical(term, model, d_flux, stars):
     """Every star's table-mode model and flux derivative with the EMPIRICAL term of a
     refined calibration (`bfpsf.model.empirical`) at its flux and column: sum_k v_k(F, x)
     B_k[model], as `FluxDependentPSF` applies it (its position derivative neglected)."""
-    from .empirical import PATTERNS, apply_pattern
-
     flux = np.abs(stars.flux)
     step = 1e-3 * np.maximum(flux, 1.0)
     changes = term.variance_change(flux, x=stars.x_0)

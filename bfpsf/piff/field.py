@@ -16,6 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from ..measure.slopes import fit_bf_slope
+from ..model.redistribution import redistribute
+from ..moments.adaptive import adaptive_moments
+from ..validation.simulate_spots import simulate_varying_exposures, write_image_adu
 
 __all__ = ["write_field", "piff_config", "residual_slopes", "inner_psf_config"]
 
@@ -51,8 +54,6 @@ def write_field(directory, *, n_exposures=4, sensor="lsst_itl_50_8", gain=1.5,
         With ``control``, a second list of (control image, catalogue) follows.
     """
     from astropy.table import Table
-
-    from ..validation.simulate_spots import simulate_varying_exposures, write_image_adu
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -250,9 +251,6 @@ def carried_errors(calibration, *, fwhm=3.45, beta=3.5, flux_e=2e6, diffusion=0.
         ``size`` and ``e1``: relative errors of the predicted changes (NaN without samples).
     """
     import galsim
-
-    from ..moments.adaptive import adaptive_moments
-    from ..model.redistribution import redistribute
 
     profile = galsim.Moffat(beta=beta, fwhm=fwhm)
     if diffusion > 0:

@@ -33,9 +33,10 @@ import galsim
 import numpy as np
 import piff
 
+from ..calibration.detector import amplifiers_of, read_calibration
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..io.amplifiers import parse_section
-from ..model.empirical import EmpiricalTerm
+from ..model.empirical import EmpiricalTerm, empirical_of
 from ..model.redistribution import redistribute
 from ..shifts import BoundaryShifts
 
@@ -104,9 +105,6 @@ class AmplifierBF:
 
 def _amplifiers_from(calibration, sections):
     """`AmplifierBF` list from a Calibration or DetectorCalibration (or a path to one)."""
-    from ..calibration.detector import amplifiers_of, read_calibration
-    from ..model.empirical import empirical_of
-
     if isinstance(calibration, (str, bytes)) or hasattr(calibration, "__fspath__"):
         calibration = read_calibration(calibration)
     amplifiers = amplifiers_of(calibration)

@@ -2,6 +2,8 @@
 
 import numpy as np
 
+from ..calibration.detector import amplifiers_of
+
 __all__ = ["plot_amplifiers"]
 
 _PANELS = (("gain", "gain [e-/ADU]"), ((0, 0), "a(0,0) [1/e-]"), ((0, 1), "a(1,0) [1/e-]"),
@@ -23,8 +25,6 @@ def plot_amplifiers(calibration, axes=None):
     matplotlib.figure.Figure
     """
     import matplotlib.pyplot as plt
-
-    from ..calibration.detector import amplifiers_of
 
     amplifiers = amplifiers_of(calibration)
     if axes is None:

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..calibration.ei_profile import smoothing_model_area
+from ..calibration.ptc import PTCData, full_covariance_model, summed_covariance_ptc
 from ..errors import BFPSFValueError
 from ..files import refuse_overwrite
 from ..outputs import save_figure
@@ -47,8 +49,6 @@ def plot_ptc(calibration, ax=None, *, maxlag=None):
     -------
     matplotlib.figure.Figure
     """
-    from ..calibration.ptc import PTCData, summed_covariance_ptc
-
     figure, ax = _axes(ax, figsize=(6.4, 4.8))
     table = calibration.ptc
     gain = calibration.gain
@@ -71,8 +71,6 @@ def plot_ptc(calibration, ax=None, *, maxlag=None):
     grid = np.linspace(0, mean_e.max() * 1.02, 200)
     ax.plot(grid, grid + calibration.noise_e**2, "--", color="C3", label="Poisson + read noise")
     if calibration.model == "full":
-        from ..calibration.ptc import full_covariance_model
-
         model = full_covariance_model(grid / gain, calibration.a,
                                       calibration.a * calibration.b,
                                       calibration.noise_matrix_e2, gain)[:, 0, 0] * gain**2
@@ -155,8 +153,6 @@ def plot_area_profile(calibration, ax=None):
                         xytext=(4, 4), textcoords="offset points")
     fit = calibration.shift_fit
     if "p0" in fit and "p1" in fit:
-        from ..calibration.ei_profile import smoothing_model_area
-
         model = smoothing_model_area(fit["p0"], fit["p1"], nlag - 1)
         model_points = off & ~((dx <= 1) & (dy <= 1))
         ax.plot(radius[model_points], np.abs(model[model_points]), "x", color="C1", ms=8,

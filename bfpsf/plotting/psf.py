@@ -6,6 +6,8 @@ figure.
 
 import numpy as np
 
+from ..model.bf_term import pixelised_stamp
+
 __all__ = ["plot_psf", "plot_bf_difference", "plot_residuals"]
 
 
@@ -35,8 +37,6 @@ def plot_psf(psf, *, ax=None, oversampled=True, log=True):
     matplotlib.figure.Figure
     """
     from matplotlib.colors import LogNorm
-
-    from ..model.bf_term import pixelised_stamp
 
     figure, ax = _figure(ax, figsize=(5, 4.4))
     if oversampled:
@@ -84,8 +84,6 @@ def plot_bf_difference(psf, fluxes, *, axes=None, half_size=6, x_phase=0.0, y_ph
         the wings, by an amount proportional to F (G15 eq. scrambling_model).
     """
     import matplotlib.pyplot as plt
-
-    from ..model.bf_term import pixelised_stamp
 
     fluxes = list(fluxes)
     if axes is None:

@@ -8,6 +8,8 @@ static PSF leaves the brighter-fatter trend with magnitude; P(F) removes it.
 
 import numpy as np
 
+from ..moments.shapes import shape_residuals
+
 __all__ = ["plot_psf_diagnostics"]
 
 
@@ -51,8 +53,6 @@ def plot_psf_diagnostics(stars, psf, *, static_flux=None, n_bins=8, zero_point=2
     matplotlib.figure.Figure
     """
     import matplotlib.pyplot as plt
-
-    from ..moments.shapes import shape_residuals
 
     clean = np.asarray(stars["flags"]) == 0 if "flags" in stars.colnames else slice(None)
     stars = stars[clean]

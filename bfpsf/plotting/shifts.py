@@ -2,6 +2,8 @@
 
 import numpy as np
 
+from ..calibration.ei_profile import non_nearest_mask, smoothing_model_area
+
 __all__ = ["plot_radial_profile"]
 
 
@@ -45,8 +47,6 @@ def plot_radial_profile(solution, ax=None):
     matplotlib.figure.Figure
     """
     import matplotlib.pyplot as plt
-
-    from ..calibration.ei_profile import non_nearest_mask, smoothing_model_area
 
     if ax is None:
         fig, (ax_area, ax_shift) = plt.subplots(1, 2, figsize=(10, 4), layout="constrained")

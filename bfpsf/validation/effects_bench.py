@@ -40,9 +40,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import BFPSFValueError
 from ..diagnosis.odd_moments import skewness
 from ..diagnosis.tables import SizeTable
+from ..errors import BFPSFValueError
+from ..model.redistribution import redistribute
+from ..moments.adaptive import adaptive_moments_batch
+from .simulate_spots import simulate_spots
 
 __all__ = ["OUTSIDE_EFFECTS", "CATALOGUE_CASES", "BenchSpots", "draw_bench_spots",
            "apply_effect", "bench_sizes"]
@@ -115,9 +118,6 @@ def draw_bench_spots(*, n_exposures, shifts=None, sensor=None,
     BenchSpots
     """
     import galsim
-
-    from ..model.redistribution import redistribute
-    from .simulate_spots import simulate_spots
 
     if (sensor is None) == (shifts is None):
         msg = "give either shifts (quick rendering) or a SiliconSensor name, not both"
@@ -210,8 +210,6 @@ def bench_sizes(spots, stamps_e, *, sky_e=50.0, read_noise_e=5.0, seed=0):
         columns); peaks are the mean measured peak pixel of each bin. The dict holds
         ``peak_e`` and ``flux_e`` (stamp sums) of every spot, for `flux_of_peak`.
     """
-    from ..moments.adaptive import adaptive_moments_batch
-
     rng = np.random.default_rng(seed)
     noisy = stamps_e + rng.poisson(np.clip(stamps_e, 0, None) + sky_e) - stamps_e - sky_e
     noisy = noisy + read_noise_e * rng.standard_normal(stamps_e.shape)

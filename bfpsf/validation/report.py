@@ -10,6 +10,8 @@ import numpy as np
 
 from ..files import refuse_overwrite
 from ..outputs import save_figure, write_text
+from ..plotting.diagnose import (plot_candidates, plot_ptc_residuals, plot_radial_profile,
+                                 plot_residual_image, plot_sizes_before_after)
 
 __all__ = ["write_diagnosis_report", "write_validation_report", "format_number"]
 
@@ -184,8 +186,6 @@ def write_diagnosis_report(result, directory, *, title="bfpsf diagnose", context
     Path
         The Markdown file.
     """
-    from ..plotting.diagnose import plot_candidates, plot_ptc_residuals, plot_sizes_before_after
-
     names = ["report.md", "candidates.png"]
     if result.curves:
         names.append("sizes.png")
@@ -215,8 +215,6 @@ def write_diagnosis_report(result, directory, *, title="bfpsf diagnose", context
 
 def _save_residual_images(images, directory):
     import matplotlib.pyplot as plt
-
-    from ..plotting.diagnose import plot_radial_profile, plot_residual_image
 
     figure, axes = plt.subplots(1, len(images), figsize=(4.5 * len(images), 4), squeeze=False)
     limit = max(np.nanmax(np.abs(image)) for image in images.values())
@@ -316,7 +314,6 @@ def write_validation_report(result, directory, *, overwrite=False):
     if images:
         names += ["residual_images.png", "radial_profile.png"]
     directory = _prepare(directory, names, overwrite)
-    from ..plotting.diagnose import plot_candidates, plot_sizes_before_after
 
     diagnosis = result["diagnosis"]
     figures = []

@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import BFPSFValueError
+from ..model.redistribution import redistribute
+from .simulate_spots import peak_fraction
 
 __all__ = ["SimulatedField", "simulate_field", "kolmogorov_optical"]
 
@@ -105,9 +107,6 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
     """
     import galsim
     from astropy.table import Table
-
-    from ..model.redistribution import redistribute
-    from .simulate_spots import peak_fraction
 
     rng = np.random.default_rng(seed)
     ny, nx = (int(value) for value in shape)

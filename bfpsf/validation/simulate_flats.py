@@ -47,7 +47,7 @@ def _sensor(sensor):
     import galsim
 
     if isinstance(sensor, str):
-        from ..interop.silicon_truth import silicon_sensor
+        from ..interop.silicon_truth import silicon_sensor  # imports GalSim: only when used
 
         return silicon_sensor(sensor)
     if not isinstance(sensor, galsim.Sensor):

@@ -36,7 +36,19 @@ import time
 
 import numpy as np
 
+from .. import calibration
+from ..diagnosis.loop import diagnose
+from ..diagnosis.observables import flat_observables, observables_from_sizes
+from ..diagnosis.spot_model import SpotForwardModel
+from ..diagnosis.tables import SizeTable
 from ..errors import BFPSFError, BFPSFValueError
+from ..measure import photometry
+from ..measure.slopes import PEAK_UNIT_E, fit_bf_slope
+from ..model import psf_fit
+from ..model.inverse import correct
+from ..moments.adaptive import adaptive_moments_batch
+from . import simulate_flats as simulate
+from .simulate_spots import simulate_spots
 from .validation_config import FULL, QUICK, ValidationConfig
 
 __all__ = ["ValidationConfig", "QUICK", "FULL", "validate", "FLATS_LABEL", "TRUTH_LABEL"]
@@ -75,8 +87,6 @@ def _slope(peak_e, values, group=None):
     unweighted first pass; the error comes from those variances. Both passes are
     `bfpsf.measure.slopes.fit_bf_slope`.
     """
-    from ..measure.slopes import PEAK_UNIT_E, fit_bf_slope
-
     peak = np.asarray(peak_e, float)
     y = np.asarray(values, float)
     first = fit_bf_slope(peak, y, group=group, clip_nsigma=None)
@@ -95,8 +105,6 @@ def _slope(peak_e, values, group=None):
 
 
 def _moments(stamps):
-    from ..moments.adaptive import adaptive_moments_batch
-
     result = adaptive_moments_batch(np.asarray(stamps))
     return np.sqrt(result.mxx), np.sqrt(result.myy), np.asarray(result.flags)
 
@@ -107,8 +115,6 @@ def _level_means(spots, values):
     Every level holds the same sub-pixel phases, so the phase dependence cancels in the means;
     the error is the rms about a line with per-phase intercepts over sqrt(spots per level).
     """
-    from ..measure.slopes import fit_bf_slope
-
     levels = np.unique(spots.level)
     means = np.array([values[spots.level == k].mean() for k in levels])
     # unweighted: the error scale is the rms about the line
@@ -143,9 +149,6 @@ def _residual_entries(spots, raw, measured, twin, predicted=(0.0, 0.0), static=(
 
 # -- stages ---------------------------------------------------------------------------------------
 def _stage_flats(config):
-    from .. import calibration
-    from . import simulate_flats as simulate
-
     flats = simulate.simulate_flats(config.sensor, config.flat_levels_e, pairs=config.flat_pairs,
                                     size=config.flat_size, gain=config.gain,
                                     read_noise_e=config.read_noise_e, nsteps=config.flat_nsteps,
@@ -165,7 +168,7 @@ def _stage_flats(config):
 
 
 def _stage_truth(config, cal):
-    from ..interop import silicon_truth as interop
+    from ..interop import silicon_truth as interop  # imports GalSim: only when used
 
     truth = interop.silicon_area_coefficients(config.sensor, maxlag=config.maxlag)
     out = {"available": True, "lags": [], "truth": [], "recovered": [], "recovered_err": [],
@@ -189,7 +192,7 @@ def _spot_profile(config):
     """The spots' charge profile: the Moffat blurred by SiliconSensor's diffusion."""
     import galsim
 
-    from ..interop.silicon_truth import silicon_diffusion_sigma
+    from ..interop.silicon_truth import silicon_diffusion_sigma  # imports GalSim: only when used
 
     return galsim.Convolve(galsim.Moffat(fwhm=config.fwhm, beta=config.beta),
                            galsim.Gaussian(sigma=silicon_diffusion_sigma(config.sensor)))
@@ -212,8 +215,6 @@ def _phase_grid(n, seed):
 def _stage_spots(config):
     """Moffat spots photon-shot through SiliconSensor with their BF-free twins, the SAME
     sub-pixel phases at every level (`bfpsf.validation.simulate_spots.simulate_spots`)."""
-    from .simulate_spots import simulate_spots
-
     return simulate_spots(sensor=config.sensor, fwhm=config.fwhm, beta=config.beta,
                           peaks_e=config.peaks_e, n_per_level=config.n_per_level,
                           stamp_size=config.stamp_size, seed=config.seed + 1,
@@ -222,8 +223,6 @@ def _stage_spots(config):
 
 
 def _stage_prediction(config, spots, measured, shift_sets, cal=None, n_draws=20):
-    from ..diagnosis.spot_model import SpotForwardModel
-
     # the spots BF acts on are the optical Moffat blurred by SiliconSensor's charge diffusion
     profile = _spot_profile(config)
     out = {"available": True, "rows": []}
@@ -283,8 +282,6 @@ def _flux_fit(psf, stamp, x, y, flux_guess, *, flux_dependent, iterations=3):
 
 
 def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts):
-    from ..model import psf_fit
-
     fluxes = spots.stamps.sum(axis=(1, 2))
     positions = [[(x, y)] for x, y in zip(spots.x, spots.y)]
     images = list(spots.stamps)
@@ -321,7 +318,6 @@ def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts):
                              [positions[i] for i in np.flatnonzero(bright)], shifts,
                              oversampling=config.psf_oversampling, size=size,
                              include_bf=False, max_iterations=20).psf
-    from ..measure import photometry
 
     magnitudes = {"static": [], "flux_dependent": [], "photutils_static": [],
                   "photutils_flux_dependent": []}
@@ -349,8 +345,6 @@ def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts):
 
 
 def _stage_inverse(spots, raw, twin_sizes, shifts):
-    from ..model.inverse import correct
-
     corrected = np.array([correct(np.clip(stamp, 0, None), shifts)
                           for stamp in spots.stamps])
     sigma_x, sigma_y, _ = _moments(corrected)
@@ -359,10 +353,6 @@ def _stage_inverse(spots, raw, twin_sizes, shifts):
 
 
 def _stage_diagnose(config, spots, sizes_x, sizes_y, shifts, cal):
-    from ..diagnosis.loop import diagnose
-    from ..diagnosis.observables import flat_observables, observables_from_sizes
-    from ..diagnosis.tables import SizeTable
-
     sigma_x, err_x = _level_means(spots, sizes_x)
     sigma_y, err_y = _level_means(spots, sizes_y)
     table = SizeTable(np.asarray(config.peaks_e, float), sigma_x, sigma_y, err_x, err_y,
