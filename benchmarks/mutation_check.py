@@ -121,7 +121,7 @@ def _all_bfpsf_modules():
     import bfpsf
 
     for info in pkgutil.walk_packages(bfpsf.__path__, "bfpsf."):
-        if ".piff" in info.name:
+        if ".piff" in info.name or info.name.endswith("__main__"):
             continue
         importlib.import_module(info.name)
 
@@ -149,9 +149,12 @@ def run(name):
     process = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "mutation_check",
                               "-p", "no:cacheprovider", *tests], cwd=ROOT, env=env,
                              capture_output=True, text=True)
-    failed = re.findall(r"^FAILED (\S+)", process.stdout, re.M) or re.findall(
-        r"^ERROR (\S+)", process.stdout, re.M)
-    return process.returncode != 0, (failed[0] if failed else None), time.perf_counter() - start
+    failed = re.findall(r"^(?:FAILED|ERROR) (\S+)", process.stdout, re.M)
+    if process.returncode != 0 and not failed:  # the run itself broke: not a catch
+        tail = (process.stdout + process.stderr).strip().splitlines()[-3:]
+        raise RuntimeError(f"{name}: pytest exited {process.returncode} without a failing "
+                           f"test: {' / '.join(tail)}")
+    return bool(failed), (failed[0] if failed else None), time.perf_counter() - start
 
 
 def main():
