@@ -47,8 +47,9 @@ def add_parser(subparsers):
                            "(default: Gaussian); the spot model itself is the P0 fitted from "
                            "the stars")
     data.add_argument("--background", type=background_option, default=None, metavar="ADU",
-                      help="sky level of the images, ADU per pixel (0 for sky-subtracted "
-                           "images); default the sigma-clipped median of each image")
+                      help="a known sky level of the images, ADU per pixel (0 for "
+                           "sky-subtracted images); default the sky surface of each image (a "
+                           "plane fitted beyond the masked sources)")
     data.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                       help="saturation level of the images, ADU: saturated stars are not used "
                            "(default the header's SATURATE or a variant; the calibration's "

@@ -31,7 +31,8 @@ def _amplifier_colours(colour_table, amplifier):
 def add_parser(subparsers):
     parser = subparsers.add_parser(
         "measure", help="detect stars and measure adaptive moments (sizes) in electrons",
-        description="Detect sources (photutils segmentation), subtract a local background, and "
+        description="Detect sources (photutils segmentation), subtract the sky (a plane "
+                    "fitted beyond the masked sources, as every command), and "
                     "measure peak, flux and adaptive second moments (G15 section 3.2). "
                     "Saturated, blended and edge sources are flagged, not dropped.")
     parser.add_argument("images", nargs="+", metavar="IMAGE.fits",
