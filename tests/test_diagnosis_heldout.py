@@ -33,7 +33,7 @@ def test_lamp_error_floor_recovers_jitter_and_ignores_nonlinearity():
     for c in (0.0, -2e-7):
         measured = linear * (1 + jitter) * (1 + c * linear * (1 + jitter))
         floor = lamp_error_floor(exptime, measured, shot)
-        # relative error of an rms from 37 degrees of freedom: 12 %
+        # relative error of an rms from 37 degrees of freedom: 12 %, held to 3 sigma
         assert floor == pytest.approx(1e-3, rel=0.35)
     # no flicker: no floor
     assert lamp_error_floor(exptime, linear + rng.normal(0, 2.0, exptime.size), shot) < 2e-5

@@ -50,12 +50,13 @@ def test_sizes_and_background_match_the_noiseless_star(field, measured):
     reference = adaptive_moments(galsim.Moffat(fwhm=4.0, beta=3.5).drawImage(
         nx=32, ny=32, scale=1.0).array).sigma
     pull = (measured["iq"] - reference) / measured["iq_err"]
-    # errors from linear propagation; pulls of 36 stars: mean 0 +- 0.17, spread 1 +- 0.12
-    assert abs(np.mean(pull)) < 0.6
-    assert np.std(pull) == pytest.approx(1.0, abs=0.4)
-    # local background: 100 e- sky; annulus median of ~1200 pixels, error ~0.4 e-, plus the
-    # star's own wing at 20-28 pixels (< 1e-5 of the peak: < 1 e- here)
-    np.testing.assert_allclose(measured["background_e"], 100.0, atol=1.5)
+    # errors from linear propagation; pulls of 36 stars: mean 0 +- 0.17, spread 1 +- 0.12,
+    # each held to 3 sigma (measured: +0.12, 0.87)
+    assert abs(np.mean(pull)) < 3 * 0.17
+    assert np.std(pull) == pytest.approx(1.0, abs=3 * 0.12)
+    # the sky plane of every command: 100 e- sky fitted on ~50000 free pixels, error ~0.05 e-
+    # at the centre, ~0.1 e- at a corner (measured: within 0.07 e-)
+    np.testing.assert_allclose(measured["background_e"], 100.0, atol=0.3)
     np.testing.assert_allclose(measured["background_rms_e"], np.sqrt(100.0 + 25.0), rtol=0.1)
     # aperture flux within 5 IQ holds 98 % of a Moffat beta 3.5
     ratio = measured["flux_e"] / truth["flux_e"]
