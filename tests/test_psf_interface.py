@@ -153,6 +153,11 @@ def test_to_galsim_draws_the_star_image(kind):
     reference = psf.star_image(5e4, half_size=8) / 5e4
     drawn = profile.drawImage(nx=17, ny=17, scale=1.0, method="no_pixel").array
     assert np.abs(drawn - reference).max() < 2e-3 * reference.max()
+    # and with a position spelt as the method spells it, or as position=(x, y)
+    for profile in (to_galsim(psf, flux, x, y)[0], to_galsim(psf, flux, position=(x, y))[0]):
+        drawn = profile.drawImage(nx=17, ny=17, scale=1.0, method="no_pixel",
+                                  offset=(0.3, -0.4)).array
+        assert np.abs(drawn - expected).max() < 2e-3 * expected.max()
 
 
 def test_product_and_pickle_round_trip_by_value(kind, tmp_path):

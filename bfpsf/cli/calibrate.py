@@ -127,7 +127,7 @@ def _print(detector, calibration):
         prefix = f"{label}: " if label else ""
         a = one.a
         print(f"{prefix}gain {one.gain:.5f} +- {one.gain_err:.5f} e-/ADU, "
-              f"read noise {one.noise_e:.3f} e-, {one.n_pairs} pairs, "
+              f"read noise {one.noise_e:.3f} +- {one.noise_e_err:.3f} e-, {one.n_pairs} pairs, "
               f"turnoff {one.turnoff_e:.4g} e-"
               + (" (detected)" if one.turnoff_detected else " (not reached)"))
         how = ("chosen from the data: " + one.parameters["maxlag_reason"]

@@ -58,7 +58,8 @@ def add_parser(subparsers):
                              "default the header's SATURATE or a variant; with --calib, the "
                              "linearity turnoff where lower)")
     parser.add_argument("--static", action="store_true",
-                        help="fit the static P0 (no BF term), for comparison")
+                        help="fit the static P0 (no BF term), for comparison (total fluxes "
+                             "too: the product's correction for the light beyond P0)")
     parser.add_argument("--no-cross-terms", action="store_true",
                         help="skip the refit of blended stars without the BF of their charge "
                              "on each other")
@@ -150,7 +151,10 @@ def run(args):
                                        background_e=(None if args.background is None
                                                      else args.background * amp_gain),
                                        detection_threshold=args.threshold,
-                                       cross_terms=not args.no_cross_terms)
+                                       cross_terms=not args.no_cross_terms,
+                                       # --static too: total fluxes, with the product's
+                                       # correction for the light beyond P0's support
+                                       flux_correction=bf_model.flux_correction)
             level = saturation_e(amplifier, amp_gain, args.saturation, one)
             table["saturated"] = saturated_stars(
                 amplifier.data * amp_gain, level, table["x_fit"], table["y_fit"],

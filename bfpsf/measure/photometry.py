@@ -211,7 +211,7 @@ def _check_groups(psf, fit_shape, group_separation, init):
 def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background_e=None,
                    fit_shape=None, group_separation=None,
                    detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
-                   linearity_c_per_1e5=None, **kwargs):
+                   linearity_c_per_1e5=None, flux_correction=None, **kwargs):
     """Fit every star of an image with the flux-dependent PSF.
 
     Parameters
@@ -260,6 +260,11 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     linearity_c_per_1e5 : float, optional
         Linearity correction undone on input (`bfpsf.measure.prepare.prepare_image`); default the
         PSF's own (``psf.linearity_c_per_1e5``, 0 for a photutils model).
+    flux_correction : float, optional
+        The total flux over the flux the PSF holds (the light beyond its support), applied to
+        ``flux_fit`` and ``flux_err``; default the PSF's own (``psf.flux_correction``, measured
+        when it was fitted), 1 for a photutils model: give the product's to compare a static
+        P0 (`bfpsf.interop.photutils.static_image_psf`) at total fluxes too.
     **kwargs
         Passed to `photutils.psf.PSFPhotometry`.
 
@@ -359,7 +364,12 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     if source_flags is not None:
         result["source_flags"] = source_flags[np.asarray(result["id"], dtype=int) - 1]
     # the total flux: the light beyond P0's support (measured when the PSF was fitted)
-    correction = float(psf.flux_correction) if bfpsf_model else 1.0
+    if flux_correction is None:
+        flux_correction = psf.flux_correction if bfpsf_model else 1.0
+    correction = float(flux_correction)
+    if not (np.isfinite(correction) and correction > 0):
+        msg = f"flux_correction must be a positive finite number, got {flux_correction!r}"
+        raise BFPSFValueError(msg, flux_correction)
     result["flux_fit"] = result["flux_fit"] * correction
     result["flux_err"] = result["flux_err"] * correction
     result["sky_e"] = sky(np.asarray(result["x_fit"], float), np.asarray(result["y_fit"], float))

@@ -19,7 +19,8 @@ from .redistribution import redistribute
 __all__ = ["to_galsim", "apply_bf_to_rendered", "render_stars"]
 
 
-def to_galsim(psf, flux, *, x_phase=None, y_phase=None, normalise=True, position=None):
+def to_galsim(psf, flux, x=None, y=None, *, x_phase=None, y_phase=None, normalise=True,
+              position=None):
     """The pixelised PSF of a star of flux F as a GalSim object.
 
     Parameters
@@ -27,6 +28,9 @@ def to_galsim(psf, flux, *, x_phase=None, y_phase=None, normalise=True, position
     psf : FluxDependentPSF or GriddedFluxDependentPSF
     flux : float
         Flux of the star, in the PSF's ``flux_unit``.
+    x, y : float, optional
+        Image position of the star, pixels (as every call of every kind:
+        ``psf.to_galsim(flux, x, y)``); or give ``position``.
     x_phase, y_phase : float, optional
         Star centre minus the centre of its pixel, pixels: R depends on it (and a fitted P0
         on its phases). Default the phase of ``position``, 0 without one.
@@ -52,7 +56,11 @@ def to_galsim(psf, flux, *, x_phase=None, y_phase=None, normalise=True, position
     if not np.isfinite(flux) or flux <= 0:
         msg = f"flux must be a positive finite number, got {flux!r}"
         raise BFPSFValueError(msg, flux)
-    x, y = (None, None) if position is None else position
+    if position is not None:
+        if x is not None or y is not None:
+            msg = "give the star's image position as x, y or as position=(x, y), not both"
+            raise BFPSFValueError(msg, position)
+        x, y = position
     x_phase, y_phase = star_phases(x, y, x_phase, y_phase)
     # every PSF kind (bfpsf.model.base): a field-varying one is taken at (x, y)
     stamp = psf.star_image(flux, x, y, x_phase=x_phase, y_phase=y_phase)
