@@ -51,21 +51,27 @@ class PreparedImage:
             self._cache["data"] = data if self.glow_e is None else data - self.glow_e
         return self._cache["data"]
 
-    def with_glow(self, glow_e):
-        """The image with the sky re-estimated beyond ``glow_e`` (a known sky is kept)."""
-        if self.sky.method == "known":
-            return self.with_sky(self.sky, glow_e)
+    @property
+    def sky_pixels(self):
+        """The pixels beyond the sources (`bfpsf.measure.sky.sky_pixels`), found once per
+        image: every sky estimate of it fits these."""
         if "sky_pixels" not in self._cache:
             self._cache["sky_pixels"] = sky_pixels(self.image_e)
-        sky = estimate_sky(self.image_e, glow_e=glow_e, degree=self.sky.degree,
-                           sky_pixels_mask=self._cache["sky_pixels"])
-        prepared = self.with_sky(sky, glow_e)
-        prepared._cache["sky_pixels"] = self._cache["sky_pixels"]
-        return prepared
+        return self._cache["sky_pixels"]
+
+    def with_glow(self, glow_e):
+        """The image with the sky re-estimated beyond ``glow_e`` (a known sky is kept)."""
+        sky = self.sky if self.sky.method == "known" else estimate_sky(
+            self.image_e, glow_e=glow_e, degree=self.sky.degree,
+            sky_pixels_mask=self.sky_pixels)
+        return self.with_sky(sky, glow_e)
 
     def with_sky(self, sky, glow_e=None):
-        """The image with another sky model and glow."""
-        return PreparedImage(self.image_e, sky, self.gain, self.linearity_c_per_1e5, glow_e)
+        """The image with another sky model and glow (the same pixels: the same sources)."""
+        prepared = PreparedImage(self.image_e, sky, self.gain, self.linearity_c_per_1e5, glow_e)
+        if "sky_pixels" in self._cache:
+            prepared._cache["sky_pixels"] = self._cache["sky_pixels"]
+        return prepared
 
 
 def linearity_of(calibration):
@@ -122,7 +128,7 @@ def prepare_image(data, *, gain=1.0, linearity_c_per_1e5=0.0, background_e=None,
     prepared = PreparedImage(image_e, estimate_sky(image_e, degree=sky_degree,
                                                    sky_pixels_mask=free),
                              float(gain), float(linearity_c_per_1e5))
-    prepared._cache["sky_pixels"] = free  # the sky again beyond the glow: `with_glow`
+    prepared._cache["sky_pixels"] = free  # kept for the sky again beyond the glow
     return prepared
 
 
