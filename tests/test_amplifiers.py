@@ -347,7 +347,8 @@ def test_photometry_applies_each_amplifiers_gain_and_shifts(tmp_path, capsys):
 
     back = read_calibration(tmp_path / "cal.fits")
     for amplifier in read_amplifiers(tmp_path / "stars.fits"):
-        gain, model, _ = _amplifier_model(psf, 1.0, back, amplifier, "stars.fits", None, False)
+        gain, model, _ = _amplifier_model(psf, 1.0, back[amplifier.name], amplifier, None,
+                                          False)
         np.testing.assert_array_equal(model.shifts.north, back[amplifier.name].shifts.north)
         assert gain == back[amplifier.name].gain
     assert not np.array_equal(back["C00"].shifts.north, back["C01"].shifts.north)
@@ -457,5 +458,5 @@ def test_psf_keeps_each_amplifiers_shifts(tmp_path, capsys):
     np.testing.assert_allclose(factor[finite], factor[finite][0], rtol=1e-9)
     assert abs(factor[finite][0] - 1.0) < 0.06
     for amplifier in read_amplifiers(tmp_path / "stars.fits"):
-        _, model, _ = _amplifier_model(psf, 1.0, None, amplifier, "stars.fits", None, False)
+        _, model, _ = _amplifier_model(psf, 1.0, None, amplifier, None, False)
         np.testing.assert_allclose(model.shifts.north, shifts[amplifier.name].north, rtol=1e-12)

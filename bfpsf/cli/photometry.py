@@ -68,22 +68,19 @@ def add_parser(subparsers):
     return parser
 
 
-def _amplifier_model(psf, gain, calibration, amplifier, path, gain_option, static):
-    """Gain (e-/ADU), the model fitted and the flux-dependent model of one amplifier: with a
-    calibration, its gain (unless --gain), P0 with that amplifier's boundary shifts and the
-    calibration's linearity correction (a calibration refined by 'bfpsf diagnose
-    --output-calib'); else the PSF product's, with the amplifier's own shifts where the
-    product has them (`BFPSFModel.for_amplifier`). With --static the model fitted is the
+def _amplifier_model(psf, gain, one, amplifier, gain_option, static):
+    """Gain (e-/ADU), the model fitted and the flux-dependent model of one amplifier: with
+    its calibration ``one``, its gain (unless --gain), P0 with that amplifier's boundary
+    shifts and the calibration's linearity correction (a calibration refined by 'bfpsf
+    diagnose --output-calib'); else the PSF product's, with the amplifier's own shifts where
+    the product has them (`BFPSFModel.for_amplifier`). With --static the model fitted is the
     static P0."""
-    from ..calibration.detector import calibration_of_amplifier
     from ..interop.photutils import static_image_psf
-
-    from ..model.empirical import empirical_of
     from ..measure.prepare import linearity_of
+    from ..model.empirical import empirical_of
 
     model = psf.for_amplifier(amplifier.name)
-    if calibration is not None:
-        one = calibration_of_amplifier(calibration, amplifier.name, str(path))
+    if one is not None:
         gain = one.gain if gain_option is None else float(gain_option)
         if one.shifts is not None and one.shifts is not psf.shifts:
             model = psf.with_shifts(one.shifts)
@@ -138,10 +135,10 @@ def run(args):
             raise BFPSFInputError(msg, args.psf)
         sides = shared_sides([amplifier.layout for amplifier in amplifiers])
         for amplifier in amplifiers:
-            amp_gain, model, bf_model = _amplifier_model(psf, gain, calibration, amplifier,
-                                                         path, args.gain, args.static)
             one = None if calibration is None else calibration_of_amplifier(
                 calibration, amplifier.name, str(path))
+            amp_gain, model, bf_model = _amplifier_model(psf, gain, one, amplifier, args.gain,
+                                                         args.static)
             read_noise = _read_noise(args, one)
             # the image preparation (linearity, sky) is psf_photometry's, as in Python
             with about(path):
