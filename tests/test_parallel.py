@@ -164,11 +164,13 @@ def _sigint_blocked():
 
 
 INTERRUPTED_MAP = """
-import sys, time
+import os, sys, time
 from bfpsf.parallel import parallel_session
 
 def slow(value):
-    print("running", flush=True)
+    # one write of the whole line: the two workers' print()s once interleaved on the shared
+    # pipe as "runningrunning\\n\\n", and the test, never seeing its line, waited out the map
+    os.write(1, b"running\\n")
     time.sleep(60)
     return value
 
@@ -201,8 +203,10 @@ def test_ctrl_c_on_the_process_group_reaches_this_process_alone(tmp_path, when):
     process = subprocess.Popen([sys.executable, "run.py"], cwd=tmp_path, env=environment,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                start_new_session=True)
-    while process.stdout.readline() not in (f"{when}\n", ""):
-        pass
+    lines = []
+    while not lines or lines[-1] not in (f"{when}\n", ""):
+        lines.append(process.stdout.readline())
+    assert lines[-1] == f"{when}\n", lines
     os.killpg(process.pid, signal.SIGINT)
     _, err = process.communicate(timeout=60)
     assert (process.returncode, err) == (130, "")
