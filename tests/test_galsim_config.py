@@ -10,7 +10,9 @@ diffusion (`silicon_diffusion_sigma`): BF acts on the charge as it lands, diffus
 """
 
 import resource
+import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -54,10 +56,15 @@ def _scene(tmp_path, calibration, tiles, name, sensor, diffusion):
     return path
 
 
+#: the ``galsim`` executable of this Python's environment (found beside the interpreter when the
+#: suite runs as ``venv/bin/python -m pytest`` without the environment activated)
+GALSIM = shutil.which("galsim", path=str(Path(sys.executable).parent)) or "galsim"
+
+
 def _run_galsim(config_path):
     """Run the ``galsim`` executable; return its CPU time, s (the machine may be shared)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    subprocess.run(["galsim", str(config_path), "-v", "0"], check=True, cwd=config_path.parent)
+    subprocess.run([GALSIM, str(config_path), "-v", "0"], check=True, cwd=config_path.parent)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
 
@@ -180,6 +187,6 @@ def test_sensor_keys_and_errors(tmp_path, e2v_flats_calibration):
         galsim.config.BuildSensor(base["image"], "sensor", base)
     # through the executable: a one-line GalSim error naming the file, not a sensor-less image
     config = _scene(tmp_path, tmp_path / "no.fits", 2, "missing", "bf", 0.0)
-    run = subprocess.run(["galsim", str(config)], capture_output=True, text=True,
+    run = subprocess.run([GALSIM, str(config)], capture_output=True, text=True,
                          cwd=tmp_path)
     assert run.returncode != 0 and "no.fits does not exist" in run.stderr
