@@ -39,6 +39,7 @@ downstream prediction propagates.
 """
 
 import dataclasses
+import functools
 
 import numpy as np
 from scipy import optimize, stats
@@ -113,6 +114,17 @@ class ElectrostaticGeometry:
         return dataclasses.asdict(self)
 
 
+@functools.lru_cache(maxsize=None)
+def _gauss_legendre(count):
+    """Gauss-Legendre nodes and weights on [-1, 1], computed once per ``count`` (read-only):
+    numpy's ``leggauss`` finds them anew by an eigenvalue problem, half the time of a fit
+    that evaluates the field tens of thousands of times."""
+    nodes, weights = np.polynomial.legendre.leggauss(count)
+    nodes.setflags(write=False)
+    weights.setflags(write=False)
+    return nodes, weights
+
+
 def _integrated_field(along, normal, z_low, geometry, axis_half_width, cross_half_width):
     """Transverse field of the unit sheet, normal to a boundary, integrated over z.
 
@@ -124,7 +136,7 @@ def _integrated_field(along, normal, z_low, geometry, axis_half_width, cross_hal
     int E_n dz = n / rho^2 [(z - c) / sqrt(rho^2 + (z - c)^2)], rho the horizontal distance.
     """
     t = geometry.thickness
-    nodes, weights = np.polynomial.legendre.leggauss(_SHEET_NODES)
+    nodes, weights = _gauss_legendre(_SHEET_NODES)
     # sheet points (u across the boundary, v along it) and their weights, flattened: [S]
     u = np.repeat(nodes * axis_half_width, _SHEET_NODES)
     v = np.tile(nodes * cross_half_width, _SHEET_NODES)
@@ -155,7 +167,7 @@ def _z_integral(rho2, z_low, z_high, height):
 
 def _boundary_nodes(centres):
     """Gauss-Legendre points and weights along unit boundaries centred on ``centres`` [...]."""
-    nodes, weights = np.polynomial.legendre.leggauss(_BOUNDARY_NODES)
+    nodes, weights = _gauss_legendre(_BOUNDARY_NODES)
     return centres[..., None] + nodes / 2.0, weights / 2.0
 
 
