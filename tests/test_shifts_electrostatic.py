@@ -11,7 +11,7 @@ import pytest
 from scipy import integrate
 
 from bfpsf.calibration.boundary_shifts import shift_warnings, solve_boundary_shifts
-from bfpsf.calibration.shifts_electrostatic import (ElectrostaticGeometry, _integrated_field,
+from bfpsf.calibration.shifts_electrostatic import (ElectrostaticGeometry, _unit_shift,
                                                     electrostatic_area, electrostatic_shifts,
                                                     fit_electrostatic)
 from bfpsf.errors import BFPSFValueError
@@ -21,23 +21,26 @@ GEOMETRY = ElectrostaticGeometry(thickness=10.0, charge_height=0.01, horizontal_
                                  vertical_height=0.25, half_width_x=0.4, half_width_y=0.2)
 
 
-def test_integrated_field_matches_quadrature_of_the_image_series():
-    """A point-like sheet: the z-integral of E_n from the image series, done by quadrature."""
+def test_unit_shift_matches_quadrature_of_the_image_series():
+    """A point-like sheet: the field E_n of the image series integrated over z and along a
+    unit boundary by adaptive quadrature, against the compiled kernel's Gauss-Legendre sum."""
     geometry = ElectrostaticGeometry(thickness=10.0, charge_height=0.5, horizontal_height=1.0,
                                      vertical_height=1.0, half_width_x=1e-4, half_width_y=1e-4)
-    normal, along = 1.3, np.array([0.4])
+    normal, centre = 1.3, 0.4
 
-    def field(z):
+    def field(z, along):
         total = 0.0
         for n in range(-60, 61):
             for height, sign in ((2 * n * 10.0 + 0.5, 1.0), (2 * n * 10.0 - 0.5, -1.0)):
-                total += sign * normal / (normal**2 + along[0]**2 + (z - height)**2) ** 1.5
+                total += sign * normal / (normal**2 + along**2 + (z - height)**2) ** 1.5
         return total
 
-    expected, _ = integrate.quad(field, 1.0, 10.0, epsabs=1e-12)
-    value = _integrated_field(along, np.array(normal), 1.0, geometry, 1e-4, 1e-4)
-    # six image pairs: the truncation is (1.4 / 120)^3 of the field, far below 1e-4
-    assert value[0] == pytest.approx(expected, rel=1e-4)
+    expected, _ = integrate.dblquad(field, centre - 0.5, centre + 0.5, 1.0, 10.0,
+                                    epsabs=1e-12)
+    value = _unit_shift(np.array([centre]), np.array([normal]), 1.0, geometry, 1e-4, 1e-4)
+    # six image pairs: the truncation is (1.4 / 120)^3 of the field; 8 nodes along the
+    # boundary: 1e-4
+    assert -value[0] == pytest.approx(expected, rel=1e-4)
 
 
 def test_shifts_are_physical_and_symmetric():

@@ -41,6 +41,7 @@ downstream prediction propagates.
 import dataclasses
 import functools
 
+import numba
 import numpy as np
 from scipy import optimize, stats
 
@@ -116,59 +117,75 @@ class ElectrostaticGeometry:
 
 @functools.lru_cache(maxsize=None)
 def _gauss_legendre(count):
-    """Gauss-Legendre nodes and weights on [-1, 1], computed once per ``count`` (read-only):
-    numpy's ``leggauss`` finds them anew by an eigenvalue problem, half the time of a fit
-    that evaluates the field tens of thousands of times."""
+    """Gauss-Legendre nodes and weights on [-1, 1], computed once per ``count`` (read-only)."""
     nodes, weights = np.polynomial.legendre.leggauss(count)
     nodes.setflags(write=False)
     weights.setflags(write=False)
     return nodes, weights
 
 
-def _integrated_field(along, normal, z_low, geometry, axis_half_width, cross_half_width):
-    """Transverse field of the unit sheet, normal to a boundary, integrated over z.
-
-    ``along`` [..., B] are positions along the boundary and ``normal`` [...] the boundary's
-    distance from the sheet centre along its normal, both relative to the sheet centre.
-    ``axis_half_width`` is the sheet half-size along the normal, ``cross_half_width`` along
-    the boundary. Returns the integral from ``z_low`` to the thickness, averaged over the
-    sheet, [..., B]. For a point charge at height c,
-    int E_n dz = n / rho^2 [(z - c) / sqrt(rho^2 + (z - c)^2)], rho the horizontal distance.
-    """
-    t = geometry.thickness
-    nodes, weights = _gauss_legendre(_SHEET_NODES)
-    # sheet points (u across the boundary, v along it) and their weights, flattened: [S]
-    u = np.repeat(nodes * axis_half_width, _SHEET_NODES)
-    v = np.tile(nodes * cross_half_width, _SHEET_NODES)
-    sheet_weights = np.outer(weights, weights).ravel() / 4.0
-    normal = np.asarray(normal, dtype=float)[..., None]
-    # The charge and its image in the clock plane, as the extended sheet.
-    n = normal[..., None] - u                                            # [..., 1, S]
-    rho2 = n ** 2 + (along[..., None] - v) ** 2                          # [..., B, S]
-    near = (_z_integral(rho2, z_low, t, geometry.charge_height)
-            - _z_integral(rho2, z_low, t, -geometry.charge_height))
-    result = np.sum(sheet_weights * n / rho2 * near, axis=-1)
-    # The other images are at least 2 t - z_q away: point charges at the sheet centre.
-    orders = np.concatenate([np.arange(-_IMAGE_PAIRS, 0), np.arange(1, _IMAGE_PAIRS + 1)])
-    heights = np.concatenate([2 * orders * t + geometry.charge_height,
-                              2 * orders * t - geometry.charge_height])
-    signs = np.concatenate([np.ones(orders.size), -np.ones(orders.size)])
-    rho2 = (normal ** 2 + along ** 2)[..., None]                         # [..., B, 1]
-    far = np.sum(signs * _z_integral(rho2, z_low, t, heights), axis=-1)
-    return result + normal / rho2[..., 0] * far
-
-
+@numba.njit(cache=True, nogil=True, inline="always")
 def _z_integral(rho2, z_low, z_high, height):
     """int_{z_low}^{z_high} dz / (rho^2 + (z - c)^2)^(3/2), times rho^2, for a charge at c."""
     top = z_high - height
     bottom = z_low - height
-    return top / np.sqrt(rho2 + top ** 2) - bottom / np.sqrt(rho2 + bottom ** 2)
+    return top / np.sqrt(rho2 + top * top) - bottom / np.sqrt(rho2 + bottom * bottom)
 
 
-def _boundary_nodes(centres):
-    """Gauss-Legendre points and weights along unit boundaries centred on ``centres`` [...]."""
-    nodes, weights = _gauss_legendre(_BOUNDARY_NODES)
-    return centres[..., None] + nodes / 2.0, weights / 2.0
+@numba.njit(cache=True, nogil=True)
+def _unit_shift_kernel(centres, normals, z_low, thickness, charge_height, axis_half_width,
+                       cross_half_width, sheet_nodes, sheet_weights, boundary_nodes,
+                       boundary_weights, image_pairs):
+    """Minus the transverse field of the unit sheet, normal to a unit boundary, integrated over
+    z from ``z_low`` to the thickness and along the boundary: the shift of the boundary.
+
+    Boundary ``i`` is centred ``centres[i]`` along itself and ``normals[i]`` along its normal
+    from the sheet centre. The sheet (half-sizes ``axis_half_width`` along the normal,
+    ``cross_half_width`` along the boundary) and its image in the clock plane are integrated
+    by Gauss-Legendre; the other images, at least 2 t - z_q away, are point charges at the
+    sheet centre. For a point charge at height c,
+    int E_n dz = n / rho^2 [(z - c) / sqrt(rho^2 + (z - c)^2)], rho the horizontal distance.
+    """
+    t = thickness
+    c = charge_height
+    out = np.empty(centres.size)
+    for i in range(centres.size):
+        normal = normals[i]
+        total = 0.0
+        for b in range(boundary_nodes.size):
+            along = centres[i] + boundary_nodes[b] / 2.0
+            near = 0.0
+            for j in range(sheet_nodes.size):
+                n = normal - sheet_nodes[j] * axis_half_width
+                for k in range(sheet_nodes.size):
+                    v = along - sheet_nodes[k] * cross_half_width
+                    rho2 = n * n + v * v
+                    weight = sheet_weights[j] * sheet_weights[k] / 4.0
+                    near += weight * n / rho2 * (_z_integral(rho2, z_low, t, c)
+                                                 - _z_integral(rho2, z_low, t, -c))
+            rho2 = normal * normal + along * along
+            far = 0.0
+            for order in range(1, image_pairs + 1):
+                for height in (2.0 * order * t, -2.0 * order * t):
+                    far += (_z_integral(rho2, z_low, t, height + c)
+                            - _z_integral(rho2, z_low, t, height - c))
+            total += boundary_weights[b] / 2.0 * (near + normal / rho2 * far)
+        out[i] = -total
+    return out
+
+
+def _unit_shift(centres, normals, z_low, geometry, axis_half_width, cross_half_width):
+    """`_unit_shift_kernel` on any broadcastable arrays of boundary centres and normals."""
+    centres, normals = np.broadcast_arrays(np.asarray(centres, dtype=float),
+                                           np.asarray(normals, dtype=float))
+    sheet_nodes, sheet_weights = _gauss_legendre(_SHEET_NODES)
+    boundary_nodes, boundary_weights = _gauss_legendre(_BOUNDARY_NODES)
+    shift = _unit_shift_kernel(np.ascontiguousarray(centres).ravel(),
+                               np.ascontiguousarray(normals).ravel(), float(z_low),
+                               float(geometry.thickness), float(geometry.charge_height),
+                               float(axis_half_width), float(cross_half_width), sheet_nodes,
+                               sheet_weights, boundary_nodes, boundary_weights, _IMAGE_PAIRS)
+    return shift.reshape(centres.shape)
 
 
 def _unit_north(geometry, dx, dy):
@@ -178,20 +195,16 @@ def _unit_north(geometry, dx, dy):
     y = 1/2 - dy, x in -dx +- 1/2; the charge deflects electrons along +y there by the
     integral of E_y, so the boundary moves by minus that (outward positive).
     """
-    along, weights = _boundary_nodes(-np.asarray(dx, dtype=float))
-    deflection = _integrated_field(along, 0.5 - np.asarray(dy, dtype=float),
-                                   geometry.horizontal_height, geometry,
-                                   geometry.half_width_y, geometry.half_width_x)
-    return -np.sum(weights * deflection, axis=-1)
+    return _unit_shift(-np.asarray(dx, dtype=float), 0.5 - np.asarray(dy, dtype=float),
+                       geometry.horizontal_height, geometry, geometry.half_width_y,
+                       geometry.half_width_x)
 
 
 def _unit_east(geometry, dx, dy):
     """a^E(dx, dy) for alpha = 1: the segment x = 1/2 - dx, y in -dy +- 1/2, field E_x."""
-    along, weights = _boundary_nodes(-np.asarray(dy, dtype=float))
-    deflection = _integrated_field(along, 0.5 - np.asarray(dx, dtype=float),
-                                   geometry.vertical_height, geometry,
-                                   geometry.half_width_x, geometry.half_width_y)
-    return -np.sum(weights * deflection, axis=-1)
+    return _unit_shift(-np.asarray(dy, dtype=float), 0.5 - np.asarray(dx, dtype=float),
+                       geometry.vertical_height, geometry, geometry.half_width_x,
+                       geometry.half_width_y)
 
 
 def electrostatic_shifts(geometry, alpha, radius):
