@@ -103,6 +103,14 @@ def test_shape_is_taken_at_the_position(kind):
         assert shape.sigma / corner > 1.08
 
 
+def test_shape_of_many_fluxes_is_a_one_line_error(kind):
+    """`shape` takes one flux: an array is a BFPSFValueError naming `psf_shapes`, not numpy's
+    "truth value of an array is ambiguous"."""
+    name, psf = kind
+    with pytest.raises(BFPSFValueError, match="one number.*psf_shapes"):
+        psf.shape(np.array([1e4, 1e5]))
+
+
 def test_flux_unit_round_trip(kind):
     """A model in ADU at F ADU is the model in e- at g F e-, divided by g (BF term g F |F|)."""
     name, psf = kind

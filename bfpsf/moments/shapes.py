@@ -92,7 +92,8 @@ def psf_shape(psf, flux, *, x=None, y=None):
     """Adaptive moments of a flux-dependent PSF's pixelised model at a flux.
 
     The model is evaluated (``psf.evaluate``) on the pixels of a stamp around a star at the
-    phase of ``(x, y)``, normalised to unit flux, and measured. See `bfpsf.model.psf.FluxDependentPSF.shape` (this is its implementation).
+    phase of ``(x, y)``, normalised to unit flux, and measured: the implementation of
+    ``BFPSFModel.shape``; `psf_shapes` measures many stars at once.
 
     Parameters
     ----------
@@ -107,6 +108,10 @@ def psf_shape(psf, flux, *, x=None, y=None):
     -------
     PSFShape
     """
+    if np.ndim(flux) != 0:
+        msg = (f"flux must be one number, got an array of shape {np.shape(flux)}: the shapes "
+               f"of many stars are bfpsf.moments.shapes.psf_shapes(psf, flux, x, y)")
+        raise BFPSFValueError(msg, flux)
     if not (np.isfinite(flux) and flux > 0):
         msg = f"flux must be a positive finite number, got {flux!r}"
         raise BFPSFValueError(msg, flux)
