@@ -15,6 +15,7 @@ __all__ = [
     "BFPSFConvergenceError",
     "BFPSFCovarianceError",
     "BFPSFWarning",
+    "integer_at_least",
 ]
 
 
@@ -89,3 +90,23 @@ class BFPSFCovarianceError(BFPSFValueError):
 class BFPSFWarning(UserWarning):
     """A result was computed but may be wrong: the user should look (e.g. fluxes beyond the
     first-order brighter-fatter model)."""
+
+
+def integer_at_least(name, value, minimum, unit=""):
+    """``value`` as an int, when it is a whole number of at least ``minimum``.
+
+    The one check of the package's integer arguments (sizes, counts, steps, lags): anything
+    else, a fraction, a string or None included, is a `BFPSFValueError` such as
+    "pairs must be a positive integer, got 0". ``unit`` follows the bound in the message.
+    """
+    try:
+        whole = int(value)
+        valid = whole == value and whole >= minimum
+    except (TypeError, ValueError, OverflowError):
+        valid = False
+    if not valid:
+        wording = {0: "a non-negative integer", 1: "a positive integer"}.get(
+            minimum, f"an integer >= {minimum}")
+        msg = f"{name} must be {wording}{' ' + unit if unit else ''}, got {value!r}"
+        raise BFPSFValueError(msg, value)
+    return whole

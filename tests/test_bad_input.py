@@ -10,7 +10,7 @@ from astropy.io import fits
 from astropy.table import Table
 
 from bfpsf.cli import main
-from bfpsf.errors import BFPSFInputError, BFPSFValueError, BFPSFWarning
+from bfpsf.errors import BFPSFInputError, BFPSFValueError, BFPSFWarning, integer_at_least
 from bfpsf.model.redistribution import redistribute
 from bfpsf.shifts import BoundaryShifts
 
@@ -240,3 +240,17 @@ def test_background_must_be_finite(command, capsys):
         assert capsys.readouterr().err.splitlines()[-1] == (
             f"bfpsf {command}: error: argument --background: expected a finite sky level in "
             f"ADU, got '{value}'")
+
+
+@pytest.mark.parametrize("value, accepted", [
+    (3, 3), (3.0, 3), (np.int64(8), 8), (2, None), (2.5, None), ("8", None), (None, None),
+    (float("nan"), None), (float("inf"), None)])
+def test_integer_arguments_are_checked_in_one_place(value, accepted):
+    """`integer_at_least`, the check of every integer argument: whole numbers at or above the
+    bound pass as int; fractions, strings, None, NaN and inf are one-line errors."""
+    if accepted is None:
+        with pytest.raises(BFPSFValueError, match=r"^steps must be an integer >= 3, got "):
+            integer_at_least("steps", value, 3)
+    else:
+        result = integer_at_least("steps", value, 3)
+        assert (result, type(result)) == (accepted, int)

@@ -96,7 +96,7 @@ def test_stars_off_the_image_are_flagged_not_dropped(quick_field):
 
 @pytest.mark.parametrize(("kwargs", "error", "match"), [
     ({"size": 10}, BFPSFValueError, "odd number of pixels"),
-    ({"oversampling": 1.5}, BFPSFValueError, "oversampling must be an integer"),
+    ({"oversampling": 1.5}, BFPSFValueError, "oversampling must be a positive integer"),
     ({"initial": np.ones((5, 5))}, BFPSFValueError, "initial must have shape"),
 ])
 def test_bad_arguments(quick_field, kwargs, error, match):

@@ -20,7 +20,7 @@ import logging
 
 import numpy as np
 
-from ..errors import BFPSFInputError, BFPSFValueError
+from ..errors import BFPSFInputError, BFPSFValueError, integer_at_least
 from .flats import Flat, FlatPair
 from .pair_covariance_result import PairCovariance
 from .pair_difference import (clip_variance_factor, difference_kernel, self_consistent_threshold,
@@ -321,10 +321,7 @@ def fold_quadrants(cov_map, npix_map):
 
 
 def _validate_maxlag(maxlag, shape):
-    if int(maxlag) != maxlag or maxlag < 0:
-        msg = f"maxlag must be a non-negative integer, got {maxlag!r}"
-        raise BFPSFValueError(msg, maxlag)
-    maxlag = int(maxlag)
+    maxlag = integer_at_least("maxlag", maxlag, 0)
     if min(shape) <= 2 * maxlag:
         msg = f"maxlag={maxlag} is too large for an image of shape {shape}"
         raise BFPSFValueError(msg, maxlag)

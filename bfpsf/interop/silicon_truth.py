@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 import galsim
 
-from ..errors import BFPSFValueError
+from ..errors import BFPSFValueError, integer_at_least
 from ..shifts import BoundaryShifts
 
 __all__ = [
@@ -258,10 +258,7 @@ def silicon_boundary_shifts(sensor="lsst_itl_50_8", *, charge=1000.0, radius=4,
     if charge <= 0:
         msg = f"charge must be positive, got {charge}"
         raise BFPSFValueError(msg, charge)
-    m = int(radius)
-    if m < 1 or m != radius:
-        msg = f"radius must be a positive integer, got {radius}"
-        raise BFPSFValueError(msg, radius)
+    m = integer_at_least("radius", radius, 1)
     ncol = 64
     nrow = max(int(photons_per_boundary) // ncol, 4)
     area00 = abs(silicon_area_coefficients(sensor, charge=charge, maxlag=0)[0, 0])

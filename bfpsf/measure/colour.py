@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import BFPSFInputError, BFPSFValueError
+from ..errors import BFPSFInputError, BFPSFValueError, integer_at_least
 from ..moments.result import MomentsFlag
 
 __all__ = ["SizeColourFit", "fit_size_colour", "apply_size_colour", "correct_size_colour"]
@@ -133,9 +133,7 @@ def fit_size_colour(table, colour_column, *, max_peak_e=None, low_flux_fraction=
     -------
     SizeColourFit
     """
-    if int(degree) != degree or degree < 0:
-        msg = f"degree must be a non-negative integer, got {degree!r}"
-        raise BFPSFValueError(msg, degree)
+    integer_at_least("degree", degree, 0)
     if not 0 < low_flux_fraction <= 1:
         msg = f"low_flux_fraction must be in (0, 1], got {low_flux_fraction!r}"
         raise BFPSFValueError(msg, low_flux_fraction)

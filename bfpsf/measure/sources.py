@@ -12,7 +12,7 @@ import warnings
 
 import numpy as np
 
-from ..errors import BFPSFInputError, BFPSFValueError
+from ..errors import BFPSFInputError, BFPSFValueError, integer_at_least
 from ..moments.adaptive import adaptive_moments_batch
 from ..moments.moment_errors import moment_errors
 from ..moments.result import MomentsFlag
@@ -268,9 +268,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     if image.ndim != 2:
         msg = f"image_e must be a 2-D array [y, x], got shape {image.shape}"
         raise BFPSFInputError(msg, image.shape)
-    if int(stamp_size) != stamp_size or stamp_size < 8:
-        msg = f"stamp_size must be an integer >= 8 pixels, got {stamp_size!r}"
-        raise BFPSFValueError(msg, stamp_size)
+    integer_at_least("stamp_size", stamp_size, 8, "pixels")
     if not threshold > 0:
         msg = f"threshold must be positive, got {threshold!r}"
         raise BFPSFValueError(msg, threshold)

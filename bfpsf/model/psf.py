@@ -25,7 +25,7 @@ import numpy as np
 from astropy.modeling import Parameter
 from scipy.interpolate import RectBivariateSpline
 
-from ..errors import BFPSFValueError
+from ..errors import BFPSFValueError, integer_at_least
 from ..shifts import as_shifts
 from .base import MODES, BFPSFModel, validate_data, validate_oversampling, validate_units
 from .bf_term import (BFTerm, bf_response_table, exact_density_table, pixelised_stamp,
@@ -149,14 +149,11 @@ class FluxDependentPSF(BFTerm, BFPSFModel):
             msg = f"mode must be one of {MODES}, got {mode!r}"
             raise BFPSFValueError(msg, mode)
         if buildup_steps is not None:
-            if int(buildup_steps) != buildup_steps or buildup_steps < 1:
-                msg = f"buildup_steps must be a positive integer, got {buildup_steps!r}"
-                raise BFPSFValueError(msg, buildup_steps)
+            buildup_steps = integer_at_least("buildup_steps", buildup_steps, 1)
             if mode != "exact":
                 msg = ("buildup_steps makes the BF response non-quadratic in flux; it requires "
                        f"mode='exact', got mode={mode!r}")
                 raise BFPSFValueError(msg, mode)
-            buildup_steps = int(buildup_steps)
         self.buildup_steps = buildup_steps
         if bf_table is not None:
             bf_table = np.array(bf_table, dtype=float)
@@ -164,9 +161,7 @@ class FluxDependentPSF(BFTerm, BFPSFModel):
                 msg = (f"bf_table must have the shape of data {self.data.shape} and needs "
                        f"mode='table', got shape {bf_table.shape} and mode={mode!r}")
                 raise BFPSFValueError(msg, bf_table.shape)
-        if int(density_oversampling) != density_oversampling or density_oversampling < 2:
-            msg = f"density_oversampling must be an integer >= 2, got {density_oversampling!r}"
-            raise BFPSFValueError(msg, density_oversampling)
+        integer_at_least("density_oversampling", density_oversampling, 2)
         self.density_profile = density_profile
         self.density_oversampling = int(density_oversampling)
         self.mode = mode

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from astropy.table import Table
 
-from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError
+from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError, integer_at_least
 from ..resources import check_psf_fit
 from ..shifts import BoundaryShifts, as_shifts
 from .empirical import PATTERNS, apply_pattern
@@ -287,10 +287,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     if size < 5 or size % 2 == 0:
         msg = f"size must be an odd number of pixels >= 5, got {size}"
         raise BFPSFValueError(msg, size)
-    over = int(oversampling)
-    if over < 1 or over != oversampling:
-        msg = f"oversampling must be an integer >= 1, got {oversampling!r}"
-        raise BFPSFValueError(msg, oversampling)
+    over = integer_at_least("oversampling", oversampling, 1)
     images, positions = as_star_list(images_e, positions)
     skies = np.broadcast_to(np.asarray(sky_e, dtype=float), (len(images),))
     if np.any(~np.isfinite(skies)) or np.any(skies < 0):

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import BFPSFFileExistsError, BFPSFValueError
+from ..errors import BFPSFFileExistsError, BFPSFValueError, integer_at_least
 from ..outputs import write_fits
 
 __all__ = ["simulate_flat", "simulate_flats", "write_flats", "DEFAULT_LEVELS_E", "MAX_LEVEL_E"]
@@ -96,9 +96,7 @@ def simulate_flat(sensor, level_e, *, size, nsteps=20, rng, margin=5, midpoint=T
     if level_e < 0 or not np.isfinite(level_e):
         msg = f"level_e must be a finite charge >= 0 electrons, got {level_e}"
         raise BFPSFValueError(msg, level_e)
-    if int(nsteps) != nsteps or nsteps < 1:
-        msg = f"nsteps must be a positive integer, got {nsteps}"
-        raise BFPSFValueError(msg, nsteps)
+    integer_at_least("nsteps", nsteps, 1)
     if min(ny, nx) < 1 or margin < 0:
         msg = f"size must be positive and margin >= 0, got size {size}, margin {margin}"
         raise BFPSFValueError(msg, (size, margin))
@@ -247,12 +245,8 @@ def _validate(levels_e, pairs, size, gain, read_noise_e, hot_columns):
         msg = (f"the flat levels must be charges from 0 to {MAX_LEVEL_E:.0e} e- (MAX_LEVEL_E), "
                f"got {levels_e.tolist()}")
         raise BFPSFValueError(msg, levels_e)
-    if int(pairs) != pairs or pairs < 1:
-        msg = f"pairs must be a positive integer, got {pairs}"
-        raise BFPSFValueError(msg, pairs)
-    if int(size) != size or size < 8:
-        msg = f"size must be an integer of at least 8 pixels, got {size}"
-        raise BFPSFValueError(msg, size)
+    integer_at_least("pairs", pairs, 1)
+    integer_at_least("size", size, 8, "pixels")
     if not 0 < gain < np.inf:
         msg = f"gain must be positive (e-/ADU), got {gain}"
         raise BFPSFValueError(msg, gain)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import BFPSFInputError, BFPSFValueError
+from ..errors import BFPSFInputError, BFPSFValueError, integer_at_least
 from ..files import refuse_overwrite
 from ..outputs import write_fits
 
@@ -215,12 +215,8 @@ def simulate_spots(*, sensor="lsst_e2v_50_8", fwhm=4.0, beta=3.5, peaks_e=(10e3,
     if peaks.size == 0 or np.any(~(peaks > 0)):
         msg = f"peaks_e must be positive electrons, got {peaks_e!r}"
         raise BFPSFValueError(msg, peaks_e)
-    if int(n_per_level) != n_per_level or n_per_level < 1:
-        msg = f"n_per_level must be a positive integer, got {n_per_level!r}"
-        raise BFPSFValueError(msg, n_per_level)
-    if int(stamp_size) != stamp_size or stamp_size < 8:
-        msg = f"stamp_size must be an integer >= 8, got {stamp_size!r}"
-        raise BFPSFValueError(msg, stamp_size)
+    integer_at_least("n_per_level", n_per_level, 1)
+    integer_at_least("stamp_size", stamp_size, 8, "pixels")
     if read_noise_e < 0 or sky_e < 0:
         msg = f"read_noise_e and sky_e must be >= 0, got {read_noise_e!r}, {sky_e!r}"
         raise BFPSFValueError(msg, (read_noise_e, sky_e))
