@@ -3,6 +3,7 @@
 import importlib.util
 from pathlib import Path
 
+import matplotlib.image
 import numpy as np
 import pytest
 
@@ -70,3 +71,20 @@ def test_measured_shifts(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "ITL-3800C-002" in out and "electrostatic" in out
     assert list(tmp_path.glob("*.png"))
+
+
+def test_docs_figures_are_stamped_with_their_command(tmp_path):
+    """docs/make_figures.py runs a figure's command and writes it with a footer naming the
+    command, version, commit and date: the image grows by the footer, the rest unchanged."""
+    spec = importlib.util.spec_from_file_location(
+        "make_figures", EXAMPLES.parent / "docs" / "make_figures.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert set(module.FIGURES) >= {path.stem for path in (EXAMPLES.parent / "docs" /
+                                                          "examples").glob("*.png")}
+    written = module.make_figure("cp_pipe_amatrix", tmp_path, quick=True)
+    stamped = matplotlib.image.imread(written)
+    original = matplotlib.image.imread(EXAMPLES.parent / "docs" / "examples" / written.name)
+    assert stamped.shape[1] == original.shape[1]
+    footer = stamped[-module.FOOTER_PIXELS:, :, :3]
+    assert footer.min() < 0.6 and np.median(footer) == 1.0  # dark text on white
