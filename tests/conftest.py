@@ -9,14 +9,17 @@ are drawn with the operator it tests cannot find an error in it).
 
 ``e2v_flats_calibration``: the user's calibration of the E2V SiliconSensor, `bfpsf.calibrate` on
 a small simulated flat set (seed 203), shared by the tests that start from flats
-(test_flats_to_psf.py, test_gridded_silicon.py) so that CI simulates it once.
+(test_flats_to_psf.py, test_gridded_silicon.py, ...) so that CI simulates it once, in one
+of the test processes of ``pytest -n 2`` (`computed_once_per_run`).
 
 Hypothesis: with the ``CI`` environment variable set, the derandomized ``ci`` profile draws the
 same examples on every run (a CI failure is reproducible, never random); locally the ``dev``
 profile searches new random examples each run. ``HYPOTHESIS_PROFILE`` chooses explicitly.
 """
 
+import fcntl
 import os
+import pickle
 
 import numpy as np
 import pytest
@@ -75,14 +78,40 @@ E2V_FLAT_LEVELS = np.geomspace(2e3, 1e5, 12)
 E2V_FLAT_SEED = 203
 
 
+def computed_once_per_run(name, compute, tmp_path_factory):
+    """``compute()``, computed by one test process of the run and read by the others.
+
+    Under ``pytest -n 2`` each process has its own session fixtures: a session fixture used
+    by test files on both processes would be computed twice. The first process to get here
+    computes it and pickles it into the run's shared temporary directory, under a lock; the
+    other one waits and reads it. Without xdist it is simply computed.
+    """
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return compute()
+    path = tmp_path_factory.getbasetemp().parent / f"{name}.pickle"
+    with open(path.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if path.is_file():
+            return pickle.loads(path.read_bytes())
+        result = compute()
+        partial = path.with_suffix(".partial")
+        partial.write_bytes(pickle.dumps(result))
+        partial.replace(path)
+        return result
+
+
 @pytest.fixture(scope="session")
-def e2v_flats_calibration():
+def e2v_flats_calibration(tmp_path_factory):
     """`bfpsf.calibrate` (electrostatic shifts, 12 shift samples) of SiliconSensor
-    ``lsst_e2v_50_8`` flats simulated from seed `E2V_FLAT_SEED` (about 70 s on one core)."""
+    ``lsst_e2v_50_8`` flats simulated from seed `E2V_FLAT_SEED` (about 50 s on one core),
+    computed once per run (`computed_once_per_run`)."""
     from bfpsf import calibrate
     from bfpsf.validation.simulate_flats import simulate_flats
 
-    flats = simulate_flats("lsst_e2v_50_8", E2V_FLAT_LEVELS, pairs=3, size=128, nsteps=10,
-                           gain=1.5, read_noise_e=5.0, seed=E2V_FLAT_SEED)
-    return calibrate([image for image, _, _ in flats], exptimes=[t for _, t, _ in flats],
-                     maxlag=6, fit_b=False, n_monte_carlo=12)
+    def compute():
+        flats = simulate_flats("lsst_e2v_50_8", E2V_FLAT_LEVELS, pairs=3, size=128, nsteps=10,
+                               gain=1.5, read_noise_e=5.0, seed=E2V_FLAT_SEED)
+        return calibrate([image for image, _, _ in flats], exptimes=[t for _, t, _ in flats],
+                         maxlag=6, fit_b=False, n_monte_carlo=12)
+
+    return computed_once_per_run("e2v_flats_calibration", compute, tmp_path_factory)
