@@ -274,7 +274,7 @@ def test_extras_name_piff_and_all_holds_every_optional_part():
     project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml")
                             .read_text())["project"]
     extras = project["optional-dependencies"]
-    assert extras["piff"] == ["piff>=1.5"] and "piff>=1.5" in extras["test"]
+    assert extras["piff"] == ["piff>=1.7"] and "piff>=1.7" in extras["test"]
     optional = {name for key, names in extras.items() if key not in ("test", "all")
                 for name in names}
     assert optional <= set(extras["all"])

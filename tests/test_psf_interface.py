@@ -166,6 +166,13 @@ def test_to_galsim_draws_the_star_image(kind):
         drawn = profile.drawImage(nx=17, ny=17, scale=1.0, method="no_pixel",
                                   offset=(0.3, -0.4)).array
         assert np.abs(drawn - expected).max() < 2e-3 * expected.max()
+    # half a position: the given axis at its phase, the other as star_image takes it (phase 0;
+    # a grid at its reference position there), by the method as by the function
+    expected = psf.star_image(flux, x, None, half_size=8) / flux
+    for profile in (psf.to_galsim(flux, x)[0], to_galsim(psf, flux, x)[0]):
+        drawn = profile.drawImage(nx=17, ny=17, scale=1.0, method="no_pixel",
+                                  offset=(0.3, 0.0)).array
+        assert np.abs(drawn - expected).max() < 2e-3 * expected.max()
 
 
 def test_product_and_pickle_round_trip_by_value(kind, tmp_path):

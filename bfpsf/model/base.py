@@ -198,9 +198,8 @@ class BFPSFModel(Fittable2DModel):
         """The pixelised PSF of a star of flux F at (x, y) (at its sub-pixel phase unless the
         phases are given) as a GalSim profile; see `bfpsf.model.galsim_profile.to_galsim`
         (returns ``(profile, pixel_included)``)."""
-        position = None if x is None and y is None else self.position_or_reference(x, y)
-        return to_galsim(self, flux, x_phase=x_phase, y_phase=y_phase, normalise=normalise,
-                         position=position)
+        return to_galsim(self, flux, x, y, x_phase=x_phase, y_phase=y_phase,
+                         normalise=normalise)
 
     def for_amplifier(self, name):
         """The model of the stars of amplifier ``name`` (EXTNAME): P0 with that amplifier's
