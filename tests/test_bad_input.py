@@ -57,6 +57,29 @@ def test_zero_variance_flats(flats, capsys):
            "flat-field exposure\n")
 
 
+def test_flats_at_two_levels_give_no_calibration(tmp_path, monkeypatch, capsys):
+    """Flats at two exposure levels do not constrain the photon transfer curve (gain, read
+    noise and a(0, 0)) and give any gain: refused in one line, no calibration written (a new
+    user's two-level flats were written with gain -0.046 and exit code 0)."""
+    monkeypatch.chdir(tmp_path)
+    rng = np.random.default_rng(2)
+    names = []
+    for level, exptime in ((2e4, 2.0), (6e4, 6.0)):
+        for member in range(6):
+            name = f"q{exptime:g}_{member}.fits"
+            image = (rng.poisson(level, (64, 64)) / 1.5).astype(np.float32)
+            fits.PrimaryHDU(image, header=fits.Header({"EXPTIME": exptime})).writeto(name)
+            names.append(name)
+    code, err = run(capsys, "calibrate", *names, "-o", "c.fits")
+    assert code == 1 and err.count("\n") == 1, err
+    assert err.startswith(f"bfpsf calibrate: error: the photon transfer curve of flats "
+                          f"{names[0]} ... {names[-1]} (6 pairs at 2 exposure level(s)) gives "
+                          f"a gain of "), err
+    assert err.endswith("it needs pairs at 3 or more levels over the flux range, their "
+                        "variance growing with their mean)\n"), err
+    assert not Path("c.fits").exists()
+
+
 def test_same_file_as_both_members_of_a_pair(flats, capsys):
     assert run(capsys, "calibrate", flats[0], flats[0], *flats[2:], "-o", "c.fits") == (
         1, "bfpsf calibrate: error: flat f1_1.fits is given twice: each file may be used once\n")

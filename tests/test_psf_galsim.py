@@ -51,7 +51,7 @@ def test_to_galsim_is_fatter_when_brighter(psf):
 
 
 def test_to_galsim_refuses_non_positive_flux(psf):
-    with pytest.raises(BFPSFValueError, match="flux must be a positive"):
+    with pytest.raises(BFPSFValueError, match="flux must be one positive finite number"):
         to_galsim(psf, 0.0)
 
 

@@ -111,6 +111,21 @@ def test_shape_of_many_fluxes_is_a_one_line_error(kind):
         psf.shape(np.array([1e4, 1e5]))
 
 
+def test_to_galsim_refuses_arrays_and_bad_positions_in_one_line(kind):
+    """One profile per star: an array of fluxes, a NaN position or a one-number position are
+    BFPSFValueErrors saying what is expected (numpy's ambiguous-truth-value error, a GalSim
+    TypeError and an unpacking error before)."""
+    from bfpsf import to_galsim
+
+    name, psf = kind
+    for call, match in ((lambda: psf.to_galsim(np.array([1e4, 1e5])), "one positive finite"),
+                        (lambda: to_galsim(psf, [1e4, 1e5]), "one positive finite"),
+                        (lambda: psf.to_galsim(1e5, np.nan, 3.0), "x must be one finite"),
+                        (lambda: to_galsim(psf, 1e5, position=(20.0,)), r"position must be")):
+        with pytest.raises(BFPSFValueError, match=match):
+            call()
+
+
 def test_flux_unit_round_trip(kind):
     """A model in ADU at F ADU is the model in e- at g F e-, divided by g (BF term g F |F|)."""
     name, psf = kind

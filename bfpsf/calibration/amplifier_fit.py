@@ -154,6 +154,7 @@ def fit_amplifier(data, parameters, *, amplifier="", names, n_masked, n_clipped,
                                 nsigma=pedestal_nsigma, degree=pedestal_degree)
     corrected = data.with_covariances(subtract_pedestal(data.cov_adu, pedestal))
     fit = fit_ptc(corrected, model=ptc_model, fit_b=fit_b, pedestal=pedestal)
+    _check_gain(fit.gain, data.exptime, names, amplifier)
     linearity = measure_linearity(data.exptime, data.mean_adu, used=fit.used,
                                   threshold=linearity_threshold)
 
@@ -190,6 +191,27 @@ def fit_amplifier(data, parameters, *, amplifier="", names, n_masked, n_clipped,
         covariances_adu=data.cov_adu, npix=data.npix,
         inputs=[str(name) for pair in names for name in pair], parameters=parameters,
         amplifier=amplifier)
+
+
+#: Exposure levels the photon transfer curve needs: its gain, read noise and a(0, 0) are three
+#: parameters of the variance against the mean (G15 eq. ptc).
+MIN_PTC_LEVELS = 3
+
+
+def _check_gain(gain, exptimes, names, amplifier):
+    """A PTC fit that cannot give the gain is refused, not written: flats at fewer than
+    `MIN_PTC_LEVELS` exposure levels, or whose variance does not grow with their mean, give
+    any gain (a new user's two levels gave -0.046 e-/ADU, another pair 0.005 for a true 1.5),
+    and every electron count made with it would be wrong."""
+    levels = np.unique(np.asarray(exptimes, float)).size
+    if levels >= MIN_PTC_LEVELS and np.isfinite(gain) and gain > 0:
+        return
+    where = f" of amplifier {amplifier}" if amplifier else ""
+    msg = (f"the photon transfer curve of flats {names[0][0]} ... {names[-1][-1]}{where} "
+           f"({len(names)} pairs at {levels} exposure level(s)) gives a gain of {gain:.4g} "
+           f"e-/ADU: the flats do not constrain it (it needs pairs at {MIN_PTC_LEVELS} or more "
+           f"levels over the flux range, their variance growing with their mean)")
+    raise BFPSFInputError(msg, gain)
 
 
 def _fitted_lags(data, below, parameters, ptc_model):

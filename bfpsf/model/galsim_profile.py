@@ -53,14 +53,22 @@ def to_galsim(psf, flux, x=None, y=None, *, x_phase=None, y_phase=None, normalis
     """
     import galsim
 
-    if not np.isfinite(flux) or flux <= 0:
-        msg = f"flux must be a positive finite number, got {flux!r}"
+    if np.ndim(flux) != 0 or not np.isfinite(flux) or flux <= 0:
+        msg = (f"flux must be one positive finite number (one profile per star), "
+               f"got {flux!r}")
         raise BFPSFValueError(msg, flux)
     if position is not None:
         if x is not None or y is not None:
             msg = "give the star's image position as x, y or as position=(x, y), not both"
             raise BFPSFValueError(msg, position)
+        if np.shape(position) != (2,):
+            msg = f"position must be (x, y), got {position!r}"
+            raise BFPSFValueError(msg, position)
         x, y = position
+    for name, value in (("x", x), ("y", y)):
+        if value is not None and not (np.ndim(value) == 0 and np.isfinite(value)):
+            msg = f"{name} must be one finite image position, pixels, got {value!r}"
+            raise BFPSFValueError(msg, value)
     x_phase, y_phase = star_phases(x, y, x_phase, y_phase)
     # every PSF kind (bfpsf.model.base): a field-varying one is taken at (x, y)
     stamp = psf.star_image(flux, x, y, x_phase=x_phase, y_phase=y_phase)
