@@ -17,6 +17,7 @@ Files already in ``--workdir`` (flats, calibration, exposures) are reused.
 import argparse
 import json
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -31,10 +32,11 @@ def calibration(workdir, sensor, quick, seed):
         return path
     flats = workdir / "flats"
     size, pairs = ("128", "2") if quick else ("512", "4")
-    subprocess.run(["bfpsf", "simulate", "flats", "--sensor", sensor, "--pairs", pairs,
+    bfpsf = [sys.executable, "-m", "bfpsf"]  # this environment's, activated or not
+    subprocess.run([*bfpsf, "simulate", "flats", "--sensor", sensor, "--pairs", pairs,
                     "--size", size, "--nsteps", "10", "--seed", str(seed), "-o", str(flats),
                     "--no-progress"], check=True)
-    subprocess.run(["bfpsf", "calibrate", *sorted(str(p) for p in flats.glob("*.fits")),
+    subprocess.run([*bfpsf, "calibrate", *sorted(str(p) for p in flats.glob("*.fits")),
                     "-o", str(path)], check=True)
     return path
 
