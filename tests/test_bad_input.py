@@ -191,7 +191,9 @@ def test_photometry_fit_shape_wider_than_the_star_spacing():
                        fit_shape=41)
     assert str(error.value) == ("fit shape 41 px (group separation 41 px) puts 36 of the 36 "
                                 "stars in one group fitted together (at most 25): the stars are "
-                                "closer than that; give a smaller fit shape")
+                                "closer than that (give a smaller fit shape), or the "
+                                "detection took noise for stars (a blank image, or a sky given "
+                                "too low: check the image and --background)")
 
 
 def test_simulate_unknown_sensor(capsys, tmp_path):

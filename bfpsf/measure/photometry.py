@@ -204,7 +204,9 @@ def _check_groups(psf, fit_shape, group_separation, init):
     if largest > MAX_GROUP_SIZE:
         msg = (f"fit shape {side:g} px (group separation {separation:g} px) puts {largest} of "
                f"the {len(xy)} stars in one group fitted together (at most {MAX_GROUP_SIZE}): "
-               "the stars are closer than that; give a smaller fit shape")
+               "the stars are closer than that (give a smaller fit shape), or the detection "
+               "took noise for stars (a blank image, or a sky given too low: check the image "
+               "and --background)")
         raise BFPSFValueError(msg, side)
 
 
