@@ -86,7 +86,7 @@ def test_validate_full():
     assert max(pulls) < 4
 
 
-def test_cli_validate_json_and_report(tmp_path):
+def test_cli_validate_json_and_report(tmp_path, capsys):
     args = ["validate", "--quick", "--peaks", "1e4", "6e4", "1.2e5", "--spots-per-level", "4",
             "--flat-size", "64",
             "--flat-levels", "2e4", "5e4", "8e4", "1.1e5", "--no-progress",
@@ -94,6 +94,13 @@ def test_cli_validate_json_and_report(tmp_path):
     assert main(args) == 0
     summary = json.loads((tmp_path / "v.json").read_text())
     assert {"slopes", "prediction", "psf", "inverse", "diagnose", "area"} <= set(summary)
+    # the residual after P(F) is printed with the flats' own calibration error beside it (a
+    # new user read a +42 +- 0.4 % residual of a four-level flat set as a 100 sigma failure)
+    row = next(row for row in summary["prediction"]["rows"]
+               if row["shifts"] == summary["model_shifts"])
+    error_x = 100 * row["predicted_slope_x_err"] / abs(summary["slopes"]["slope_x"])
+    assert (f"(the shifts of the flats calibration carry their own error: +- {error_x:.1f} % "
+            f"in X") in capsys.readouterr().out
     text = (tmp_path / "report" / "report.md").read_text()
     assert "Truth a vs recovered" in text and "Residual slope" in text
     assert (tmp_path / "report" / "sizes.png").stat().st_size > 1000

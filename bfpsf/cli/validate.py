@@ -95,6 +95,7 @@ def _print_table(result):
                   f"{stage['residual_slope_y_unpaired_percent_err']:.1f})")
         else:
             print(f"{label}: not available ({stage.get('reason')})")
+    _print_calibration_error(result)
     psf = result["psf"]
     if psf.get("available"):
         print(f"photometry bias bright - faint: static PSF "
@@ -102,6 +103,21 @@ def _print_table(result):
               f"{psf['photometry_bias_flux_dependent_mmag']:+.2f} mmag")
     print(f"P(F), inverse and loop used the shifts of: {result['model_shifts']}")
     print(f"closed loop selected: {', '.join(result['diagnose']['selected']) or 'nothing'}")
+
+
+def _print_calibration_error(result):
+    """The residuals above carry the spots' statistics only; the shifts the model used carry
+    their own calibration error (a small flat set's is tens of percent of the slope): said
+    beside them so that a residual is read against both."""
+    slopes = result["slopes"]
+    for row in result["prediction"].get("rows", []):
+        errors = [row.get(f"predicted_slope_{axis}_err") for axis in "xy"]
+        if row["shifts"] != result["model_shifts"] or None in errors:
+            continue
+        x, y = (100 * error / abs(slopes[f"slope_{axis}"])
+                for error, axis in zip(errors, "xy"))
+        print(f"  (the shifts of the {row['shifts']} carry their own error: +- {x:.1f} % in X, "
+              f"+- {y:.1f} % in Y of raw)")
 
 
 def run(args):
