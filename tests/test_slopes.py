@@ -59,8 +59,11 @@ def test_peak_range_and_nonfinite_values_are_left_out():
 
 
 def test_bad_input_raises():
-    with pytest.raises(BFPSFValueError, match="at least 3 usable objects"):
+    with pytest.raises(BFPSFValueError, match="at least 3 usable objects, got 2$"):
         fit_bf_slope([1e4, 2e4], [1.0, 1.1])
+    # a range is named only when one is given, open ends as 0 and inf ("[None, None]" before)
+    with pytest.raises(BFPSFValueError, match=r"in the peak range \[0, 15000\] e-, got 1$"):
+        fit_bf_slope([1e4, 2e4, 3e4], [1.0, 1.1, 1.2], max_peak_e=1.5e4)
     with pytest.raises(BFPSFInputError, match="differ in length"):
         fit_bf_slope([1e4, 2e4, 3e4], [1.0, 1.1])
     with pytest.raises(BFPSFValueError, match="span no range"):

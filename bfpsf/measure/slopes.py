@@ -148,8 +148,11 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
         keep &= peak <= max_peak_e
     n_points = int(keep.sum())
     if n_points < 3:
-        msg = (f"a brighter-fatter slope needs at least 3 usable objects in the peak range "
-               f"[{min_peak_e}, {max_peak_e}] e-, got {n_points}")
+        within = ("" if min_peak_e is None and max_peak_e is None else
+                  f" in the peak range [{0 if min_peak_e is None else min_peak_e:g}, "
+                  f"{'inf' if max_peak_e is None else f'{max_peak_e:g}'}] e-")
+        msg = (f"a brighter-fatter slope needs at least 3 usable objects{within}, "
+               f"got {n_points}")
         raise BFPSFValueError(msg, n_points)
     n_usable = n_points
     group = None if group is None else np.broadcast_to(np.asarray(group), values.shape).ravel()
