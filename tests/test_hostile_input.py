@@ -272,6 +272,8 @@ def test_an_amplifier_selected_twice_is_refused(workdir, capsys):
      "argument --size: expected a positive integer, got '-3'"),
     (["validate", "--quick", "--spots-per-level", "0"],
      "argument --spots-per-level: expected a positive integer, got '0'"),
+    (["measure", "img.fits", "-o", "m.ecsv", "--threads", "-2"],
+     "argument --threads: expected a positive integer, got '-2'"),
     (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--size", "-5"],
      "argument --size: expected an integer >= 8 pixels, got '-5'"),
     (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--grid", "0", "3"],

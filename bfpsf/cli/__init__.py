@@ -127,7 +127,7 @@ def add_common_options(parser):
                         help="more messages on stderr (-v: info, -vv: debug)")
     common.add_argument("-q", "--quiet", action="count", default=0,
                         help="fewer messages on stderr (errors only)")
-    common.add_argument("--threads", type=int, metavar="N",
+    common.add_argument("--threads", type=positive_int, metavar="N",
                         help="threads for the FFTs and GalSim (default: OMP_NUM_THREADS if "
                              "set, else every CPU)")
     return parser
