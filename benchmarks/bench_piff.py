@@ -46,6 +46,9 @@ def main(argv=None):
     parser.add_argument("--workdir", type=Path, default=Path("bench_piff_work"))
     parser.add_argument("--exposures", type=int, default=12)
     parser.add_argument("--seed", type=int, default=23)
+    parser.add_argument("--flats-seed", type=int,
+                        help="seed of the flats made when the work directory has no "
+                             "calibration (default: --seed + 1000)")
     parser.add_argument("--sensor", default="lsst_itl_50_8")
     parser.add_argument("--calib", type=Path, help="use this calibration instead of flats")
     parser.add_argument("--quick", action="store_true")
@@ -58,7 +61,8 @@ def main(argv=None):
     workdir = args.workdir
     workdir.mkdir(parents=True, exist_ok=True)
     exposures = 2 if args.quick else args.exposures
-    calib = args.calib or calibration(workdir, args.sensor, args.quick, args.seed + 1000)
+    flats_seed = args.seed + 1000 if args.flats_seed is None else args.flats_seed
+    calib = args.calib or calibration(workdir, args.sensor, args.quick, flats_seed)
     field = workdir / f"field_{args.sensor}_{args.seed}"
     files = [(field / f"exposure_{k}.fits", field / f"stars_{k}.fits") for k in range(exposures)]
     controls = [(field / f"control_{k}.fits", field / f"stars_{k}.fits")
