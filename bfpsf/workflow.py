@@ -216,7 +216,10 @@ def calibration_samples(calibrations, counts=None):
     if weights.sum() == 0:
         weights[:] = 1.0
     weights /= weights.sum()
-    per_image = [one.shift_samples(limit=PREDICTION_SAMPLES) for one in calibrations]
+    # each calibration's samples drawn once, however many images share it
+    samples_of = {key: one.shift_samples(limit=PREDICTION_SAMPLES)
+                  for key, one in distinct.items()}
+    per_image = [samples_of[id(one)] for one in calibrations]
     count = min(len(samples) for samples in per_image)
     return tuple(
         BoundaryShifts(sum(weight * entry[i].north for entry, weight in zip(per_image, weights)),

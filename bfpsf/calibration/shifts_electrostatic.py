@@ -39,7 +39,6 @@ downstream prediction propagates.
 """
 
 import dataclasses
-import functools
 
 import numba
 import numpy as np
@@ -57,6 +56,9 @@ __all__ = ["ElectrostaticGeometry", "electrostatic_shifts", "electrostatic_area"
 _BOUNDARY_NODES = 8
 _SHEET_NODES = 3
 _IMAGE_PAIRS = 6
+# Their nodes and weights on [-1, 1], found once (numpy's leggauss solves an eigenproblem).
+_SHEET_RULE = np.polynomial.legendre.leggauss(_SHEET_NODES)
+_BOUNDARY_RULE = np.polynomial.legendre.leggauss(_BOUNDARY_NODES)
 
 #: Physical ranges of the fitted geometry, in units of the sensor thickness for heights and
 #: of the pixel for the sheet. The sheet reaches at most 0.49 pixel from its centre in each
@@ -115,15 +117,6 @@ class ElectrostaticGeometry:
         return dataclasses.asdict(self)
 
 
-@functools.lru_cache(maxsize=None)
-def _gauss_legendre(count):
-    """Gauss-Legendre nodes and weights on [-1, 1], computed once per ``count`` (read-only)."""
-    nodes, weights = np.polynomial.legendre.leggauss(count)
-    nodes.setflags(write=False)
-    weights.setflags(write=False)
-    return nodes, weights
-
-
 @numba.njit(cache=True, nogil=True, inline="always")
 def _z_integral(rho2, z_low, z_high, height):
     """int_{z_low}^{z_high} dz / (rho^2 + (z - c)^2)^(3/2), times rho^2, for a charge at c."""
@@ -178,13 +171,11 @@ def _unit_shift(centres, normals, z_low, geometry, axis_half_width, cross_half_w
     """`_unit_shift_kernel` on any broadcastable arrays of boundary centres and normals."""
     centres, normals = np.broadcast_arrays(np.asarray(centres, dtype=float),
                                            np.asarray(normals, dtype=float))
-    sheet_nodes, sheet_weights = _gauss_legendre(_SHEET_NODES)
-    boundary_nodes, boundary_weights = _gauss_legendre(_BOUNDARY_NODES)
     shift = _unit_shift_kernel(np.ascontiguousarray(centres).ravel(),
                                np.ascontiguousarray(normals).ravel(), float(z_low),
                                float(geometry.thickness), float(geometry.charge_height),
-                               float(axis_half_width), float(cross_half_width), sheet_nodes,
-                               sheet_weights, boundary_nodes, boundary_weights, _IMAGE_PAIRS)
+                               float(axis_half_width), float(cross_half_width), *_SHEET_RULE,
+                               *_BOUNDARY_RULE, _IMAGE_PAIRS)
     return shift.reshape(centres.shape)
 
 

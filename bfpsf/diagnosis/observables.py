@@ -315,8 +315,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     small flats, whose b term is unconstrained). The loop
     works on one amplifier: ``amp`` names it in multi-amplifier files (flats and images are
     read by `bfpsf.io.amplifiers`). ``background`` is the images' sky level, ADU per pixel
-    (default: the sky surface of each image, `bfpsf.measure.sky.estimate_sky`). ``saturation`` is the images'
-    saturation level, ADU (default the header's SATURATE or a variant; the calibration's
+    (default: the sky surface of each image, `bfpsf.measure.sky.estimate_sky`).
+    ``saturation`` is the images' saturation level, ADU (default the header's SATURATE or a variant; the calibration's
     turnoff where lower): saturated stars are flagged and not used. ``position_bins`` > 1
     also splits
     the bins by the stars' column (`_binned_sizes`): the residual's dependence on the distance

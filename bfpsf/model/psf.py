@@ -161,9 +161,9 @@ class FluxDependentPSF(BFTerm, BFPSFModel):
                 msg = (f"bf_table must have the shape of data {self.data.shape} and needs "
                        f"mode='table', got shape {bf_table.shape} and mode={mode!r}")
                 raise BFPSFValueError(msg, bf_table.shape)
-        integer_at_least("density_oversampling", density_oversampling, 2)
         self.density_profile = density_profile
-        self.density_oversampling = int(density_oversampling)
+        self.density_oversampling = integer_at_least("density_oversampling",
+                                                     density_oversampling, 2)
         self.mode = mode
         self.fill_value = float(fill_value)
         #: Product metadata (`bfpsf.model.base`): ``calibration`` (file name of the shifts),
