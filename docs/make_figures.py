@@ -2,7 +2,7 @@
 the command that made it, the bfpsf version, the commit and the date.
 
     OMP_NUM_THREADS=1 python docs/make_figures.py                 # every figure, full runs
-    OMP_NUM_THREADS=1 python docs/make_figures.py --only cp_pipe_amatrix measured_shifts
+    OMP_NUM_THREADS=1 python docs/make_figures.py --only cp_pipe_amatrix shear_psf_size
     OMP_NUM_THREADS=1 python docs/make_figures.py --quick --output /tmp/figures  # a check
 
 Each figure is drawn by its own command (an example script or a benchmark, `FIGURES`) in a
