@@ -58,6 +58,20 @@ os.environ.setdefault("OMP_NUM_THREADS", "1" if os.environ.get("PYTEST_XDIST_WOR
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 
+@pytest.fixture(autouse=True)
+def _interrupt_state_is_left_alone():
+    """Every test leaves this process's SIGINT disposition and signal mask as it found them:
+    a child process inherits both, so a test that left SIGINT ignored or blocked would make a
+    later test's subprocess deaf to Ctrl-C (tests/test_parallel.py), and a bfpsf call that
+    leaked either would do the same to a user's program."""
+    import signal
+
+    before = (signal.getsignal(signal.SIGINT), signal.pthread_sigmask(signal.SIG_BLOCK, []))
+    yield
+    after = (signal.getsignal(signal.SIGINT), signal.pthread_sigmask(signal.SIG_BLOCK, []))
+    assert after == before, f"SIGINT (handler, blocked signals) {before} -> {after}"
+
+
 def pytest_addoption(parser):
     parser.addoption("--runslow", action="store_true", default=False,
                      help="also run tests marked slow (full-size physics)")

@@ -13,9 +13,11 @@ nsteps = 5, 0.25 % at 20). The quick test uses 5 steps to afford enough pixels; 
 uses 20.
 
 Statistics: the gain and a(0, 0) come from the curvature of the variance, whose error per pair
-is sqrt(2 / N) (0.55 % for 256 x 256). 54 pairs up to 3e5 e- give sigma(gain) ~ 0.2 % and
-sigma(a00) ~ 1 %, the least that makes "gain within 0.5 %, a(0, 0) within 3 %" a 2.5-3 sigma
-requirement; a 100 e- pair pins the read noise, which is otherwise degenerate with the gain.
+is sqrt(2 / N) (0.55 % for 256 x 256). 54 pairs of 256 x 256 up to 3e5 e- (the slow ITL test)
+give sigma(gain) ~ 0.2 % and sigma(a00) ~ 1 %, the least that makes "gain within 0.5 %, a(0, 0)
+within 3 %" a 2.5-3 sigma requirement; the quick fixture's 27 pairs of 192 x 192 give 0.35 % and
+3 %, so the quick tests ask for 3 sigma. A 100 e- pair pins the read noise, which is otherwise
+degenerate with the gain.
 """
 
 import numpy as np
@@ -45,11 +47,14 @@ def run(sensor, levels, *, pairs, size, nsteps, maxlag, seed=0, n_monte_carlo=20
                      n_monte_carlo=n_monte_carlo, solve_shifts=solve_shifts)
 
 
-def assert_matches_truth(calibration, truth, lags, label):
-    """Every a(dx, dy), dx, dy <= lags, within 3 sigma; a(0, 0) within 3 %; gain within 0.5 %."""
+def assert_matches_truth(calibration, truth, lags, label, *, absolute=True):
+    """Every a(dx, dy), dx, dy <= lags, the gain and a(0, 0) within 3 sigma; with
+    ``absolute``, also a(0, 0) within 3 % and the gain within 0.5 % (the acceptance, which
+    needs the pixels of the slow tests)."""
     measured = calibration.a[:lags + 1, :lags + 1]
     errors = calibration.a_err[:lags + 1, :lags + 1]
     pulls = (measured - truth[:lags + 1, :lags + 1]) / errors
+    gain_pull = (calibration.gain - GAIN) / calibration.gain_err
     report = (f"{label}: pulls [dy, dx]\n{np.array2string(pulls, precision=2)}\n"
               f"a00 {100 * (measured[0, 0] / truth[0, 0] - 1):+.2f} % "
               f"(+- {100 * errors[0, 0] / abs(truth[0, 0]):.2f} %), "
@@ -57,24 +62,39 @@ def assert_matches_truth(calibration, truth, lags, label):
               f"(+- {100 * calibration.gain_err / GAIN:.3f} %)")
     print(report)
     assert np.all(np.abs(pulls) < 3), report
-    assert abs(measured[0, 0] / truth[0, 0] - 1) < 0.03, report
-    assert abs(calibration.gain / GAIN - 1) < 0.005, report
+    assert abs(gain_pull) < 3, report
+    if absolute:
+        assert abs(measured[0, 0] / truth[0, 0] - 1) < 0.03, report
+        assert abs(calibration.gain / GAIN - 1) < 0.005, report
 
 
-# -- ITL, quick -----------------------------------------------------------------------------
+# -- ITL ------------------------------------------------------------------------------------
 ITL_NSTEPS = 5
 ITL_LEVELS = [100.0, *np.linspace(3e5 / 26, 3e5, 26)]
 
 
 @pytest.fixture(scope="module")
 def itl_calibration():
-    # 27 levels x 2 pairs of 256 x 256: about 70 s of GalSim on one core
-    return run("lsst_itl_50_8", ITL_LEVELS, pairs=2, size=256, nsteps=ITL_NSTEPS, maxlag=4)
+    # 27 levels x 1 pair of 192 x 192: about 17 s of GalSim on one core. The gain to about
+    # 0.4 % and a(0, 0) to about 2 % (1 sigma): the tests here ask for 3 sigma; the slow
+    # variant has the pixels for the acceptance's 0.5 % and 3 %.
+    return run("lsst_itl_50_8", ITL_LEVELS, pairs=1, size=192, nsteps=ITL_NSTEPS, maxlag=4)
+
+
+@pytest.mark.slow
+def test_itl_area_coefficients_match_galsim_full():
+    # 27 levels x 2 pairs of 256 x 256: about 70 s of GalSim on one core. sigma(gain) ~ 0.2 %
+    # and sigma(a00) ~ 1 %, the least that makes "gain within 0.5 %, a(0, 0) within 3 %" a
+    # 2.5-3 sigma requirement
+    calibration = run("lsst_itl_50_8", ITL_LEVELS, pairs=2, size=256, nsteps=ITL_NSTEPS,
+                      maxlag=4)
+    assert_matches_truth(calibration, expected_area("lsst_itl_50_8", ITL_NSTEPS, 4), 2,
+                         "lsst_itl_50_8")
 
 
 def test_itl_area_coefficients_match_galsim(itl_calibration):
     truth = expected_area("lsst_itl_50_8", ITL_NSTEPS, 4)
-    assert_matches_truth(itl_calibration, truth, 2, "lsst_itl_50_8")
+    assert_matches_truth(itl_calibration, truth, 2, "lsst_itl_50_8", absolute=False)
     assert itl_calibration.noise_e == pytest.approx(READ_NOISE, rel=0.1)
 
 

@@ -66,3 +66,80 @@ def test_no_file_reads_a_path_outside_the_repository():
                  if (ROOT / name).is_file() and name != "tests/test_package.py"
                  and outside.search((ROOT / name).read_text(errors="replace"))]
     assert offenders == []
+
+
+def _module_imports():
+    """{module: the bfpsf modules it imports at module level} (imports inside functions, the
+    documented optional dependencies and the plug-ins' late imports, are not edges)."""
+    import ast
+
+    paths = {}
+    for path in (ROOT / "bfpsf").rglob("*.py"):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        paths[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    graph = {}
+    for module, path in paths.items():
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        edges = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            names = []
+            if isinstance(node, ast.ImportFrom) and node.col_offset == 0:
+                base = node.module or ""
+                if node.level:
+                    base = ".".join(package.split(".")[:len(package.split(".")) - node.level + 1]
+                                    + ([node.module] if node.module else []))
+                names = [f"{base}.{alias.name}" for alias in node.names] + [base]
+            elif isinstance(node, ast.Import) and node.col_offset == 0:
+                names = [alias.name for alias in node.names]
+            edges |= {name for name in names if name in paths and name != module}
+        graph[module] = edges
+    return graph, paths
+
+
+def _cycles(graph):
+    """The strongly connected components of more than one node (Tarjan)."""
+    index, low, stack, found = {}, {}, [], []
+
+    def visit(node):
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for other in graph.get(node, ()):
+            if other not in index:
+                visit(other)
+                low[node] = min(low[node], low[other])
+            elif other in stack:
+                low[node] = min(low[node], index[other])
+        if low[node] == index[node]:
+            component = []
+            while component[-1:] != [node]:
+                component.append(stack.pop())
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for node in list(graph):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def test_house_rules_files_and_imports():
+    """Issue 24's house rules, kept: no module of bfpsf over 500 lines, no import circle
+    between its modules and no cycle between its subpackages (module-level imports; a
+    package's ``__init__`` re-exports are not edges)."""
+    graph, paths = _module_imports()
+    long = {module: n for module, path in paths.items()
+            if (n := len(path.read_text().splitlines())) > 500}
+    assert not long, f"modules over 500 lines: {long}"
+    modules = {module: {other for other in edges if paths[other].name != "__init__.py"}
+               for module, edges in graph.items() if paths[module].name != "__init__.py"}
+    assert not _cycles(modules), _cycles(modules)
+    packages = {}
+    for module, edges in modules.items():
+        for other in edges:
+            ends = [".".join(name.split(".")[:2]) for name in (module, other)]
+            if ends[0] != ends[1] and all(name in paths and paths[name].name == "__init__.py"
+                                          for name in ends):
+                packages.setdefault(ends[0], set()).add(ends[1])
+    assert not _cycles(packages), _cycles(packages)

@@ -11,9 +11,9 @@ import pytest
 from scipy import integrate
 
 from bfpsf.calibration.boundary_shifts import shift_warnings, solve_boundary_shifts
+from bfpsf.calibration.electrostatic_fit import fit_electrostatic
 from bfpsf.calibration.shifts_electrostatic import (ElectrostaticGeometry, _unit_shift,
-                                                    electrostatic_area, electrostatic_shifts,
-                                                    fit_electrostatic)
+                                                    electrostatic_area, electrostatic_shifts)
 from bfpsf.errors import BFPSFValueError
 
 #: An E2V-like geometry (pixels): N/S boundaries fixed close to the charge, E/W ones higher.

@@ -5,7 +5,8 @@ mask them (`flat_mask`) and measure the covariances of each pair difference (`co
 for each amplifier (`amplifier_fit`), measure and subtract the readout
 pedestal (`pedestal`), fit the photon transfer curve and the area coefficients a(dx, dy)
 (`ptc`), check linearity (`linearity`), solve the boundary shifts a^X(dx, dy)
-(`shifts_electrostatic`, `shifts_ei`), and return a `~bfpsf.calibration.product.Calibration`.
+(`shifts_electrostatic` with `electrostatic_fit`, `shifts_ei`), and return a
+`~bfpsf.calibration.product.Calibration`.
 """
 
 from .calibrate import calibrate, calibrate_detectors, calibrate_from_ptc

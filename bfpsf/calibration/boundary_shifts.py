@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import BFPSFValueError
 from .shifts_ei import solve_ei_shifts
-from .shifts_electrostatic import fit_electrostatic
+from .electrostatic_fit import fit_electrostatic
 
 __all__ = ["SHIFT_METHODS", "solve_boundary_shifts", "shift_warnings", "split_fraction"]
 
@@ -61,7 +61,7 @@ def solve_boundary_shifts(area, area_err=None, *, area_cov=None, method="electro
 
     Returns
     -------
-    `~bfpsf.calibration.shifts_electrostatic.ElectrostaticFit` or
+    `~bfpsf.calibration.electrostatic_fit.ElectrostaticFit` or
     `~bfpsf.calibration.shifts_ei.ShiftSolution`
     """
     if method == "electrostatic":

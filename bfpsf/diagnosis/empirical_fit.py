@@ -51,8 +51,9 @@ def adaptive_response(spot_model, peak_e, *, step=0.05):
 
     The patterns change the plain second moments by exactly their coefficient along their own
     axis; the adaptive moments the loop measures weight the core and re-shape their weight, so
-    they see about 1.1 times the change along the pattern's axis and a fraction of it along
-    the other (a Moffat's Myy follows an X smear by about 15 %). Measured on the model spot at
+    they see about 3.4 times the change along the pattern's axis (the pattern, like the
+    charge-driven effects it stands for, acts on the core, where their weight is) and a
+    fraction of it along the other (0.58 for a Moffat of beta 3). Measured on the model spot at
     ``peak_e``, averaged over its phases.
     """
     stamps = spot_model.stamps([peak_e])[0]

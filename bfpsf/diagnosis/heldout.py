@@ -171,10 +171,13 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
     if split is not None:
         early, late = split
         early_term = fit_empirical(*inputs(early), **options)
+        # with the term fitted on the early exposures, so that its pixel-level use (PSF
+        # photometry of the late block) can be checked as well
         validation["late_block"] = dict(evaluate_empirical(early_term, *inputs(late),
                                                            response),
                                         exposures=sorted(np.unique(late.sizes.exposure)
-                                                         .tolist()))
+                                                         .tolist()),
+                                        term=early_term.to_dict())
     # applied (refine) only when it lowers the slope residual on every block it did not fit
     validation["validated"] = all(
         sum(validation[block]["after"][f"slope_{a}_percent"] ** 2 for a in "xy")

@@ -121,8 +121,8 @@ class DiagnosisResult:
         When a size residual is left: the EMPIRICAL term learned from it
         (`bfpsf.model.empirical.EmpiricalTerm.to_dict`, label ``'empirical'``) with its
         out-of-sample ``validation`` (``heldout`` and, with 4 or more exposures,
-        ``late_block``: slope residual and photometry bias before and after it;
-        ``validated``: it lowered the slope residual on every block, else `refine` leaves it
+        ``late_block``: slope residual and photometry bias before and after it, the late
+        block's ``exposures`` and the ``term`` fitted on the early ones; ``validated``: it lowered the slope residual on every block, else `refine` leaves it
         out).
     folded : dict
         The joint fit of the selected effects a calibration can hold (``names``, ``effects``:

@@ -217,7 +217,7 @@ class BFSensor(galsim.Sensor):
             return 0.0
         columns = np.arange(landed_e.shape[1]) + xmin - 1.0
         column = float((landed_e.sum(axis=0) * columns).sum() / total)
-        return self.empirical.delta(collected_e, total, column)
+        return self.empirical.delta(collected_e, total, column, total=total)
 
     def calculate_pixel_areas(self, image, orig_center=galsim.PositionI(0, 0), use_flux=True):
         """Pixel areas at the end of the exposure, 1 + sum_(dx,dy) a(dx, dy) Q(x+dx, y+dy).

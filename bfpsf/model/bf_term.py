@@ -184,31 +184,32 @@ class BFTerm:
         # image with its BF: the table mode interpolates the same (`_empirical_table_term`)
         if self.empirical is not None:
             delta = delta + self.empirical.delta(flux * stamp + delta,
-                                                 self.electrons_per_unit * abs(flux), x)
+                                                 self.electrons_per_unit * abs(flux), x,
+                                                 total=flux)
         return delta
 
     def _empirical_table_term(self, xi, yi, outside, flux, x):
         """The EMPIRICAL term in table mode (image unit) at fractional data indices, for a
-        star of flux F at column ``x``: sum_k v_k(F, x) B_k[F p + g F |F| R], with B_k of P0
-        and of R tabulated at every phase (`bfpsf.model.empirical.pattern_tables`), as
-        ``star_image`` applies it to the star's image."""
+        star of flux F at column ``x``: sum_k v_k(F, x) B_k[F p + g F |F| R], to second order
+        in the BF term, from the series of B_k[P0] along R tabulated at every phase
+        (`bfpsf.model.empirical.pattern_tables`), as ``star_image`` applies it to the star's
+        image."""
         # in a dict made by the constructor, so the copies (which share P0 and R) share it
         splines = self._tables.get("pattern_splines")
         if splines is None:
             grid = (np.arange(self.data.shape[1]), np.arange(self.data.shape[0]))
-            tables = [pattern_tables(table, self.oversampling)
-                      for table in (self.data, self.bf_table)]
-            splines = {pattern: [RectBivariateSpline(*grid, table[pattern].T, kx=3, ky=3, s=0)
-                                 for table in tables] for pattern in PATTERNS}
+            tables = pattern_tables(self.data, self.bf_table, self.oversampling)
+            splines = {pattern: [RectBivariateSpline(*grid, table.T, kx=3, ky=3, s=0)
+                                 for table in tables[pattern]] for pattern in PATTERNS}
             self._tables["pattern_splines"] = splines
         g = self.electrons_per_unit
         term = np.zeros(np.shape(xi))
         for pattern, change in zip(PATTERNS, self.empirical.variance_change(g * abs(flux),
                                                                             x=x)):
             if change:
-                base, bf = splines[pattern]
-                term += float(change) * (flux * base(xi, yi, grid=False)
-                                         + g * flux * abs(flux) * bf(xi, yi, grid=False))
+                e = g * abs(flux)
+                term += float(change) * flux * sum(e ** n * spline(xi, yi, grid=False)
+                                                   for n, spline in enumerate(splines[pattern]))
         term[outside] = 0.0
         return term
 

@@ -43,7 +43,7 @@ from astropy.table import Table
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError, integer_at_least
 from ..resources import check_psf_fit
 from ..shifts import BoundaryShifts, as_shifts
-from .empirical import PATTERNS, apply_pattern
+from .empirical import PATTERNS, pattern_series
 from .gridded import GriddedFluxDependentPSF, bilinear_weights, grid_node_positions
 from .psf import FluxDependentPSF
 from .psf_fit_grid import (Grid, Sampling, cardinal_splines, dense_weights_of, node_solution,
@@ -148,9 +148,11 @@ def _with_empirical(term, model, d_flux, stars):
     for pattern, change, slope in zip(PATTERNS, changes, slopes):
         change = np.broadcast_to(change, flux.shape)[:, None, None]
         slope = np.broadcast_to(slope, flux.shape)[:, None, None]
-        pattern_model = apply_pattern(model, pattern)
+        # the star's flux normalises the pattern (its cutout may cut the wings)
+        pattern_model, along_flux, _ = pattern_series(model, d_flux, pattern,
+                                                      total=stars.flux, total_change=1.0)
         out += change * pattern_model
-        derivative += change * apply_pattern(d_flux, pattern) + signs * slope * pattern_model
+        derivative += change * along_flux + signs * slope * pattern_model
     return out, derivative
 
 
