@@ -134,7 +134,7 @@ def _faint_minus_bright(path, images, truths):
     return float(bias), float(error)
 
 
-def test_loop_model_predicts_what_psf_predicts(tmp_path):
+def test_loop_model_predicts_what_psf_predicts(quick_inputs):
     """The loop's spot model and the P(F) of ``bfpsf psf`` give the same BF size growth for
     the same shifts (the condition for ``--output-calib`` to transfer): the model spot is the
     P0 fitted from the loop's exposures only, evaluated at the stars' measured fluxes. 3
@@ -145,8 +145,8 @@ def test_loop_model_predicts_what_psf_predicts(tmp_path):
     from bfpsf.diagnosis.spot_model import SpotForwardModel
     from bfpsf.measure.slopes import model_size_increments
 
-    flats = _flats(tmp_path, 8, 128)
-    images, _ = _spots(tmp_path, (3e3, 6e4, 1.2e5), 2)
+    flats, images, _ = quick_inputs
+    images = images[:2]
     cal = calibrate([str(p) for p in flats], maxlag=3, fit_b=False, n_monte_carlo=0)
     observables = observables_from_images([], images, calibration=cal, beta=3.0, n_bins=3,
                                           background=0.0)
@@ -169,7 +169,15 @@ def test_loop_model_predicts_what_psf_predicts(tmp_path):
         assert np.all(np.abs(before[:, -1] / expected[:, -1] - 1) > 0.05)
 
 
-def test_output_calib_then_psf_cli_quick(tmp_path):
+@pytest.fixture(scope="module")
+def quick_inputs(tmp_path_factory):
+    """The quick tests' flats (8 levels, 128^2) and 4 exposures of 3 levels, as FITS, made
+    once: `test_loop_model_predicts_what_psf_predicts` takes the first 2 exposures."""
+    directory = tmp_path_factory.mktemp("loop_inputs")
+    return (_flats(directory, 8, 128), *_spots(directory, (3e3, 6e4, 1.2e5), 4))
+
+
+def test_output_calib_then_psf_cli_quick(tmp_path, quick_inputs):
     """The user path in CI: ``diagnose --output-calib`` on 2 of 4 exposures (3 levels), then
     ``psf --calib REFINED`` on the other 2: the refinement recorded is the one ``psf`` applies,
     the shifts are the flats' times (1 + s), and the held-out residual is within the errors
@@ -177,8 +185,7 @@ def test_output_calib_then_psf_cli_quick(tmp_path):
     confirm a scale on so few spots)."""
     from bfpsf.calibration.product import Calibration
 
-    flats = _flats(tmp_path, 8, 128)
-    images, truths = _spots(tmp_path, (3e3, 6e4, 1.2e5), 4)
+    flats, images, truths = quick_inputs
     out = _loop_then_psf(tmp_path, flats, images, truths, n_bins=3)
     cal, refined = (Calibration.read(path) for path in out["calibrations"])
     record = refined.refinement

@@ -1,6 +1,7 @@
 """The Dask map: the same numbers as in process; detectors x amplifiers through the CLI; the
 JSON ``amplifiers`` list; schema-1 calibration files still read."""
 
+import contextlib
 import json
 
 import numpy as np
@@ -19,6 +20,31 @@ AMPS = ("C00", "C01")
 
 def _square(value):
     return value * value
+
+
+@pytest.fixture(scope="module")
+def dask_pair():
+    """One local cluster of 2 workers for the module's Dask tests (each cluster costs about
+    3 s to start and stop); each test sets its own window (`_session`)."""
+    if not dask_available():
+        pytest.skip("dask.distributed is not installed")
+    with parallel_session(workers=2) as session:
+        yield session
+
+
+@contextlib.contextmanager
+def _session(request, workers, max_in_flight):
+    """An in-process session (``workers=1``) or the module's Dask one with this window."""
+    if workers == 1:
+        with parallel_session(workers=1, max_in_flight=max_in_flight) as session:
+            yield session
+        return
+    session = request.getfixturevalue("dask_pair")
+    session.max_in_flight = max_in_flight
+    try:
+        yield session
+    finally:
+        session.max_in_flight = None
 
 
 def _focal_plane(directory, detectors=2, levels=(2e3, 8e3, 2e4, 4e4, 6e4, 8e4), size=48,
@@ -57,13 +83,13 @@ def _joined(values):
 
 @pytest.mark.parametrize("workers", [1, pytest.param(2, marks=pytest.mark.skipif(
     not dask_available(), reason="dask.distributed is not installed"))])
-def test_map_groups_follow_up_sees_its_items_in_order(workers):
+def test_map_groups_follow_up_sees_its_items_in_order(request, workers):
     """Each key's follow-up gets its own items' results in input order (on Dask it starts while
     other items run), keys in order of first appearance, blocks read from a generator; the
     same in process and on Dask."""
     items = list(range(10))
     keys = ["b", "a", "b", "c", "a", "b", "c", "c", "a", "b"]
-    with parallel_session(workers=workers, max_in_flight=3) as session:
+    with _session(request, workers, 3) as session:
         results, grouped = session.map_groups(_square, [(items, keys)],
                                               lambda key, values: [key, *values], _joined)
         with pytest.raises(ValueError, match="one key per item: 2 keys for 10 items"):
@@ -75,12 +101,12 @@ def test_map_groups_follow_up_sees_its_items_in_order(workers):
 
 @pytest.mark.parametrize("workers", [1, pytest.param(2, marks=pytest.mark.skipif(
     not dask_available(), reason="dask.distributed is not installed"))])
-def test_map_groups_reads_blocks_from_a_generator(workers):
+def test_map_groups_reads_blocks_from_a_generator(request, workers):
     """Blocks (a detector's pairs each) come from a generator, read as the map goes: results
     in block order, each key's follow-up from its block; a key in two blocks is refused."""
     blocks = [(list(range(start, start + 6)), [f"{name}{i % 2}" for i in range(6)])
               for start, name in ((0, "R0"), (6, "R1"), (12, "R2"))]
-    with parallel_session(workers=workers, max_in_flight=2) as session:
+    with _session(request, workers, 2) as session:
         results, grouped = session.map_groups(_square, (block for block in blocks),
                                               lambda key, values: [key, *values], _joined)
         with pytest.raises(ValueError, match="key 'R00' is in two blocks"):
@@ -123,12 +149,12 @@ def test_chunks_are_guided_and_never_cross_keys():
 
 
 @pytest.mark.skipif(not dask_available(), reason="dask.distributed is not installed")
-def test_split_key_and_whole_key_follow_ups_on_dask():
+def test_split_key_and_whole_key_follow_ups_on_dask(request):
     """A key cut into several chunks gets its follow-up after its last chunk; a key in one
     chunk runs it in the same task: both see their items' results in order."""
     items = list(range(24))
     keys = ["long"] * 20 + ["short"] * 2 + ["long"] * 2
-    with parallel_session(workers=2, max_in_flight=2) as session:
+    with _session(request, 2, 2) as session:
         results, grouped = session.map_groups(_square, [(items, keys)],
                                               lambda key, values: [key, *values], _joined)
     assert results == [i * i for i in items]
@@ -143,12 +169,12 @@ def _profiler_enabled():
 
 
 @pytest.mark.skipif(not dask_available(), reason="dask.distributed is not installed")
-def test_dask_window_of_one_and_local_workers_without_profiler():
+def test_dask_window_of_one_and_local_workers_without_profiler(request):
     """A window of one task still finishes every item in order (each batch refills it); the
     local workers run without Dask's 10 ms stack sampler, which cost them 1.5x the CPU time of
     this process on the same pairs."""
     items = list(range(7))
-    with parallel_session(workers=2, max_in_flight=1) as session:
+    with _session(request, 2, 1) as session:
         assert session.map(_square, items) == [i * i for i in items]
         assert session.map(_square, items[:2]) == [0, 1]
         assert set(session._client.run(_profiler_enabled).values()) == {False}
