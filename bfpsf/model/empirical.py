@@ -28,9 +28,10 @@ by PSF photometry, which weights the pixels by their variance; the two agree onl
 pattern has the shape of the effect. The half second difference of the image itself (the
 first pattern, before 2026-11) spreads its change over the wings, where the adaptive weight
 sees little of it: to match the sizes it took about 2.7 times the plain second moment of a
-charge-dependent smear, and held-out PSF photometry drifted by up to 1.1 mmag from faint to
-bright (0.37 without any term); with the square it is 0.14 mmag (a model holding the
-smear's own operator: 0.10). Records of the first pattern are refused (`from_dict`).
+charge-dependent smear, and held-out PSF photometry of the effects bench drifted by up to
+1.1 mmag from faint to bright (0.37 without any term); with the square it is 0.14 mmag (a
+model holding the smear's own operator: 0.10; docs/undeclared_effects.md). Records of the
+first pattern are refused (`from_dict`).
 
 Odd (centroid- and skew-like) residuals are reported by the loop but not corrected: a PSF fit
 takes a flux-dependent centroid shift into its position.
