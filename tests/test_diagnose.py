@@ -154,7 +154,9 @@ def _slope_error(summary):
 
 @pytest.mark.parametrize("name, render, flats", [
     ("gain_nonlinearity", {"nonlinearity": -0.04}, {"nonlinearity": -0.04}),
-    ("xy_anisotropy", {"quadrupole": 4.0}, {}),
+    # the largest physical quadrupole (|q| < 1: a charge shrinks its own pixel on all four
+    # sides) changes the sizes by little: seen through 1e-4 px of size noise
+    ("xy_anisotropy", {"quadrupole": 0.9, "size_noise": 1e-4}, {}),
     ("second_order", {"second_order": 40.0}, {}),
     ("flux_diffusion", {"diffusion": 0.03}, {}),
 ])
@@ -166,6 +168,17 @@ def test_loop_finds_injected_size_effect(shifts, name, render, flats):
     after = _slope_error(result.residual_after)
     # acceptance: the error is cut at least 3x
     assert before > 3 * after, (before, after)
+
+
+def test_unphysical_anisotropy_is_rejected_by_its_bounds(shifts):
+    """A quadrupole of 4 times the nearest shift (a charge would grow its own pixel along Y)
+    fits the sizes but is outside the physical range: rejected with its value, never named
+    (it was named q = -3.6 on an X-only smear when the flats did not fix the BF amplitude)."""
+    result = diagnose(observables(shifts, quadrupole=4.0))
+    assert "xy_anisotropy" not in result.selected
+    entry = result.rejected["xy_anisotropy"]
+    assert entry["contradicted_by"] == "bounds" and entry["values"][0] > 1.0
+    assert entry["bounds"] == [[-1.0, 1.0]]
 
 
 def test_loop_finds_boundary_density(shifts):

@@ -23,7 +23,7 @@ mode ``star_residual``: the stacked residual of the stars against P(F), ``rms_ov
 import sys
 from pathlib import Path
 
-from ..diagnosis.signature import describe_entry
+from ..diagnosis.signature import describe_entry, describe_rejection
 from ..errors import BFPSFInputError
 from . import (background_option, maxlag_option, positive_float, positive_int,
                saturation_option)
@@ -200,11 +200,15 @@ def run(args):
     if result.residual_after_heldout:
         rows += [("held-out before", result.residual_before_heldout),
                  ("held-out after", result.residual_after_heldout)]
+        contradicted = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
         for name, confirmed in result.confirmed.items():
+            if name == "calibration_scale (nuisance)" and contradicted:
+                # its signature contradicted, it is neither applied nor part of the "after"
+                print(f"{name}: not applied, its signature is contradicted by {contradicted}")
+                continue
             print(f"{name}: {'confirmed' if confirmed else 'NOT CONFIRMED'} on held-out data")
     for name, entry in result.rejected.items():
-        print(f"rejected: {name} (Delta BIC {entry['delta_bic']:.0f}): its signature is "
-              f"contradicted by {entry['contradicted_by']} (p = {entry['p_value']:.1e})")
+        print(f"rejected: {describe_rejection(name, entry)}")
     for entry in result.unexplained:
         print(f"unexplained: {describe_entry(entry)}")
     for line in _empirical_lines(result):
@@ -250,8 +254,7 @@ def _add_signature_report(result, directory):
     lines.append("Verdict: " + ("explained." if verdict.get("success") else
                                 "**NOT EXPLAINED**: " + "; ".join(verdict.get("reasons", []))))
     for name, entry in result.rejected.items():
-        lines.append(f"- rejected `{name}` (Delta BIC {entry['delta_bic']:.0f}): contradicted "
-                     f"by {entry['contradicted_by']} (p = {entry['p_value']:.1e})")
+        lines.append(f"- rejected {describe_rejection(name, entry)}")
     for entry in result.unexplained:
         lines.append(f"- unexplained: {describe_entry(entry)}")
     lines += [f"- {line}" for line in _empirical_lines(result)]

@@ -30,7 +30,8 @@ Candidates (`CATALOGUE`), parameters in brackets:
     boundaries in by q * s, s the mean |a^E(0,0)|, |a^N(0,0)|), the curl of a stream function
     on the four corners of the source pixel. It changes no pixel area, so the flats cannot see
     it (it is the null mode the shift solver fixes by a model ratio). q > 0: a charged pixel
-    shrinks less in X and more in Y, so BF moves from sigma_x to sigma_y. Template: sizes.
+    shrinks less in X and more in Y, so BF moves from sigma_x to sigma_y. Bounds |q| < 1 (a
+    charge shrinks its own pixel on all four sides). Template: sizes.
 ``second_order`` [t]
     Second-order (flux^2) redistribution / build-up: t times R[Q + R[Q]] - R[Q], the term of
     order a^2 Q^3 that the one-step model drops. Template: sizes (grows as peak^2).
@@ -218,6 +219,11 @@ class XYAnisotropy(Effect):
     parameters = ("q",)
     description = ("area-preserving X/Y quadrupole of the nearest boundaries (E/W out, N/S in "
                    "by q times the mean nearest shift); invisible in flats")
+    # |q| < 1: each boundary of a charged pixel still moves in (by s -+ q s when its N and E
+    # shifts are alike); beyond it a charge would grow its own pixel along one axis, which no
+    # electrostatics allows. Without the bound an X-only excess of size was named an
+    # anisotropy of q = -3.6 when the flats could not fix the BF amplitude (issue 22).
+    bounds = ((-1.0, 1.0),)
 
     def templates(self, observables):
         if observables.sizes is None:

@@ -40,6 +40,7 @@ against peak, percent of the raw measured slope), the photometry bias the size r
 -eps in flux, 1.0857 eps mag, for Gaussian profiles), and chi2 / N per observable.
 """
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -111,7 +112,9 @@ class DiagnosisResult:
         Candidates that passed the information criterion but not the signature test
         (`bfpsf.diagnosis.signature`): name -> {``round``, ``delta_bic``, ``contradicted_by``
         (the dimension with the smallest p-value), ``p_value``, ``signature`` (every
-        dimension's test)}. The first round each was rejected in.
+        dimension's test)}; or, for a fit outside its effect's physical ``bounds``,
+        ``contradicted_by`` 'bounds' with its ``values``. The round it was rejected in; it is not tested again in later
+        rounds (so never both rejected and named).
     verdict : dict
         `verdict`: ``success`` (False whenever a residual is unexplained, the size scale's
         signature is contradicted or the stars' residual chi2 per pixel is far above its null
@@ -204,16 +207,29 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
     -------
     DiagnosisResult
     """
-    if holdout_fraction:
-        fit_part, heldout = split_observables(observables, holdout_fraction)
-        result, state = _run_loop(fit_part, catalogue, threshold, max_rounds, prefer_physical,
-                                  signature_alpha)
+    options = (catalogue, threshold, max_rounds, prefer_physical, signature_alpha)
+    fit_part, heldout = (split_observables(observables, holdout_fraction) if holdout_fraction
+                         else (observables, None))
+    result, state = _run_loop(fit_part, *options)
+    scale = result.nuisance.get("calibration_scale") or {}
+    if scale.get("contradicted_by"):
+        # the size scale's signature is contradicted: the effects were chosen and fitted with
+        # it free, so the loop runs again without it (its test is kept in the report); a
+        # candidate that needed it (an effect fitted beside a scale far from the flats') is
+        # then judged on its own
+        observables, fit_part, heldout = (
+            None if part is None else dataclasses.replace(
+                part, meta={key: value for key, value in part.meta.items()
+                            if key != "scale_err"})
+            for part in (observables, fit_part, heldout))
+        result, state = _run_loop(fit_part, *options)
+        result = dataclasses.replace(result, nuisance=dict(result.nuisance,
+                                                           calibration_scale=scale))
+    if heldout is not None:
         result = with_heldout(result, state, heldout, holdout_fraction)
-        return _with_verdict(with_empirical(result, state, heldout, observables), observables)
-    result, state = _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
-                              signature_alpha)
-    result = _with_unexplained(result, state, observables)
-    return _with_verdict(with_empirical(result, state, None, observables), observables)
+    else:
+        result = _with_unexplained(result, state, observables)
+    return _with_verdict(with_empirical(result, state, heldout, observables), observables)
 
 
 def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
@@ -296,7 +312,10 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
         scores = []
         taken = {family(name) for name in selected}
         for name, effect in options:
-            if family(name) in taken:
+            # a candidate whose signature the data contradicted stays out: selected in a later
+            # round (its test then conditional on what was selected since) it was reported
+            # both rejected and named
+            if family(name) in taken or name in rejected:
                 continue
             is_fixed = name in fixed
             k = 0 if is_fixed else effect.k
@@ -319,6 +338,13 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                     low <= value <= high for value, (low, high) in zip(values, effect.bounds))
                 entry.update(statistic=float(statistic), delta_bic=float(delta_bic),
                              parameters=values, errors=errors, allowed=bool(allowed))
+                if not allowed and delta_bic < threshold:
+                    # it would be named but for physics: reported with its values
+                    rejected.setdefault(name, {
+                        "round": round_index + 1, "delta_bic": float(delta_bic),
+                        "contradicted_by": "bounds", "p_value": None,
+                        "values": [float(value) for value in values],
+                        "bounds": [list(bound) for bound in effect.bounds]})
                 if allowed and delta_bic < threshold and signature_alpha:
                     test = signature(designs[effect.name])
                     against = contradiction(test)
@@ -373,27 +399,6 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                             "physical": physical}
         column += effect.k
 
-    curves = {}
-    sizes = observables.sizes
-    if sizes is not None:
-        n = len(sizes)
-        block = problem.slices["sizes"]
-        predicted_x, predicted_y = observables.spot_model.sizes(sizes.peak_e)
-        base = np.concatenate([predicted_x, predicted_y]) + model_before[block]
-        final = np.concatenate([predicted_x, predicted_y]) + model_after[block]
-        curves = {"peak_e": sizes.peak_e, "group": sizes.group,
-                  "sigma_x": sizes.sigma_x, "sigma_y": sizes.sigma_y,
-                  "sigma_x_err": sizes.sigma_x_err, "sigma_y_err": sizes.sigma_y_err,
-                  "base_x": base[:n], "base_y": base[n:], "final_x": final[:n],
-                  "final_y": final[n:]}
-    ptc_curves = {}
-    if observables.ptc is not None:
-        block = problem.slices["ptc"]
-        ptc_curves = {"mean_e": observables.ptc.mean_e, "var_e": observables.ptc.var_e,
-                      "error": observables.ptc.var_err_e,
-                      "residual_raw": observables.ptc.residual_e,
-                      "residual_before": problem.residual[block] - model_before[block],
-                      "residual_after": problem.residual[block] - model_after[block]}
     nuisance = {}
     if problem.global_columns:
         column = problem.global_columns[0]
@@ -415,6 +420,35 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                                    "p_value": float(_chi2.sf(pull ** 2, 1)),
                                    "matches": bool(abs(pull) <= 3.0)}
             entry.update(signature=test, contradicted_by=contradiction(test))
+    if (nuisance.get("calibration_scale") or {}).get("contradicted_by"):
+        # a size scale whose signature the data contradict is no part of the "after" (nor
+        # applied by refine), in-sample as on the held-out data: the effects as fitted, the
+        # local nuisances refitted without it
+        effects_part = model_after - problem.nuisance @ params[:problem.nuisance.shape[1]]
+        local = np.delete(problem.nuisance, list(problem.global_columns), axis=1)
+        model_after = effects_part + weighted_least_squares(
+            problem.residual - effects_part, problem.sigma, local)[3]
+    curves = {}
+    sizes = observables.sizes
+    if sizes is not None:
+        n = len(sizes)
+        block = problem.slices["sizes"]
+        predicted_x, predicted_y = observables.spot_model.sizes(sizes.peak_e)
+        base = np.concatenate([predicted_x, predicted_y]) + model_before[block]
+        final = np.concatenate([predicted_x, predicted_y]) + model_after[block]
+        curves = {"peak_e": sizes.peak_e, "group": sizes.group,
+                  "sigma_x": sizes.sigma_x, "sigma_y": sizes.sigma_y,
+                  "sigma_x_err": sizes.sigma_x_err, "sigma_y_err": sizes.sigma_y_err,
+                  "base_x": base[:n], "base_y": base[n:], "final_x": final[:n],
+                  "final_y": final[n:]}
+    ptc_curves = {}
+    if observables.ptc is not None:
+        block = problem.slices["ptc"]
+        ptc_curves = {"mean_e": observables.ptc.mean_e, "var_e": observables.ptc.var_e,
+                      "error": observables.ptc.var_err_e,
+                      "residual_raw": observables.ptc.residual_e,
+                      "residual_before": problem.residual[block] - model_before[block],
+                      "residual_after": problem.residual[block] - model_after[block]}
     # what a calibration can hold (`bfpsf.diagnosis.refine`), refitted jointly without the
     # rest: a fitted second order goes into the build-up only when positive (the build-up's
     # own second order strengthens BF); otherwise the others are refitted without it

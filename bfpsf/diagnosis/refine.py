@@ -100,7 +100,7 @@ def refine_calibration(calibration, result, *, provenance=None):
     folded = result.folded or {"names": [], "effects": {}, "scale_nuisance": None}
     nuisance = folded.get("scale_nuisance")
     against = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
-    if nuisance is not None and against:
+    if against:
         not_applied["calibration_scale (nuisance)"] = (
             f"its signature is contradicted by {against} (an effect outside the catalogue)")
     elif nuisance is not None and result.confirmed.get("calibration_scale (nuisance)", True):

@@ -60,7 +60,7 @@ from scipy.stats import chi2 as chi2_distribution
 from ..least_squares import weighted_least_squares
 
 __all__ = ["SIGNATURE_ALPHA", "TEMPLATE_TOLERANCE", "signature_parts", "signature_test",
-           "contradiction", "parity_test", "describe_entry"]
+           "contradiction", "parity_test", "describe_entry", "describe_rejection"]
 
 #: p-value below which a dimension contradicts a candidate (3.3 sigma one-sided).
 SIGNATURE_ALPHA = 1e-3
@@ -226,6 +226,17 @@ def contradiction(test):
     if not failed:
         return None
     return min(failed, key=lambda name: failed[name]["p_value"])
+
+
+def describe_rejection(name, entry):
+    """One line of a rejected candidate (`bfpsf.diagnosis.loop.DiagnosisResult.rejected`)."""
+    head = f"{name} (Delta BIC {entry['delta_bic']:.0f})"
+    if entry["contradicted_by"] == "bounds":
+        values = ", ".join(f"{value:.3g}" for value in entry["values"])
+        ranges = ", ".join(str(tuple(bound)) for bound in entry["bounds"])
+        return f"{head}: its fit {values} is outside its physical range {ranges}"
+    return (f"{head}: its signature is contradicted by {entry['contradicted_by']} "
+            f"(p = {entry['p_value']:.1e})")
 
 
 def describe_entry(entry):

@@ -251,6 +251,8 @@ def plot_signatures(result, *, axes=None):
     offset = 0
     ticks, labels = [], []
     for name, entry in result.rejected.items():
+        if "signature" not in entry:  # outside its physical range: no signature test
+            continue
         test = entry["signature"][entry["contradicted_by"]]
         amplitudes = np.array([values[0] for values in test["amplitudes"]])
         errors = np.array([values[0] for values in test["errors"]])
