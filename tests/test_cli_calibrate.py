@@ -74,3 +74,21 @@ def test_missing_exptime_is_named(tmp_path, capsys):
     code = main(["calibrate", str(path), "-o", str(tmp_path / "c.fits")])
     assert code == 1
     assert "no_exptime.fits: header keyword EXPTIME is missing" in capsys.readouterr().err
+
+
+def test_undetermined_read_noise_is_said(calibrated, capsys):
+    """Flats far above the read noise leave it undetermined (a new user's ITL flats from
+    4 ke- gave 0.000 +- 5.870 e-, stored and used by photometry without a word): the
+    summary says so, and says nothing when it is measured."""
+    import dataclasses
+
+    from bfpsf.calibration.product import Calibration
+    from bfpsf.cli.calibrate import _print
+
+    calibration = Calibration.read(calibrated["calib"])
+    for noise, err, warned in ((0.0, 5.87, True), (5.0, 0.3, False)):
+        _print("", dataclasses.replace(calibration, noise_e=noise, noise_e_err=err))
+        out = capsys.readouterr().out
+        assert ("WARNING: these flats do not determine the read noise" in out) is warned
+        if warned:
+            assert "(0.000 +- 5.870 e-)" in out and "--read-noise" in out

@@ -170,6 +170,28 @@ def test_loop_finds_injected_size_effect(shifts, name, render, flats):
     assert before > 3 * after, (before, after)
 
 
+def test_an_effect_whose_template_fails_is_untestable_not_fatal(shifts, caplog):
+    """A template the model cannot measure (a user's wide spots: the model spot with the
+    effect's shifts outgrew its stamp) leaves that effect untestable, with a warning; the
+    loop runs on and still finds the injected effect (the run stopped with one line
+    before)."""
+    from bfpsf.diagnosis.catalogue import CATALOGUE, Effect
+
+    class Unmeasurable(Effect):
+        name = "unmeasurable"
+        parameters = ("u",)
+
+        def templates(self, observables):
+            raise BFPSFValueError("adaptive moments failed on 3 of 9 model stamps (edge)")
+
+    result = diagnose(observables(shifts, diffusion=0.03),
+                      catalogue=[*CATALOGUE, Unmeasurable()])
+    assert result.selected[:1] == ["flux_diffusion"]
+    entry = next(c for c in result.candidates if c["name"] == "unmeasurable")
+    assert entry["testable"] is False
+    assert "unmeasurable is not testable on these data" in caplog.text
+
+
 def test_unphysical_anisotropy_is_rejected_by_its_bounds(shifts):
     """A quadrupole of 4 times the nearest shift (a charge would grow its own pixel along Y)
     fits the sizes but is outside the physical range: rejected with its value, never named

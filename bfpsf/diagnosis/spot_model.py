@@ -225,9 +225,13 @@ class SpotForwardModel:
             if failed.size:
                 # Only spots with no adaptive-moment solution are flagged (HSM fails on them
                 # too: centred spots with sigma below ~0.7 px).
+                flag = result[int(failed[0])].flag_string
+                why = (f"the model spot outgrew its {self.stamp_size}-pixel stamp"
+                       if "edge" in flag else
+                       "the spot is too undersampled for adaptive moments (Python: "
+                       "SpotForwardModel(..., measure='gaussian_fit'))")
                 msg = (f"adaptive moments failed on {failed.size} of {len(flat)} model stamps "
-                       f"({result[int(failed[0])].flag_string}); the spot is too undersampled "
-                       "for adaptive moments: use measure='gaussian_fit'")
+                       f"({flag}): {why}")
                 raise BFPSFValueError(msg, failed.size)
         else:
             sigma_x, sigma_y = _gaussian_fit_sigmas(flat)
