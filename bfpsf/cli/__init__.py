@@ -34,6 +34,17 @@ COMMANDS = ["simulate", "calibrate", "measure", "slope", "psf", "photometry", "v
 
 
 
+def image_arguments(parser, verb, about="", after=""):
+    """The star images and ``--amp`` of the commands that read them (measure, psf,
+    photometry): ``verb`` names what ``--amp`` limits, ``about`` and ``after`` extend the
+    images' help."""
+    parser.add_argument("images", nargs="+", metavar="IMAGE.fits",
+                        help=f"images in ADU{about}: bias-subtracted single-HDU, or one HDU "
+                             f"per amplifier (EXTNAME, optional BIASSEC/DATASEC/DETSEC){after}")
+    parser.add_argument("--amp", action="append", metavar="NAME",
+                        help=f"{verb} only this amplifier (EXTNAME); repeatable")
+
+
 def maxlag_option(text):
     """``--maxlag``: 'auto' or a positive integer."""
     if text == "auto":

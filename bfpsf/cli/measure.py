@@ -11,7 +11,7 @@ from ..errors import BFPSFInputError
 from ..files import about, check_outputs, input_files, read_table, refuse_duplicates
 from ..outputs import write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD
-from . import positive_float, saturation_option, stamp_size_option
+from . import image_arguments, positive_float, saturation_option, stamp_size_option
 from ._files import place_stars, read_image
 
 
@@ -35,10 +35,8 @@ def add_parser(subparsers):
                     "fitted beyond the masked sources, as every command), and "
                     "measure peak, flux and adaptive second moments (G15 section 3.2). "
                     "Saturated, blended and edge sources are flagged, not dropped.")
-    parser.add_argument("images", nargs="+", metavar="IMAGE.fits",
-                        help="images in ADU with header EXPTIME: bias-subtracted single-HDU, "
-                             "or one HDU per amplifier (EXTNAME, optional BIASSEC/DATASEC/"
-                             "DETSEC); x, y are detector pixels")
+    image_arguments(parser, "measure", about=" with header EXPTIME",
+                    after="; x, y are detector pixels")
     parser.add_argument("-o", "--output", required=True, metavar="STARS.ecsv",
                         help="star table to write (ECSV)")
     gain = parser.add_mutually_exclusive_group()
@@ -51,9 +49,6 @@ def add_parser(subparsers):
                              "image's CATALOG extension (x, y in 0-based pixels); repeatable")
     parser.add_argument("--catalog", metavar="FILE",
                         help="table with x, y and colour columns (default: CATALOG HDU)")
-    parser.add_argument("--amp", action="append", metavar="NAME",
-                        help="measure only this amplifier (EXTNAME) of multi-extension "
-                             "images; repeatable")
     parser.add_argument("--threshold", type=positive_float, default=DETECTION_THRESHOLD,
                         help=f"detection threshold, RMS of the smoothed image (default "
                              f"{DETECTION_THRESHOLD:g})")

@@ -11,8 +11,8 @@ import numpy as np
 from ..files import about, check_outputs, input_files
 from ..outputs import write_json, write_table
 from ..measure.sources import DETECTION_THRESHOLD, SourceFlag
-from . import (background_option, non_negative_float, positive_float, positive_int,
-               saturation_option)
+from . import (background_option, image_arguments, non_negative_float, positive_float,
+               positive_int, saturation_option)
 from ._files import place_stars, read_image
 
 
@@ -22,11 +22,7 @@ def add_parser(subparsers):
         description="Detect stars and fit each with P(F) = P0 + F R[P0] at its own flux "
                     "(photutils PSFPhotometry, grouped fits for close stars). Columns x_fit, "
                     "y_fit, flux_fit, flux_err (e-), flags, plus photutils' own.")
-    parser.add_argument("images", nargs="+", metavar="IMAGE.fits",
-                        help="images in ADU: bias-subtracted single-HDU, or one HDU per "
-                             "amplifier (EXTNAME, optional BIASSEC/DATASEC/DETSEC)")
-    parser.add_argument("--amp", action="append", metavar="NAME",
-                        help="fit only this amplifier (EXTNAME); repeatable")
+    image_arguments(parser, "fit")
     parser.add_argument("--calib", metavar="CALIB.fits",
                         help="per-amplifier gains and boundary shifts (needed for images of "
                              "several amplifiers; default: the PSF product's), and the "

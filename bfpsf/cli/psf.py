@@ -19,8 +19,8 @@ from ..errors import BFPSFInputError
 from ..files import about, check_outputs, input_files, refuse_duplicates
 from ..outputs import write_json
 from ..measure.sources import DETECTION_THRESHOLD
-from . import (background_option, finite_float, positive_float, positive_int, saturation_option,
-               stamp_size_option)
+from . import (background_option, finite_float, image_arguments, positive_float, positive_int,
+               saturation_option, stamp_size_option)
 from ..model.psf_fit import DEFAULT_SIZE
 from ._files import read_image
 
@@ -31,11 +31,7 @@ def add_parser(subparsers):
         description="Fit the base PSF P0 (oversampled, pixel response included) from isolated "
                     "stars of all fluxes, each modelled as F P0 + F^2 R[P0] with R the G15 "
                     "charge redistribution of the calibration, and write the PSF product.")
-    parser.add_argument("images", nargs="+", metavar="IMAGE.fits",
-                        help="images in ADU: bias-subtracted single-HDU, or one HDU per "
-                             "amplifier (EXTNAME, optional BIASSEC/DATASEC/DETSEC)")
-    parser.add_argument("--amp", action="append", metavar="NAME",
-                        help="use only this amplifier (EXTNAME); repeatable")
+    image_arguments(parser, "use")
     parser.add_argument("--calib", required=True, metavar="CALIB.fits",
                         help="calibration (boundary shifts, gain, read noise)")
     parser.add_argument("-o", "--output", required=True, metavar="PSF.fits",
