@@ -154,3 +154,23 @@ def test_psf_hook_applies_the_term():
     # the Moffat's wings at the edge of the 25 px stamp: 1 %
     assert change == pytest.approx(term.variance_change(flux)[0], rel=0.01)
     assert np.array_equal(psf.star_image(flux, x_phase=0.1, half_size=12), plain)
+
+
+def test_a_term_that_makes_an_axis_worse_is_not_applied():
+    """The gate of `refine`: lower in quadrature on every block it did not fit AND no axis
+    worse beyond twice its error (a new user's trail: late-block X +8.5 -> +15.1 +- 1.6 %
+    of raw while Y fell from +30.9 to +2.9 was applied before)."""
+    from bfpsf.diagnosis.heldout import term_validated
+
+    def block(before, after, error=1.0):
+        return {"before": {"slope_x_percent": before[0], "slope_y_percent": before[1]},
+                "after": {"slope_x_percent": after[0], "slope_y_percent": after[1],
+                          "slope_x_percent_err": error, "slope_y_percent_err": error}}
+
+    good = block((40.0, 10.0), (1.0, -0.5))
+    assert term_validated({"heldout": good, "late_block": good})
+    assert not term_validated({"heldout": good,
+                               "late_block": block((8.5, 30.9), (15.1, 2.9), 1.6)})
+    # within twice its error is not "worse"
+    assert term_validated({"heldout": good, "late_block": block((1.0, 30.0), (2.5, 1.0))})
+    assert not term_validated({"heldout": block((1.0, 1.0), (1.5, 1.5))})

@@ -188,6 +188,8 @@ def run(args):
                                    **refined.refinement}
         print(f"refined calibration: {args.output_calib} "
               f"({', '.join(refined.refinement['applied']) or 'nothing applied'})")
+        for name, why in refined.refinement.get("not_applied", {}).items():
+            print(f"  not applied: {name}: {why}")
     summary["inputs"] = {key: value for key, value in observables.meta.items()
                          if isinstance(value, (str, float, int, bool)) or value is None}
     star = observables.meta.get("star_residual")
