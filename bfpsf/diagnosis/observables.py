@@ -110,7 +110,8 @@ def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=Non
 def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=None,
                   skew=None, position_bins=1):
     """Mean peak and sizes in quantile bins of flux for each exposure (the same bin edges for
-    all), errors from the scatter in each bin; bins with fewer than 3 stars are left out.
+    all), errors from the scatter pooled over the rows of each flux bin (`_pool_errors`);
+    bins with fewer than 3 stars are left out.
 
     Bins are in total flux, not in measured peak: at one flux the peak of a pixelised star
     depends on its sub-pixel phase (by 30 % for a 3 px FWHM), and so does its size, so bins
@@ -118,8 +119,7 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
 
     With ``x`` (star columns, pixels) and ``position_bins`` > 1, every bin is also split in
     that many quantile ranges of x (the distance from the amplifier): the rows carry their
-    mean x (``x_detector``), the x range is their intercept group, and the errors come from
-    the scatter pooled over the rows of each flux bin (`_pool_errors`). With ``skew`` ((skew_x,
+    mean x (``x_detector``) and the x range is their intercept group. With ``skew`` ((skew_x,
     skew_y) per star, `bfpsf.diagnosis.odd_moments.star_skewness`) the rows carry its mean and
     error (stars without one left out of it).
     """
@@ -152,8 +152,9 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
         msg = f"only {len(rows)} peak bins hold 3 or more stars: too few to diagnose"
         raise BFPSFInputError(msg, len(rows))
     rows = np.array(rows)
-    if position_bins > 1:
-        _pool_errors(rows, row_members, (sigma_x, sigma_y, *(skew if skew is not None else ())))
+    # always pooled: a row of one exposure holds a few stars (6 in a new user's field), whose
+    # own scatter is a poor error and, as a weight, inflates chi2 by (n - 1) / (n - 3)
+    _pool_errors(rows, row_members, (sigma_x, sigma_y, *(skew if skew is not None else ())))
     extra = {}
     if x is not None:
         extra["x_detector"] = rows[:, 7]
