@@ -165,6 +165,16 @@ def test_command_line_writes_flats(tmp_path, capsys):
     assert "--overwrite" in capsys.readouterr().err
     assert main(argv + ["--overwrite"]) == 0
     assert main(["simulate"]) == 2
+    # a flickering lamp (a new user found no option for it: its flats' means, exact to 1e-5,
+    # then showed the simulator's own 2e-4 charge loss as a 9.5 sigma non-linearity)
+    assert main(argv + ["--overwrite", "--lamp-flicker", "0.01"]) == 0
+    ratios = [fits.getheader(path)["SIMLAMP"] / fits.getheader(path)["SIMLEVEL"]
+              for path in sorted(tmp_path.glob("*.fits"))]
+    assert len(set(ratios)) == 4 and 0.95 < min(ratios) and max(ratios) < 1.05
+    with pytest.raises(SystemExit):
+        main(argv + ["--overwrite", "--lamp-flicker", "0.7"])
+    assert ("argument --lamp-flicker: expected a relative rms in [0, 0.5), got '0.7'"
+            in capsys.readouterr().err)
 
 
 @pytest.mark.slow

@@ -22,6 +22,11 @@ def readout_correlation_option(text):
                  "a fraction of the previous pixel's charge, -1 < c < 1")
 
 
+def lamp_flicker_option(text):
+    """``--lamp-flicker``: the relative rms of each exposure's lamp level, in [0, 0.5)."""
+    return _real(text, lambda value: 0 <= value < 0.5, "a relative rms in [0, 0.5)")
+
+
 def _add_flats(targets):
     from ..validation.simulate_flats import DEFAULT_LEVELS_E
 
@@ -54,6 +59,10 @@ def _add_flats(targets):
                         help="columns with 2%% extra charge")
     parser.add_argument("--defect-clusters", type=non_negative_int, default=0,
                         help="number of 3x3 defect clusters")
+    parser.add_argument("--lamp-flicker", type=lamp_flicker_option, default=0.0, metavar="F",
+                        help="relative rms of each exposure's lamp level (default 0; real "
+                             "lamps flicker by about 1e-3, which bfpsf diagnose takes as the "
+                             "error floor of the flats' means)")
     parser.add_argument("-o", "--output", required=True, metavar="DIR",
                         help="output directory (created if missing)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing files")
@@ -74,7 +83,7 @@ def _run_flats(args):
                         exptime_per_e=args.exptime_per_e, nonlinearity=args.nonlinearity,
                         readout_correlation=args.readout_correlation,
                         hot_columns=args.hot_columns, defect_clusters=args.defect_clusters,
-                        progress=args.progress)
+                        lamp_jitter=args.lamp_flicker, progress=args.progress)
     print(f"wrote {len(paths)} flats ({len(args.levels)} levels x {args.pairs} pair(s)) "
           f"to {args.output}")
     return 0
