@@ -202,12 +202,7 @@ def run(args):
     if result.residual_after_heldout:
         rows += [("held-out before", result.residual_before_heldout),
                  ("held-out after", result.residual_after_heldout)]
-        contradicted = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
         for name, confirmed in result.confirmed.items():
-            if name == "calibration_scale (nuisance)" and contradicted:
-                # its signature contradicted, it is neither applied nor part of the "after"
-                print(f"{name}: not applied, its signature is contradicted by {contradicted}")
-                continue
             print(f"{name}: {'confirmed' if confirmed else 'NOT CONFIRMED'} on held-out data")
     for name, entry in result.rejected.items():
         print(f"rejected: {describe_rejection(name, entry)}")

@@ -110,13 +110,12 @@ def _evaluate(state, observables, step):
 
 def _kept_step(result, state, confirmed):
     """The last step of the loop whose effects were all confirmed, with the size scale at
-    zero when it was not confirmed or its signature is contradicted (no explanation
-    either)."""
+    zero when it was not confirmed (a contradicted one is in no step: `diagnose` ran the
+    loop again without it)."""
     kept = [name for name in result.selected if confirmed.get(name, True)]
     step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
-    contradicted = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
-    if step.get("global") is not None and (
-            not confirmed.get("calibration_scale (nuisance)", True) or contradicted):
+    if step.get("global") is not None and not confirmed.get("calibration_scale (nuisance)",
+                                                             True):
         step = dict(step, **{"global": np.zeros_like(step["global"])})
     return step
 
@@ -223,14 +222,9 @@ def with_heldout(result, state, heldout, fraction):
         problem, model = _evaluate(state, heldout, step)
         physical = summarise(problem, heldout, model)
         physical["effects"] = names
+    # (a size scale whose signature is contradicted is in no step: `diagnose` ran the loop
+    # again without it)
     after = summarise(evaluations[-1][0], heldout, evaluations[-1][1])
-    if (result.nuisance.get("calibration_scale") or {}).get("contradicted_by"):
-        # the size scale whose signature the data contradict is not applied (refine) and
-        # is no part of the "after"
-        last = dict(state["steps"][-1])
-        last["global"] = np.zeros_like(last["global"])
-        problem_last, model_last = _evaluate(state, heldout, last)
-        after = summarise(problem_last, heldout, model_last)
     sizes = heldout.sizes
     holdout = {"fraction": float(fraction),
                "sizes_split_by": heldout.meta.get("holdout_sizes_split_by"),

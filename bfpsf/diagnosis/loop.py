@@ -320,14 +320,6 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                                    "p_value": float(_chi2.sf(pull ** 2, 1)),
                                    "matches": bool(abs(pull) <= 3.0)}
             entry.update(signature=test, contradicted_by=contradiction(test))
-    if (nuisance.get("calibration_scale") or {}).get("contradicted_by"):
-        # a size scale whose signature the data contradict is no part of the "after" (nor
-        # applied by refine), in-sample as on the held-out data: the effects as fitted, the
-        # local nuisances refitted without it
-        effects_part = model_after - problem.nuisance @ params[:problem.nuisance.shape[1]]
-        local = np.delete(problem.nuisance, list(problem.global_columns), axis=1)
-        model_after = effects_part + weighted_least_squares(
-            problem.residual - effects_part, problem.sigma, local)[3]
     curves = {}
     sizes = observables.sizes
     if sizes is not None:
