@@ -10,7 +10,8 @@ with the charge-conserving, centroid-preserving patterns of a charge-dependent t
 pixel passing its neighbours a fraction of its charge proportional to that charge, as every
 charge-driven effect of a CCD does at first order)
 
-    B_xx[I] = 1/2 d^2/dx^2 (I^2) sum(I) / sum(I^2)   (three-point, along columns),
+    B_xx[I] = 1/2 d^2/dx^2 (I^2) F / sum(I^2)   (three-point, along columns; F the star's
+                                                 flux, by default sum(I)),
     B_yy[I] = the same along rows,
 
 each adding c_k F / F_ref + q_k (F / F_ref)^2 pixel^2 to the second moment along its axis of
@@ -96,13 +97,14 @@ def apply_pattern(image, pattern, total=None):
     since sum(I^2) is all in the core. ``image`` may be a stack [..., y, x] (each image on its
     own).
     """
-    return pattern_series(image, 0.0, pattern, total)[0]
+    return pattern_series(image, 0.0, pattern, total, order=0)[0]
 
 
-def pattern_series(image, change, pattern, total=None, total_change=0.0):
+def pattern_series(image, change, pattern, total=None, total_change=0.0, order=2):
     """B_k[I + e dI] = B0 + e B1 + e^2 B2 + O(e^3): (B0, B1, B2) at ``image`` along
     ``change``, the star's flux F + e dF (``total``, default the image's sum, and
-    ``total_change``, default the change's sum when ``total`` is None, else 0).
+    ``total_change``, default the change's sum when ``total`` is None, else 0); the terms
+    up to ``order`` only (0, 1 or 2).
 
     With (I + e dI)^2 = q0 + 2 e q1 + e^2 q2 (q0 = I^2, q1 = I dI, q2 = dI^2, where I > 0)
     and D the half second difference, the pattern is D[(I + e dI)^2] s(e), s = (F + e dF) /
@@ -123,10 +125,15 @@ def pattern_series(image, change, pattern, total=None, total_change=0.0):
     # s(e) = (s1 + e d1) / (s2 + 2 e d12 + e^2 d22), to second order in e
     scale = (s1 / s2, d1 / s2 - 2 * s1 * d12 / s2 ** 2,
              (4 * s1 * d12 ** 2 / s2 - s1 * d22 - 2 * d1 * d12) / s2 ** 2)
-    d0, d_mixed, d2 = (_half_second_difference(q, axis) for q in
-                       (positive ** 2, positive * change, change ** 2))
-    return (d0 * scale[0], 2 * d_mixed * scale[0] + d0 * scale[1],
-            d2 * scale[0] + 2 * d_mixed * scale[1] + d0 * scale[2])
+    d0 = _half_second_difference(positive ** 2, axis)
+    series = [d0 * scale[0]]
+    if order >= 1:
+        d_mixed = _half_second_difference(positive * change, axis)
+        series.append(2 * d_mixed * scale[0] + d0 * scale[1])
+    if order >= 2:
+        d2 = _half_second_difference(change ** 2, axis)
+        series.append(d2 * scale[0] + 2 * d_mixed * scale[1] + d0 * scale[2])
+    return tuple(series)
 
 
 def pattern_tables(data, bf_data, oversampling):

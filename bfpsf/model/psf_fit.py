@@ -149,8 +149,8 @@ def _with_empirical(term, model, d_flux, stars):
         change = np.broadcast_to(change, flux.shape)[:, None, None]
         slope = np.broadcast_to(slope, flux.shape)[:, None, None]
         # the star's flux normalises the pattern (its cutout may cut the wings)
-        pattern_model, along_flux, _ = pattern_series(model, d_flux, pattern,
-                                                      total=stars.flux, total_change=1.0)
+        pattern_model, along_flux = pattern_series(model, d_flux, pattern, total=stars.flux,
+                                                   total_change=1.0, order=1)
         out += change * pattern_model
         derivative += change * along_flux + signs * slope * pattern_model
     return out, derivative
