@@ -88,7 +88,7 @@ def test_validate_full():
 
 def test_cli_validate_json_and_report(tmp_path, capsys):
     args = ["validate", "--quick", "--peaks", "1e4", "6e4", "1.2e5", "--spots-per-level", "4",
-            "--flat-size", "64",
+            "--flat-size", "128",
             "--flat-levels", "2e4", "5e4", "8e4", "1.1e5", "--no-progress",
             "--json", str(tmp_path / "v.json"), "--report", str(tmp_path / "report")]
     assert main(args) == 0
