@@ -68,9 +68,10 @@ def test_no_file_reads_a_path_outside_the_repository():
     assert offenders == []
 
 
-def _module_imports():
-    """{module: the bfpsf modules it imports at module level} (imports inside functions, the
-    documented optional dependencies and the plug-ins' late imports, are not edges)."""
+def _module_imports(inside_functions=False):
+    """{module: the bfpsf modules it imports at module level} (with ``inside_functions``, also
+    those it imports when a function runs: the documented optional dependencies and the
+    plug-ins' late imports)."""
     import ast
 
     paths = {}
@@ -82,16 +83,15 @@ def _module_imports():
         package = module if path.name == "__init__.py" else module.rpartition(".")[0]
         edges = set()
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                continue
+            top = inside_functions or getattr(node, "col_offset", None) == 0
             names = []
-            if isinstance(node, ast.ImportFrom) and node.col_offset == 0:
+            if isinstance(node, ast.ImportFrom) and top:
                 base = node.module or ""
                 if node.level:
                     base = ".".join(package.split(".")[:len(package.split(".")) - node.level + 1]
                                     + ([node.module] if node.module else []))
                 names = [f"{base}.{alias.name}" for alias in node.names] + [base]
-            elif isinstance(node, ast.Import) and node.col_offset == 0:
+            elif isinstance(node, ast.Import) and top:
                 names = [alias.name for alias in node.names]
             edges |= {name for name in names if name in paths and name != module}
         graph[module] = edges
@@ -126,15 +126,22 @@ def _cycles(graph):
 
 def test_house_rules_files_and_imports():
     """Issue 24's house rules, kept: no module of bfpsf over 500 lines, no import circle
-    between its modules and no cycle between its subpackages (module-level imports; a
-    package's ``__init__`` re-exports are not edges)."""
+    between its modules, not even through an import inside a function, and no cycle between
+    its subpackages (module-level imports; a package's ``__init__`` re-exports are not
+    edges)."""
     graph, paths = _module_imports()
     long = {module: n for module, path in paths.items()
             if (n := len(path.read_text().splitlines())) > 500}
     assert not long, f"modules over 500 lines: {long}"
-    modules = {module: {other for other in edges if paths[other].name != "__init__.py"}
-               for module, edges in graph.items() if paths[module].name != "__init__.py"}
+
+    def between_modules(graph):
+        return {module: {other for other in edges if paths[other].name != "__init__.py"}
+                for module, edges in graph.items() if paths[module].name != "__init__.py"}
+
+    modules = between_modules(graph)
     assert not _cycles(modules), _cycles(modules)
+    when_called = between_modules(_module_imports(inside_functions=True)[0])
+    assert not _cycles(when_called), _cycles(when_called)
     packages = {}
     for module, edges in modules.items():
         for other in edges:

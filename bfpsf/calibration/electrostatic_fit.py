@@ -53,14 +53,6 @@ def _geometry(vector, thickness):
         half_width_x=half_x, half_width_y=half_y)
 
 
-def _vector(geometry):
-    t = geometry.thickness
-    return np.array([geometry.charge_height / t,
-                     (geometry.horizontal_height - geometry.charge_height) / t,
-                     (geometry.vertical_height - geometry.charge_height) / t,
-                     geometry.half_width_x, geometry.half_width_y])
-
-
 @dataclasses.dataclass(frozen=True)
 class ElectrostaticFit:
     """Boundary shifts fitted with the electrostatic model, with their uncertainties.

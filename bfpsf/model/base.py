@@ -44,6 +44,7 @@ from astropy.modeling import Fittable2DModel, Parameter
 from ..errors import BFPSFValueError
 from ..moments.shapes import psf_shape
 from .galsim_profile import to_galsim
+from .product import read_psf, register_kind, write_psf
 
 __all__ = ["BFPSFModel"]
 
@@ -116,6 +117,13 @@ class BFPSFModel(Fittable2DModel):
     kind = "a flux-dependent PSF"
     #: `read` returns whatever kind the product holds (False: only this class).
     reads_any_kind = True
+    #: The product kind a class writes and reads back as ('single', 'grid'; None: abstract).
+    product_kind = None
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if "product_kind" in cls.__dict__:  # the kind's own class, not a user's subclass
+            register_kind(cls.product_kind, cls)
 
     flux = Parameter(default=1, description="Total flux of the star (image unit)")
     x_0 = Parameter(default=0, description="x position of the star centre (pixels)")
@@ -230,13 +238,9 @@ class BFPSFModel(Fittable2DModel):
         """A copy that owns every array."""
         return copy.deepcopy(self)
 
-    # -- the PSF product (bfpsf.model.product: the model layer knows nothing of files) ---------
+    # -- the PSF product (its FITS layout is bfpsf.model.product's) -----------------------------
     def write(self, path, *, calibration=None, meta=None, overwrite=False):
         """Write the PSF product (FITS); see `bfpsf.model.product.write_psf`."""
-        # imported when called: the deliberate circle (.product builds the kinds, which import
-        # this module), docs/DESIGN.md
-        from .product import write_psf
-
         write_psf(self, path, calibration=calibration, meta=meta, overwrite=overwrite)
 
     @classmethod
@@ -244,11 +248,7 @@ class BFPSFModel(Fittable2DModel):
         """Read a PSF product (`bfpsf.model.product.read_psf`): any kind through this class or
         `FluxDependentPSF` (``reads_any_kind``), only a grid through
         `GriddedFluxDependentPSF`."""
-        # imported when called: .product and .psf import this module (the deliberate circle)
-        from .product import read_psf
-        from .psf import FluxDependentPSF
-
-        if issubclass(cls, FluxDependentPSF):
+        if cls.product_kind == "single":  # FluxDependentPSF or a subclass: read as cls
             kwargs.setdefault("cls", cls)
         psf = read_psf(path, **kwargs)
         if not (cls.reads_any_kind or isinstance(psf, cls)):

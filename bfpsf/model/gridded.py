@@ -120,6 +120,7 @@ class GriddedFluxDependentPSF(BFPSFModel):
 
     kind = "a grid"
     reads_any_kind = False
+    product_kind = "grid"
 
     flux = Parameter(default=1, description="Total flux of the star (image unit)")
     x_0 = Parameter(default=0, description="x position of the star centre (pixels)")

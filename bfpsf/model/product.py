@@ -41,10 +41,8 @@ from ..files import open_product, refuse_overwrite
 from ..outputs import write_fits
 from ..shifts import BoundaryShifts
 from .empirical import EmpiricalTerm
-from .gridded import GriddedFluxDependentPSF
-from .psf import FluxDependentPSF
 
-__all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
+__all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf", "register_kind"]
 
 #: Version of the PSF product layout written by `write_psf` (2: optional BFTABLE HDU;
 #: 3: every constructor option, FLUXUNIT replacing the ADU meaning of GAIN; 4: optional GRID,
@@ -52,6 +50,24 @@ __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf"]
 #: shifts; 6: LINC, FLUXCORR, FLUXCERR cards; 7: optional EMPIRIC table of the EMPIRICAL
 #: term).
 PSF_SCHEMA_VERSION = 7
+
+#: The classes a product reads back as, by ``product_kind`` ('single', 'grid'): each kind
+#: registers itself (`bfpsf.model.base.BFPSFModel.__init_subclass__`), so this module, which
+#: the kinds import for their ``write`` and ``read``, imports none of them.
+_KINDS = {}
+
+
+def register_kind(name, cls):
+    """Read products of kind ``name`` ('single' or 'grid') back as ``cls``."""
+    _KINDS[name] = cls
+
+
+def _kind(name):
+    try:
+        return _KINDS[name]
+    except KeyError:  # bfpsf.model's __init__ imports every kind: never without a bug
+        msg = f"no PSF kind {name!r} is registered (import bfpsf.model first)"
+        raise BFPSFValueError(msg, name) from None
 
 
 def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
@@ -72,7 +88,7 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     from astropy.io import fits
 
     refuse_overwrite(path, overwrite)
-    nodes = psf.nodes if isinstance(psf, GriddedFluxDependentPSF) else None
+    nodes = psf.nodes if psf.product_kind == "grid" else None
     if psf.mode == "exact" and any(node.density_profile is not None
                                    for node in (nodes or [psf])):
         msg = ("a mode='exact' model with a density_profile cannot be stored: the file keeps no "
@@ -217,7 +233,7 @@ def read_psf(path, *, cls=None, **kwargs):
     BFPSFInputError
         The file is missing, is not a PSF product, or has a newer schema.
     """
-    cls = FluxDependentPSF if cls is None else cls
+    cls = _kind("single") if cls is None else cls
     with open_product(path, keyword="BFPSFVER", version=PSF_SCHEMA_VERSION,
                       kind="PSF product") as hdul:
         header = hdul[0].header
@@ -263,7 +279,7 @@ def read_psf(path, *, cls=None, **kwargs):
         options.pop("bf_table", None)
         if grid[3] is not None and options.get("mode") == "table":
             options["bf_table"] = grid[3]
-        psf = GriddedFluxDependentPSF.from_data(grid[0], grid[1], grid[2], shifts, **options)
+        psf = _kind("grid").from_data(grid[0], grid[1], grid[2], shifts, **options)
         _set_metadata(psf, metadata)
         psf.shift_samples = samples
         psf.amplifier_shifts = amplifier_shifts

@@ -115,6 +115,7 @@ class FluxDependentPSF(BFTerm, BFPSFModel):
     """
 
     kind = "a single PSF"
+    product_kind = "single"
 
     flux = Parameter(default=1, description="Total flux of the star (image unit)")
     x_0 = Parameter(default=0, description="x position of the star centre (pixels)")
