@@ -7,6 +7,7 @@ carry no measured correlation (ring 2 at 0.4 sigma), and the automatic choice st
 """
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -44,7 +45,7 @@ def test_auto_keeps_the_four_level_fit_near_truth(four_levels):
     assert auto.maxlag == 2 and auto.parameters["maxlag_auto"] is True
     ring = auto.parameters["maxlag_ring_sigma"]
     assert ring[0] < 3 and auto.parameters["maxlag_reason"] == (
-        f"lag ring 1 is measured at {ring[0]:.1f} sigma (< 3); raised to the least maxlag 2")
+        f"lag ring 1 is measured at {ring[0]:.2f} sigma (< 3); raised to the least maxlag 2")
     # the truth within the errors of 4 pairs (gain 1.51 +- 0.20, noise 1.3 +- 740 e-: a
     # PTC from 2e4 e- up does not see 5 e- of read noise); the lags the flats do not
     # constrain drove the noise to 60 e- and the gain to 1.84 at maxlag 8
@@ -67,9 +68,11 @@ def test_auto_maxlag_on_the_command_line(four_levels, tmp_path, capsys):
                  str(tmp_path / "c.json"), "--n-monte-carlo", "0", "--workers", "1"])
     assert code == 0
     out = capsys.readouterr().out
+    # the linearity is said when it is not flagged too (simulated flats: linear)
+    assert re.search(r"linearity: [0-9.e-]+ per mil peak to peak \(not flagged: <= 3\)", out)
     summary = json.loads((tmp_path / "c.json").read_text())
     ring = summary["parameters"]["maxlag_ring_sigma"][0]
-    assert (f"maxlag 2 (chosen from the data: lag ring 1 is measured at {ring:.1f} sigma (< 3); "
+    assert (f"maxlag 2 (chosen from the data: lag ring 1 is measured at {ring:.2f} sigma (< 3); "
             "raised to the least maxlag 2)") in out
     assert summary["maxlag"] == 2 and np.shape(summary["a"]) == (3, 3)
     assert summary["parameters"]["maxlag_auto"] is True
@@ -132,7 +135,7 @@ def test_choose_maxlag_stops_at_the_first_unmeasured_ring_and_bounds():
     rings = {1: 20.0, 2: 8.0, 3: 4.0, 4: 1.0, 5: 5.0}
     choice = choose_maxlag(*_table(np.arange(1.0, 9.0), rings))
     np.testing.assert_allclose(choice.significance, [20, 8, 4, 1, 5])
-    assert choice.maxlag == 3 and choice.reason == "lag ring 4 is measured at 1.0 sigma (< 3)"
+    assert choice.maxlag == 3 and choice.reason == "lag ring 4 is measured at 1.00 sigma (< 3)"
     # fewer than 8 pairs: the full model is held to 2, the exponential is not
     four = _table(np.arange(1.0, 5.0), rings)
     held = choose_maxlag(*four)
@@ -146,7 +149,7 @@ def test_choose_maxlag_stops_at_the_first_unmeasured_ring_and_bounds():
     # nothing measured: the least maxlag the shift solvers need
     choice = choose_maxlag(*_table(np.arange(1.0, 9.0), {1: 0.5}))
     assert choice.maxlag == 2 and choice.reason == (
-        "lag ring 1 is measured at 0.5 sigma (< 3); raised to the least maxlag 2")
+        "lag ring 1 is measured at 0.50 sigma (< 3); raised to the least maxlag 2")
 
 
 def test_maxlag_argument_is_validated():

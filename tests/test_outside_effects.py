@@ -227,6 +227,47 @@ def _print_figures(name, result):
                   f"{b['photometry_bias_mmag']:+.2f} -> {a['photometry_bias_mmag']:+.2f} mmag")
 
 
+def _user_flats(tmp_path, gain):
+    """E2V SiliconSensor flats (160^2, 1 pair x 8 levels) as FITS, and the calibration
+    `diagnose` computes from them at its defaults (maxlag auto, b fitted): the shifts the
+    spots carry, so that the null is exact (8 flats of 160^2 know a(0, 1) to about 1e-7, and
+    spots drawn with another fit's shifts carry that difference into the residual)."""
+    from astropy.io import fits
+
+    from bfpsf.calibration import calibrate
+    from bfpsf.validation.simulate_flats import simulate_flats
+
+    flats = simulate_flats("lsst_e2v_50_8", np.linspace(1e4, 1.2e5, 8), pairs=1, size=160,
+                           nsteps=4, seed=5, gain=gain, lamp_jitter=1e-3)
+    paths = []
+    for index, (image, exptime, _) in enumerate(flats):
+        paths.append(str(tmp_path / f"flat{index:02d}.fits"))
+        fits.PrimaryHDU(image, header=fits.Header({"EXPTIME": exptime})).writeto(paths[-1])
+    return paths, calibrate(paths, n_monte_carlo=0)
+
+
+def _write_mosaics(tmp_path, stamps, exposure, gain, sky_e=50.0, seed=7):
+    """One FITS image (ADU) per exposure: its stamps side by side, 9 per row, on a sky of
+    ``sky_e`` with Poisson and 5 e- of read noise."""
+    from astropy.io import fits
+
+    rng = np.random.default_rng(seed)
+    size, images = stamps.shape[1], []
+    for index in np.unique(exposure):
+        members = np.flatnonzero(exposure == index)
+        rows = -(-members.size // 9)
+        mosaic = np.zeros((rows * size + 16, 9 * size + 16))
+        for k, member in enumerate(members):
+            row, column = divmod(k, 9)
+            mosaic[8 + row * size:8 + (row + 1) * size,
+                   8 + column * size:8 + (column + 1) * size] = stamps[member]
+        noisy = (rng.poisson(np.clip(mosaic, 0, None) + sky_e) - sky_e
+                 + 5.0 * rng.standard_normal(mosaic.shape))
+        images.append(str(tmp_path / f"spots{index}.fits"))
+        fits.PrimaryHDU(noisy / gain, header=fits.Header({"EXPTIME": 1.0})).writeto(images[-1])
+    return images
+
+
 def test_user_path_on_an_outside_effect(tmp_path):
     """``bfpsf diagnose`` on FITS flats and spot mosaics with the one_axis smear: nothing
     named, the rejections and the verdict in the JSON, the EMPIRICAL term in the refined
@@ -234,42 +275,15 @@ def test_user_path_on_an_outside_effect(tmp_path):
     report."""
     import json
 
-    from astropy.io import fits
-
     from bfpsf.calibration.product import Calibration
     from bfpsf.cli import main
     from bfpsf.model.empirical import EmpiricalTerm
-    from bfpsf.validation.simulate_flats import simulate_flats
 
     gain = 1.5
-    flats = simulate_flats("lsst_e2v_50_8", np.linspace(1e4, 1.2e5, 8), pairs=1, size=160,
-                           nsteps=4, seed=5, gain=gain, lamp_jitter=1e-3)
-    flat_paths = []
-    for index, (image, exptime, _) in enumerate(flats):
-        flat_paths.append(str(tmp_path / f"flat{index:02d}.fits"))
-        fits.PrimaryHDU(image, header=fits.Header({"EXPTIME": exptime})).writeto(
-            flat_paths[-1])
-    from bfpsf.calibration import calibrate
-
-    # the spots carry the shifts `diagnose` will calibrate at its defaults (maxlag auto, b
-    # fitted), so its null is exact: 8 flats of 160^2 know a(0, 1) to about 1e-7, and spots
-    # drawn with another fit's shifts carried that difference into the "outside" residual
-    cal = calibrate(flat_paths, n_monte_carlo=0)
+    flat_paths, cal = _user_flats(tmp_path, gain)
     spots = draw_bench_spots(n_exposures=6, shifts=cal.shifts)
-    stamps = apply_effect(spots, "one_axis", STRENGTH)
-    rng = np.random.default_rng(7)
-    size, images = stamps.shape[1], []
-    for exposure in range(spots.n_exposures):
-        members = np.flatnonzero(spots.exposure == exposure)
-        mosaic = np.zeros((6 * size + 16, 9 * size + 16))
-        for k, index in enumerate(members):
-            row, column = divmod(k, 9)
-            mosaic[8 + row * size:8 + (row + 1) * size,
-                   8 + column * size:8 + (column + 1) * size] = stamps[index]
-        noisy = (rng.poisson(np.clip(mosaic, 0, None) + 50.0) - 50.0
-                 + 5.0 * rng.standard_normal(mosaic.shape))
-        images.append(str(tmp_path / f"spots{exposure}.fits"))
-        fits.PrimaryHDU(noisy / gain, header=fits.Header({"EXPTIME": 1.0})).writeto(images[-1])
+    images = _write_mosaics(tmp_path, apply_effect(spots, "one_axis", STRENGTH),
+                            spots.exposure, gain)
     out, refined, report = tmp_path / "d.json", tmp_path / "refined.fits", tmp_path / "report"
     # the README's command, defaults only (the sky is found, the b term fitted)
     assert main(["diagnose", "--flats", *flat_paths, "--images", *images,
@@ -288,6 +302,38 @@ def test_user_path_on_an_outside_effect(tmp_path):
     assert term.coefficients["xx"]["constant"] > 3 * term.errors["xx"]["constant"]
     assert (report / "signatures.png").stat().st_size > 0
     assert "Attribution by signature" in (report / "report.md").read_text()
+
+
+def test_user_path_null_with_the_seeing_of_each_exposure(tmp_path):
+    """A null night whose seeing changes from exposure to exposure (FWHM -4 to +5 %): every
+    exposure has its own size at zero flux (`SizeTable.intercepts`) and its own P0 in the
+    star residual, so `diagnose` names nothing and explains it. With one intercept and one P0
+    for the night (a new user's 3 % seeing changes) it rejected five catalogue effects by
+    exposure order, read the sizes as "unexplained, rising over the night" and the star
+    residual at chi2 12 per pixel: NOT EXPLAINED."""
+    import json
+
+    from bfpsf.cli import main
+    from bfpsf.validation.effects_bench import BenchSpots
+
+    gain = 1.5
+    flat_paths, cal = _user_flats(tmp_path, gain)
+    nights = [draw_bench_spots(n_exposures=1, shifts=cal.shifts, fwhm=3.0 * factor)
+              for factor in (1.00, 1.04, 0.97, 1.05, 0.96, 1.02)]
+    spots = BenchSpots(np.concatenate([night.stamps for night in nights]),
+                       np.repeat(np.arange(len(nights)), [len(n.stamps) for n in nights]),
+                       *[np.concatenate([getattr(night, name) for night in nights])
+                         for name in ("level", "column", "x_detector")],
+                       nights[0].peaks_e, len(nights))
+    images = _write_mosaics(tmp_path, apply_effect(spots, "null", 0.0), spots.exposure, gain)
+    out = tmp_path / "d.json"
+    assert main(["diagnose", "--flats", *flat_paths, "--images", *images,
+                 "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    assert summary["selected"] == [] and summary["rejected"] == {}, summary["rejected"]
+    assert [entry for entry in summary["unexplained"] if entry["observable"] == "sizes"] == []
+    assert summary["verdict"]["success"], summary["verdict"]
+    assert summary["verdict"]["star_residual_chi2_per_pixel"] < 3
 
 
 def _psf_flux(model, stamp, sky_e=75.0):

@@ -139,7 +139,7 @@ def choose_maxlag(mean_adu, cov_adu, npix, *, model="full", min_pairs_full_model
     below = np.flatnonzero(significance < nsigma)
     if below.size:
         chosen = int(below[0])       # the ring before the first unmeasured one (index r - 1)
-        reason = (f"lag ring {chosen + 1} is measured at {significance[chosen]:.1f} sigma "
+        reason = (f"lag ring {chosen + 1} is measured at {significance[chosen]:.2f} sigma "
                   f"(< {nsigma:g})")
     else:
         chosen = measured

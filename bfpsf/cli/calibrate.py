@@ -145,6 +145,9 @@ def _print(detector, calibration):
             print(f"{prefix}WARNING: non-linear response, "
                   f"{1e3 * one.linearity.peak_to_peak:.3g} per mil peak to peak > "
                   f"{1e3 * one.linearity.threshold:.3g}")
+        elif one.linearity.measured:  # said either way (a new user looked for it in vain)
+            print(f"{prefix}linearity: {1e3 * one.linearity.peak_to_peak:.3g} per mil peak to "
+                  f"peak (not flagged: <= {1e3 * one.linearity.threshold:.3g})")
         if one.pedestal.any_detected:
             print(f"{prefix}readout pedestal subtracted at "
                   f"{int(one.pedestal.detected.sum())} lag(s)")

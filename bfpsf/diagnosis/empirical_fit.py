@@ -99,7 +99,7 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
     exposure_reference = float(np.mean(sizes.exposure)) if sizes.exposure is not None else 0.0
     terms = _terms(sizes, fluxes, x_reference, exposure_reference, position, exposure)
     response = response or _IDENTITY
-    groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
+    groups = sizes.intercept_design()
     zeros = np.zeros_like(groups)
     blocks = [np.vstack([groups, zeros]), np.vstack([zeros, groups])]
     for pattern in PATTERNS:

@@ -107,6 +107,16 @@ def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=Non
                        correlations=correlations, meta=meta, ptc=ptc)
 
 
+def _exposure_p0(pixels, saturation_e, cal, gain, common):
+    """P0 of one exposure's isolated stars (with the calibration's shifts), or ``common``
+    when it has fewer than 10."""
+    stars = isolated_stars(pixels, DEFAULT_SIZE, saturation_e=saturation_e)[0]
+    if len(stars) < 10:
+        return common
+    return fit_psf([pixels], [stars], cal.shifts, read_noise=float(cal.noise_e),
+                   flux_unit="electron", gain=float(gain)).psf
+
+
 def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=None,
                   skew=None, position_bins=1):
     """Mean peak and sizes in quantile bins of flux for each exposure (the same bin edges for
@@ -434,8 +444,14 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
                                          linearity=linearity, correlations=correlations,
                                          meta=meta, ptc=ptc, base_psf=psf,
                                          peak_to_flux=flux_of_peak(peaks, total))
-    # sky-subtracted images; the noise per pixel is the sky's (read noise included)
-    star = stacked_star_residual(pixels, tables, psf, half_size=min(psf.half_size, 7),
+    # sky-subtracted images; the noise per pixel is the sky's (read noise included); each
+    # exposure against its own P0 (its seeing: one P0 for a night whose seeing changed by 3 %
+    # left a null's stars at chi2 12 per pixel), the loop's P0 where too few stars
+    models = [_exposure_p0(pixels[index], levels[index], cal, gain, psf)
+              for index in range(len(pixels))]
+    meta["star_residual_p0"] = ("per exposure" if all(model is not psf for model in models)
+                                else "per exposure where 10 isolated stars or more")
+    star = stacked_star_residual(pixels, tables, models, half_size=min(psf.half_size, 7),
                                  noise_e=float(np.median(sky_noise)))
     if star is not None:
         observables.meta["star_residual"] = star

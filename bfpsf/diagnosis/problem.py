@@ -1,9 +1,9 @@
 """The least-squares problem of the closed loop (`bfpsf.diagnosis.loop.diagnose`).
 
 Every observable (`bfpsf.diagnosis.observables`) is a block of data with its errors and the
-base model's nuisance parameters (a free intercept per data-set group and axis for the sizes,
-k t + b for the flat means, a per lag for the correlations, the PTC's read noise, gain and
-sum-rule a(0, 0)); `build_problem` stacks them, `effect_design` adds a candidate's template
+base model's nuisance parameters (a free intercept per data-set group, exposure and axis for
+the sizes, k t + b for the flat means, a per lag for the correlations, the PTC's read noise,
+gain and sum-rule a(0, 0)); `build_problem` stacks them, `effect_design` adds a candidate's template
 (`bfpsf.diagnosis.catalogue`) to the design, and `summarise` reads the residual's figures:
 the brighter-fatter slope residual in X and Y (slope of the size residual against peak,
 percent of the raw measured slope), the photometry bias the size residual implies (a PSF fit
@@ -37,7 +37,8 @@ class Problem:
 
 
 def _size_block(observables):
-    """Size residuals; nuisance: an intercept per group and axis and, when the observables
+    """Size residuals; nuisance: an intercept per group, exposure and axis
+    (`SizeTable.intercepts`) and, when the observables
     carry the calibration's BF amplitude error (``meta['scale_err']``), a common scale of the
     shifts within it (a Gaussian prior, one pseudo data point): the prediction is no better
     than its flats. The scale is a global nuisance: fitted in-sample, fixed on held-out data.
@@ -46,10 +47,9 @@ def _size_block(observables):
     predicted_x, predicted_y = model.sizes(sizes.peak_e)
     residual = np.concatenate([sizes.sigma_x - predicted_x, sizes.sigma_y - predicted_y])
     sigma = np.concatenate([sizes.sigma_x_err, sizes.sigma_y_err])
-    n, groups = len(sizes), sizes.n_groups
-    nuisance = np.zeros((2 * n, 2 * groups))
-    for axis in range(2):
-        nuisance[axis * n + np.arange(n), axis * groups + sizes.group] = 1.0
+    intercepts = sizes.intercept_design()
+    zeros = np.zeros_like(intercepts)
+    nuisance = np.block([[intercepts, zeros], [zeros, intercepts]])
     scale_err = float(observables.meta.get("scale_err", 0.0) or 0.0)
     if not scale_err > 0:
         return residual, sigma, nuisance
@@ -163,9 +163,9 @@ def slope_residuals(sizes, residual_x, residual_y):
     for axis, measured, error, residual in (("x", sizes.sigma_x, sizes.sigma_x_err, residual_x),
                                             ("y", sizes.sigma_y, sizes.sigma_y_err, residual_y)):
         # the given errors, not rescaled by the scatter (the chi2 is reported apart)
-        raw = fit_bf_slope(sizes.peak_e, measured, size_err=error, group=sizes.group,
+        raw = fit_bf_slope(sizes.peak_e, measured, size_err=error, group=sizes.intercepts,
                            scale_errors=False, clip_nsigma=None).slope
-        fit = fit_bf_slope(sizes.peak_e, residual, size_err=error, group=sizes.group,
+        fit = fit_bf_slope(sizes.peak_e, residual, size_err=error, group=sizes.intercepts,
                            scale_errors=False, clip_nsigma=None)
         out[f"raw_slope_{axis}"] = raw
         out[f"slope_{axis}_percent"] = 100.0 * fit.slope / raw

@@ -205,7 +205,7 @@ def parity_test(sizes, *, alpha=SIGNATURE_ALPHA):
     """
     if sizes is None or sizes.skew_x is None or sizes.skew_y is None:
         return None
-    groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
+    groups = sizes.intercept_design()
     design = np.column_stack([sizes.peak_e / 1e5, groups])
     slopes, errors, statistic = [], [], 0.0
     for values, sigma in ((sizes.skew_x, sizes.skew_x_err), (sizes.skew_y, sizes.skew_y_err)):

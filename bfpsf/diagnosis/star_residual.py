@@ -23,8 +23,9 @@ def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, m
         Images, e- (background subtracted).
     tables : sequence of astropy Table
         Source tables of the images (``x``, ``y``, ``flux_e``, ``peak_e``, ``flags``).
-    psf : bfpsf.model.psf.FluxDependentPSF
-        In e- (``gain=1``).
+    psf : bfpsf.model.psf.FluxDependentPSF or sequence of them
+        In e- (``gain=1``); a sequence holds one model per image (each exposure's own P0:
+        its seeing).
     half_size : int, optional
         Stamps are 2 half_size + 1 pixels square; default the PSF's half size.
     noise_e : float
@@ -40,9 +41,10 @@ def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, m
         (rms of the stack / model peak), ``chi2_per_pixel``, ``n_stars``, ``radius`` and
         ``profile`` (azimuthal mean in rings of 0.5 px, `bfpsf.plotting.diagnose`).
     """
-    half = int(psf.half_size if half_size is None else half_size)
+    models = list(psf) if isinstance(psf, (list, tuple)) else [psf] * len(images)
+    half = int(models[0].half_size if half_size is None else half_size)
     total, variance, model_sum, count = 0.0, 0.0, 0.0, 0
-    for image, table in zip(images, tables):
+    for image, table, psf in zip(images, tables, models):
         image = np.asarray(image, float)
         ny, nx = image.shape
         good = (np.asarray(table["flags"]) == 0) & (np.asarray(table["peak_e"]) > min_peak_e)

@@ -89,7 +89,7 @@ def _dependence(sizes, values, errors, column, scale, labels):
     ``column`` (detector position, exposure order)."""
     x = sizes.peak_e / 1e5
     centred = (np.asarray(column, float) - np.mean(column)) / scale
-    groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
+    groups = sizes.intercept_design()
     params, covariance, _, _ = weighted_least_squares(values, errors, np.column_stack([x, x * centred, groups]))
     error = float(np.sqrt(abs(covariance[1, 1])))
     significance = abs(params[1]) / error if error > 0 else 0.0
@@ -105,7 +105,7 @@ def _odd_parity(sizes, axis):
     if values is None:
         return None
     errors = getattr(sizes, f"skew_{axis}_err")
-    groups = (sizes.group[:, None] == np.unique(sizes.group)[None, :]).astype(float)
+    groups = sizes.intercept_design()
     params, covariance, _, _ = weighted_least_squares(values, errors, np.column_stack([sizes.peak_e / 1e5,
                                                                      groups]))
     significance = abs(params[0]) / np.sqrt(abs(covariance[0, 0]))
@@ -143,7 +143,7 @@ def describe_unexplained(problem, observables, model):
             n = len(sizes)
             for index, axis in enumerate("xy"):
                 values, errors = part[index * n:(index + 1) * n], sigma[index * n:(index + 1) * n]
-                fit = fit_bf_slope(sizes.peak_e, values, size_err=errors, group=sizes.group,
+                fit = fit_bf_slope(sizes.peak_e, values, size_err=errors, group=sizes.intercepts,
                                    scale_errors=False, clip_nsigma=None)
                 significance = abs(fit.slope) / fit.slope_err
                 if significance > UNEXPLAINED_NSIGMA:
@@ -153,7 +153,7 @@ def describe_unexplained(problem, observables, model):
                     entry = {"observable": "sizes", "axis": axis, "parity": parity,
                              "sign": "rising" if fit.slope > 0 else "falling",
                              "flux_dependence": _flux_dependence(sizes.peak_e, values, errors,
-                                                                 sizes.group),
+                                                                 sizes.intercepts),
                              "significance": float(significance),
                              "position_dependence": None, "exposure_dependence": None}
                     if sizes.x_detector is not None and np.ptp(sizes.x_detector) > 0:
