@@ -247,3 +247,26 @@ def test_static_comparison_gives_total_fluxes_too(data, products):
     ratio = np.asarray(table["flux_fit"])[matched] / field.truth[0]["flux_e"][nearest[matched]]
     # the static P0 misses the BF of the bright stars (a few mmag), not the wings' light
     assert abs(np.median(ratio) - 1.0) < 0.01
+
+
+def test_psf_warns_when_the_seeing_differs(data, products, tmp_path, capsys):
+    """Each image's stars against the one P0: an exposure 4 % wider than the others is named
+    with its offset; images of one seeing are not (their common offset is the estimator's)."""
+    directory, _, images = data
+    for kind in ("single", "gridded"):
+        offsets = [entry["size_offset"] for entry in products[kind]["images"]]
+        errors = [entry["size_offset_err"] for entry in products[kind]["images"]]
+        assert abs(offsets[0] - offsets[1]) < 3 * np.hypot(*errors) + 0.003, offsets
+    wide = simulate_field(galsim.Moffat(beta=3.5, fwhm=3.45 * 1.04), n_images=1,
+                          shape=(220, 220), n_stars=30, min_separation=30, sensor=None,
+                          shifts=SHIFTS, seed=2112)
+    path = str(tmp_path / "wide.fits")
+    write_image_adu(path, _non_linear(wide.images[0]), gain=GAIN)
+    capsys.readouterr()
+    assert main(["psf", *images, path, "--calib", str(directory / "flats.fits"), "-o",
+                 str(tmp_path / "psf.fits"), "--json", str(tmp_path / "psf.json")]) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if "seeing" in line]
+    assert len(warnings) == 1 and warnings[0].startswith(f"WARNING: {path}: its stars are +")
+    entries = json.loads((tmp_path / "psf.json").read_text())["images"]
+    # the wide image against the others: about 4 % in FWHM, somewhat less in adaptive sigma
+    assert entries[2]["size_offset"] - np.median([e["size_offset"] for e in entries]) > 0.02
