@@ -21,8 +21,9 @@ over a field of bright stars they are a glow (8 e- per pixel for 60 Kolmogorov s
 beyond the stars' total-flux model: ``bfpsf psf`` fits every image's plane jointly with the
 wings beyond P0's support of every source its P0 fit models, neighbours and blends too
 (`bfpsf.measure.total_flux.fit_sky_and_wings`), and the PSF product keeps that wing law;
-photometry fits the plane, then again beyond the glow of its fitted stars' wings
-(``glow_e``), in its model-weighted refit. Fitting the plane to the image
+photometry fits the plane, then again beyond its fitted stars (their models within the
+support and the glow of their wings beyond it; `bfpsf.measure.prepare.PreparedImage.with_glow`),
+in its model-weighted refit. Fitting the plane to the image
 minus the stars' models within P0's support alone was tried and rejected: their wings beyond
 the support, left in the pixels the masks no longer cover, biased it more (0.77 e- against
 0.31 e- for 64 bright Moffat stars on a sky of 0, tests/test_gridded.py's field).
