@@ -336,6 +336,36 @@ def test_user_path_null_with_the_seeing_of_each_exposure(tmp_path):
     assert summary["verdict"]["star_residual_chi2_per_pixel"] < 3
 
 
+def test_user_path_null_in_a_crowded_field(tmp_path):
+    """A crowded null night (Kolmogorov stars 12 px apart, the flats' BF applied by bfpsf):
+    `diagnose` fits its P0s with every other source modelled, as `bfpsf psf` does. Without
+    the neighbours a new user's P0 did not converge there: star residual chi2 6.5e4 per
+    pixel, NOT EXPLAINED."""
+    import galsim
+    import json
+
+    from bfpsf.cli import main
+    from bfpsf.validation.simulate_fields import simulate_field
+    from bfpsf.validation.simulate_spots import write_image_adu
+
+    gain = 1.5
+    flat_paths, cal = _user_flats(tmp_path, gain)
+    field = simulate_field(galsim.Kolmogorov(fwhm=3.5), n_images=4, shape=(300, 300),
+                           n_stars=80, min_separation=12.0, sensor=None, shifts=cal.shifts,
+                           seed=9101)
+    images = []
+    for index, image in enumerate(field.images):
+        images.append(str(tmp_path / f"crowded{index}.fits"))
+        write_image_adu(images[-1], image, gain=gain)
+    out = tmp_path / "d.json"
+    assert main(["diagnose", "--flats", *flat_paths, "--images", *images,
+                 "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    assert summary["selected"] == [], summary["rejected"]
+    assert summary["verdict"]["star_residual_chi2_per_pixel"] < 10, summary["verdict"]
+    assert summary["verdict"]["success"], summary["verdict"]
+
+
 def _psf_flux(model, stamp, sky_e=75.0):
     """PSF photometry of one spot: flux and centre fitted by weighted least squares with the
     model's ``evaluate`` (what photutils fits). The weights are the model's variance (Poisson
