@@ -180,8 +180,8 @@ def run(args):
             name = entry["image"] + (f" [{entry['amplifier']}]" if entry["amplifier"] else "")
             print(f"WARNING: {name}: its stars are {100 * offset:+.2f} +- {100 * error:.2f} % "
                   f"{'larger' if offset > 0 else 'smaller'} against P0 than the other images' "
-                  f"median: its seeing differs from theirs (PSF photometry of its sky-limited stars up to "
-                  f"{abs(1e3 * MAG_PER_SIZE_ERROR * offset):.1f} mmag too "
+                  f"median: its seeing differs from theirs (PSF photometry of its sky-limited "
+                  f"stars up to {abs(1e3 * MAG_PER_SIZE_ERROR * offset):.1f} mmag too "
                   f"{'faint' if offset > 0 else 'bright'}, less for bright stars); fit each "
                   "exposure's PSF on its own images", file=sys.stderr)
     n_detected = sum(entry["n_detected"] for entry in per_image)

@@ -107,16 +107,6 @@ def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=Non
                        correlations=correlations, meta=meta, ptc=ptc)
 
 
-def _exposure_p0(pixels, saturation_e, cal, gain, common):
-    """P0 of one exposure's isolated stars (with the calibration's shifts), or ``common``
-    when it has fewer than 10."""
-    stars, _, others = isolated_stars(pixels, DEFAULT_SIZE, saturation_e=saturation_e)
-    if len(stars) < 10:
-        return common
-    return fit_psf([pixels], [stars], cal.shifts, read_noise=float(cal.noise_e),
-                   flux_unit="electron", gain=float(gain), neighbours=[others]).psf
-
-
 def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=None,
                   skew=None, position_bins=1):
     """Mean peak and sizes in quantile bins of flux for each exposure (the same bin edges for
@@ -412,19 +402,23 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     fitted = np.unique(sizes.exposure)
     if holdout_fraction and fitted.size >= 2:
         fitted = fitted[~interleaved(fitted.size, holdout_fraction)]
-    # saturated spots (header, calibration turnoff) are left out of P0 as in `bfpsf psf`
+    # saturated spots (header, calibration turnoff) are left out of P0 as in `bfpsf psf`;
     # every other source is modelled alongside the stars, as `bfpsf psf` does (in a crowded
     # field a new user's P0 fitted without them did not converge: star residual chi2 6e4)
-    found = [isolated_stars(pixels[index], DEFAULT_SIZE, saturation_e=levels[index])
-             for index in fitted]
-    stars = [xy for xy, _, _ in found]
-    if sum(len(xy) for xy in stars) < 10:
-        msg = (f"only {sum(len(xy) for xy in stars)} isolated stars in the fitted exposures: "
-               "too few to fit P0")
+    found = [isolated_stars(image, DEFAULT_SIZE, saturation_e=level)
+             for image, level in zip(pixels, levels)]
+
+    def fit_p0(indices, progress=False):
+        return fit_psf([pixels[index] for index in indices],
+                       [found[index][0] for index in indices], cal.shifts,
+                       read_noise=float(cal.noise_e), flux_unit="electron", gain=float(gain),
+                       progress=progress, neighbours=[found[index][2] for index in indices])
+
+    n_fitted = sum(len(found[index][0]) for index in fitted)
+    if n_fitted < 10:
+        msg = f"only {n_fitted} isolated stars in the fitted exposures: too few to fit P0"
         raise BFPSFInputError(msg)
-    fit = fit_psf([pixels[index] for index in fitted], stars, cal.shifts,
-                  read_noise=float(cal.noise_e), flux_unit="electron", gain=float(gain),
-                  progress=progress, neighbours=[others for _, _, others in found])
+    fit = fit_p0(fitted, progress)
     psf = fit.psf
     # the model's flux is the total flux: the aperture fluxes miss the PSF's wings
     fraction = aperture_fraction(psf)
@@ -450,7 +444,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     # sky-subtracted images; the noise per pixel is the sky's (read noise included); each
     # exposure against its own P0 (its seeing: one P0 for a night whose seeing changed by 3 %
     # left a null's stars at chi2 12 per pixel), the loop's P0 where too few stars
-    models = [_exposure_p0(pixels[index], levels[index], cal, gain, psf)
+    models = [fit_p0([index]).psf if len(found[index][0]) >= 10 else psf
               for index in range(len(pixels))]
     meta["star_residual_p0"] = ("per exposure" if all(model is not psf for model in models)
                                 else "per exposure where 10 isolated stars or more")

@@ -3,8 +3,8 @@
 Every observable (`bfpsf.diagnosis.observables`) is a block of data with its errors and the
 base model's nuisance parameters (a free intercept per data-set group, exposure and axis for
 the sizes, k t + b for the flat means, a per lag for the correlations, the PTC's read noise,
-gain and sum-rule a(0, 0)); `build_problem` stacks them, `effect_design` adds a candidate's template
-(`bfpsf.diagnosis.catalogue`) to the design, and `summarise` reads the residual's figures:
+gain and sum-rule a(0, 0)); `build_problem` stacks them, `effect_design` adds a candidate's
+template (`bfpsf.diagnosis.catalogue`) to the design, and `summarise` reads the residual's figures:
 the brighter-fatter slope residual in X and Y (slope of the size residual against peak,
 percent of the raw measured slope), the photometry bias the size residual implies (a PSF fit
 with a template of width sigma on a star of width sigma (1 + eps) is biased by -eps in flux,

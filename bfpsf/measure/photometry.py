@@ -342,14 +342,14 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         # Refit with the variance the fitted stars and the sky predict: weights computed from
         # the noisy pixels themselves bias every flux low (see ``weights``).
         # The 1 e-**2 floor keeps pixels beyond the PSF support of a sky-free image finite.
+        stars = _model_image(photometry, result, data.shape)
         if bfpsf_model and psf.wing_amplitude > 0 and prepared.glow_e is None:
             # the sky again, beyond the fitted stars: their models within the support and
             # the glow of their wings beyond it (which is subtracted with it): the sky is
             # what is left beyond their total-flux model
-            prepared = prepared.with_glow(_glow(psf, result, data.shape),
-                                          _model_image(photometry, result, data.shape))
+            prepared = prepared.with_glow(_glow(psf, result, data.shape), stars)
             sky, data = prepared.sky, prepared.sky_subtracted
-        model = np.clip(_model_image(photometry, result, data.shape), 0.0, None)
+        model = np.clip(stars, 0.0, None)
         variance = np.clip(sky.image(), 0.0, None) + model + read_noise_e**2
         error = np.sqrt(np.maximum(variance, 1.0))
         result = _fit_without_neighbours(photometry, psf, data, mask, error, init, result)

@@ -11,7 +11,7 @@ GalSim's pixel areas do not tile the plane exactly: on a uniform charge Q every 
 area is 1 - c Q^2 (c = 7.6e-14 per e-^2 for ``lsst_e2v_50_8``: 5.5e-4 at 85 ke-; 2.2e-14 for
 ``lsst_itl_50_32``, 1.2e-14 for ``lsst_itl_50_8``, -2.4e-15 for ``lsst_e2v_50_32``), a second-order
 term of its polygon areas, while its photon shooting puts every photon into some pixel (a star
-drawn through the same sensor keeps its flux to 1e-5 at any flux). Summed over an exposure that
+drawn through the same sensor keeps its flux to 2e-5 at any flux). Summed over an exposure that
 made a flat lose c Q^2 / 3 of its charge (1.8e-4 at 85 ke- on ``lsst_e2v_50_8``), a spurious
 quadratic non-linearity that a flicker-free PTC measures at 9 sigma. Each step's areas are
 therefore divided by the interior area of a uniform charge at the image's mean: the flats
