@@ -13,6 +13,8 @@ Acceptance (issue 6): the loop selects the injected effect first, and cuts the e
 rms for the pedestal); a null data set selects nothing.
 """
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -316,13 +318,21 @@ def test_loop_on_silicon_sensor_null_and_injected_nonlinearity():
 
 
 # -- PTC residuals and the stars' stacked residual (images mode observables) -------------------
-def _calibrated_flats(nonlinearity):
-    """SiliconSensor flats (192^2, 10 levels to 120 ke-, one pair each), calibrated."""
-    from bfpsf.calibration import calibrate
+@functools.lru_cache(maxsize=None)
+def _itl_flats(nonlinearity):
+    """SiliconSensor flats (192^2, 10 levels to 120 ke-, one pair each, gain 1.5), simulated
+    once per test process."""
     from bfpsf.validation.simulate_flats import simulate_flats
 
-    flats = simulate_flats("lsst_itl_50_8", np.linspace(1e4, 1.2e5, 10), pairs=1, size=192,
-                           nsteps=4, seed=3, nonlinearity=nonlinearity)
+    return simulate_flats("lsst_itl_50_8", np.linspace(1e4, 1.2e5, 10), pairs=1, size=192,
+                          nsteps=4, seed=3, gain=1.5, nonlinearity=nonlinearity)
+
+
+def _calibrated_flats(nonlinearity):
+    """`_itl_flats`, calibrated."""
+    from bfpsf.calibration import calibrate
+
+    flats = _itl_flats(nonlinearity)
     return calibrate([image for image, _, _ in flats], exptimes=[t for _, t, _ in flats],
                      maxlag=3, n_monte_carlo=0, fit_b=False)
 
@@ -435,12 +445,9 @@ def test_cli_images_mode_ptc_and_star_residual(tmp_path, star_field):
     from astropy.io import fits
 
     from bfpsf.cli import main
-    from bfpsf.validation.simulate_flats import simulate_flats
 
-    flats = simulate_flats("lsst_itl_50_8", np.linspace(1e4, 1.2e5, 10), pairs=1, size=192,
-                           nsteps=4, seed=3, gain=1.5)
     paths = []
-    for index, (image, exptime, _) in enumerate(flats):
+    for index, (image, exptime, _) in enumerate(_itl_flats(0.0)):
         paths.append(str(tmp_path / f"flat{index:02d}.fits"))
         fits.PrimaryHDU(image, header=fits.Header({"EXPTIME": exptime})).writeto(paths[-1])
     _, stars, _ = star_field
@@ -465,3 +472,26 @@ def test_cli_images_mode_ptc_and_star_residual(tmp_path, star_field):
     for name in ("ptc_residuals.png", "residual_images.png", "radial_profile.png"):
         assert (tmp_path / "report" / name).stat().st_size > 0
     assert "Stacked residual of the stars" in (tmp_path / "report" / "report.md").read_text()
+
+
+def test_a_residual_of_stars_without_bf_is_not_a_percentage():
+    """Sizes with no BF slope on X (raw slope within its error) and a clear one on Y: the X
+    residual is given in pixels per 100 ke- with the raw slope beside it, never as a percent
+    of a slope consistent with zero (a new user read +957 % of raw); Y stays in percent."""
+    from bfpsf.diagnosis.problem import describe_slope, slope_residuals
+    from bfpsf.diagnosis.tables import SizeTable
+
+    rng = np.random.default_rng(5)
+    peak = np.repeat([1e4, 4e4, 8e4, 1.2e5], 20)
+    error = np.full(peak.size, 1e-3)
+    sigma_x = 1.3 + error * rng.standard_normal(peak.size)
+    sigma_y = 1.3 + 0.02 * peak / 1e5 + error * rng.standard_normal(peak.size)
+    sizes = SizeTable(peak, sigma_x, sigma_y, error, error)
+    values = slope_residuals(sizes, sigma_x - 1.3, sigma_y - 1.3 - 0.019 * peak / 1e5)
+    assert not values["stars_show_bf_x"] and values["stars_show_bf_y"]
+    assert abs(values["raw_slope_x"]) < 3 * values["raw_slope_x_err"]
+    assert abs(values["residual_slope_y"] - 0.001) < 3 * values["residual_slope_y_err"]
+    text_x, text_y = describe_slope(values, "x"), describe_slope(values, "y")
+    assert "% of raw" not in text_x and "the stars show no BF slope in X" in text_x
+    assert text_y.endswith("% of raw")
+    assert abs(values["slope_y_percent"] - 5.0) < 3 * values["slope_y_percent_err"]

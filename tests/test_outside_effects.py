@@ -12,6 +12,8 @@ Each outside effect's strength changes the size slope by far more than 3 sigma o
 (asserted below on the raw residual).
 """
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -235,15 +237,21 @@ def _user_flats(tmp_path, gain):
     from astropy.io import fits
 
     from bfpsf.calibration import calibrate
-    from bfpsf.validation.simulate_flats import simulate_flats
 
-    flats = simulate_flats("lsst_e2v_50_8", np.linspace(1e4, 1.2e5, 8), pairs=1, size=160,
-                           nsteps=4, seed=5, gain=gain, lamp_jitter=1e-3)
     paths = []
-    for index, (image, exptime, _) in enumerate(flats):
+    for index, (image, exptime, _) in enumerate(_user_flat_set(gain)):
         paths.append(str(tmp_path / f"flat{index:02d}.fits"))
         fits.PrimaryHDU(image, header=fits.Header({"EXPTIME": exptime})).writeto(paths[-1])
     return paths, calibrate(paths, n_monte_carlo=0)
+
+
+@functools.lru_cache(maxsize=None)
+def _user_flat_set(gain):
+    """The flats of `_user_flats`, simulated once per test process."""
+    from bfpsf.validation.simulate_flats import simulate_flats
+
+    return simulate_flats("lsst_e2v_50_8", np.linspace(1e4, 1.2e5, 8), pairs=1, size=160,
+                          nsteps=4, seed=5, gain=gain, lamp_jitter=1e-3)
 
 
 def _write_mosaics(tmp_path, stamps, exposure, gain, sky_e=50.0, seed=7):
@@ -302,6 +310,33 @@ def test_user_path_on_an_outside_effect(tmp_path):
     assert term.coefficients["xx"]["constant"] > 3 * term.errors["xx"]["constant"]
     assert (report / "signatures.png").stat().st_size > 0
     assert "Attribution by signature" in (report / "report.md").read_text()
+
+
+def test_user_path_stars_without_bf_are_not_a_calibration_scale(tmp_path, capsys):
+    """Flats with BF, stars without (images a pipeline already corrected, or another
+    sensor's): the free size scale fits s = -1 and "confirms" it on held-out exposures, as
+    the effect is in every exposure; a scale is a calibration's error, within a factor of 2,
+    not the absence of BF, so its bounds reject it. The run is not explained, and the
+    residual is given in pixels with the stars' own raw slope beside it, never in percent of
+    a slope that is zero."""
+    import json
+
+    from bfpsf.cli import main
+
+    gain = 1.5
+    flat_paths, cal = _user_flats(tmp_path, gain)
+    spots = draw_bench_spots(n_exposures=4, shifts=cal.shifts.scaled(0.0))
+    images = _write_mosaics(tmp_path, spots.stamps, spots.exposure, gain)
+    out = tmp_path / "d.json"
+    assert main(["diagnose", "--flats", *flat_paths, "--images", *images,
+                 "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    assert "calibration_scale" not in summary["selected"]
+    assert summary["rejected"]["calibration_scale"]["contradicted_by"] == "bounds"
+    assert not summary["verdict"]["success"]
+    before = summary["residual_before"]
+    assert not before["stars_show_bf_x"] and not before["stars_show_bf_y"]
+    assert "the stars show no BF slope in X" in capsys.readouterr().out
 
 
 def test_user_path_null_with_the_seeing_of_each_exposure(tmp_path):
@@ -406,7 +441,9 @@ def _check_photometry(name, psf, spots, stamps, blocks):
     flux, brightest level minus faintest) is printed with and without the term, and within
     the 1 mmag target with it."""
     for block, exposures, term in blocks:
-        rows = np.flatnonzero(np.isin(spots.exposure, exposures))
+        # the brightest and the faintest level: the drift is measured between them
+        extremes = (spots.level == spots.level.max()) | (spots.level == spots.level.min())
+        rows = np.flatnonzero(np.isin(spots.exposure, exposures) & extremes)
         level = spots.level[rows]
         drift = {}
         for label in ("without", "with"):

@@ -23,6 +23,7 @@ mode ``star_residual``: the stacked residual of the stars against P(F), ``rms_ov
 import sys
 from pathlib import Path
 
+from ..diagnosis.problem import describe_slope
 from ..diagnosis.signature import describe_entry, describe_rejection
 from ..errors import BFPSFInputError
 from . import (background_option, maxlag_option, positive_float, positive_int,
@@ -218,8 +219,8 @@ def run(args):
                          "NOT EXPLAINED: " + "; ".join(verdict.get("reasons", []))))
     for label, values in rows:
         if "slope_x_percent" in values:
-            print(f"{label}: BF slope residual X {values['slope_x_percent']:+.2f} %, "
-                  f"Y {values['slope_y_percent']:+.2f} % of raw; photometry bias "
+            print(f"{label}: BF slope residual X {describe_slope(values, 'x')}, "
+                  f"Y {describe_slope(values, 'y')}; photometry bias "
                   f"{values['photometry_bias_mmag']:+.2f} mmag; chi2 {values['chi2']:.1f} "
                   f"/ {values['n']}")
         else:
@@ -273,11 +274,16 @@ def _empirical_lines(result):
     for block in ("heldout", "late_block"):
         if block in validation:
             before, after = validation[block]["before"], validation[block]["after"]
+            axes = []
+            for axis in "xy":
+                if after.get(f"stars_show_bf_{axis}", True):
+                    axes.append(f"{axis.upper()} {before[f'slope_{axis}_percent']:+.1f} -> "
+                                f"{describe_slope(after, axis, 1)}")
+                else:
+                    axes.append(f"{axis.upper()} {describe_slope(before, axis)} -> "
+                                f"{after[f'residual_slope_{axis}']:+.4f}")
             lines.append(
-                f"EMPIRICAL term ({block}): BF slope residual X {before['slope_x_percent']:+.1f}"
-                f" -> {after['slope_x_percent']:+.1f} +- {after['slope_x_percent_err']:.1f} %,"
-                f" Y {before['slope_y_percent']:+.1f} -> {after['slope_y_percent']:+.1f} +- "
-                f"{after['slope_y_percent_err']:.1f} % of raw; photometry bias implied "
-                f"{before['photometry_bias_mmag']:+.2f} -> "
+                f"EMPIRICAL term ({block}): BF slope residual {', '.join(axes)}; photometry "
+                f"bias implied {before['photometry_bias_mmag']:+.2f} -> "
                 f"{after['photometry_bias_mmag']:+.2f} mmag")
     return lines

@@ -18,10 +18,14 @@ import numpy as np
 from ..measure.slopes import fit_bf_slope
 from .catalogue import get_effect
 
-__all__ = ["Problem", "build_problem", "effect_design", "effect_values", "slope_residuals",
+__all__ = ["Problem", "build_problem", "describe_slope", "effect_design", "effect_values",
+           "slope_residuals", "BF_DETECTION_SIGMA",
            "summarise"]
 
 _MAG_PER_FRACTION = 2.5 / np.log(10.0)
+#: A raw BF slope below this many times its error is no BF slope: the residual is then
+#: reported in pixels, not in percent of it (`describe_slope`).
+BF_DETECTION_SIGMA = 3.0
 
 
 @dataclass(frozen=True)
@@ -156,21 +160,45 @@ def slope_residuals(sizes, residual_x, residual_y):
     Returns
     -------
     dict
-        ``raw_slope_x``, ``raw_slope_y`` (pixels per 100 ke- of peak), ``slope_x_percent``,
-        ``slope_y_percent`` and their errors (percent).
+        ``raw_slope_x``, ``raw_slope_y`` and their errors, ``residual_slope_x``,
+        ``residual_slope_y`` and their errors (pixels per 100 ke- of peak), ``slope_x_percent``,
+        ``slope_y_percent`` and their errors (percent), and ``stars_show_bf_x``,
+        ``stars_show_bf_y``: whether the raw slope is above `BF_DETECTION_SIGMA` times its
+        error (when not, a percentage of it means nothing: `describe_slope`).
     """
     out = {}
     for axis, measured, error, residual in (("x", sizes.sigma_x, sizes.sigma_x_err, residual_x),
                                             ("y", sizes.sigma_y, sizes.sigma_y_err, residual_y)):
         # the given errors, not rescaled by the scatter (the chi2 is reported apart)
-        raw = fit_bf_slope(sizes.peak_e, measured, size_err=error, group=sizes.intercepts,
-                           scale_errors=False, clip_nsigma=None).slope
+        raw_fit = fit_bf_slope(sizes.peak_e, measured, size_err=error, group=sizes.intercepts,
+                               scale_errors=False, clip_nsigma=None)
+        raw = raw_fit.slope
         fit = fit_bf_slope(sizes.peak_e, residual, size_err=error, group=sizes.intercepts,
                            scale_errors=False, clip_nsigma=None)
         out[f"raw_slope_{axis}"] = raw
+        out[f"raw_slope_{axis}_err"] = raw_fit.slope_err
+        out[f"residual_slope_{axis}"] = fit.slope
+        out[f"residual_slope_{axis}_err"] = fit.slope_err
+        out[f"stars_show_bf_{axis}"] = bool(abs(raw) > BF_DETECTION_SIGMA * raw_fit.slope_err)
         out[f"slope_{axis}_percent"] = 100.0 * fit.slope / raw
         out[f"slope_{axis}_percent_err"] = 100.0 * fit.slope_err / abs(raw)
     return out
+
+
+def describe_slope(values, axis, digits=2):
+    """One axis's BF slope residual for a person: percent of the raw slope, or, when the stars
+    show no BF slope on that axis (``stars_show_bf_{axis}`` false), the residual and the raw
+    slope in pixels per 100 ke- of peak (a percentage of a slope consistent with zero means
+    nothing: a new user read +957 % of raw on stars with no BF)."""
+    if values.get(f"stars_show_bf_{axis}", True):
+        text = f"{values[f'slope_{axis}_percent']:+.{digits}f}"
+        if f"slope_{axis}_percent_err" in values:
+            text += f" +- {values[f'slope_{axis}_percent_err']:.{digits}f}"
+        return text + " % of raw"
+    return (f"{values[f'residual_slope_{axis}']:+.4f} +- "
+            f"{values[f'residual_slope_{axis}_err']:.4f} px per 100 ke- (the stars show no BF "
+            f"slope in {axis.upper()}: raw {values[f'raw_slope_{axis}']:+.4f} +- "
+            f"{values[f'raw_slope_{axis}_err']:.4f})")
 
 
 def summarise(problem, observables, model):

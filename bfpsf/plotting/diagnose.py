@@ -228,17 +228,25 @@ def plot_signatures(result, *, axes=None):
     if heldout:
         stages += [("before empirical", heldout["before"]), ("after EMPIRICAL", heldout["after"])]
     width = 0.8 / len(stages)
+    no_bf = set()
     for index, (label, values) in enumerate(stages):
         if not values or "slope_x_percent" not in values:
             continue
+        # no bar where the stars show no BF slope: a percentage of it means nothing
+        shown = [values.get(f"stars_show_bf_{axis}", True) for axis in "xy"]
+        no_bf.update(axis for axis, ok in zip("XY", shown) if not ok)
         left.bar(np.arange(2) + index * width,
-                 [values["slope_x_percent"], values["slope_y_percent"]], width,
-                 yerr=[values["slope_x_percent_err"], values["slope_y_percent_err"]],
+                 [values[f"slope_{axis}_percent"] if ok else np.nan
+                  for axis, ok in zip("xy", shown)], width,
+                 yerr=[values[f"slope_{axis}_percent_err"] if ok else np.nan
+                       for axis, ok in zip("xy", shown)],
                  label=label)
     left.axhline(0.0, color="k", lw=0.8)
     for bound in (-2.0, 2.0):
         left.axhline(bound, color="grey", ls=":", lw=0.8)
-    left.set_xticks(np.arange(2) + 0.4 - width / 2, ["X", "Y"])
+    left.set_xticks(np.arange(2) + 0.4 - width / 2,
+                    [axis + (" (no BF slope in the stars)" if axis in no_bf else "")
+                     for axis in "XY"])
     left.set_ylabel("BF slope residual, held-out (% of raw)")
     verdict = result.verdict or {}
     title = "explained" if verdict.get("success") else "NOT EXPLAINED"
