@@ -215,6 +215,8 @@ def test_output_calib_then_psf_full(tmp_path):
     for axis in ("x", "y"):
         residual, error = out["refined"]["residual"][axis]
         assert abs(residual) <= 2.0 + error
-        assert out["flats"]["residual"][axis][0] > 5.0
+        # the flats alone are off (-23 % in X since the flats conserve charge, +5 % or
+        # more before): the refinement matters
+        assert abs(out["flats"]["residual"][axis][0]) > 5.0
     bias, error = out["refined"]["bias"]
     assert abs(bias) <= 1.0 + error
