@@ -17,6 +17,7 @@ same examples on every run (a CI failure is reproducible, never random); locally
 profile searches new random examples each run. ``HYPOTHESIS_PROFILE`` chooses explicitly.
 """
 
+import collections
 import fcntl
 import os
 import pickle
@@ -77,7 +78,27 @@ def pytest_addoption(parser):
                      help="also run tests marked slow (full-size physics)")
 
 
+#: The test files whose quick tests take longest (measured: 20-70 s of one core each), in
+#: the order ``pytest -n 2`` starts them. With ``--dist loadfile`` a file is one unit of work
+#: and the units go out in collection order (``--no-loadscope-reorder`` in pyproject.toml:
+#: xdist's own order, by number of tests, left these files, which hold few tests, for the
+#: end, and started two users of `e2v_flats_calibration` together, one waiting 26 s for the
+#: other's flats). test_gridded_silicon.py computes that calibration first; the other users
+#: come after the heavy files that do not need it.
+HEAVY_FILES = ("test_gridded_silicon.py", "test_outside_effects.py", "test_validate.py",
+               "test_calibrate.py", "test_loop_to_psf.py", "test_amplifiers.py",
+               "test_defaults_matrix.py", "test_flats_to_psf.py", "test_piff_plugin.py",
+               "test_silicon_shapes.py", "test_photometry.py", "test_diagnose.py",
+               "test_galsim_config.py", "test_silicon_psf.py", "test_hostile_input.py")
+
+
 def pytest_collection_modifyitems(config, items):
+    # the heavy files first, the others by number of tests (xdist's order): module fixtures
+    # and the order of the tests within a file are kept (a stable sort)
+    counts = collections.Counter(item.path.name for item in items)
+    rank = {name: index for index, name in enumerate(HEAVY_FILES)}
+    items.sort(key=lambda item: (rank.get(item.path.name, len(rank)), -counts[item.path.name],
+                                 item.path.name))
     if config.getoption("--runslow"):
         return
     skip_slow = pytest.mark.skip(reason="slow physics test: run with --runslow")

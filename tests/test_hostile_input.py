@@ -11,6 +11,7 @@ and the memory and time guards, run in a subprocess under an address-space cap
 (test_saturation.py); the earlier rounds' classes are in test_bad_input.py.
 """
 
+import contextlib
 import os
 import resource
 import signal
@@ -37,12 +38,18 @@ REFUSAL_SECONDS = 60
 def workdir(tmp_path, monkeypatch):
     """Flats (4 Poisson pairs, 64^2), a star image, a calibration with shifts, a PSF product
     and a star table, in the working directory (short names in the messages)."""
+    monkeypatch.chdir(tmp_path)
+    write_inputs()
+    return tmp_path
+
+
+def write_inputs():
+    """The inputs of `workdir`, written into the current directory."""
     from test_product import calibration as calibration_fixture
 
     from bfpsf.model.psf import FluxDependentPSF
     from bfpsf.shifts import BoundaryShifts
 
-    monkeypatch.chdir(tmp_path)
     rng = np.random.default_rng(1)
     for level, exptime in LEVELS:
         for member in (1, 2):
@@ -63,7 +70,6 @@ def workdir(tmp_path, monkeypatch):
     FluxDependentPSF(np.exp(-(xx**2 + yy**2) / 8.0) / (8 * np.pi), shifts, gain=1.5,
                      flux_unit="electron").write("psf.fits")
     Table({"x": [1.0, 2.0], "peak_e": [1e3, 2e3]}).write("stars.ecsv")
-    return tmp_path
 
 
 def snapshot(directory):
@@ -363,7 +369,9 @@ def test_saturation_header_that_is_not_a_level(workdir, capsys):
     assert snapshot(workdir) == before
 
 
-@pytest.mark.parametrize("argv, option", [
+#: The guarded commands of `test_memory_guards_refuse_under_a_memory_cap` and the start of
+#: each one's message.
+GUARDED = [
     (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--grid", "1000", "1000"],
      "--grid 1000 1000, --oversampling 2, --size 25: the P0 fit would need about"),
     (["psf", "img.fits", "--calib", "cal.fits", "-o", "p.fits", "--grid", "50", "50"],
@@ -381,18 +389,64 @@ def test_saturation_header_that_is_not_a_level(workdir, capsys):
     (["validate", "--quick", "--spots-per-level", "1000000"],
      "--spots-per-level 1000000, 6 --peaks up to 120000: simulating 6000000 spots would need "
      "about"),
-])
-def test_memory_guards_refuse_under_a_memory_cap(workdir, argv, option):
+]
+
+#: Runs each command of a JSON list in this process, one after the other: (exit status,
+#: stderr, seconds) of each, as JSON (one Python start for all of them, not one each).
+_COMMANDS = """
+import contextlib, io, json, sys, time
+from bfpsf.cli import main
+results = []
+for argv in json.loads(sys.argv[1]):
+    err, start = io.StringIO(), time.monotonic()
+    with contextlib.redirect_stderr(err):
+        try:
+            code = main(argv)
+        except SystemExit as stop:
+            code = stop.code
+    results.append([code, err.getvalue(), time.monotonic() - start])
+print(json.dumps(results))
+"""
+
+
+@pytest.fixture(scope="module")
+def capped_refusals(tmp_path_factory):
+    """Every command of `GUARDED` run in one subprocess under the `MEMORY_CAP`, in a
+    directory of `write_inputs`: ({argv: (status, stderr, seconds)}, whether every input
+    there is byte-identical afterwards)."""
+    import json
+
+    directory = tmp_path_factory.mktemp("guarded")
+    with contextlib.chdir(directory):
+        write_inputs()
+    before = snapshot(directory)
+    environment = {**os.environ, "OMP_NUM_THREADS": "1",
+                   "PYTHONPATH": os.pathsep.join(filter(None, [
+                       str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH")]))}
+    commands = [argv for argv, _ in GUARDED]
+    process = subprocess.run(
+        [sys.executable, "-c", _COMMANDS, json.dumps(commands)], capture_output=True,
+        text=True, cwd=directory, env=environment, timeout=REFUSAL_SECONDS * len(commands),
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP)))
+    assert process.returncode == 0, process.stderr
+    results = {tuple(argv): tuple(result)
+               for argv, result in zip(commands, json.loads(process.stdout))}
+    return results, snapshot(directory) == before
+
+
+@pytest.mark.parametrize("argv, option", GUARDED)
+def test_memory_guards_refuse_under_a_memory_cap(capped_refusals, argv, option):
     """Under a 4 GiB address-space cap each refuses in one line naming the option, within
-    60 s, instead of being killed (the issue's 8 GB cap, halved to be sure)."""
-    before = snapshot(workdir)
-    code, err, seconds = run_subprocess(argv, cap=MEMORY_CAP)
+    60 s, instead of being killed (the issue's 8 GB cap, halved to be sure); the inputs are
+    untouched."""
+    results, inputs_untouched = capped_refusals
+    code, err, seconds = results[tuple(argv)]
     assert code == 1 and err.count("\n") == 1, err
     command = " ".join(argv[:2]) if argv[0] == "simulate" else argv[0]
     assert err.startswith(f"bfpsf {command}: error: {option} ")
     assert "of memory, more than the " in err and " limit (" in err
     assert seconds < REFUSAL_SECONDS
-    assert snapshot(workdir) == before
+    assert inputs_untouched
 
 
 def test_time_guard_names_the_options(workdir, monkeypatch, capsys):
