@@ -1,10 +1,10 @@
 """Photometry at defaults in a dense field of Kolmogorov stars (docs/defaults.md, "A denser
 field of Kolmogorov stars").
 
-Three 320^2 exposures of Kolmogorov stars (FWHM 3.5 px, wings r^-11/3, each drawn on 201^2
-pixels) at least ``--separation`` pixels apart, brighter-fatter with the shifts of a
-calibration from simulated E2V SiliconSensor flats; the README's ``bfpsf psf`` and ``bfpsf
-photometry`` with no option. Prints the mean offset from the true total flux and the
+Three exposures (320^2, ``--size``) of Kolmogorov stars (FWHM 3.5 px, wings r^-11/3, each
+drawn on 201^2 pixels) at least ``--separation`` pixels apart, brighter-fatter with the
+shifts of a calibration from simulated E2V SiliconSensor flats; the README's ``bfpsf psf``
+and ``bfpsf photometry`` with no option. Prints the mean offset from the true total flux and the
 brightest fifth minus the faintest, mmag, with the calibration's gain error taken out.
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/dense_kolmogorov.py --separation 9 --stars 300
@@ -25,6 +25,7 @@ def main():
     parser.add_argument("--separation", type=float, default=9.0)
     parser.add_argument("--stars", type=int, default=300)
     parser.add_argument("--seed", type=int, default=8803)
+    parser.add_argument("--size", type=int, default=320, help="side of each exposure, pixels")
     args = parser.parse_args()
 
     from bfpsf import calibrate
@@ -38,7 +39,7 @@ def main():
                            nsteps=10, gain=gain, read_noise_e=5.0, seed=99)
     cal = calibrate([image for image, _, _ in flats], exptimes=[t for _, t, _ in flats],
                     maxlag=6, fit_b=False, n_monte_carlo=12)
-    field = simulate_field(galsim.Kolmogorov(fwhm=3.5), n_images=3, shape=(320, 320),
+    field = simulate_field(galsim.Kolmogorov(fwhm=3.5), n_images=3, shape=(args.size, args.size),
                            n_stars=args.stars, min_separation=args.separation, sensor=None,
                            shifts=cal.shifts, seed=args.seed, stamp=201)
     with tempfile.TemporaryDirectory() as directory:
@@ -46,7 +47,8 @@ def main():
     gain_mmag = -2500 * np.log10(cal.gain / gain)
     skies = [entry["background_e"] - sky[0] for entry, sky in zip(summary["images"],
                                                                   field.skies)]
-    print(f"{args.stars} stars per image, >= {args.separation:g} px, seed {args.seed}: mean "
+    print(f"{args.stars} stars per {args.size}^2 image, >= {args.separation:g} px, seed "
+          f"{args.seed}: mean "
           f"{figures['mean'] - gain_mmag:+.2f} +- {figures['mean_err']:.2f} mmag (gain "
           f"{cal.gain:.4f}: {gain_mmag:+.2f} mmag taken out), brightest - faintest "
           f"{figures['drift']:+.2f} +- {figures['drift_err']:.2f} mmag; psf sky - truth "
