@@ -443,3 +443,32 @@ def test_dense_kolmogorov_field_sky_at_defaults(tmp_path):
     error = 1.2533 * 1.4826 * np.median(np.abs(faint - np.median(faint))) / np.sqrt(faint.size)
     # the issue-21 targets: within 3 mmag (and twice the faint fifth's error)
     assert abs(np.median(faint)) < 3.0 + 2 * error, (np.median(faint), error)
+
+
+def test_read_noise_from_the_image_when_the_calibration_left_it_undetermined(cli_files):
+    """A calibration whose PTC left the read noise undetermined (a new user's: 0.43 +- 48.7
+    e-) is not used for the pixel errors: ``bfpsf photometry`` measures it on the image's sky
+    (the field's true 5 e- to within 10 %), and records where it came from; a determined one
+    is used as it stands."""
+    import dataclasses
+    import types
+
+    from astropy.io import fits
+
+    from bfpsf.cli.photometry import _read_noise
+    from bfpsf.measure.photometry import image_read_noise
+    from bfpsf.measure.prepare import prepare_image
+
+    directory, _, _ = cli_files
+    determined = make_calibration(SHIFTS, 1.5, 5.0)
+    undetermined = dataclasses.replace(determined, noise_e=0.43, noise_e_err=48.7)
+    given = types.SimpleNamespace(read_noise=None)
+    assert _read_noise(given, determined) == 5.0
+    assert _read_noise(given, undetermined) is None
+    assert _read_noise(types.SimpleNamespace(read_noise=3.0), undetermined) == 3.0
+    prepared = prepare_image(fits.getdata(directory / "stars.fits") * 1.5)
+    assert image_read_noise(prepared) == pytest.approx(5.0, rel=0.1)
+    table = psf_photometry(prepared, FluxDependentPSF.from_galsim(MOFFAT, SHIFTS),
+                           read_noise_e=None)
+    assert table.meta["read_noise_source"] == "image"
+    assert table.meta["read_noise_e"] == image_read_noise(prepared)

@@ -37,7 +37,8 @@ def add_parser(subparsers):
     parser.add_argument("--read-noise", type=non_negative_float, default=None, metavar="E",
                         help="read noise, e- rms, for the pixel errors (with --background 0 "
                              "on sky-subtracted images: include the sky's noise; default the "
-                             "calibration's with --calib, else 0)")
+                             "calibration's with --calib, measured on the image's sky where "
+                             "its PTC left it undetermined; else 0)")
     parser.add_argument("--background", type=background_option, default=None, metavar="ADU",
                         help="a known sky level of the images, ADU per pixel (0 for "
                              "sky-subtracted images); default the sky surface of each image: a "
@@ -89,12 +90,18 @@ def _amplifier_model(psf, gain, one, amplifier, gain_option, static):
 
 
 def _read_noise(args, calibration):
-    """``--read-noise``, else the amplifier's calibrated read noise (``--calib``), else 0: the
-    Python path (`psf_photometry(..., read_noise_e=cal.noise_e)`) gives the same numbers."""
+    """``--read-noise``, else the amplifier's calibrated read noise (``--calib``) where its PTC
+    determined it (error below the value) and None where it did not: from the image's sky
+    (`bfpsf.measure.photometry.image_read_noise`; a new user's calibration had 0.43 +- 48.7
+    e-), else 0. The Python path (`psf_photometry(..., read_noise_e=...)`) gives the same
+    numbers."""
     if args.read_noise is not None:
         return float(args.read_noise)
-    noise = np.nan if calibration is None else float(calibration.noise_e)
-    return noise if np.isfinite(noise) and noise >= 0 else 0.0
+    if calibration is None:
+        return 0.0
+    noise, error = float(calibration.noise_e), float(calibration.noise_e_err)
+    determined = np.isfinite(noise) and noise >= 0 and np.isfinite(error) and error < noise
+    return noise if determined else None
 
 
 def run(args):
@@ -162,7 +169,10 @@ def run(args):
             table.add_column(str(path), name="image", index=0)
             tables.append(table)
             per_image.append({"image": str(path), "amplifier": amplifier.name,
-                              "gain": amp_gain, "read_noise_e": read_noise,
+                              "gain": amp_gain, "read_noise_e": table.meta["read_noise_e"],
+                              "read_noise_source": ("calibration" if args.read_noise is None
+                                                    and read_noise is not None else
+                                                    table.meta["read_noise_source"]),
                               "linearity_c_per_1e5": bf_model.linearity_c_per_1e5,
                               "n_stars": len(table),
                               "n_flagged": int(np.sum((table["flags"] != 0)

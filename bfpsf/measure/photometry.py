@@ -17,10 +17,11 @@ from ..interop.photutils import default_fit_shape, make_psf_photometry
 from ..model.base import BFPSFModel
 from .neighbours import sources_with_companions
 from .prepare import PreparedImage, prepare_image
+from .sky import sky_pixels
 from .sources import DETECTION_THRESHOLD
 from .total_flux import WingModel, wing_image
 
-__all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
+__all__ = ["psf_photometry", "image_read_noise", "PHOTOMETRY_COLUMNS"]
 
 #: Columns every photometry table holds (the ``bfpsf photometry`` contract), plus photutils'.
 PHOTOMETRY_COLUMNS = ["x_fit", "y_fit", "flux_fit", "flux_err", "flags"]
@@ -210,6 +211,29 @@ def _check_groups(psf, fit_shape, group_separation, init):
         raise BFPSFValueError(msg, side)
 
 
+def image_read_noise(prepared):
+    """Read noise of an image from its sky, e- rms: the variance of the sky pixels about the
+    fitted sky (1.4826 times their median absolute deviation, squared) less their Poisson
+    variance (the sky level), 0 when that is negative.
+
+    Parameters
+    ----------
+    prepared : bfpsf.measure.prepare.PreparedImage
+
+    Returns
+    -------
+    float
+    """
+    data = prepared.sky_subtracted
+    free = sky_pixels(data) & np.isfinite(data)
+    if free.sum() < 10:
+        return 0.0
+    values = data[free]
+    spread = 1.4826 * np.median(np.abs(values - np.median(values)))
+    level = float(np.mean(np.clip(prepared.sky.image()[free], 0.0, None)))
+    return float(np.sqrt(max(spread ** 2 - level, 0.0)))
+
+
 def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background_e=None,
                    fit_shape=None, group_separation=None,
                    detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
@@ -228,8 +252,10 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     positions : astropy.table.Table or (N, 2) array_like, optional
         Initial ``x_init``, ``y_init`` (and optionally ``flux_init``) or (x, y) pairs, pixels;
         default: detected with `bfpsf.measure.sources.measure_sources`.
-    read_noise_e : float, optional
+    read_noise_e : float or None, optional
         Read noise, e- rms, for the pixel errors (Poisson noise of the image is included).
+        Default 0. None: from the image, `image_read_noise` (for a calibration whose PTC
+        left the read noise undetermined).
     background_e : float, optional
         A known sky level, e- per pixel, subtracted before fitting; default the sky surface
         of the image (`bfpsf.measure.sky.estimate_sky`: a plane fitted beyond the masked
@@ -294,8 +320,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     if not finite.any():
         msg = "image has no finite pixel"
         raise BFPSFInputError(msg, image.shape)
-    if read_noise_e < 0 or not np.isfinite(read_noise_e):
-        msg = f"read_noise_e must be a finite number >= 0 e-, got {read_noise_e!r}"
+    if read_noise_e is not None and (read_noise_e < 0 or not np.isfinite(read_noise_e)):
+        msg = f"read_noise_e must be a finite number >= 0 e- or None, got {read_noise_e!r}"
         raise BFPSFValueError(msg, read_noise_e)
     if getattr(psf, "flux_unit", "electron") != "electron":
         msg = (f"psf_photometry fits images in e- but the PSF is in {psf.flux_unit!r}: pass "
@@ -311,6 +337,9 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         prepared = prepare_image(image, background_e=background_e,
                                  linearity_c_per_1e5=linearity_c_per_1e5)
     image, sky = prepared.image_e, prepared.sky
+    noise_source = "given"
+    if read_noise_e is None:
+        read_noise_e, noise_source = image_read_noise(prepared), "image"
     variance = np.clip(np.where(finite, image, 0.0), 0.0, None) + read_noise_e**2
     error = np.sqrt(np.where(variance > 0, variance, 1.0))
     data = prepared.sky_subtracted
@@ -383,6 +412,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
                           "coefficients": list(sky.coefficients), "rms_e": sky.rms}
     result.meta["cross_term_refits"] = n_cross
     result.meta["weights"] = weights
+    result.meta["read_noise_e"] = float(read_noise_e)
+    result.meta["read_noise_source"] = noise_source
     result.meta["flux_unit"] = "electron"
     # the EMPIRICAL term of a refined calibration the model applied (issue 22), labelled
     term = getattr(psf, "empirical", None) if bfpsf_model else None
