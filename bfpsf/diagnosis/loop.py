@@ -52,8 +52,8 @@ from .catalogue import CATALOGUE
 from .heldout import split_observables, with_empirical, with_heldout
 from .problem import build_problem, effect_design, effect_values, slope_residuals, summarise
 from .result import DiagnosisResult
-from .signature import (SIGNATURE_ALPHA, contradiction, parity_test, signature_parts,
-                        signature_test)
+from .signature import (SIGNATURE_ALPHA, contradiction, cross_test, parity_test,
+                        signature_parts, signature_test)
 from .unexplained import (STAR_CHI2_FACTOR, UNEXPLAINED_NSIGMA, describe_unexplained,
                           verdict)
 
@@ -193,6 +193,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     rejected = {}
     parts = signature_parts(problem, observables)
     parity = parity_test(observables.sizes, alpha=signature_alpha or SIGNATURE_ALPHA)
+    cross = cross_test(observables.sizes, alpha=signature_alpha or SIGNATURE_ALPHA)
 
     def signature(design, nuisance=None):
         """The signature test of a template given the effects already selected."""
@@ -206,6 +207,9 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
         if parity is not None and "sizes" in problem.slices and np.any(
                 design[problem.slices["sizes"]]):
             test["parity"] = parity
+        if cross is not None and "sizes" in problem.slices and np.any(
+                design[problem.slices["sizes"]]):
+            test["cross"] = cross
         return test
 
     for round_index in range(int(max_rounds)):

@@ -120,8 +120,8 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
     With ``x`` (star columns, pixels) and ``position_bins`` > 1, every bin is also split in
     that many quantile ranges of x (the distance from the amplifier): the rows carry their
     mean x (``x_detector``) and the x range is their intercept group. With ``skew`` ((skew_x,
-    skew_y) per star, `bfpsf.diagnosis.odd_moments.star_skewness`) the rows carry its mean and
-    error (stars without one left out of it).
+    skew_y) per star, `bfpsf.diagnosis.odd_moments.star_skewness`, and optionally the cross
+    moment e2) the rows carry their means and errors (stars without one left out of it).
     """
     edges = np.quantile(flux, np.linspace(0.0, 1.0, n_bins + 1))
     index = np.clip(np.searchsorted(edges, flux, side="right") - 1, 0, n_bins - 1)
@@ -161,6 +161,9 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
     if skew is not None and np.all(np.isfinite(rows[:, 8:12])) and np.all(rows[:, [9, 11]] > 0):
         extra.update(skew_x=rows[:, 8], skew_x_err=rows[:, 9], skew_y=rows[:, 10],
                      skew_y_err=rows[:, 11])
+    if (skew is not None and len(skew) > 2 and np.all(np.isfinite(rows[:, 12:14]))
+            and np.all(rows[:, 13] > 0)):
+        extra.update(cross=rows[:, 12], cross_err=rows[:, 13])
     return SizeTable(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], label=label,
                      exposure=rows[:, 5].astype(int), group=rows[:, 6].astype(int), **extra)
 
@@ -379,8 +382,10 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         sigma_y.append(np.asarray(table["sigma_y"], float)[good])
         exposure.append(np.full(good.sum(), index))
         columns.append(np.asarray(table["x"], float)[good])
-        skews.append(np.array(star_skewness(prepared.sky_subtracted,
-                                            table[good])).T.reshape(-1, 2))
+        # the odd moments and the cross moment e2 of each star
+        mxx, myy, mxy = (np.asarray(table[name], float)[good] for name in ("mxx", "myy", "mxy"))
+        skews.append(np.column_stack([np.array(star_skewness(
+            prepared.sky_subtracted, table[good])).T.reshape(-1, 2), 2 * mxy / (mxx + myy)]))
     fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews = (
         np.concatenate(v) for v in (fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews))
     if fluxes.size < 9:  # the size bins need 3 of 3 stars; no quantile of nothing

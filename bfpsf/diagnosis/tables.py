@@ -41,7 +41,8 @@ def _column(values, name, n=None, positive=False):
 
 
 #: Optional per-entry columns of a `SizeTable` beyond the colour and the exposure.
-_OPTIONAL_COLUMNS = ("x_detector", "skew_x", "skew_y", "skew_x_err", "skew_y_err")
+_OPTIONAL_COLUMNS = ("x_detector", "skew_x", "skew_y", "skew_x_err", "skew_y_err", "cross",
+                     "cross_err")
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,10 @@ class SizeTable:
     skew_x, skew_y, skew_x_err, skew_y_err : ndarray (n,) or None
         Third standardised moments of the stars along X and Y (`bfpsf.validation.effects_bench.skewness`)
         and their errors: the odd (centroid- and skew-like) part of the residual.
+    cross, cross_err : ndarray (n,) or None
+        The stars' cross moment, e2 = 2 Mxy / (Mxx + Myy) of their adaptive moments, and its
+        error: the diagonal part, which no catalogue effect changes with flux in a star
+        symmetric about X or Y (`bfpsf.diagnosis.signature.cross_test`).
     """
 
     peak_e: np.ndarray
@@ -89,6 +94,8 @@ class SizeTable:
     skew_y: np.ndarray = None
     skew_x_err: np.ndarray = None
     skew_y_err: np.ndarray = None
+    cross: np.ndarray = None
+    cross_err: np.ndarray = None
 
     def __post_init__(self):
         n = np.size(self.peak_e)
@@ -115,6 +122,9 @@ class SizeTable:
         if (self.skew_x is None) != (self.skew_x_err is None) or \
                 (self.skew_y is None) != (self.skew_y_err is None):
             msg = "skewness columns need their errors (skew_x_err, skew_y_err)"
+            raise BFPSFInputError(msg)
+        if (self.cross is None) != (self.cross_err is None):
+            msg = "the cross moment column needs its error (cross_err)"
             raise BFPSFInputError(msg)
         if n < 3:
             msg = f"a size table needs at least 3 entries, got {n}"

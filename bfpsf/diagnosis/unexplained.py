@@ -10,6 +10,7 @@ import numpy as np
 
 from ..least_squares import weighted_least_squares
 from ..measure.slopes import fit_bf_slope
+from .signature import SIGNATURE_ALPHA, cross_test
 
 __all__ = ["describe_unexplained", "verdict", "UNEXPLAINED_NSIGMA", "STAR_CHI2_FACTOR"]
 
@@ -179,8 +180,18 @@ def describe_unexplained(problem, observables, model):
                 dependence = _flux_dependence(mean, part, sigma, np.zeros(mean.size, int))
             out.append({"observable": key, "axis": None, "parity": None,
                         "flux_dependence": dependence, "significance": float(significance)})
-    flats = any(entry["observable"] != "sizes" for entry in out)
+    cross = cross_test(observables.sizes, alpha=SIGNATURE_ALPHA)
+    if cross is not None:
+        # the stars' e2 against flux: no catalogue effect changes it (`cross_test`)
+        slope, error = cross["amplitudes"][0][0], cross["errors"][0][0]
+        significance = abs(slope) / error
+        if significance > UNEXPLAINED_NSIGMA:
+            out.append({"observable": "cross moment e2", "axis": "diagonal",
+                        "parity": "even", "sign": "rising" if slope > 0 else "falling",
+                        "flux_dependence": None, "significance": float(significance),
+                        "slope_per_1e5": float(slope), "slope_err": float(error)})
+    flats = any(entry["observable"] not in ("sizes", "cross moment e2") for entry in out)
     for entry in out:
-        if entry["observable"] == "sizes":
+        if entry["observable"] in ("sizes", "cross moment e2"):
             entry["flats"] = "flats and stars" if flats else "stars only"
     return out

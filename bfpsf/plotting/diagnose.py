@@ -265,6 +265,10 @@ def plot_signatures(result, *, axes=None):
         amplitudes = np.array([values[0] for values in test["amplitudes"]])
         errors = np.array([values[0] for values in test["errors"]])
         mean = np.mean(amplitudes) or 1.0
+        if entry["contradicted_by"] in ("parity", "cross"):
+            # slopes that every catalogue effect predicts to be 0: 1 + slope / error, so
+            # that 1 is what the candidate predicts and each unit a sigma away from it
+            amplitudes, errors, mean = 1.0 + amplitudes / errors, np.ones_like(errors), 1.0
         positions = offset + np.arange(amplitudes.size)
         right.errorbar(positions, amplitudes / mean, yerr=np.abs(errors / mean), fmt="o",
                        label=f"{name}: {entry['contradicted_by']} (p={entry['p_value']:.0e})")
@@ -273,7 +277,7 @@ def plot_signatures(result, *, axes=None):
         offset += amplitudes.size + 1
     right.axhline(1.0, color="k", lw=0.8)
     right.set_xticks(ticks, labels, rotation=30, fontsize=7)
-    right.set_ylabel("part amplitude / mean")
+    right.set_ylabel("part amplitude / mean (parity, cross: 1 + slope / error)")
     right.set_title("rejected: the observable that contradicts each", fontsize=9)
     if result.rejected:
         right.legend(fontsize=7)

@@ -25,6 +25,11 @@ charge per 1e5 e- in it; charge conserving):
 ``night``
     The isotropic smear with a strength growing over the exposures of the night: a 2 t,
     t = exposure / (n - 1).
+``diagonal``
+    Charge-dependent smear along the diagonal x = y: each pixel passes a Q / 1e5 of its
+    charge to each of its (+1, +1) and (-1, -1) neighbours: the stars grow on both axes, as
+    from a size effect, and their e2 grows with flux (a new user's invented effect, which
+    the flats' size scale had taken).
 
 Catalogue effects applied to the electrons as the flats simulator applies them
 (`bfpsf.validation.simulate_flats`): ``gain_nonlinearity`` (v -> v (1 + c v)) and
@@ -32,7 +37,8 @@ Catalogue effects applied to the electrons as the flats simulator applies them
 
 `bench_sizes` measures every spot (adaptive moments, `bfpsf.moments.adaptive`) and its
 third moments (odd parity), and bins them per exposure, level and detector column into a
-`SizeTable` with the detector position (``x_detector``) and the skewness columns, one intercept
+`SizeTable` with the detector position (``x_detector``), the skewness columns and the cross
+moment e2 (``cross``), one intercept
 group per detector column (the spots of a column share their sub-pixel phase).
 """
 
@@ -51,7 +57,7 @@ __all__ = ["OUTSIDE_EFFECTS", "CATALOGUE_CASES", "BenchSpots", "draw_bench_spots
            "apply_effect", "bench_sizes"]
 
 #: Effects no catalogue entry describes.
-OUTSIDE_EFFECTS = ("one_axis", "position", "centroid", "night")
+OUTSIDE_EFFECTS = ("one_axis", "position", "centroid", "night", "diagonal")
 #: The null and the catalogue effects injected into the electrons.
 CATALOGUE_CASES = ("null", "gain_nonlinearity", "serial_readout")
 
@@ -190,6 +196,10 @@ def apply_effect(spots, name, strength):
     if name == "centroid":
         passed = np.clip(strength * stamps / 1e5, 0.0, 0.2) * stamps
         return stamps - passed + np.roll(passed, 1, axis=1)
+    if name == "diagonal":
+        passed = np.clip(strength * stamps / 1e5, 0.0, 0.2) * stamps
+        return (stamps - 2 * passed + np.roll(passed, (1, 1), axis=(1, 2))
+                + np.roll(passed, (-1, -1), axis=(1, 2)))
     if name == "gain_nonlinearity":
         return stamps * (1.0 + strength * stamps)
     if name == "serial_readout":
@@ -219,7 +229,9 @@ def bench_sizes(spots, stamps_e, *, sky_e=50.0, read_noise_e=5.0, seed=0):
     skew_x, skew_y = skewness(noisy, moments)
     peak = noisy.max(axis=(1, 2))
     flux = noisy.sum(axis=(1, 2))
-    values = {"sigma_x": sigma_x, "sigma_y": sigma_y, "skew_x": skew_x, "skew_y": skew_y}
+    mxx, myy, mxy = (np.asarray(getattr(moments, name)) for name in ("mxx", "myy", "mxy"))
+    values = {"sigma_x": sigma_x, "sigma_y": sigma_y, "skew_x": skew_x, "skew_y": skew_y,
+              "cross": 2 * mxy / (mxx + myy)}
     # errors pooled per level: the scatter of each spot about its bin mean, over all bins
     key = (spots.exposure * 1000 + spots.level * 10 + spots.column)
     rows = np.unique(key[good])
@@ -251,5 +263,6 @@ def bench_sizes(spots, stamps_e, *, sky_e=50.0, read_noise_e=5.0, seed=0):
                       label="bench", exposure=np.array(table["exposure"]),
                       x_detector=np.array(table["x"]), skew_x=np.array(table["skew_x"]),
                       skew_y=np.array(table["skew_y"]), skew_x_err=np.array(errors["skew_x"]),
-                      skew_y_err=np.array(errors["skew_y"]))
+                      skew_y_err=np.array(errors["skew_y"]), cross=np.array(table["cross"]),
+                      cross_err=np.array(errors["cross"]))
     return sizes, {"peak_e": peak[good], "flux_e": flux[good]}
