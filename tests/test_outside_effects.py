@@ -479,3 +479,22 @@ def test_heldout_photometry_with_the_empirical_term(bench, diagnosed, name):
                                        calibrations["null"].shifts, oversampling=4, size=23)
     _check_photometry(name, psf, spots, apply_effect(spots, name, STRENGTH),
                       _photometry_blocks(name, observables, result))
+
+
+def test_a_size_scale_beyond_its_bounds_is_contradicted(bench):
+    """Stars with 2.5 times the flats' BF (a new user's isotropic spill looked so) and flats
+    that know the scale only to +-70 % (150^2, one pair): the size scale, +1.5, is within
+    2.2 sigma of the flats but outside the scale's physical range (-0.5, 1); it is
+    contradicted by its bounds, never applied, and the run is not explained."""
+    import dataclasses
+
+    calibrations, _ = bench
+    spots = draw_bench_spots(n_exposures=4, shifts=calibrations["null"].shifts.scaled(2.5))
+    observables = _observables((calibrations, spots), "null", 0.0)
+    observables = dataclasses.replace(observables, meta={**observables.meta, "scale_err": 0.7})
+    result = diagnose(observables, holdout_fraction=0.5)
+    scale = result.nuisance["calibration_scale"]
+    assert scale["value"] > 1.0 and abs(scale["value"]) < 3 * scale["prior"]
+    assert scale["contradicted_by"] == "bounds"
+    assert result.folded["scale_nuisance"] is None
+    assert not result.verdict["success"]

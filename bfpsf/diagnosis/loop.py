@@ -48,7 +48,7 @@ from scipy.stats import chi2 as _chi2
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
-from .catalogue import CATALOGUE
+from .catalogue import CATALOGUE, get_effect
 from .heldout import split_observables, with_empirical, with_heldout
 from .problem import build_problem, effect_design, effect_values, slope_residuals, summarise
 from .result import DiagnosisResult
@@ -324,6 +324,11 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                                    "p_value": float(_chi2.sf(pull ** 2, 1)),
                                    "matches": bool(abs(pull) <= 3.0)}
             entry.update(signature=test, contradicted_by=contradiction(test))
+            # and within the physical range of the scale (`CalibrationScale.bounds`): a new
+            # user's isotropic spill was taken as +1.5, within 2.2 sigma of 150^2 flats
+            low, high = get_effect("calibration_scale").bounds[0]
+            if entry["contradicted_by"] is None and not low <= entry["value"] <= high:
+                entry.update(contradicted_by="bounds", bounds=[low, high])
     curves = {}
     sizes = observables.sizes
     if sizes is not None:
