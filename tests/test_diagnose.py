@@ -524,3 +524,19 @@ def test_an_e2_change_with_flux_contradicts_every_size_effect(shifts, e2_slope):
         assert result.selected[0] == "flux_diffusion"
         assert not [entry for entry in result.unexplained
                     if entry["observable"] == "cross moment e2"]
+
+
+def test_a_rising_residual_is_not_constant_in_flux():
+    """A residual rising with peak at about 5 sigma: in a fit of x and x^2 together neither
+    is significant (they are correlated), which had read "rising with flux, constant in
+    flux"; the linear term alone, as the slope that reported it, says linear."""
+    from bfpsf.diagnosis.unexplained import _flux_dependence
+
+    rng = np.random.default_rng(11)
+    peak = np.tile(np.linspace(1e4, 1.2e5, 6), 4)
+    sigma = np.full(peak.size, 1e-3)
+    residual = 0.0025 * peak / 1e5 + sigma * rng.standard_normal(peak.size)
+    group = np.repeat(np.arange(4), 6)
+    assert _flux_dependence(peak, residual, sigma, group)["kind"] == "linear"
+    assert _flux_dependence(peak, sigma * rng.standard_normal(peak.size), sigma,
+                            group)["kind"] == "constant"

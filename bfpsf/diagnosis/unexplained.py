@@ -74,13 +74,19 @@ def _parity(star, axis):
 
 def _flux_dependence(peak, residual, sigma, group):
     """How a residual grows with peak: 'constant', 'linear' or 'quadratic' (the highest power
-    significant at 3 sigma in a fit with per-group intercepts), with the coefficients."""
+    significant at 3 sigma in a fit with per-group intercepts: the square term in the fit with
+    both, the linear one in a fit of it alone, as the slope that reported the residual; in
+    the fit with both, the two are correlated and a new user's rising residual read
+    "rising with flux, constant in flux"), with the coefficients of the fit with both."""
     x = np.asarray(peak, float) / 1e5
-    columns = [x, x ** 2] + [(group == g).astype(float) for g in np.unique(group)]
-    params, covariance, _, _ = weighted_least_squares(residual, sigma, np.column_stack(columns))
-    errors = np.sqrt(np.abs(np.diag(covariance)[:2]))
-    significant = [abs(p) > UNEXPLAINED_NSIGMA * e for p, e in zip(params[:2], errors)]
-    kind = "quadratic" if significant[1] else "linear" if significant[0] else "constant"
+    groups = [(group == g).astype(float) for g in np.unique(group)]
+    params, covariance, _, _ = weighted_least_squares(residual, sigma,
+                                                      np.column_stack([x, x ** 2] + groups))
+    linear, linear_covariance, _, _ = weighted_least_squares(residual, sigma,
+                                                             np.column_stack([x] + groups))
+    quadratic = abs(params[1]) > UNEXPLAINED_NSIGMA * np.sqrt(abs(covariance[1, 1]))
+    slope = abs(linear[0]) > UNEXPLAINED_NSIGMA * np.sqrt(abs(linear_covariance[0, 0]))
+    kind = "quadratic" if quadratic else "linear" if slope else "constant"
     return {"kind": kind, "per_1e5": float(params[0]), "per_1e10": float(params[1])}
 
 
