@@ -132,6 +132,11 @@ class Effect:
     bounds = None
     description = ""
 
+    def allows(self, values):
+        """Whether fitted ``values`` (one per parameter) lie within the effect's `bounds`."""
+        return self.bounds is None or all(
+            low <= value <= high for value, (low, high) in zip(values, self.bounds))
+
     @property
     def k(self):
         return len(self.parameters)

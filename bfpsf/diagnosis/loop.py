@@ -238,8 +238,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                     own = slice(params.size - k, params.size)
                     values = params[own].tolist()
                     errors = np.sqrt(np.abs(np.diag(covariance)[own])).tolist()
-                allowed = effect.bounds is None or all(
-                    low <= value <= high for value, (low, high) in zip(values, effect.bounds))
+                allowed = effect.allows(values)
                 entry.update(statistic=float(statistic), delta_bic=float(delta_bic),
                              parameters=values, errors=errors, allowed=bool(allowed))
                 if not allowed and delta_bic < threshold:
@@ -326,9 +325,9 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
             entry.update(signature=test, contradicted_by=contradiction(test))
             # and within the physical range of the scale (`CalibrationScale.bounds`): a new
             # user's isotropic spill was taken as +1.5, within 2.2 sigma of 150^2 flats
-            low, high = get_effect("calibration_scale").bounds[0]
-            if entry["contradicted_by"] is None and not low <= entry["value"] <= high:
-                entry.update(contradicted_by="bounds", bounds=[low, high])
+            scale = get_effect("calibration_scale")
+            if entry["contradicted_by"] is None and not scale.allows([entry["value"]]):
+                entry.update(contradicted_by="bounds", bounds=list(scale.bounds[0]))
     curves = {}
     sizes = observables.sizes
     if sizes is not None:

@@ -382,10 +382,10 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         sigma_y.append(np.asarray(table["sigma_y"], float)[good])
         exposure.append(np.full(good.sum(), index))
         columns.append(np.asarray(table["x"], float)[good])
-        # the odd moments and the cross moment e2 of each star
-        mxx, myy, mxy = (np.asarray(table[name], float)[good] for name in ("mxx", "myy", "mxy"))
+        # the odd moments and the cross moment e2 (measure_sources' column) of each star
         skews.append(np.column_stack([np.array(star_skewness(
-            prepared.sky_subtracted, table[good])).T.reshape(-1, 2), 2 * mxy / (mxx + myy)]))
+            prepared.sky_subtracted, table[good])).T.reshape(-1, 2),
+            np.asarray(table["e2"], float)[good]]))
     fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews = (
         np.concatenate(v) for v in (fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews))
     if fluxes.size < 9:  # the size bins need 3 of 3 stars; no quantile of nothing

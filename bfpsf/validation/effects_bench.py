@@ -51,6 +51,7 @@ from ..diagnosis.tables import SizeTable
 from ..errors import BFPSFValueError
 from ..model.redistribution import redistribute
 from ..moments.adaptive import adaptive_moments_batch
+from ..moments.shapes import distortion
 from .simulate_spots import simulate_spots
 
 __all__ = ["OUTSIDE_EFFECTS", "CATALOGUE_CASES", "BenchSpots", "draw_bench_spots",
@@ -229,9 +230,8 @@ def bench_sizes(spots, stamps_e, *, sky_e=50.0, read_noise_e=5.0, seed=0):
     skew_x, skew_y = skewness(noisy, moments)
     peak = noisy.max(axis=(1, 2))
     flux = noisy.sum(axis=(1, 2))
-    mxx, myy, mxy = (np.asarray(getattr(moments, name)) for name in ("mxx", "myy", "mxy"))
     values = {"sigma_x": sigma_x, "sigma_y": sigma_y, "skew_x": skew_x, "skew_y": skew_y,
-              "cross": 2 * mxy / (mxx + myy)}
+              "cross": distortion(moments.mxx, moments.myy, moments.mxy)[1]}
     # errors pooled per level: the scatter of each spot about its bin mean, over all bins
     key = (spots.exposure * 1000 + spots.level * 10 + spots.column)
     rows = np.unique(key[good])
