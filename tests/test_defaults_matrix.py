@@ -225,6 +225,7 @@ def test_python_path_gives_the_command_line_numbers(data, products):
                  str(directory / "phot_python_path.json")]) == 0
     summary = json.loads((directory / "phot_python_path.json").read_text())
     assert summary["images"][0]["read_noise_e"] == calibration.noise_e == 5.0
+    assert summary["images"][0]["read_noise_source"] == "calibration"
     phot = bfpsf.psf_photometry(fits.getdata(images[0]) * calibration.gain, command_line,
                                 read_noise_e=calibration.noise_e)
     np.testing.assert_allclose(np.asarray(phot["flux_fit"]),

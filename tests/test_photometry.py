@@ -274,6 +274,7 @@ def test_cli_psf_and_photometry(cli_files):
     assert abs(np.median(ratio) - 1) < 1e-2
     phot_summary = json.loads((directory / "phot.json").read_text())
     assert phot_summary["n_stars"] == len(table)
+    assert phot_summary["images"][0]["read_noise_source"] == "--read-noise"
     # psf (the sky fitted with the stars' wings) and photometry (the sky beyond the glow of
     # the product's wing model) find the true sky: 1000 e- of noise 32 e- on ~5e4 free
     # pixels, 0.15 e-; 0.5 e- allows for the wings' model

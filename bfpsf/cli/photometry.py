@@ -170,9 +170,10 @@ def run(args):
             tables.append(table)
             per_image.append({"image": str(path), "amplifier": amplifier.name,
                               "gain": amp_gain, "read_noise_e": table.meta["read_noise_e"],
-                              "read_noise_source": ("calibration" if args.read_noise is None
-                                                    and read_noise is not None else
-                                                    table.meta["read_noise_source"]),
+                              "read_noise_source": (
+                                  "--read-noise" if args.read_noise is not None else
+                                  "image" if read_noise is None else
+                                  "calibration" if one is not None else "default 0"),
                               "linearity_c_per_1e5": bf_model.linearity_c_per_1e5,
                               "n_stars": len(table),
                               "n_flagged": int(np.sum((table["flags"] != 0)
