@@ -17,7 +17,6 @@ from ..interop.photutils import default_fit_shape, make_psf_photometry
 from ..model.base import BFPSFModel
 from .neighbours import sources_with_companions
 from .prepare import PreparedImage, prepare_image
-from .sky import sky_pixels
 from .sources import DETECTION_THRESHOLD
 from .total_flux import WingModel, wing_image
 
@@ -225,7 +224,7 @@ def image_read_noise(prepared):
     float
     """
     data = prepared.sky_subtracted
-    free = sky_pixels(data) & np.isfinite(data)
+    free = prepared.sky_pixels & np.isfinite(data)  # the pixels its sky was fitted on
     if free.sum() < 10:
         return 0.0
     values = data[free]
