@@ -26,7 +26,6 @@ from .tables import Observables
 __all__ = ["fit_empirical", "evaluate_empirical", "predicted_size_change", "early_late",
            "adaptive_response"]
 
-_MAG_PER_FRACTION = 2.5 / np.log(10.0)
 
 
 def _terms(sizes, fluxes, x_reference, exposure_reference, position, exposure):
@@ -155,14 +154,7 @@ def evaluate_empirical(term, sizes, fluxes, model_sigma, residual, response=None
     out = {"n": len(sizes)}
     for label, (rx, ry) in (("before", residual),
                             ("after", (residual[0] - change[0], residual[1] - change[1]))):
-        slopes = slope_residuals(sizes, rx, ry)
-        mean_sigma = 0.5 * (sizes.sigma_x.mean() + sizes.sigma_y.mean())
-        span = (sizes.peak_e.max() - sizes.peak_e.min()) / 1e5
-        per_axis = [slopes[f"raw_slope_{a}"] * slopes[f"slope_{a}_percent"] / 100.0
-                    for a in "xy"]
-        slopes["photometry_bias_mmag"] = float(1e3 * _MAG_PER_FRACTION * np.mean(per_axis)
-                                               * span / mean_sigma)
-        out[label] = slopes
+        out[label] = slope_residuals(sizes, rx, ry)
     return out
 
 

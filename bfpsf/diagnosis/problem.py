@@ -16,13 +16,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..measure.slopes import fit_bf_slope
+from ..moments.shapes import MAG_PER_SIZE_ERROR
 from .catalogue import get_effect
 
 __all__ = ["Problem", "build_problem", "describe_slope", "effect_design", "effect_values",
            "slope_residuals", "BF_DETECTION_SIGMA",
            "summarise"]
 
-_MAG_PER_FRACTION = 2.5 / np.log(10.0)
 #: A raw BF slope below this many times its error is no BF slope: the residual is then
 #: reported in pixels, not in percent of it (`describe_slope`).
 BF_DETECTION_SIGMA = 3.0
@@ -164,7 +164,9 @@ def slope_residuals(sizes, residual_x, residual_y):
         ``residual_slope_y`` and their errors (pixels per 100 ke- of peak), ``slope_x_percent``,
         ``slope_y_percent`` and their errors (percent), and ``stars_show_bf_x``,
         ``stars_show_bf_y``: whether the raw slope is above `BF_DETECTION_SIGMA` times its
-        error (when not, a percentage of it means nothing: `describe_slope`).
+        error (when not, a percentage of it means nothing: `describe_slope`), and
+        ``photometry_bias_mmag``: the bias of PSF photometry the size residual implies between
+        the faintest and the brightest entry (module docstring).
     """
     out = {}
     for axis, measured, error, residual in (("x", sizes.sigma_x, sizes.sigma_x_err, residual_x),
@@ -182,6 +184,11 @@ def slope_residuals(sizes, residual_x, residual_y):
         out[f"stars_show_bf_{axis}"] = bool(abs(raw) > BF_DETECTION_SIGMA * raw_fit.slope_err)
         out[f"slope_{axis}_percent"] = 100.0 * fit.slope / raw
         out[f"slope_{axis}_percent_err"] = 100.0 * fit.slope_err / abs(raw)
+    mean_sigma = 0.5 * (sizes.sigma_x.mean() + sizes.sigma_y.mean())
+    span = (sizes.peak_e.max() - sizes.peak_e.min()) / 1e5
+    slopes = [out["residual_slope_x"], out["residual_slope_y"]]
+    out["photometry_bias_mmag"] = float(1e3 * MAG_PER_SIZE_ERROR * np.mean(slopes) * span
+                                        / mean_sigma)
     return out
 
 
@@ -215,12 +222,6 @@ def summarise(problem, observables, model):
         n = len(sizes)
         residual_x, residual_y = block[:n], block[n:]
         out.update(slope_residuals(sizes, residual_x, residual_y))
-        # photometry bias implied by the size residual between the faintest and brightest
-        mean_sigma = 0.5 * (sizes.sigma_x.mean() + sizes.sigma_y.mean())
-        span = (sizes.peak_e.max() - sizes.peak_e.min()) / 1e5
-        slopes = [out[f"raw_slope_{a}"] * out[f"slope_{a}_percent"] / 100.0 for a in "xy"]
-        out["photometry_bias_mmag"] = float(1e3 * _MAG_PER_FRACTION * np.mean(slopes) * span
-                                            / mean_sigma)
         out["size_rms_x_pix"] = float(np.std(residual_x))
         out["size_rms_y_pix"] = float(np.std(residual_y))
     if observables.correlations is not None:
