@@ -540,3 +540,32 @@ def test_a_rising_residual_is_not_constant_in_flux():
     assert _flux_dependence(peak, residual, sigma, group)["kind"] == "linear"
     assert _flux_dependence(peak, sigma * rng.standard_normal(peak.size), sigma,
                             group)["kind"] == "constant"
+
+
+def test_a_heldout_residual_carries_the_error_of_the_fitted_parameters(shifts):
+    """On held-out exposures the model's parameters come from the fit part, so a residual
+    slope there is uncertain by their error too: a new user's BF-only seed read "unexplained
+    sizes y 4.2 sigma" against the held-out noise alone (3.3 sigma with the size scale's
+    +-0.037 carried). A design of slope 1 per 100 ke- on X with a variance 3 times the
+    noise's doubles the X slope's error and leaves Y's alone."""
+    from bfpsf.diagnosis.problem import build_problem
+    from bfpsf.diagnosis.unexplained import describe_unexplained
+
+    observed = observables(shifts, diffusion=0.03)
+    problem = build_problem(observed)
+    model = np.zeros_like(problem.residual)
+
+    def by_axis(entries):
+        return {entry["axis"]: entry for entry in entries if entry["observable"] == "sizes"}
+
+    alone = by_axis(describe_unexplained(problem, observed, model))
+    assert alone["x"]["significance"] > 6 and alone["y"]["significance"] > 6
+    design = np.zeros((problem.residual.size, 1))
+    start = problem.slices["sizes"].start
+    design[start:start + len(observed.sizes), 0] = PEAKS / 1e5
+    variance = np.array([[3 * alone["x"]["slope_err"] ** 2]])
+    carried = by_axis(describe_unexplained(problem, observed, model,
+                                           prediction=(design, variance)))
+    assert carried["x"]["slope_err"] == pytest.approx(2 * alone["x"]["slope_err"], rel=1e-9)
+    assert carried["x"]["significance"] == pytest.approx(alone["x"]["significance"] / 2)
+    assert carried["y"]["slope_err"] == pytest.approx(alone["y"]["slope_err"], rel=1e-12)

@@ -93,19 +93,27 @@ def split_observables(observables, fraction=0.5):
 
 def _evaluate(state, observables, step):
     """Residual model on ``observables`` with one step's effects and global nuisances fixed
-    at their in-sample values and the local nuisances refitted: (problem, model)."""
+    at their in-sample values and the local nuisances refitted: (problem, model,
+    prediction), where ``prediction`` is (design, covariance) of the fixed part, what the
+    model inherits from the fit (`describe_unexplained`)."""
     problem = build_problem(observables)
     by_name = state["by_name"]
-    offset = np.zeros_like(problem.residual)
-    for name, values in step["effects"].items():
-        templates = by_name[state["family"](name)].templates(observables)
-        offset += effect_design(problem, templates) @ np.asarray(values, float)
     global_columns = list(problem.global_columns)
-    if global_columns:
-        offset += problem.nuisance[:, global_columns] @ step["global"]
+    columns = [problem.nuisance[:, global_columns]] if global_columns else []
+    values = [np.asarray(step["global"], float)] if global_columns else []
+    for name, effect_value in step["effects"].items():
+        templates = by_name[state["family"](name)].templates(observables)
+        columns.append(effect_design(problem, templates))
+        values.append(np.asarray(effect_value, float))
+    design = (np.column_stack(columns) if columns
+              else np.zeros((problem.residual.size, 0)))
+    offset = design @ np.concatenate(values) if values else np.zeros_like(problem.residual)
     local = np.delete(problem.nuisance, global_columns, axis=1)
     _, _, _, model = weighted_least_squares(problem.residual - offset, problem.sigma, local)
-    return problem, model + offset
+    covariance = step.get("covariance")
+    if covariance is None or covariance.shape[0] != design.shape[1]:
+        covariance = np.zeros((design.shape[1], design.shape[1]))
+    return problem, model + offset, (design, covariance)
 
 
 def _kept_step(result, state, confirmed):
@@ -116,7 +124,11 @@ def _kept_step(result, state, confirmed):
     step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
     if step.get("global") is not None and not confirmed.get("calibration_scale (nuisance)",
                                                              True):
-        step = dict(step, **{"global": np.zeros_like(step["global"])})
+        covariance = np.array(step["covariance"], float)
+        n_global = np.size(step["global"])
+        covariance[:n_global, :] = covariance[:, :n_global] = 0.0
+        step = dict(step, **{"global": np.zeros_like(step["global"]),
+                             "covariance": covariance})
     return step
 
 
@@ -206,7 +218,7 @@ def with_heldout(result, state, heldout, fraction):
     chi2 = []
     evaluations = []
     for step in state["steps"]:
-        problem, model = _evaluate(state, heldout, step)
+        problem, model, _ = _evaluate(state, heldout, step)
         evaluations.append((problem, model))
         chi2.append(float((((problem.residual - model) / problem.sigma) ** 2).sum()))
     names = ["calibration_scale (nuisance)"] * (len(state["steps"]) - 1 - len(result.selected))
@@ -219,7 +231,7 @@ def with_heldout(result, state, heldout, fraction):
         step = {"names": names, "global": np.zeros(len(state["problem"].global_columns)),
                 "effects": {name: np.asarray(state["by_name"][state["family"](name)]
                                              .physical_value, float) for name in names}}
-        problem, model = _evaluate(state, heldout, step)
+        problem, model, _ = _evaluate(state, heldout, step)
         physical = summarise(problem, heldout, model)
         physical["effects"] = names
     # (a size scale whose signature is contradicted is in no step: `diagnose` ran the loop
@@ -235,8 +247,8 @@ def with_heldout(result, state, heldout, fraction):
                "heldout_size_entries": 0 if sizes is None else len(sizes)}
     # unexplained: judged on the held-out data with the confirmed effects only
     step = _kept_step(result, state, confirmed)
-    problem, model = _evaluate(state, heldout, step)
-    unexplained = describe_unexplained(problem, heldout, model)
+    problem, model, prediction = _evaluate(state, heldout, step)
+    unexplained = describe_unexplained(problem, heldout, model, prediction=prediction)
     return dataclasses.replace(result, residual_before_heldout=before,
                                residual_after_heldout=after, confirmed=confirmed,
                                residual_physical_heldout=physical,

@@ -374,13 +374,36 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
               "model": model_before}] if problem.global_columns else []
     for k in range(len(selected) + 1):
         names = selected[:k]
-        values, _, _, model = fit(names)
+        values, covariance, _, model = fit(names)
         steps.append({"names": names, "global": values[list(problem.global_columns)],
                       "effects": effect_values(values, problem, names, fixed, by_name, family),
-                      "model": model})
+                      "model": model,
+                      "covariance": _step_covariance(covariance, problem, names, fixed,
+                                                     by_name, family)})
     state = {"problem": problem, "steps": steps, "fixed": fixed, "family": family,
              "by_name": by_name, "observables": observables}
     return result, state
+
+
+def _step_covariance(covariance, problem, names, fixed, by_name, family):
+    """Covariance of a step's parameters in the order the held-out prediction uses them
+    (the global nuisances, then each effect's values as `effect_values` gives them; an effect
+    fixed at its physical value has none): what the prediction on held-out data inherits
+    from the fit (`bfpsf.diagnosis.heldout`)."""
+    index = list(problem.global_columns)
+    column = problem.nuisance.shape[1]
+    for name in names:
+        k = by_name[family(name)].k
+        if name in fixed:
+            index += [None] * k
+            continue
+        index += list(range(column, column + k))
+        column += k
+    out = np.zeros((len(index), len(index)))
+    kept = [i for i, value in enumerate(index) if value is not None]
+    columns = [index[i] for i in kept]
+    out[np.ix_(kept, kept)] = covariance[np.ix_(columns, columns)]
+    return out
 
 
 def _with_unexplained(result, state, observables):
