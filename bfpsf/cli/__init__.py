@@ -45,6 +45,35 @@ def image_arguments(parser, verb, about="", after=""):
                         help=f"{verb} only this amplifier (EXTNAME); repeatable")
 
 
+#: Default of ``--saturation`` in the commands that read star images.
+SATURATION_DEFAULT = ("default the header's SATURATE or a variant; the calibration's "
+                      "linearity turnoff where lower")
+
+
+def star_image_options(parser, *, saturation, wings=True, threshold=True, background=True):
+    """``--threshold`` (detection), ``--background`` and ``--saturation`` of the commands
+    that find stars in images: ``saturation`` says what the level does (its default is
+    `SATURATION_DEFAULT`), ``wings`` whether the default sky masks the stars' wings too,
+    ``threshold`` whether the command detects (``diagnose``'s own --threshold is a Delta
+    BIC), ``background`` whether it takes a sky level (``measure`` fits its own)."""
+    if threshold:
+        from ..measure.sources import DETECTION_THRESHOLD
+
+        parser.add_argument("--threshold", type=positive_float, default=DETECTION_THRESHOLD,
+                            help=f"detection threshold, RMS of the smoothed image (default "
+                                 f"{DETECTION_THRESHOLD:g})")
+    if background:
+        parser.add_argument("--background", type=background_option, default=None,
+                            metavar="ADU",
+                            help="a known sky level of the images, ADU per pixel (0 for "
+                                 "sky-subtracted images); default the sky surface of each "
+                                 "image: a plane fitted beyond the masked sources"
+                                 + (" and the stars' wings" if wings else ""))
+    parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
+                        help=f"saturation level of the raw images, ADU: {saturation} "
+                             f"({SATURATION_DEFAULT})")
+
+
 def maxlag_option(text):
     """``--maxlag``: 'auto' or a positive integer."""
     if text == "auto":

@@ -26,8 +26,7 @@ from pathlib import Path
 from ..diagnosis.problem import describe_slope
 from ..diagnosis.signature import describe_entry, describe_rejection
 from ..errors import BFPSFInputError
-from . import (background_option, maxlag_option, positive_float, positive_int,
-               saturation_option)
+from . import maxlag_option, positive_float, positive_int, star_image_options
 
 __all__ = ["add_parser", "run"]
 
@@ -47,14 +46,8 @@ def add_parser(subparsers):
                       help="Moffat index of the profile that gives the exact boundary density "
                            "(default: Gaussian); the spot model itself is the P0 fitted from "
                            "the stars")
-    data.add_argument("--background", type=background_option, default=None, metavar="ADU",
-                      help="a known sky level of the images, ADU per pixel (0 for "
-                           "sky-subtracted images); default the sky surface of each image (a "
-                           "plane fitted beyond the masked sources)")
-    data.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
-                      help="saturation level of the images, ADU: saturated stars are not used "
-                           "(default the header's SATURATE or a variant; the calibration's "
-                           "linearity turnoff where lower)")
+    star_image_options(data, saturation="saturated stars are not used", wings=False,
+                       threshold=False)
     data.add_argument("--maxlag", type=maxlag_option, default="auto", metavar="auto|N",
                       help="calibration lags: 'auto' (default, as bfpsf calibrate) or an "
                            "integer")

@@ -10,8 +10,7 @@ import numpy as np
 from ..errors import BFPSFInputError
 from ..files import about, check_outputs, input_files, read_table, refuse_duplicates
 from ..outputs import write_json, write_table
-from ..measure.sources import DETECTION_THRESHOLD
-from . import image_arguments, positive_float, saturation_option, stamp_size_option
+from . import image_arguments, positive_float, stamp_size_option, star_image_options
 from ._files import place_stars, read_image
 
 
@@ -49,15 +48,9 @@ def add_parser(subparsers):
                              "image's CATALOG extension (x, y in 0-based pixels); repeatable")
     parser.add_argument("--catalog", metavar="FILE",
                         help="table with x, y and colour columns (default: CATALOG HDU)")
-    parser.add_argument("--threshold", type=positive_float, default=DETECTION_THRESHOLD,
-                        help=f"detection threshold, RMS of the smoothed image (default "
-                             f"{DETECTION_THRESHOLD:g})")
     parser.add_argument("--stamp-size", type=stamp_size_option, default=32,
                         help="measurement stamp side, pixels (default 32)")
-    parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
-                        help="saturation level of the raw image, ADU (flags, does not drop; "
-                             "default the header's SATURATE or a variant; with --calib, the "
-                             "linearity turnoff where lower)")
+    star_image_options(parser, saturation="flags, does not drop", background=False)
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     return parser

@@ -10,9 +10,9 @@ import numpy as np
 
 from ..files import about, check_outputs, input_files
 from ..outputs import write_json, write_table
-from ..measure.sources import DETECTION_THRESHOLD, SourceFlag
-from . import (background_option, image_arguments, non_negative_float, positive_float,
-               positive_int, saturation_option)
+from ..measure.sources import SourceFlag
+from . import (image_arguments, non_negative_float, positive_float, positive_int,
+               star_image_options)
 from ._files import place_stars, read_image
 
 
@@ -39,21 +39,11 @@ def add_parser(subparsers):
                              "on sky-subtracted images: include the sky's noise; default the "
                              "calibration's with --calib, measured on the image's sky where "
                              "its PTC left it undetermined; else 0)")
-    parser.add_argument("--background", type=background_option, default=None, metavar="ADU",
-                        help="a known sky level of the images, ADU per pixel (0 for "
-                             "sky-subtracted images); default the sky surface of each image: a "
-                             "plane fitted beyond the masked sources and the stars' wings")
-    parser.add_argument("--threshold", type=positive_float, default=DETECTION_THRESHOLD,
-                        help=f"detection threshold, RMS of the smoothed image (default "
-                             f"{DETECTION_THRESHOLD:g})")
+    star_image_options(parser, saturation="stars with a pixel at or above it in the fit box "
+                                          "are flagged (column saturated and bit 8 of "
+                                          "source_flags)")
     parser.add_argument("--fit-shape", type=positive_int, default=None,
                         help="fit box, pixels, odd (default about 3 FWHM)")
-    parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
-                        help="saturation level of the raw images, ADU: stars with a pixel at "
-                             "or above it in the fit box are flagged (column saturated and bit 8 "
-                             "of source_flags; "
-                             "default the header's SATURATE or a variant; with --calib, the "
-                             "linearity turnoff where lower)")
     parser.add_argument("--static", action="store_true",
                         help="fit the static P0 (no BF term), for comparison (total fluxes "
                              "too: the product's correction for the light beyond P0)")

@@ -18,9 +18,8 @@ import numpy as np
 from ..errors import BFPSFInputError
 from ..files import about, check_outputs, input_files, refuse_duplicates
 from ..outputs import write_json
-from ..measure.sources import DETECTION_THRESHOLD
-from . import (background_option, finite_float, image_arguments, positive_float, positive_int,
-               saturation_option, stamp_size_option)
+from . import (finite_float, image_arguments, positive_int, stamp_size_option,
+               star_image_options)
 from ..model.psf_fit import DEFAULT_SIZE
 from ..moments.shapes import MAG_PER_SIZE_ERROR
 from ._files import read_image
@@ -45,17 +44,7 @@ def add_parser(subparsers):
                         help="oversampling of P0 (default 2; 4 needs several hundred stars)")
     parser.add_argument("--size", type=stamp_size_option, default=DEFAULT_SIZE,
                         help="support of P0 and star cutouts, pixels, odd (default 25)")
-    parser.add_argument("--threshold", type=positive_float, default=DETECTION_THRESHOLD,
-                        help=f"detection threshold, RMS of the smoothed image (default "
-                             f"{DETECTION_THRESHOLD:g})")
-    parser.add_argument("--background", type=background_option, default=None, metavar="ADU",
-                        help="a known sky level of the images, ADU per pixel (0 for "
-                             "sky-subtracted images); default the sky surface of each image: a "
-                             "plane fitted beyond the masked sources and the stars' wings")
-    parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
-                        help="saturation level, ADU: saturated stars are not used (default "
-                             "the header's SATURATE or a variant; the calibration's linearity "
-                             "turnoff where lower)")
+    star_image_options(parser, saturation="saturated stars are not used")
     parser.add_argument("--grid", type=positive_int, nargs=2, metavar=("NX", "NY"), default=None,
                         help="fit P0 on NX x NY nodes over the image (P(F, x, y), bilinear "
                              "between nodes, as photutils GriddedPSFModel); default one P0")
