@@ -123,6 +123,11 @@ class Effect:
     bounds : tuple of (low, high) per parameter, or None
         Physically allowed range; a fit outside it is rejected by the loop (e.g. a negative
         diffusion, a negative area beyond the measured lags).
+    flux_signature : bool
+        Whether the signature test checks the ``flux_shape`` dimension
+        (`bfpsf.diagnosis.signature.flux_shape_test`) for this effect: for effects whose
+        identity is how they grow with flux (the flux^2 term), where a residual linear in flux
+        must not pass.
     description : str
     """
 
@@ -130,6 +135,7 @@ class Effect:
     parameters = ()
     physical_value = None
     bounds = None
+    flux_signature = False
     description = ""
 
     def allows(self, values):
@@ -243,6 +249,9 @@ class SecondOrder(Effect):
     name = "second_order"
     parameters = ("t",)
     physical_value = None
+    # flux^2: a residual linear in flux (stars with no BF against flats with BF) had been
+    # named second_order at t = 6.3; beside a linear term its amplitude falls
+    flux_signature = True
     description = "t * (R[Q + R[Q]] - R[Q]): the flux^2 term of the redistribution (build-up)"
 
     def templates(self, observables):

@@ -52,8 +52,8 @@ from .catalogue import CATALOGUE, get_effect
 from .heldout import split_observables, with_empirical, with_heldout
 from .problem import build_problem, effect_design, effect_values, slope_residuals, summarise
 from .result import DiagnosisResult
-from .signature import (SIGNATURE_ALPHA, contradiction, cross_test, parity_test,
-                        signature_parts, signature_test)
+from .signature import (SIGNATURE_ALPHA, contradiction, cross_test, flux_shape_test,
+                        parity_test, signature_parts, signature_test)
 from .unexplained import (STAR_CHI2_FACTOR, UNEXPLAINED_NSIGMA, describe_unexplained,
                           verdict)
 
@@ -192,11 +192,16 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     ambiguous = {}
     rejected = {}
     parts = signature_parts(problem, observables)
+    linear = np.zeros(problem.residual.size)
+    if "sizes" in problem.slices:
+        # a size change linear in peak on both axes: the flux_shape dimension's competitor
+        linear[problem.slices["sizes"]] = np.tile(observables.sizes.peak_e / 1e5, 2)
     parity = parity_test(observables.sizes, alpha=signature_alpha or SIGNATURE_ALPHA)
     cross = cross_test(observables.sizes, alpha=signature_alpha or SIGNATURE_ALPHA)
 
-    def signature(design, nuisance=None):
-        """The signature test of a template given the effects already selected."""
+    def signature(design, nuisance=None, flux=False):
+        """The signature test of a template given the effects already selected (with the
+        flux dimension for an effect whose identity is its flux shape)."""
         free = [other for other in selected if other not in fixed]
         offset = sum((fixed[other] for other in selected if other in fixed),
                      np.zeros_like(problem.residual))
@@ -204,6 +209,10 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                                + [designs[other] for other in free])
         test = signature_test(problem.residual - offset, problem.sigma, base, design, parts,
                               alpha=signature_alpha)
+        if flux and np.any(linear):
+            test["flux_shape"] = flux_shape_test(problem.residual - offset, problem.sigma, base,
+                                                 design, linear,
+                                                 alpha=signature_alpha or SIGNATURE_ALPHA)
         if parity is not None and "sizes" in problem.slices and np.any(
                 design[problem.slices["sizes"]]):
             test["parity"] = parity
@@ -249,7 +258,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                         "values": [float(value) for value in values],
                         "bounds": [list(bound) for bound in effect.bounds]})
                 if allowed and delta_bic < threshold and signature_alpha:
-                    test = signature(designs[effect.name])
+                    test = signature(designs[effect.name], flux=effect.flux_signature)
                     against = contradiction(test)
                     entry.update(signature=test, contradicted_by=against)
                     if against is not None:
