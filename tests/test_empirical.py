@@ -25,25 +25,30 @@ def _plain_moments(image):
     total = image.sum()
     cx, cy = (image * x).sum() / total, (image * y).sum() / total
     return (total, cx, cy, (image * (x - cx) ** 2).sum() / total,
-            (image * (y - cy) ** 2).sum() / total)
+            (image * (y - cy) ** 2).sum() / total, (image * (x - cx) * (y - cy)).sum() / total)
 
 
 def test_patterns_add_variance_along_one_axis():
     """B_xx adds the star's flux to sum (x - x0)^2 I (so c to Mxx per unit c) and nothing
-    to its flux, centroid or Myy; B_yy the same along y. The flux exactly; the rest to the
-    Moffat wing at the edge of the 31 px stamp (1e-5 of the flux per edge pixel row)."""
+    to its flux, centroid, Myy or Mxy; B_yy the same along y; B_xy (half the difference of
+    the two diagonals) adds c to Mxy alone. The flux exactly (also of a star cut by the
+    stamp's edge); the rest to the Moffat wing at the edge of the 31 px stamp (1e-5 of the
+    flux per edge pixel row)."""
     star = _star()
-    total, cx, cy, mxx, myy = _plain_moments(star)
-    for pattern, grows in (("xx", 3), ("yy", 4)):
+    total, cx, cy, mxx, myy, mxy = _plain_moments(star)
+    for pattern, grows in (("xx", 3), ("yy", 4), ("xy", 5)):
         changed = star + 0.1 * apply_pattern(star, pattern)
         after = _plain_moments(changed)
         assert after[0] == pytest.approx(total, rel=1e-12)
         np.testing.assert_allclose(after[1:3], (cx, cy), rtol=0, atol=1e-5)
-        expected = [mxx, myy]
+        expected = [mxx, myy, mxy]
         expected[grows - 3] += 0.1
         np.testing.assert_allclose(after[3:], expected, rtol=0, atol=2e-3)
+        cut = _star(offset=(13.0, -12.5))
+        assert (cut + apply_pattern(cut, pattern)).sum() == pytest.approx(cut.sum(),
+                                                                           rel=1e-12)
     with pytest.raises(BFPSFValueError, match="pattern must be one of"):
-        apply_pattern(star, "xy")
+        apply_pattern(star, "xz")
 
 
 def test_term_changes_adaptive_moments_as_stated():
@@ -58,25 +63,31 @@ def test_term_changes_adaptive_moments_as_stated():
                                  1e4)
     assert 3.0 < response["xx"]["mxx"] < 3.8 and 0.4 < response["xx"]["myy"] < 0.8
     assert response["xx"]["mxx"] == pytest.approx(response["yy"]["myy"], rel=1e-3)
+    # the diagonal pattern changes Mxy alone: 2.3 times as measured (its transfers go sqrt(2)
+    # px, where the adaptive weight is lower than along an axis)
+    assert 2.0 < response["xy"]["mxy"] < 2.7
+    assert abs(response["xy"]["mxx"]) < 0.01 and abs(response["xx"]["mxy"]) < 0.01
     term = EmpiricalTerm({"xx": {"constant": 0.05, "position": 0.02},
-                          "yy": {"constant": -0.01, "exposure": 0.004, "flux2": 0.01}},
+                          "yy": {"constant": -0.01, "exposure": 0.004, "flux2": 0.01},
+                          "xy": {"constant": 0.03}},
                          x_reference=1000.0, exposure_reference=3.0)
     star = 2e5 * _star()
     flux = star.sum()
     for x, exposure in ((1000.0, 3.0), (1800.0, 7.0)):
         changed = star + term.delta(star, flux, x=x, exposure=exposure)
         moments = adaptive_moments_batch(np.array([star, changed]))
-        dxx, dyy = term.variance_change(flux, x=x, exposure=exposure)
+        changes = term.variance_change(flux, x=x, exposure=exposure)
+        dxx, dyy, dxy = changes
         scale = flux / FLUX_REFERENCE
         assert dxx == pytest.approx(scale * (0.05 + 0.02 * (x - 1000.0) / 1000.0))
         assert dyy == pytest.approx(scale * (-0.01 + 0.004 * (exposure - 3.0)) + 0.01 * scale ** 2)
-        measured_xx = response["xx"]["mxx"] * dxx + response["yy"]["mxx"] * dyy
-        measured_yy = response["xx"]["myy"] * dxx + response["yy"]["myy"] * dyy
+        assert dxy == pytest.approx(scale * 0.03)
         # 4 % of each pattern's part (the two parts of Myy nearly cancel here)
-        for moment, measured, key in ((moments.mxx, measured_xx, "mxx"),
-                                      (moments.myy, measured_yy, "myy")):
-            parts = abs(response["xx"][key] * dxx) + abs(response["yy"][key] * dyy)
-            assert moment[1] - moment[0] == pytest.approx(measured, abs=0.04 * parts)
+        for moment, key in ((moments.mxx, "mxx"), (moments.myy, "myy"), (moments.mxy, "mxy")):
+            parts = [response[pattern][key] * change
+                     for pattern, change in zip(("xx", "yy", "xy"), changes)]
+            assert moment[1] - moment[0] == pytest.approx(sum(parts),
+                                                         abs=0.04 * sum(map(abs, parts)))
     # evaluated at one place, the term is the same there
     local = term.at(x=1800.0, exposure=7.0)
     assert local.variance_change(flux) == pytest.approx(
@@ -154,6 +165,19 @@ def test_psf_hook_applies_the_term():
     # the Moffat's wings at the edge of the 25 px stamp: 1 %
     assert change == pytest.approx(term.variance_change(flux)[0], rel=0.01)
     assert np.array_equal(psf.star_image(flux, x_phase=0.1, half_size=12), plain)
+    # the diagonal pattern: Mxy grows with flux, Mxx and Myy do not, in the table mode too
+    diagonal = with_empirical(psf, SimpleNamespace(refinement={"empirical": EmpiricalTerm(
+        {"xy": {"constant": 0.2}}).to_dict()}))
+    for star_flux in (1e5, 3e5):
+        before = _plain_moments(psf.star_image(star_flux, x_phase=0.1, half_size=12))
+        after = _plain_moments(diagonal.star_image(star_flux, x_phase=0.1, half_size=12))
+        assert after[5] - before[5] == pytest.approx(0.2 * star_flux / FLUX_REFERENCE,
+                                                     rel=0.01)
+        np.testing.assert_allclose(np.subtract(after[3:5], before[3:5]), 0.0, atol=1e-4)
+    yy, xx = np.mgrid[-12:13, -12:13].astype(float)
+    table = diagonal.evaluate(xx, yy, flux, 0.0, 0.0)
+    exact = diagonal.star_image(flux, half_size=12)
+    np.testing.assert_allclose(table, exact, rtol=0, atol=1e-5 * exact.max())
 
 
 def test_a_term_that_makes_an_axis_worse_is_not_applied():
@@ -174,3 +198,10 @@ def test_a_term_that_makes_an_axis_worse_is_not_applied():
     # within twice its error is not "worse"
     assert term_validated({"heldout": good, "late_block": block((1.0, 30.0), (2.5, 1.0))})
     assert not term_validated({"heldout": block((1.0, 1.0), (1.5, 1.5))})
+    # with a diagonal pattern: the e2 slope must fall and not grow beyond twice its error
+    diagonal = block((40.0, 38.0), (0.5, 0.8))
+    diagonal["before"]["cross"] = {"slope_per_1e5": 0.027, "slope_err": 5e-4}
+    diagonal["after"]["cross"] = {"slope_per_1e5": 1e-4, "slope_err": 5e-4}
+    assert term_validated({"heldout": diagonal})
+    diagonal["after"]["cross"] = {"slope_per_1e5": 0.03, "slope_err": 5e-4}
+    assert not term_validated({"heldout": diagonal})

@@ -133,6 +133,14 @@ def _check_outside(result, name):
             assert abs(after[f"slope_{a}_percent"]) < 2 + 3 * after[f"slope_{a}_percent_err"]
         assert abs(check["after"]["photometry_bias_mmag"]) < abs(
             check["before"]["photometry_bias_mmag"]) / 5
+        if name == "diagonal":
+            # its diagonal pattern takes the e2 change with flux out of sample too
+            before, after = check["before"]["cross"], check["after"]["cross"]
+            assert abs(before["slope_per_1e5"]) > 5 * before["slope_err"]
+            assert abs(after["slope_per_1e5"]) < 3 * after["slope_err"] + 0.1 * abs(
+                before["slope_per_1e5"])
+    # a diagonal pattern only where the stars' e2 change is unexplained
+    assert empirical["validation"]["diagonal_term"] == (name == "diagonal")
 
 
 def _check_catalogue(results):
@@ -224,10 +232,14 @@ def _print_figures(name, result):
     for block, check in result.empirical["validation"].items():
         if isinstance(check, dict) and "after" in check:
             b, a = check["before"], check["after"]
+            cross = ("" if "cross" not in a else
+                     f"; e2 slope {b['cross']['slope_per_1e5']:+.4f} -> "
+                     f"{a['cross']['slope_per_1e5']:+.4f} +- {a['cross']['slope_err']:.4f}")
             print(f"  EMPIRICAL {block}: X {a['slope_x_percent']:+.1f} +- "
                   f"{a['slope_x_percent_err']:.1f}, Y {a['slope_y_percent']:+.1f} +- "
                   f"{a['slope_y_percent_err']:.1f} % of raw; photometry "
-                  f"{b['photometry_bias_mmag']:+.2f} -> {a['photometry_bias_mmag']:+.2f} mmag")
+                  f"{b['photometry_bias_mmag']:+.2f} -> {a['photometry_bias_mmag']:+.2f} mmag"
+                  f"{cross}")
 
 
 def _user_flats(tmp_path, gain):

@@ -275,8 +275,13 @@ def _empirical_lines(result):
                 else:
                     axes.append(f"{axis.upper()} {describe_slope(before, axis)} -> "
                                 f"{after[f'residual_slope_{axis}']:+.4f}")
+            cross = ""
+            if "cross" in after:
+                cross = (f"; e2 slope {before['cross']['slope_per_1e5']:+.4f} -> "
+                         f"{after['cross']['slope_per_1e5']:+.4f} +- "
+                         f"{after['cross']['slope_err']:.4f} per 1e5 e-")
             lines.append(
                 f"EMPIRICAL term ({block}): BF slope residual {', '.join(axes)}; photometry "
                 f"bias implied {before['photometry_bias_mmag']:+.2f} -> "
-                f"{after['photometry_bias_mmag']:+.2f} mmag")
+                f"{after['photometry_bias_mmag']:+.2f} mmag{cross}")
     return lines

@@ -23,8 +23,9 @@ from ..moments.adaptive import adaptive_moments_batch
 from .problem import slope_residuals
 from .tables import Observables
 
-__all__ = ["fit_empirical", "evaluate_empirical", "predicted_size_change", "early_late",
-           "adaptive_response"]
+__all__ = ["fit_empirical", "evaluate_empirical", "predicted_size_change",
+           "predicted_cross_change", "cross_slope", "early_late", "adaptive_response",
+           "MOMENTS"]
 
 
 
@@ -46,7 +47,7 @@ def _terms(sizes, fluxes, x_reference, exposure_reference, position, exposure):
 
 def adaptive_response(spot_model, peak_e, *, step=0.05):
     """How the measured (adaptive) second moments respond to each pattern, per unit pattern
-    variance: {pattern: {'mxx': d Mxx, 'myy': d Myy}}.
+    variance: {pattern: {'mxx': d Mxx, 'myy': d Myy, 'mxy': d Mxy}}.
 
     The patterns change the plain second moments by exactly their coefficient along their own
     axis; the adaptive moments the loop measures weight the core and re-shape their weight, so
@@ -63,16 +64,27 @@ def adaptive_response(spot_model, peak_e, *, step=0.05):
         after = adaptive_moments_batch(changed)
         out[pattern] = {moment: float(np.mean((np.asarray(getattr(after, moment))
                                                - np.asarray(getattr(base, moment))) / step))
-                        for moment in ("mxx", "myy")}
+                        for moment in MOMENTS}
     return out
 
 
-_IDENTITY = {"xx": {"mxx": 1.0, "myy": 0.0}, "yy": {"mxx": 0.0, "myy": 1.0}}
+#: The measured second moments, in the order of `EmpiricalTerm.variance_change`'s patterns.
+MOMENTS = ("mxx", "myy", "mxy")
+_IDENTITY = {pattern: {moment: float(k == j) for k, moment in enumerate(MOMENTS)}
+             for j, pattern in enumerate(PATTERNS)}
+
+
+def _mxy_rows(sizes, model_sigma, residual, cross_residual):
+    """The cross moment as Mxy: (target, errors) = e2 residual and its error times
+    (Mxx + Myy) / 2 of the measured sizes."""
+    half_trace = 0.5 * sum((sigma + part) ** 2 for sigma, part in zip(model_sigma, residual))
+    return (np.asarray(cross_residual, float) * half_trace,
+            np.asarray(sizes.cross_err, float) * half_trace)
 
 
 def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, exposure=False,
-                  response=None):
-    """Fit the empirical term to a size residual.
+                  response=None, cross_residual=None):
+    """Fit the empirical term to a size residual (and a cross-moment one).
 
     Parameters
     ----------
@@ -89,6 +101,10 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
     response : dict, optional
         `adaptive_response` of the measured sizes (default: the plain moments' identity):
         the coefficients are those of the patterns; both axes are fitted jointly.
+    cross_residual : ndarray (n,), optional
+        Measured minus model cross moment e2 (errors ``sizes.cross_err``): the diagonal
+        pattern is fitted to it jointly (as Mxy, with an intercept per group); without it the
+        term has no diagonal pattern.
 
     Returns
     -------
@@ -98,24 +114,29 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
     exposure_reference = float(np.mean(sizes.exposure)) if sizes.exposure is not None else 0.0
     terms = _terms(sizes, fluxes, x_reference, exposure_reference, position, exposure)
     response = response or _IDENTITY
+    moments = MOMENTS if cross_residual is not None else MOMENTS[:2]
+    patterns = PATTERNS if cross_residual is not None else PATTERNS[:2]
     groups = sizes.intercept_design()
-    zeros = np.zeros_like(groups)
-    blocks = [np.vstack([groups, zeros]), np.vstack([zeros, groups])]
-    for pattern in PATTERNS:
+    blocks = [np.kron(np.eye(len(moments))[:, [k]], groups) for k in range(len(moments))]
+    for pattern in patterns:
         for column in terms.values():
-            blocks.append(np.concatenate([response[pattern]["mxx"] * column,
-                                          response[pattern]["myy"] * column])[:, None])
+            blocks.append(np.concatenate([response[pattern][moment] * column
+                                          for moment in moments])[:, None])
     # in second moments, where the term is linear: (sigma_model + r)^2 - sigma_model^2, with
     # errors 2 sigma err (fitting r ~ dM / (2 sigma) instead leaves r^2, 2 % of the raw slope
     # for an effect of half of it)
     measured = [sigma + part for sigma, part in zip(model_sigma, residual)]
-    target = np.concatenate([m ** 2 - sigma ** 2 for m, sigma in zip(measured, model_sigma)])
-    errors_m = np.concatenate([2 * m * err for m, err in zip(
-        measured, (sizes.sigma_x_err, sizes.sigma_y_err))])
-    params, covariance, _, _ = weighted_least_squares(target, errors_m, np.hstack(blocks))
-    first = 2 * groups.shape[1]
+    targets = [m ** 2 - sigma ** 2 for m, sigma in zip(measured, model_sigma)]
+    errors_m = [2 * m * err for m, err in zip(measured, (sizes.sigma_x_err, sizes.sigma_y_err))]
+    if cross_residual is not None:
+        target, error = _mxy_rows(sizes, model_sigma, residual, cross_residual)
+        targets.append(target)
+        errors_m.append(error)
+    params, covariance, _, _ = weighted_least_squares(
+        np.concatenate(targets), np.concatenate(errors_m), np.hstack(blocks))
+    first = len(moments) * groups.shape[1]
     coefficients, errors = {}, {}
-    for index, pattern in enumerate(PATTERNS):
+    for index, pattern in enumerate(patterns):
         for k, name in enumerate(terms):
             column = first + index * len(terms) + k
             coefficients.setdefault(pattern, {})[name] = float(params[column])
@@ -127,34 +148,63 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
                          exposure_reference=exposure_reference, x_range=x_range)
 
 
-def predicted_size_change(term, sizes, fluxes, model_sigma, response=None):
-    """(d sigma_x, d sigma_y) the term predicts for each entry as measured (``response``:
-    `adaptive_response`), pixels."""
+def _moment_changes(term, sizes, fluxes, response):
+    """dMxx, dMyy, dMxy the term predicts for each entry as measured (``response``:
+    `adaptive_response`), pixel^2."""
     x = sizes.x_detector
     exposure = None if sizes.exposure is None else np.asarray(sizes.exposure, float)
     changes = dict(zip(PATTERNS, term.variance_change(fluxes, x=x, exposure=exposure)))
     response = response or _IDENTITY
-    return tuple(np.sqrt(np.clip(sigma ** 2 + sum(response[pattern][moment] * change
-                                                  for pattern, change in changes.items()),
-                                 1e-12, None)) - sigma
-                 for moment, sigma in zip(("mxx", "myy"), model_sigma))
+    return [sum(response[pattern][moment] * change for pattern, change in changes.items())
+            for moment in MOMENTS]
 
 
-def evaluate_empirical(term, sizes, fluxes, model_sigma, residual, response=None):
-    """The BF slope residual and photometry bias before and after the term.
+def predicted_size_change(term, sizes, fluxes, model_sigma, response=None):
+    """(d sigma_x, d sigma_y) the term predicts for each entry as measured (``response``:
+    `adaptive_response`), pixels."""
+    changes = _moment_changes(term, sizes, fluxes, response)
+    return tuple(np.sqrt(np.clip(sigma ** 2 + change, 1e-12, None)) - sigma
+                 for change, sigma in zip(changes, model_sigma))
+
+
+def predicted_cross_change(term, sizes, fluxes, model_sigma, residual, response=None):
+    """d e2 the term predicts for each entry as measured: 2 dMxy over the measured trace."""
+    d_mxy = _moment_changes(term, sizes, fluxes, response)[2]
+    trace = sum((sigma + part) ** 2 for sigma, part in zip(model_sigma, residual))
+    return 2.0 * np.asarray(d_mxy, float) / trace
+
+
+def cross_slope(sizes, cross_residual):
+    """Slope of an e2 residual against peak (per 1e5 e-, an intercept per group) and its
+    error: {'slope_per_1e5', 'slope_err'}."""
+    design = np.column_stack([sizes.peak_e / 1e5, sizes.intercept_design()])
+    params, covariance, _, _ = weighted_least_squares(np.asarray(cross_residual, float),
+                                                      sizes.cross_err, design)
+    return {"slope_per_1e5": float(params[0]),
+            "slope_err": float(np.sqrt(abs(covariance[0, 0])))}
+
+
+def evaluate_empirical(term, sizes, fluxes, model_sigma, residual, response=None,
+                       cross_residual=None):
+    """The BF slope residual and photometry bias before and after the term (and the e2
+    slope, with ``cross_residual``).
 
     Returns
     -------
     dict
         ``before`` and ``after``: ``slope_x_percent``, ``slope_y_percent`` (of the raw slope)
         with errors, ``photometry_bias_mmag`` (faintest to brightest entry, as the loop's
-        summary); ``n`` entries.
+        summary) and, with ``cross_residual``, ``cross`` (`cross_slope`); ``n`` entries.
     """
     change = predicted_size_change(term, sizes, fluxes, model_sigma, response)
     out = {"n": len(sizes)}
     for label, (rx, ry) in (("before", residual),
                             ("after", (residual[0] - change[0], residual[1] - change[1]))):
         out[label] = slope_residuals(sizes, rx, ry)
+    if cross_residual is not None:
+        d_e2 = predicted_cross_change(term, sizes, fluxes, model_sigma, residual, response)
+        out["before"]["cross"] = cross_slope(sizes, cross_residual)
+        out["after"]["cross"] = cross_slope(sizes, np.asarray(cross_residual) - d_e2)
     return out
 
 

@@ -152,28 +152,44 @@ def _size_residual(state, observables, step):
 
 def term_validated(validation):
     """Whether `refine` applies an EMPIRICAL term: on every block it did not fit
-    (``heldout``, ``late_block``), it lowers the slope residual (X and Y in quadrature) and
-    makes no axis worse beyond twice its error (a term that traded a Y gain for an X loss on
-    the late block, +8.5 -> +15.1 +- 1.6 % of raw, had been applied)."""
+    (``heldout``, ``late_block``), it lowers the slope residual (X and Y in quadrature, or
+    the e2 slope where it has a diagonal pattern) and makes no axis, nor the e2 slope,
+    worse beyond twice its error (a term that traded a Y gain for an X loss on the late
+    block, +8.5 -> +15.1 +- 1.6 % of raw, had been applied)."""
     def residual(block, when, axis):
         return validation[block][when][f"slope_{axis}_percent"]
 
-    return all(
-        sum(residual(block, "after", a) ** 2 for a in "xy")
-        < sum(residual(block, "before", a) ** 2 for a in "xy")
-        and all(abs(residual(block, "after", a)) <= abs(residual(block, "before", a))
-                + 2 * validation[block]["after"][f"slope_{a}_percent_err"] for a in "xy")
-        for block in ("heldout", "late_block") if block in validation)
+    def cross(block, when):
+        return validation[block][when].get("cross")
+
+    def passes(block):
+        sizes_better = (sum(residual(block, "after", a) ** 2 for a in "xy")
+                        < sum(residual(block, "before", a) ** 2 for a in "xy"))
+        no_axis_worse = all(abs(residual(block, "after", a)) <= abs(residual(block, "before", a))
+                            + 2 * validation[block]["after"][f"slope_{a}_percent_err"]
+                            for a in "xy")
+        before, after = cross(block, "before"), cross(block, "after")
+        if before is None or after is None:
+            return sizes_better and no_axis_worse
+        e2_better = abs(after["slope_per_1e5"]) < abs(before["slope_per_1e5"])
+        e2_not_worse = (abs(after["slope_per_1e5"]) <= abs(before["slope_per_1e5"])
+                        + 2 * after["slope_err"])
+        return (sizes_better or e2_better) and no_axis_worse and e2_not_worse
+
+    return all(passes(block) for block in ("heldout", "late_block") if block in validation)
 
 
 def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0):
     """The EMPIRICAL term (`bfpsf.diagnosis.empirical_fit`) when a size residual is left:
     fitted on the loop's fit part, judged on its held-out exposures and, with at least 4
-    exposures, fitted on the early exposures and judged on a contiguous late block."""
+    exposures, fitted on the early exposures and judged on a contiguous late block. Its
+    diagonal pattern is fitted where the stars' e2 change is unexplained too (the model's e2,
+    `SpotForwardModel.cross`, subtracted)."""
     import dataclasses
 
     left = [entry for entry in result.unexplained if entry["observable"] == "sizes"]
-    if not left or observables.sizes is None:
+    diagonal = any(entry["observable"] == "cross moment e2" for entry in result.unexplained)
+    if not (left or diagonal) or observables.sizes is None:
         return result
     position = any((entry.get("position_dependence") or {}).get("kind", "none") != "none"
                    for entry in left)
@@ -187,21 +203,28 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
         return (sizes, model.fluxes(sizes.peak_e), model.sizes(sizes.peak_e),
                 _size_residual(state, part, step))
 
+    def cross(part):
+        return ({"cross_residual": part.sizes.cross - model.cross(part.sizes.peak_e)}
+                if diagonal else {})
+
     response = adaptive_response(model, float(np.median(observables.sizes.peak_e)))
     options = {"position": position, "exposure": exposure, "response": response}
-    term = fit_empirical(*inputs(state["observables"]), **options)
+    term = fit_empirical(*inputs(state["observables"]), **options,
+                         **cross(state["observables"]))
     validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
-                  "position_term": position, "exposure_term": exposure}
+                  "position_term": position, "exposure_term": exposure,
+                  "diagonal_term": diagonal}
     if heldout is not None:
-        validation["heldout"] = evaluate_empirical(term, *inputs(heldout), response)
+        validation["heldout"] = evaluate_empirical(term, *inputs(heldout), response,
+                                                   **cross(heldout))
     split = early_late(observables, late_fraction)
     if split is not None:
         early, late = split
-        early_term = fit_empirical(*inputs(early), **options)
+        early_term = fit_empirical(*inputs(early), **options, **cross(early))
         # with the term fitted on the early exposures, so that its pixel-level use (PSF
         # photometry of the late block) can be checked as well
         validation["late_block"] = dict(evaluate_empirical(early_term, *inputs(late),
-                                                           response),
+                                                           response, **cross(late)),
                                         exposures=sorted(np.unique(late.sizes.exposure)
                                                          .tolist()),
                                         term=early_term.to_dict())

@@ -13,9 +13,12 @@ charge-driven effect of a CCD does at first order)
     B_xx[I] = 1/2 d^2/dx^2 (I^2) F / sum(I^2)   (three-point, along columns; F the star's
                                                  flux, by default sum(I)),
     B_yy[I] = the same along rows,
+    B_xy[I] = half the difference of the same along the two diagonals (x = y and x = -y),
 
-each adding c_k F / F_ref + q_k (F / F_ref)^2 pixel^2 to the second moment along its axis of
-any star (exactly for the unweighted moments of a pixelised image away from its edges), and
+B_xx and B_yy each adding c_k F / F_ref + q_k (F / F_ref)^2 pixel^2 to the second moment
+along its axis of any star, B_xy as much to Mxy alone (exactly for the unweighted moments of
+a pixelised image away from its edges; no transfer crosses the stamp's edge, so the flux is
+conserved exactly), and
 
     c_k(x, t) = constant_k + position_k (x - x_ref) / 1000 + exposure_k (t - t_ref),
     q_k(x, t) = flux2_k + flux2_position_k (x - x_ref) / 1000 + flux2_exposure_k (t - t_ref),
@@ -47,8 +50,8 @@ from ..errors import BFPSFValueError
 __all__ = ["EmpiricalTerm", "PATTERNS", "PATTERN_KIND", "FLUX_REFERENCE", "apply_pattern",
            "pattern_series", "empirical_of", "with_empirical", "pattern_tables"]
 
-#: The pixel-space patterns, in the order of `EmpiricalTerm.coefficients`.
-PATTERNS = ("xx", "yy")
+#: The pixel-space patterns, in the order of `EmpiricalTerm.variance_change`.
+PATTERNS = ("xx", "yy", "xy")
 #: Reference total flux of the coefficients, e-.
 FLUX_REFERENCE = 1e6
 _TERMS = ("constant", "position", "exposure", "flux2", "flux2_position", "flux2_exposure")
@@ -59,23 +62,41 @@ _TERMS = ("constant", "position", "exposure", "flux2", "flux2_position", "flux2_
 PATTERN_KIND = "half second difference of the squared charge"
 
 
-def _half_second_difference(image, axis):
-    """1/2 (I[i+1] - 2 I[i] + I[i-1]) along ``axis``, the image extended by its edge pixels
-    (no flux crosses the stamp's edge)."""
-    padded = np.pad(image, [(1, 1) if a == axis else (0, 0) for a in range(image.ndim)],
-                    mode="edge")
-    n = image.shape[axis]
-    upper, middle, lower = (np.take(padded, np.arange(start, start + n), axis=axis)
-                            for start in (2, 1, 0))
-    return 0.5 * (upper - 2 * middle + lower)
+#: The transfers of each pattern: (step (dy, dx), weight). Along X, along Y, and half the
+#: difference of the two diagonals, which changes Mxy alone.
+_STEPS = {"xx": (((0, 1), 1.0),), "yy": (((1, 0), 1.0),),
+          "xy": (((1, 1), 0.5), ((1, -1), -0.5))}
 
 
-def _axis(image, pattern):
-    axis = {"xx": -1, "yy": -2}.get(pattern)
-    if axis is None:
+def _ranges(shift, n):
+    """Slices of the pixels p and of their neighbours p + shift that are both inside."""
+    if shift >= 0:
+        return slice(0, n - shift), slice(shift, n)
+    return slice(-shift, n), slice(0, n + shift)
+
+
+def _half_second_difference(image, step):
+    """1/2 sum over s = +-1 of (I[p + s step] - I[p]), over the neighbours inside the image:
+    each pixel passes half of its value to each neighbour along ``step`` (dy, dx) and none
+    across the stamp's edge, so the sum is conserved exactly. Along X this is
+    1/2 (I[i+1] - 2 I[i] + I[i-1]) with the image extended by its edge pixels."""
+    out = np.zeros_like(image)
+    ny, nx = image.shape[-2:]
+    for sign in (1, -1):
+        (rows, neighbour_rows), (columns, neighbour_columns) = (
+            _ranges(sign * step[0], ny), _ranges(sign * step[1], nx))
+        out[..., rows, columns] += 0.5 * (image[..., neighbour_rows, neighbour_columns]
+                                          - image[..., rows, columns])
+    return out
+
+
+def _difference(image, pattern):
+    """The pattern's transfer operator on ``image`` (`_STEPS`)."""
+    steps = _STEPS.get(pattern)
+    if steps is None:
         msg = f"pattern must be one of {PATTERNS}, got {pattern!r}"
         raise BFPSFValueError(msg, pattern)
-    return image.ndim + axis
+    return sum(weight * _half_second_difference(image, step) for step, weight in steps)
 
 
 def _star_total(image, total):
@@ -88,10 +109,12 @@ def _star_total(image, total):
 
 def apply_pattern(image, pattern, total=None):
     """B_k[image] (module docstring): the half three-point second difference of the squared
-    charge (negative pixels taken as 0) along x ('xx') or y ('yy'), times F / sum(I^2).
+    charge (negative pixels taken as 0) along x ('xx'), y ('yy') or half the difference of
+    the two diagonals ('xy'), times F / sum(I^2).
 
     It conserves the flux exactly, and for a star that fits in the stamp it leaves the
-    centroid unchanged and adds F to sum (x - x0)^2 I: B_k[lambda I] = lambda B_k[I].
+    centroid unchanged and adds F to sum (x - x0)^2 I ('xx'; 'yy' along y; 'xy' to
+    sum (x - x0)(y - y0) I alone): B_k[lambda I] = lambda B_k[I].
     ``total`` is the star's flux F in the image's unit (one per image of a stack [..., y, x];
     default the image's sum): a stamp that cuts the star's wings keeps the same pattern,
     since sum(I^2) is all in the core. ``image`` may be a stack [..., y, x] (each image on its
@@ -112,7 +135,7 @@ def pattern_series(image, change, pattern, total=None, total_change=0.0, order=2
     The table mode of P(F) tabulates them for dI = R, the BF term (`pattern_tables`); the
     PSF fit's flux derivative is B1 along d model / d F."""
     image = np.asarray(image, float)
-    axis = _axis(image, pattern)
+    _difference(image[..., :1, :1], pattern)    # an unknown pattern fails here
     positive = np.clip(image, 0.0, None)
     change = np.where(image > 0, np.asarray(change, float), 0.0)
     if total is None:
@@ -125,13 +148,13 @@ def pattern_series(image, change, pattern, total=None, total_change=0.0, order=2
     # s(e) = (s1 + e d1) / (s2 + 2 e d12 + e^2 d22), to second order in e
     scale = (s1 / s2, d1 / s2 - 2 * s1 * d12 / s2 ** 2,
              (4 * s1 * d12 ** 2 / s2 - s1 * d22 - 2 * d1 * d12) / s2 ** 2)
-    d0 = _half_second_difference(positive ** 2, axis)
+    d0 = _difference(positive ** 2, pattern)
     series = [d0 * scale[0]]
     if order >= 1:
-        d_mixed = _half_second_difference(positive * change, axis)
+        d_mixed = _difference(positive * change, pattern)
         series.append(2 * d_mixed * scale[0] + d0 * scale[1])
     if order >= 2:
-        d2 = _half_second_difference(change ** 2, axis)
+        d2 = _difference(change ** 2, pattern)
         series.append(d2 * scale[0] + 2 * d_mixed * scale[1] + d0 * scale[2])
     return tuple(series)
 
@@ -166,7 +189,8 @@ class EmpiricalTerm:
     Attributes
     ----------
     coefficients : dict
-        Pattern (``'xx'``, ``'yy'``) -> {``constant`` (pixel^2 per F_ref), ``position``
+        Pattern (``'xx'``, ``'yy'``, ``'xy'``; a missing one is 0: a record fitted before the
+        diagonal pattern holds two) -> {``constant`` (pixel^2 per F_ref), ``position``
         (pixel^2 per F_ref per 1000 pixels), ``exposure`` (pixel^2 per F_ref per exposure),
         ``flux2``, ``flux2_position``, ``flux2_exposure`` (the same for q, pixel^2 per
         F_ref^2)}; missing terms are 0.
@@ -218,7 +242,7 @@ class EmpiricalTerm:
         return value
 
     def variance_change(self, flux, x=None, exposure=None):
-        """(dMxx, dMyy) of a star of total flux ``flux`` (e-), pixel^2."""
+        """(dMxx, dMyy, dMxy) of a star of total flux ``flux`` (e-), pixel^2 (`PATTERNS`)."""
         scale = np.asarray(flux, float) / FLUX_REFERENCE
         return tuple(scale * self.coefficient(pattern, x, exposure)
                      + scale ** 2 * self.coefficient(pattern, x, exposure, order=2)
