@@ -68,19 +68,14 @@ def _config(args):
 
 
 def _print_table(result):
+    from ..validation.report import prediction_cells
+
     slopes = result["slopes"]
     print(f"measured BF slope (pix / 100 ke-): X {slopes['slope_x']:.4f} +- "
           f"{slopes['slope_x_err']:.4f}, Y {slopes['slope_y']:.4f} +- {slopes['slope_y_err']:.4f}")
     for row in result["prediction"].get("rows", []):
-        text = []
-        for axis in "xy":
-            error = row.get(f"predicted_slope_{axis}_err")
-            text.append(f"{axis.upper()} {row[f'predicted_slope_{axis}']:.4f}"
-                        + (f" +- {error:.4f}" if error is not None else "")
-                        + f" ({100 * row[f'predicted_over_measured_{axis}']:.1f} %"
-                        + (f", pull {row[f'pull_{axis}']:+.1f}" if f"pull_{axis}" in row else "")
-                        + ")")
-        print(f"predicted from {row['shifts']}: {', '.join(text)}")
+        cells = prediction_cells(row)
+        print(f"predicted from {row['shifts']}: X {cells[0]}, Y {cells[1]}")
     for key, label in (("psf", "residual slope after P(F)"),
                        ("inverse", "residual slope after pixel inverse")):
         stage = result[key]

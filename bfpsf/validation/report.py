@@ -20,6 +20,21 @@ __all__ = ["write_diagnosis_report", "write_validation_report", "format_number"]
 REPORT_FILES = ("report.md", "*.png")
 
 
+def prediction_cells(row):
+    """The X and Y text of one row of ``validate``'s ``prediction['rows']``: the predicted
+    slope (px per 100 ke-) with its error, its ratio to the measured slope and its pull
+    where known (the printed table and the report share it)."""
+    cells = []
+    for axis in "xy":
+        error = row.get(f"predicted_slope_{axis}_err")
+        cells.append(f"{row[f'predicted_slope_{axis}']:.4f}"
+                     + (f" +- {error:.4f}" if error is not None else "")
+                     + f" ({100 * row[f'predicted_over_measured_{axis}']:.1f} %"
+                     + (f", pull {row[f'pull_{axis}']:+.1f}" if f"pull_{axis}" in row else "")
+                     + ")")
+    return cells
+
+
 def format_number(value, digits=3):
     """Compact text of a number (None and NaN as 'n/a')."""
     if value is None:
@@ -248,24 +263,19 @@ def validation_markdown(result, *, figures=()):
     if not result["calibration"].get("available"):
         lines.append(f"\nCalibration not available: {result['calibration'].get('reason')}")
     slopes = result["slopes"]
+
+    def measured(label, prefix):
+        return (f"| {label} | " + " | ".join(
+            f"{format_number(slopes[f'{prefix}slope_{axis}'], 4)} +- "
+            f"{format_number(slopes[f'{prefix}slope_{axis}_err'], 2)}" for axis in "xy")
+            + " |")
+
     lines += ["", "## Brighter-fatter slopes (pixels per 100 ke- of peak)", "",
-              "| | X | Y |", "|---|---|---|",
-              f"| measured (SiliconSensor spots) | {format_number(slopes['slope_x'], 4)} +- "
-              f"{format_number(slopes['slope_x_err'], 2)} | {format_number(slopes['slope_y'], 4)}"
-              f" +- {format_number(slopes['slope_y_err'], 2)} |"]
+              "| | X | Y |", "|---|---|---|", measured("measured (SiliconSensor spots)", "")]
     if "paired_slope_x" in slopes:
-        lines.append(f"| measured, spot minus its BF-free twin | "
-                     f"{format_number(slopes['paired_slope_x'], 4)} +- "
-                     f"{format_number(slopes['paired_slope_x_err'], 2)} | "
-                     f"{format_number(slopes['paired_slope_y'], 4)} +- "
-                     f"{format_number(slopes['paired_slope_y_err'], 2)} |")
+        lines.append(measured("measured, spot minus its BF-free twin", "paired_"))
     for row in result["prediction"].get("rows", []):
-        cells = []
-        for axis in "xy":
-            error = row.get(f"predicted_slope_{axis}_err")
-            cells.append(f"{format_number(row[f'predicted_slope_{axis}'], 4)}"
-                         + (f" +- {format_number(error, 2)}" if error is not None else "")
-                         + f" ({format_number(100 * row[f'predicted_over_measured_{axis}'], 3)} %)")
+        cells = prediction_cells(row)
         lines.append(f"| predicted from {row['shifts']} | {cells[0]} | {cells[1]} |")
     lines += ["", "## Residual slope (percent of the raw slope)", "",
               "Paired: each spot's BF change against its BF-free twin (same photons, diffusion "
