@@ -544,9 +544,9 @@ def test_a_rising_residual_is_not_constant_in_flux():
 
 def test_a_heldout_residual_carries_the_error_of_the_fitted_parameters(shifts):
     """On held-out exposures the model's parameters come from the fit part, so a residual
-    slope there is uncertain by their error too: a new user's BF-only seed read "unexplained
-    sizes y 4.2 sigma" against the held-out noise alone (3.3 sigma with the size scale's
-    +-0.037 carried). A design of slope 1 per 100 ke- on X with a variance 3 times the
+    slope there is uncertain by their error too, and by the templates' accuracy between the
+    axes: a new user's BF-only seed read "unexplained sizes y 4.2 sigma" against the
+    held-out noise alone. A design of slope 1 per 100 ke- on X with a variance 3 times the
     noise's doubles the X slope's error and leaves Y's alone."""
     from bfpsf.diagnosis.problem import build_problem
     from bfpsf.diagnosis.unexplained import describe_unexplained
@@ -565,7 +565,13 @@ def test_a_heldout_residual_carries_the_error_of_the_fitted_parameters(shifts):
     design[start:start + len(observed.sizes), 0] = PEAKS / 1e5
     variance = np.array([[3 * alone["x"]["slope_err"] ** 2]])
     carried = by_axis(describe_unexplained(problem, observed, model,
-                                           prediction=(design, variance)))
+                                           prediction=(design, variance, np.zeros(1))))
     assert carried["x"]["slope_err"] == pytest.approx(2 * alone["x"]["slope_err"], rel=1e-9)
     assert carried["x"]["significance"] == pytest.approx(alone["x"]["significance"] / 2)
     assert carried["y"]["slope_err"] == pytest.approx(alone["y"]["slope_err"], rel=1e-12)
+    # and the templates' 10 % between the axes of the slope the fitted part adds
+    value = 30 * alone["x"]["slope_err"]
+    carried = by_axis(describe_unexplained(problem, observed, model,
+                                           prediction=(design, 0 * variance, np.array([value]))))
+    assert carried["x"]["slope_err"] == pytest.approx(np.hypot(alone["x"]["slope_err"],
+                                                               0.1 * value), rel=1e-9)

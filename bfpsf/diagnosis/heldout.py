@@ -94,8 +94,8 @@ def split_observables(observables, fraction=0.5):
 def _evaluate(state, observables, step):
     """Residual model on ``observables`` with one step's effects and global nuisances fixed
     at their in-sample values and the local nuisances refitted: (problem, model,
-    prediction), where ``prediction`` is (design, covariance) of the fixed part, what the
-    model inherits from the fit (`describe_unexplained`)."""
+    prediction), where ``prediction`` is (design, covariance, values) of the fixed part, what
+    the model inherits from the fit (`describe_unexplained`)."""
     problem = build_problem(observables)
     by_name = state["by_name"]
     global_columns = list(problem.global_columns)
@@ -107,13 +107,14 @@ def _evaluate(state, observables, step):
         values.append(np.asarray(effect_value, float))
     design = (np.column_stack(columns) if columns
               else np.zeros((problem.residual.size, 0)))
-    offset = design @ np.concatenate(values) if values else np.zeros_like(problem.residual)
+    values = np.concatenate(values) if values else np.zeros(0)
+    offset = design @ values
     local = np.delete(problem.nuisance, global_columns, axis=1)
     _, _, _, model = weighted_least_squares(problem.residual - offset, problem.sigma, local)
     covariance = step.get("covariance")
     if covariance is None or covariance.shape[0] != design.shape[1]:
         covariance = np.zeros((design.shape[1], design.shape[1]))
-    return problem, model + offset, (design, covariance)
+    return problem, model + offset, (design, covariance, values)
 
 
 def _kept_step(result, state, confirmed):

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..least_squares import weighted_least_squares
 from ..measure.slopes import fit_bf_slope
-from .signature import SIGNATURE_ALPHA, cross_test
+from .signature import SIGNATURE_ALPHA, TEMPLATE_TOLERANCE, cross_test
 
 __all__ = ["describe_unexplained", "verdict", "UNEXPLAINED_NSIGMA", "STAR_CHI2_FACTOR"]
 
@@ -120,19 +120,22 @@ def _odd_parity(sizes, axis):
 
 
 def _prediction_slope_variance(prediction, block, peak_e, errors, group):
-    """Variance of a size residual's slope that the model's fitted parameters carry: on
-    held-out data the prediction's parameters come from the fit part, with their covariance
-    (a size scale known to +-7 % of raw on 4 exposures made a new user's BF-only seed read
-    "unexplained sizes y 4.2 sigma" against the held-out noise alone)."""
+    """Variance of a size residual's slope that the model's fitted part carries on held-out
+    data, where its parameters come from the fit part: their covariance, and the templates'
+    accuracy between the axes (`TEMPLATE_TOLERANCE` ['axis'] of the slope the fitted part
+    adds on this axis). A new user's BF-only seed (the flats' scale -0.46 +- 0.04, so the
+    model moved each axis by some 80 % of raw) read "unexplained sizes y 4.2 sigma" against
+    the held-out noise alone."""
     if prediction is None:
         return 0.0
-    design, covariance = prediction
-    if design.shape[1] == 0 or not np.any(covariance):
+    design, covariance, values = prediction
+    if design.shape[1] == 0:
         return 0.0
     gradient = np.array([fit_bf_slope(peak_e, design[block, j], size_err=errors, group=group,
                                       scale_errors=False, clip_nsigma=None).slope
                          for j in range(design.shape[1])])
-    return float(max(gradient @ covariance @ gradient, 0.0))
+    template = TEMPLATE_TOLERANCE["axis"] * float(gradient @ values)
+    return float(max(gradient @ covariance @ gradient, 0.0)) + template ** 2
 
 
 def describe_unexplained(problem, observables, model, prediction=None):
@@ -155,9 +158,10 @@ def describe_unexplained(problem, observables, model, prediction=None):
     problem, observables, model
         The residual problem (`build_problem`), its observables and the model of its
         residual.
-    prediction : (ndarray, ndarray), optional
-        Design and covariance of the model's parameters fitted elsewhere (held-out data:
-        `bfpsf.diagnosis.heldout`): a size slope's error then includes what they carry.
+    prediction : (ndarray, ndarray, ndarray), optional
+        Design, covariance and values of the model's parameters fitted elsewhere (held-out
+        data: `bfpsf.diagnosis.heldout`): a size slope's error then includes what they carry
+        (`_prediction_slope_variance`).
 
     Returns
     -------
