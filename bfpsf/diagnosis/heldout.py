@@ -235,8 +235,9 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
 
 
 def with_heldout(result, state, heldout, fraction):
-    """The result with the held-out residuals, the confirmation of each selected effect and
-    the unexplained residuals (judged on the held-out data)."""
+    """The result with the held-out residuals (after: the confirmed effects alone), the
+    confirmation of each selected effect and the unexplained residuals (judged on the
+    held-out data)."""
     import dataclasses
 
     chi2 = []
@@ -258,9 +259,13 @@ def with_heldout(result, state, heldout, fraction):
         problem, model, _ = _evaluate(state, heldout, step)
         physical = summarise(problem, heldout, model)
         physical["effects"] = names
-    # (a size scale whose signature is contradicted is in no step: `diagnose` ran the loop
-    # again without it)
-    after = summarise(evaluations[-1][0], heldout, evaluations[-1][1])
+    # "after": what the confirmed effects leave, as the refined calibration applies them (a
+    # new user's held-out "after" had included a size scale that was not confirmed, and so
+    # not applied; a size scale whose signature is contradicted is in no step: `diagnose`
+    # ran the loop again without it); the unexplained residuals are judged on the same
+    step = _kept_step(result, state, confirmed)
+    problem, model, prediction = _evaluate(state, heldout, step)
+    after = summarise(problem, heldout, model)
     sizes = heldout.sizes
     holdout = {"fraction": float(fraction),
                "sizes_split_by": heldout.meta.get("holdout_sizes_split_by"),
@@ -269,9 +274,6 @@ def with_heldout(result, state, heldout, fraction):
                                      else None),
                "n_fit": int(result.residual_after["n"]), "n_heldout": int(after["n"]),
                "heldout_size_entries": 0 if sizes is None else len(sizes)}
-    # unexplained: judged on the held-out data with the confirmed effects only
-    step = _kept_step(result, state, confirmed)
-    problem, model, prediction = _evaluate(state, heldout, step)
     unexplained = describe_unexplained(problem, heldout, model, prediction=prediction)
     return dataclasses.replace(result, residual_before_heldout=before,
                                residual_after_heldout=after, confirmed=confirmed,

@@ -344,7 +344,8 @@ def describe_entry(entry):
         words.append(f"along {entry['axis']}")
     words.append(f"{entry['significance']:.1f} sigma")
     if entry.get("parity"):
-        words.append(f"{entry['parity']} parity")
+        words.append(f"{entry['parity']} parity" + (" (centroid- or skew-like)"
+                                                    if entry["parity"] == "odd" else ""))
     if entry.get("sign"):
         words.append(f"{entry['sign']} with flux")
     dependence = entry.get("flux_dependence") or {}

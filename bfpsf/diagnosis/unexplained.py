@@ -150,7 +150,8 @@ def describe_unexplained(problem, observables, model, prediction=None):
     per 1000 pixels, with ``SizeTable.x_detector``) and ``exposure_dependence`` (per exposure
     of the night, with ``SizeTable.exposure``), each with its significance and a kind
     (``none`` below `UNEXPLAINED_NSIGMA`); ``flats`` says whether a flat observable is
-    unexplained too (``flats and stars``) or not (``stars only``). Other observables: a chi2
+    unexplained too (``stars; the flats' linearity too``, naming them: the same effect or
+    another) or not (``stars only``). Other observables: a chi2
     per point whose excess over its degrees of freedom is significant, (chi2 - N) / sqrt(2 N).
 
     Parameters
@@ -230,8 +231,13 @@ def describe_unexplained(problem, observables, model, prediction=None):
                         "parity": "even", "sign": "rising" if slope > 0 else "falling",
                         "flux_dependence": None, "significance": float(significance),
                         "slope_per_1e5": float(slope), "slope_err": float(error)})
-    flats = any(entry["observable"] not in ("sizes", "cross moment e2") for entry in out)
+    flats = [entry["observable"] for entry in out
+             if entry["observable"] not in ("sizes", "cross moment e2")]
     for entry in out:
         if entry["observable"] in ("sizes", "cross moment e2"):
-            entry["flats"] = "flats and stars" if flats else "stars only"
+            # what the flats leave too, by name: the same effect or another (a new user's
+            # flats with an edge artefact in their means read "flats and stars" beside a
+            # trail the flats did not have)
+            entry["flats"] = ("stars only" if not flats else
+                              f"stars; the flats' {' and '.join(flats)} too")
     return out
