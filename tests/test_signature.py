@@ -70,3 +70,26 @@ def test_parity_null_and_signal():
                       skew_y_err=np.full(peak.size, 0.01))
     assert not parity_test(table)["matches"]
     assert parity_test(SizeTable(peak, flat, flat, flat * 0.01, flat * 0.01)) is None
+
+
+def test_flux_shape_tells_a_flux_squared_effect_from_a_linear_residual():
+    """`flux_shape_test`, tau = 0: with the data holding the flux^2 template, its amplitude
+    beside a linear term stays put and the p-values are uniform (500 sets: the fraction
+    below 0.05 within 3 binomial sigma); a residual linear in flux, which the flux^2
+    template also fits, moves it and is rejected in every set."""
+    from bfpsf.diagnosis.signature import flux_shape_test
+
+    rng = np.random.default_rng(4)
+    x = np.linspace(0.05, 1.5, 30)
+    base = np.ones((x.size, 1))
+    template, linear, sigma = (x ** 2)[:, None], x, np.full(x.size, 0.01)
+    p_true, p_linear = [], []
+    for _ in range(500):
+        noise = sigma * rng.standard_normal(x.size)
+        p_true.append(flux_shape_test(0.2 + 0.5 * x ** 2 + noise, sigma, base, template,
+                                      linear, tolerance=0.0)["p_value"])
+        p_linear.append(flux_shape_test(0.2 + 0.5 * x + noise, sigma, base, template,
+                                        linear, tolerance=0.0)["p_value"])
+    assert np.mean(np.array(p_true) < 0.05) == pytest.approx(0.05, abs=3 * np.sqrt(
+        0.05 * 0.95 / 500))
+    assert max(p_linear) < 1e-3
