@@ -110,6 +110,10 @@ def add_shifts(first, second):
 
 
 # -- the candidates -------------------------------------------------------------------------------
+#: How many of its errors a fitted value may lie beyond its effect's physical bounds.
+BOUNDS_NSIGMA = 3.0
+
+
 class Effect:
     """A candidate extension of the model.
 
@@ -138,10 +142,13 @@ class Effect:
     flux_signature = False
     description = ""
 
-    def allows(self, values):
-        """Whether fitted ``values`` (one per parameter) lie within the effect's `bounds`."""
+    def allows(self, values, errors=None):
+        """Whether fitted ``values`` (one per parameter) lie within the effect's `bounds`, to
+        `BOUNDS_NSIGMA` of their ``errors`` (a fit at a bound lands beyond it by its noise)."""
+        errors = np.zeros(len(values)) if errors is None else np.asarray(errors, float)
         return self.bounds is None or all(
-            low <= value <= high for value, (low, high) in zip(values, self.bounds))
+            low - BOUNDS_NSIGMA * error <= value <= high + BOUNDS_NSIGMA * error
+            for value, error, (low, high) in zip(values, errors, self.bounds))
 
     @property
     def k(self):

@@ -247,7 +247,8 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                     own = slice(params.size - k, params.size)
                     values = params[own].tolist()
                     errors = np.sqrt(np.abs(np.diag(covariance)[own])).tolist()
-                allowed = effect.allows(values)
+                allowed = effect.allows(*_bounded(effect, values, errors, params, covariance,
+                                                  problem.global_columns, is_fixed))
                 entry.update(statistic=float(statistic), delta_bic=float(delta_bic),
                              parameters=values, errors=errors, allowed=bool(allowed))
                 if not allowed and delta_bic < threshold:
@@ -335,7 +336,8 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
             # and within the physical range of the scale (`CalibrationScale.bounds`): a new
             # user's isotropic spill was taken as +1.5, within 2.2 sigma of 150^2 flats
             scale = get_effect("calibration_scale")
-            if entry["contradicted_by"] is None and not scale.allows([entry["value"]]):
+            if entry["contradicted_by"] is None and not scale.allows([entry["value"]],
+                                                                     [entry["error"]]):
                 entry.update(contradicted_by="bounds", bounds=list(scale.bounds[0]))
     curves = {}
     sizes = observables.sizes
@@ -392,6 +394,19 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     state = {"problem": problem, "steps": steps, "fixed": fixed, "family": family,
              "by_name": by_name, "observables": observables}
     return result, state
+
+
+def _bounded(effect, values, errors, params, covariance, global_columns, is_fixed):
+    """What a candidate's bounds apply to, with its errors: its fitted values, except for the
+    size scale beside the nuisance of the same template (the flats' scale, with its prior),
+    where the bounds are those of the stars' total scale (the candidate alone is uncertain
+    by the prior: stars without BF fitted it -0.98 +- 0.21, the total -0.98 to 1e-3)."""
+    if effect.name != "calibration_scale" or is_fixed or not global_columns:
+        return values, errors
+    own, nuisance = params.size - 1, global_columns[0]
+    variance = (covariance[own, own] + covariance[nuisance, nuisance]
+                + 2 * covariance[own, nuisance])
+    return [float(params[own] + params[nuisance])], [float(np.sqrt(abs(variance)))]
 
 
 def _step_covariance(covariance, problem, names, fixed, by_name, family):
