@@ -149,7 +149,7 @@ def test_cli_diagnose_needs_inputs(capsys):
     assert "give --flats and --images" in capsys.readouterr().err
 
 
-def test_cli_diagnose_images_mode(tmp_path):
+def test_cli_diagnose_images_mode(tmp_path, capsys):
     """Flats and star images as FITS: calibrate, measure the stars, run the loop. The stars
     carry BF from bfpsf's BFSensor with SiliconSensor's shifts; 128^2 flats give a noisy
     calibration (without the b term), so only the chain and its outputs are checked here (the physics of the loop
@@ -170,6 +170,10 @@ def test_cli_diagnose_images_mode(tmp_path):
     code = main(["diagnose", "--flats", *map(str, flats), "--images", str(image), "--beta",
                  "3.5", "--bins", "6", "--no-fit-b", "--json", str(out), "--report", str(tmp_path / "r")])
     assert code == 0
+    # the flats' calibration warns as `bfpsf calibrate` does (four 128^2 levels: the shifts'
+    # amplitude is poorly determined)
+    assert "WARNING: flats calibration: amplitude of the boundary shifts poorly determined" in (
+        capsys.readouterr().err)
     summary = json.loads(out.read_text())
     assert {"residual_before", "candidates", "selected", "residual_after"} <= set(summary)
     # the flats give the linearity and correlation observables too

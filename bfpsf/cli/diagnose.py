@@ -105,13 +105,16 @@ def _observables(args):
         return readers.observables_from_tables(args.correlations, args.sizes, gain=args.gain,
                                             corrected=args.corrected)
     if args.flats and args.images:
-        return builders.observables_from_images(args.flats, args.images, beta=args.beta,
-                                                maxlag=args.maxlag, n_bins=args.bins,
-                                                fit_b=args.fit_b, amp=args.amp,
-                                                holdout_fraction=args.holdout_fraction,
-                                                background=args.background,
-                                                saturation=args.saturation, progress=None,
-                                                position_bins=args.position_bins)
+        observables = builders.observables_from_images(
+            args.flats, args.images, beta=args.beta, maxlag=args.maxlag, n_bins=args.bins,
+            fit_b=args.fit_b, amp=args.amp, holdout_fraction=args.holdout_fraction,
+            background=args.background, saturation=args.saturation, progress=None,
+            position_bins=args.position_bins)
+        # the flats' calibration warns as `bfpsf calibrate` does: a new user's diagnose had
+        # been silent on electrostatic parameters ended on their bounds
+        for warning in getattr(observables.meta.get("calibration"), "warnings", ()):
+            print(f"WARNING: flats calibration: {warning}", file=sys.stderr)
+        return observables
     msg = ("give --flats and --images, or --correlations and --sizes, or --measured NAME")
     raise BFPSFInputError(msg)
 
