@@ -61,8 +61,9 @@ def _add_flats(targets):
                         help="number of 3x3 defect clusters")
     parser.add_argument("--lamp-flicker", type=lamp_flicker_option, default=0.0, metavar="F",
                         help="relative rms of each exposure's lamp level (default 0; real "
-                             "lamps flicker by about 1e-3, which bfpsf diagnose takes as the "
-                             "error floor of the flats' means)")
+                             "lamps flicker by about 1e-3; bfpsf diagnose measures the floor "
+                             "of the flats' means from their scatter about a quadratic in "
+                             "exposure time, 0 where the shot noise explains it)")
     parser.add_argument("-o", "--output", required=True, metavar="DIR",
                         help="output directory (created if missing)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing files")
