@@ -177,11 +177,8 @@ def predicted_cross_change(term, sizes, fluxes, model_sigma, residual, response=
 def cross_slope(sizes, cross_residual):
     """Slope of an e2 residual against peak (per 1e5 e-, an intercept per group) and its
     error: {'slope_per_1e5', 'slope_err'}."""
-    design = np.column_stack([sizes.peak_e / 1e5, sizes.intercept_design()])
-    params, covariance, _, _ = weighted_least_squares(np.asarray(cross_residual, float),
-                                                      sizes.cross_err, design)
-    return {"slope_per_1e5": float(params[0]),
-            "slope_err": float(np.sqrt(abs(covariance[0, 0])))}
+    slope, error = sizes.peak_slope(cross_residual, sizes.cross_err)[:2]
+    return {"slope_per_1e5": slope, "slope_err": error}
 
 
 def evaluate_empirical(term, sizes, fluxes, model_sigma, residual, response=None,

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from ..least_squares import weighted_least_squares
 from .spot_model import SpotForwardModel
 
 __all__ = ["SizeTable", "LinearityTable", "CorrelationTable", "PTCTable", "Observables",
@@ -150,6 +151,16 @@ class SizeTable:
         """One 0/1 column per intercept (`intercepts`), ndarray (n, n_intercepts)."""
         index = self.intercepts
         return (index[:, None] == np.arange(index.max() + 1)[None, :]).astype(float)
+
+    def peak_slope(self, values, errors):
+        """Weighted slope of a per-entry quantity against peak, per 1e5 e-, with an intercept
+        per `intercepts` (the odd moments' and e2's flux dependence, with or without a
+        model subtracted): (slope, error, chi2, degrees of freedom)."""
+        design = np.column_stack([self.peak_e / 1e5, self.intercept_design()])
+        params, covariance, chi2, _ = weighted_least_squares(np.asarray(values, float),
+                                                             errors, design)
+        return (float(params[0]), float(np.sqrt(abs(covariance[0, 0]))), float(chi2),
+                max(len(self) - design.shape[1], 1))
 
     def __len__(self):
         return self.peak_e.size

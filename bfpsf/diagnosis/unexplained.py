@@ -111,12 +111,8 @@ def _odd_parity(sizes, axis):
     values = getattr(sizes, f"skew_{axis}")
     if values is None:
         return None
-    errors = getattr(sizes, f"skew_{axis}_err")
-    groups = sizes.intercept_design()
-    params, covariance, _, _ = weighted_least_squares(values, errors, np.column_stack([sizes.peak_e / 1e5,
-                                                                     groups]))
-    significance = abs(params[0]) / np.sqrt(abs(covariance[0, 0]))
-    return "odd" if significance > UNEXPLAINED_NSIGMA else "even"
+    slope, error = sizes.peak_slope(values, getattr(sizes, f"skew_{axis}_err"))[:2]
+    return "odd" if abs(slope) > UNEXPLAINED_NSIGMA * error else "even"
 
 
 def _prediction_slope_variance(prediction, block, peak_e, errors, group):
