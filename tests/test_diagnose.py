@@ -575,3 +575,22 @@ def test_a_heldout_residual_carries_the_error_of_the_fitted_parameters(shifts):
                                            prediction=(design, 0 * variance, np.array([value]))))
     assert carried["x"]["slope_err"] == pytest.approx(np.hypot(alone["x"]["slope_err"],
                                                                0.1 * value), rel=1e-9)
+
+
+def test_a_residual_held_by_the_faint_stars_is_said_so():
+    """A change that falls as 1 / peak (a fixed number of charge traps: a new user's deferred
+    charge) beside a rising BF scale error: the slope reads "rising", and the 1/flux part
+    says where the rest is (larger on the faint stars); a purely linear residual has none."""
+    from bfpsf.diagnosis.unexplained import _flux_dependence
+
+    rng = np.random.default_rng(12)
+    peak = np.tile(np.geomspace(3e3, 1.2e5, 8), 4)
+    sigma = np.full(peak.size, 5e-4)
+    group = np.repeat(np.arange(4), 8)
+    x = peak / 1e5
+    trail = 0.004 * x + 2e-4 / x + sigma * rng.standard_normal(peak.size)
+    found = _flux_dependence(peak, trail, sigma, group)
+    assert found["kind"] != "constant" and found["faint_end"] and found["inverse_1e5"] > 0
+    plain = _flux_dependence(peak, 0.004 * x + sigma * rng.standard_normal(peak.size), sigma,
+                             group)
+    assert not plain["faint_end"]

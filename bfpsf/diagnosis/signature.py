@@ -347,6 +347,10 @@ def describe_entry(entry):
     dependence = entry.get("flux_dependence") or {}
     if dependence.get("kind"):
         words.append(f"{dependence['kind']} in flux")
+    if dependence.get("faint_end"):
+        words.append("with a 1/flux part ("
+                     + ("larger" if dependence["inverse_1e5"] > 0 else "smaller")
+                     + " on the faint stars)")
     for key in ("position_dependence", "exposure_dependence"):
         kind = (entry.get(key) or {}).get("kind")
         if kind and kind != "none":

@@ -72,22 +72,31 @@ def _parity(star, axis):
     return "even" if np.sum(even ** 2) >= np.sum(odd ** 2) else "odd"
 
 
-def _flux_dependence(peak, residual, sigma, group):
+def _flux_dependence(peak, residual, sigma, group, inverse=True):
     """How a residual grows with peak: 'constant', 'linear' or 'quadratic' (the highest power
     significant at 3 sigma in a fit with per-group intercepts: the square term in the fit with
     both, the linear one in a fit of it alone, as the slope that reported the residual; in
     the fit with both, the two are correlated and a new user's rising residual read
-    "rising with flux, constant in flux"), with the coefficients of the fit with both."""
+    "rising with flux, constant in flux"), with the coefficients of the fit with both; and
+    ``faint_end``: whether a term in 1 / peak is significant beside the linear one (a change
+    held by the faint stars, as of a fixed number of charge traps: a new user's deferred
+    charge, which falls with flux, read "rising, linear" from the slope alone; tested for the
+    stars' sizes, ``inverse``)."""
     x = np.asarray(peak, float) / 1e5
     groups = [(group == g).astype(float) for g in np.unique(group)]
     params, covariance, _, _ = weighted_least_squares(residual, sigma,
                                                       np.column_stack([x, x ** 2] + groups))
     linear, linear_covariance, _, _ = weighted_least_squares(residual, sigma,
                                                              np.column_stack([x] + groups))
+    reciprocal, reciprocal_covariance, _, _ = weighted_least_squares(
+        residual, sigma, np.column_stack([x, 1.0 / x] + groups))
     quadratic = abs(params[1]) > UNEXPLAINED_NSIGMA * np.sqrt(abs(covariance[1, 1]))
     slope = abs(linear[0]) > UNEXPLAINED_NSIGMA * np.sqrt(abs(linear_covariance[0, 0]))
+    faint_end = inverse and (abs(reciprocal[1]) > UNEXPLAINED_NSIGMA
+                             * np.sqrt(abs(reciprocal_covariance[1, 1])))
     kind = "quadratic" if quadratic else "linear" if slope else "constant"
-    return {"kind": kind, "per_1e5": float(params[0]), "per_1e10": float(params[1])}
+    return {"kind": kind, "per_1e5": float(params[0]), "per_1e10": float(params[1]),
+            "faint_end": bool(faint_end), "inverse_1e5": float(reciprocal[1])}
 
 
 def _dependence(sizes, values, errors, column, scale, labels):
@@ -214,7 +223,8 @@ def describe_unexplained(problem, observables, model, prediction=None):
                     "ptc": getattr(observables.ptc, "mean_e", None)}.get(key)
             dependence = None
             if mean is not None and mean.size > 3:
-                dependence = _flux_dependence(mean, part, sigma, np.zeros(mean.size, int))
+                dependence = _flux_dependence(mean, part, sigma, np.zeros(mean.size, int),
+                                              inverse=False)
             out.append({"observable": key, "axis": None, "parity": None,
                         "flux_dependence": dependence, "significance": float(significance)})
     cross = cross_test(observables.sizes, alpha=SIGNATURE_ALPHA)
