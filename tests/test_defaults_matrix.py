@@ -248,6 +248,14 @@ def test_static_comparison_gives_total_fluxes_too(data, products):
     ratio = np.asarray(table["flux_fit"])[matched] / field.truth[0]["flux_e"][nearest[matched]]
     # the static P0 misses the BF of the bright stars (a few mmag), not the wings' light
     assert abs(np.median(ratio) - 1.0) < 0.01
+    # and its sky is P(F)'s: the product's wings are taken out of it too (a new user's
+    # static sky of Airy stars stood 5-6 e- above P(F)'s, the faint stars 2-4 mmag too faint)
+    flux_dependent = directory / "phot_for_static.ecsv"
+    assert main(["photometry", images[0], "--psf", str(directory / "psf_single.fits"), "-o",
+                 str(flux_dependent)]) == 0
+    skies = [float(np.median(Table.read(path)["sky_e"])) for path in (output, flux_dependent)]
+    # (302.049 against 301.984 e- without the wings: the Moffat's are faint here)
+    assert skies[0] == pytest.approx(skies[1], abs=0.02)
 
 
 def test_psf_warns_when_the_seeing_differs(data, products, tmp_path, capsys):

@@ -143,8 +143,10 @@ def run(args):
                                        detection_threshold=args.threshold,
                                        cross_terms=not args.no_cross_terms,
                                        # --static too: total fluxes, with the product's
-                                       # correction for the light beyond P0's support
-                                       flux_correction=bf_model.flux_correction)
+                                       # correction for the light beyond P0's support, and
+                                       # its wings taken out of the sky as P(F)'s are
+                                       flux_correction=bf_model.flux_correction,
+                                       wings=bf_model)
             level = saturation_e(amplifier, amp_gain, args.saturation, one)
             table["saturated"] = saturated_stars(
                 amplifier.data * amp_gain, level, table["x_fit"], table["y_fit"],

@@ -236,7 +236,7 @@ def image_read_noise(prepared):
 def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background_e=None,
                    fit_shape=None, group_separation=None,
                    detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
-                   linearity_c_per_1e5=None, flux_correction=None, **kwargs):
+                   linearity_c_per_1e5=None, flux_correction=None, wings=None, **kwargs):
     """Fit every star of an image with the flux-dependent PSF.
 
     Parameters
@@ -292,6 +292,13 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         ``flux_fit`` and ``flux_err``; default the PSF's own (``psf.flux_correction``, measured
         when it was fitted), 1 for a photutils model: give the product's to compare a static
         P0 (`bfpsf.interop.photutils.static_image_psf`) at total fluxes too.
+    wings : BFPSFModel, optional
+        The model whose wing model (``wing_amplitude``, ``wing_power``) gives the stars'
+        light beyond the support, subtracted with the sky of the final fit; default the PSF
+        itself when it is a bfpsf model, none for a photutils model: give the product's to
+        compare a static P0 with the same sky (without it, a static P0 took the Airy stars'
+        wings into the sky, 304-305 e- against the true 300 and P(F)'s 299, and its faint
+        stars 2-4 mmag too faint).
     **kwargs
         Passed to `photutils.psf.PSFPhotometry`.
 
@@ -371,11 +378,13 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         # the noisy pixels themselves bias every flux low (see ``weights``).
         # The 1 e-**2 floor keeps pixels beyond the PSF support of a sky-free image finite.
         stars = _model_image(photometry, result, data.shape)
-        if bfpsf_model and psf.wing_amplitude > 0 and prepared.glow_e is None:
+        wing_model = psf if (bfpsf_model and wings is None) else wings
+        if (wing_model is not None and wing_model.wing_amplitude > 0
+                and prepared.glow_e is None):
             # the sky again, beyond the fitted stars: their models within the support and
             # the glow of their wings beyond it (which is subtracted with it): the sky is
             # what is left beyond their total-flux model
-            prepared = prepared.with_glow(_glow(psf, result, data.shape), stars)
+            prepared = prepared.with_glow(_glow(wing_model, result, data.shape), stars)
             sky, data = prepared.sky, prepared.sky_subtracted
         model = np.clip(stars, 0.0, None)
         variance = np.clip(sky.image(), 0.0, None) + model + read_noise_e**2
