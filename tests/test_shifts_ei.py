@@ -3,7 +3,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.special import expi
 
@@ -139,6 +139,9 @@ def test_the_system_has_full_rank_where_the_g15_set_as_printed_does_not(maxlag):
 @settings(max_examples=25, deadline=None)
 @given(maxlag=st.integers(2, 5), seed=st.integers(0, 2 ** 31 - 1),
        a00=st.floats(-3e-6, -1e-8), tail=st.floats(0.0, 0.5))
+# found by a randomised run: a tail of 1e-166 rounded the inverse curvature negative (a
+# sqrt of a negative variance)
+@example(maxlag=2, seed=0, a00=-2.0992167831697994e-06, tail=7.308414799798344e-166)
 def test_symmetries_sum_rule_and_closure_on_random_inputs(maxlag, seed, a00, tail):
     rng = np.random.default_rng(seed)
     area = abs(a00) * tail * rng.uniform(-0.3, 1.0, (maxlag + 1, maxlag + 1))

@@ -186,10 +186,14 @@ def fit_profile(area, area_err):
     scale = chi2 / dof if area_err is None and dof > 0 else 1.0
     curvature = jacobian.T @ (weights[:, None] * jacobian)
     diagonal = np.sqrt(np.diag(curvature))
+    variances = None
     if np.all(diagonal > 0) and np.linalg.cond(curvature / np.outer(diagonal, diagonal)) < 1e12:
-        p0_err, p1_err = np.sqrt(np.diag(np.linalg.inv(curvature)) * scale)
+        variances = np.diag(np.linalg.inv(curvature)) * scale
+    if variances is not None and np.all(variances > 0):
+        p0_err, p1_err = np.sqrt(variances)
     else:
-        # p0 = 0 (no signal beyond the nearest neighbours): p1 is not constrained at all
+        # p0 = 0 (no signal beyond the nearest neighbours, or a signal of 1e-166 whose
+        # inverse curvature rounds negative): p1 is not constrained at all
         p0_err = float(np.sqrt(scale / curvature[0, 0]))
         p1_err = np.inf
     return p0, p1, float(p0_err), float(p1_err), float(chi2), int(dof)
