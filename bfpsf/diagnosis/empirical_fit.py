@@ -74,10 +74,16 @@ _IDENTITY = {pattern: {moment: float(k == j) for k, moment in enumerate(MOMENTS)
              for j, pattern in enumerate(PATTERNS)}
 
 
+def _measured_trace(model_sigma, residual):
+    """Mxx + Myy of the measured sizes (the model's plus the residual), pixel^2: what turns
+    e2 into Mxy and back."""
+    return sum((sigma + part) ** 2 for sigma, part in zip(model_sigma, residual))
+
+
 def _mxy_rows(sizes, model_sigma, residual, cross_residual):
     """The cross moment as Mxy: (target, errors) = e2 residual and its error times
     (Mxx + Myy) / 2 of the measured sizes."""
-    half_trace = 0.5 * sum((sigma + part) ** 2 for sigma, part in zip(model_sigma, residual))
+    half_trace = 0.5 * _measured_trace(model_sigma, residual)
     return (np.asarray(cross_residual, float) * half_trace,
             np.asarray(sizes.cross_err, float) * half_trace)
 
@@ -170,8 +176,7 @@ def predicted_size_change(term, sizes, fluxes, model_sigma, response=None):
 def predicted_cross_change(term, sizes, fluxes, model_sigma, residual, response=None):
     """d e2 the term predicts for each entry as measured: 2 dMxy over the measured trace."""
     d_mxy = _moment_changes(term, sizes, fluxes, response)[2]
-    trace = sum((sigma + part) ** 2 for sigma, part in zip(model_sigma, residual))
-    return 2.0 * np.asarray(d_mxy, float) / trace
+    return 2.0 * np.asarray(d_mxy, float) / _measured_trace(model_sigma, residual)
 
 
 def cross_slope(sizes, cross_residual):

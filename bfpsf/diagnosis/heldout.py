@@ -112,7 +112,7 @@ def _evaluate(state, observables, step):
     local = np.delete(problem.nuisance, global_columns, axis=1)
     _, _, _, model = weighted_least_squares(problem.residual - offset, problem.sigma, local)
     covariance = step.get("covariance")
-    if covariance is None or covariance.shape[0] != design.shape[1]:
+    if covariance is None:  # the physical values' step: nothing fitted
         covariance = np.zeros((design.shape[1], design.shape[1]))
     return problem, model + offset, (design, covariance, values)
 

@@ -50,7 +50,8 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
 from .catalogue import CATALOGUE, get_effect
 from .heldout import split_observables, with_empirical, with_heldout
-from .problem import build_problem, effect_design, effect_values, slope_residuals, summarise
+from .problem import (build_problem, effect_columns, effect_design, effect_values,
+                      slope_residuals, summarise)
 from .result import DiagnosisResult
 from .signature import (SIGNATURE_ALPHA, contradiction, cross_test, flux_shape_test,
                         parity_test, signature_parts, signature_test)
@@ -297,20 +298,17 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
         residual_physical["effects"] = physical_names
     params, covariance, _, model_after = fit(selected)
     parameters = {}
-    column = problem.nuisance.shape[1]
     by_name = {effect.name: effect for effect in catalogue}
-    for name in selected:
+    for name, own in effect_columns(problem, selected, fixed, by_name, family).items():
         effect = by_name[family(name)]
         physical = list(effect.physical_value) if effect.physical_value else None
-        if name in fixed:
+        if own is None:
             parameters[name] = {"names": list(effect.parameters), "value": physical,
                                 "error": [0.0] * effect.k, "physical": physical}
             continue
-        own = slice(column, column + effect.k)
         parameters[name] = {"names": list(effect.parameters), "value": params[own].tolist(),
                             "error": np.sqrt(np.abs(np.diag(covariance)[own])).tolist(),
                             "physical": physical}
-        column += effect.k
 
     nuisance = {}
     if problem.global_columns:
@@ -400,7 +398,7 @@ def _bounded(effect, values, errors, params, covariance, global_columns, is_fixe
     """What a candidate's bounds apply to, with its errors: its fitted values, except for the
     size scale beside the nuisance of the same template (the flats' scale, with its prior),
     where the bounds are those of the stars' total scale (the candidate alone is uncertain
-    by the prior: stars without BF fitted it -0.98 +- 0.21, the total -0.98 to 1e-3)."""
+    by the prior: stars without BF fitted it -0.98 +- 0.21, the total -0.98 +- 0.008)."""
     if effect.name != "calibration_scale" or is_fixed or not global_columns:
         return values, errors
     own, nuisance = params.size - 1, global_columns[0]
@@ -415,14 +413,9 @@ def _step_covariance(covariance, problem, names, fixed, by_name, family):
     fixed at its physical value has none): what the prediction on held-out data inherits
     from the fit (`bfpsf.diagnosis.heldout`)."""
     index = list(problem.global_columns)
-    column = problem.nuisance.shape[1]
-    for name in names:
-        k = by_name[family(name)].k
-        if name in fixed:
-            index += [None] * k
-            continue
-        index += list(range(column, column + k))
-        column += k
+    for name, own in effect_columns(problem, names, fixed, by_name, family).items():
+        index += ([None] * by_name[family(name)].k if own is None
+                  else list(range(own.start, own.stop)))
     out = np.zeros((len(index), len(index)))
     kept = [i for i, value in enumerate(index) if value is not None]
     columns = [index[i] for i in kept]

@@ -19,7 +19,8 @@ from ..measure.slopes import fit_bf_slope
 from ..moments.shapes import MAG_PER_SIZE_ERROR
 from .catalogue import get_effect
 
-__all__ = ["Problem", "build_problem", "describe_slope", "effect_design", "effect_values",
+__all__ = ["Problem", "build_problem", "describe_slope", "effect_columns", "effect_design",
+           "effect_values",
            "slope_residuals", "BF_DETECTION_SIGMA",
            "summarise"]
 
@@ -241,15 +242,24 @@ def summarise(problem, observables, model):
     return out
 
 
-def effect_values(values, problem, names, fixed, by_name, family):
-    """name -> parameter vector of each effect of a joint fit over ``names``."""
+def effect_columns(problem, names, fixed, by_name, family):
+    """name -> slice of each effect's parameters in a joint fit over ``names`` (the nuisance
+    columns first, then the free effects in order), or None for an effect fixed at its
+    physical value (no column)."""
     out = {}
     column = problem.nuisance.shape[1]
     for name in names:
-        effect = by_name[family(name)]
         if name in fixed:
-            out[name] = np.asarray(effect.physical_value, float)
+            out[name] = None
             continue
-        out[name] = values[column:column + effect.k]
-        column += effect.k
+        k = by_name[family(name)].k
+        out[name] = slice(column, column + k)
+        column += k
     return out
+
+
+def effect_values(values, problem, names, fixed, by_name, family):
+    """name -> parameter vector of each effect of a joint fit over ``names``."""
+    return {name: (np.asarray(by_name[family(name)].physical_value, float) if own is None
+                   else values[own])
+            for name, own in effect_columns(problem, names, fixed, by_name, family).items()}

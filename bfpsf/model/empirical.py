@@ -90,13 +90,19 @@ def _half_second_difference(image, step):
     return out
 
 
-def _difference(image, pattern):
-    """The pattern's transfer operator on ``image`` (`_STEPS`)."""
+def _steps(pattern):
+    """The transfers of ``pattern`` (`_STEPS`); an unknown pattern is refused."""
     steps = _STEPS.get(pattern)
     if steps is None:
         msg = f"pattern must be one of {PATTERNS}, got {pattern!r}"
         raise BFPSFValueError(msg, pattern)
-    return sum(weight * _half_second_difference(image, step) for step, weight in steps)
+    return steps
+
+
+def _difference(image, pattern):
+    """The pattern's transfer operator on ``image`` (`_STEPS`)."""
+    return sum(weight * _half_second_difference(image, step)
+               for step, weight in _steps(pattern))
 
 
 def _star_total(image, total):
@@ -135,7 +141,7 @@ def pattern_series(image, change, pattern, total=None, total_change=0.0, order=2
     The table mode of P(F) tabulates them for dI = R, the BF term (`pattern_tables`); the
     PSF fit's flux derivative is B1 along d model / d F."""
     image = np.asarray(image, float)
-    _difference(image[..., :1, :1], pattern)    # an unknown pattern fails here
+    _steps(pattern)
     positive = np.clip(image, 0.0, None)
     change = np.where(image > 0, np.asarray(change, float), 0.0)
     if total is None:
