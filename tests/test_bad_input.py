@@ -110,6 +110,10 @@ def test_maxlag_bounded_by_memory_time_and_image_size(flats, capsys):
     assert run(capsys, "calibrate", *flats, "-o", "c.fits", "--maxlag", "40",
                "--model", "exponential") == (
         1, "bfpsf calibrate: error: flat f1_1.fits (64 x 64 pixels) is too small for maxlag "
+           "40 inside its 10-pixel edge border (--edge): give maxlag < 22 or a smaller edge\n")
+    assert run(capsys, "calibrate", *flats, "-o", "c.fits", "--maxlag", "40", "--edge", "0",
+               "--model", "exponential") == (
+        1, "bfpsf calibrate: error: flat f1_1.fits (64 x 64 pixels) is too small for maxlag "
            "40: give maxlag < 32\n")
 
 

@@ -31,6 +31,7 @@ class PairTask:
     clip_nsigma: float
     mean_tolerance: float
     overscan: str
+    edge: int
 
 
 def measure_pair(task):
@@ -52,7 +53,7 @@ def measure_pair(task):
             msg = f"flat {flat.name} has zero variance (a constant image), not a flat-field exposure"
             raise BFPSFInputError(msg, flat.name)
     check_pair(flat1, flat2, task.mean_tolerance)
-    mask, report = pair_mask(flat1, flat2, saturation=task.saturation)
+    mask, report = pair_mask(flat1, flat2, saturation=task.saturation, edge=task.edge)
     covariance = pair_covariance(flat1, flat2, mask=mask, maxlag=task.maxlag,
                                  clip_nsigma=task.clip_nsigma)
     if not covariance.var_adu > 0:
@@ -62,26 +63,30 @@ def measure_pair(task):
     return task.pair.names, covariance, report
 
 
-def lags_to_measure(flats, maxlag):
+def lags_to_measure(flats, maxlag, edge=0):
     """The lag to measure the covariances to: ``maxlag``, or for ``'auto'`` the largest the
-    flats and the full model allow (`MAX_FULL_MODEL_MAXLAG`); `BFPSFInputError` if a flat is
-    too small."""
+    flats (inside their ``edge`` border) and the full model allow (`MAX_FULL_MODEL_MAXLAG`);
+    `BFPSFInputError` if a flat is too small."""
     if maxlag == "auto":
         smallest = min(flats, key=lambda flat: min(flat.shape), default=None)
         if smallest is None:
             return 1
-        maxlag = max(1, min(MAX_FULL_MODEL_MAXLAG, min(smallest.shape) // 2 - 1))
+        maxlag = max(1, min(MAX_FULL_MODEL_MAXLAG, (min(smallest.shape) - 2 * edge) // 2 - 1))
     for flat in flats:
-        _check_size(flat, maxlag)
+        _check_size(flat, maxlag, edge)
     return maxlag
 
 
-def _check_size(flat, maxlag):
-    """Raise `BFPSFInputError` if ``flat`` is too small for the lags ``maxlag``."""
+def _check_size(flat, maxlag, edge):
+    """Raise `BFPSFInputError` if ``flat`` is too small for the lags ``maxlag`` inside its
+    ``edge`` border."""
     ny, nx = flat.shape
-    if ny < 2 * maxlag + 2 or nx < 2 * maxlag + 2:
-        msg = (f"flat {flat.name} ({nx} x {ny} pixels) is too small for maxlag {maxlag}: "
-               f"give maxlag < {min(ny, nx) // 2}")
+    inner = min(ny, nx) - 2 * edge
+    if inner < 2 * maxlag + 2:
+        border = f" inside its {edge}-pixel edge border (--edge)" if edge else ""
+        msg = (f"flat {flat.name} ({nx} x {ny} pixels) is too small for maxlag {maxlag}"
+               f"{border}: give maxlag < {max(inner, 0) // 2}"
+               + (" or a smaller edge" if edge else ""))
         raise BFPSFInputError(msg, flat.name)
 
 

@@ -16,6 +16,7 @@ from .amplifier_fit import (PairTask, fit_amplifier, fit_measured_pairs, fit_tas
 from .boundary_shifts import SHIFT_METHODS
 from .cp_pipe import read_ptc_dataset
 from .detector import DetectorCalibration
+from .flat_mask import DEFAULT_EDGE
 from .flats import group_amplifiers, pair_flats, read_flats
 from .linearity import DEFAULT_LINEARITY_THRESHOLD
 from .maxlag import check_maxlag
@@ -26,8 +27,8 @@ __all__ = ["calibrate", "calibrate_detectors", "calibrate_from_ptc"]
 
 
 def calibrate(sources, *, exptimes=None, maxlag="auto", ptc_model="full", fit_b="off-origin",
-              saturation=None, mean_tolerance=0.05, clip_nsigma=4.0, pedestal_nsigma=4.0,
-              pedestal_degree=2, linearity_threshold=None, solve_shifts=True,
+              saturation=None, edge=DEFAULT_EDGE, mean_tolerance=0.05, clip_nsigma=4.0,
+              pedestal_nsigma=4.0, pedestal_degree=2, linearity_threshold=None, solve_shifts=True,
               shift_method="electrostatic", thickness=10.0, n_monte_carlo=100, seed=0,
               progress=False, amps=None, overscan="median", workers=1, scheduler=None):
     """Calibrate brighter-fatter from flat-field pairs, each amplifier on its own.
@@ -60,6 +61,11 @@ def calibrate(sources, *, exptimes=None, maxlag="auto", ptc_model="full", fit_b=
         `bfpsf.calibration.ptc.fit_full_covariance_model`).
     saturation : float, optional
         Saturation level, ADU; pixels at or above it are masked. Default None.
+    edge : int, optional
+        Pixels masked along each side of each amplifier's image
+        (`bfpsf.calibration.flat_mask.pair_mask`). Default
+        `~bfpsf.calibration.flat_mask.DEFAULT_EDGE` (10, as cp_pipe's PTC configuration):
+        the edges of a sensor lose charge in a way that grows with the flux.
     mean_tolerance : float, optional
         Largest relative difference of the two means of a pair. Default 0.05.
     clip_nsigma : float, optional
@@ -105,7 +111,7 @@ def calibrate(sources, *, exptimes=None, maxlag="auto", ptc_model="full", fit_b=
     """
     return calibrate_detectors({"": sources}, exptimes={"": exptimes}, maxlag=maxlag,
                                ptc_model=ptc_model, fit_b=fit_b, saturation=saturation,
-                               mean_tolerance=mean_tolerance, clip_nsigma=clip_nsigma,
+                               edge=edge, mean_tolerance=mean_tolerance, clip_nsigma=clip_nsigma,
                                pedestal_nsigma=pedestal_nsigma, pedestal_degree=pedestal_degree,
                                linearity_threshold=linearity_threshold,
                                solve_shifts=solve_shifts, shift_method=shift_method,
@@ -115,7 +121,8 @@ def calibrate(sources, *, exptimes=None, maxlag="auto", ptc_model="full", fit_b=
 
 
 def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="full",
-                        fit_b="off-origin", saturation=None, mean_tolerance=0.05,
+                        fit_b="off-origin", saturation=None, edge=DEFAULT_EDGE,
+                        mean_tolerance=0.05,
                         clip_nsigma=4.0, pedestal_nsigma=4.0, pedestal_degree=2,
                         linearity_threshold=None, solve_shifts=True,
                         shift_method="electrostatic", thickness=10.0, n_monte_carlo=100, seed=0,
@@ -140,7 +147,7 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="f
         Per detector, in the order given.
     """
     parameters, options = _settings(
-        maxlag=maxlag, ptc_model=ptc_model, fit_b=fit_b, saturation=saturation,
+        maxlag=maxlag, ptc_model=ptc_model, fit_b=fit_b, saturation=saturation, edge=edge,
         mean_tolerance=mean_tolerance, clip_nsigma=clip_nsigma, pedestal_nsigma=pedestal_nsigma,
         pedestal_degree=pedestal_degree, linearity_threshold=linearity_threshold,
         solve_shifts=solve_shifts, shift_method=shift_method, thickness=thickness,
@@ -156,12 +163,12 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="f
                                    if isinstance(source, (str, os.PathLike))], "flat")
             flats = read_flats(sources, exptimes.get(detector), amps=amps, lazy=True,
                                overscan=overscan)
-            measured_lag = lags_to_measure(flats, parameters["maxlag"])
+            measured_lag = lags_to_measure(flats, parameters["maxlag"], parameters["edge"])
             tasks, owners = [], []
             for amplifier, amplifier_flats in group_amplifiers(flats).items():
                 for pair in pair_flats(amplifier_flats, mean_tolerance=mean_tolerance):
                     tasks.append(PairTask(pair, saturation, measured_lag, clip_nsigma,
-                                          mean_tolerance, overscan))
+                                          mean_tolerance, overscan, parameters["edge"]))
                     owners.append((detector, amplifier))
             yield tasks, owners
 
@@ -179,7 +186,7 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="f
     return results
 
 
-def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsigma,
+def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsigma, edge,
               pedestal_nsigma, pedestal_degree, linearity_threshold, solve_shifts,
               shift_method, thickness, n_monte_carlo, seed):
     """Validated parameters (recorded in the product) and the options of `fit_amplifier`."""
@@ -198,10 +205,14 @@ def _settings(*, maxlag, ptc_model, fit_b, saturation, mean_tolerance, clip_nsig
         raise BFPSFValueError(msg, shift_method)
     if linearity_threshold is None:
         linearity_threshold = DEFAULT_LINEARITY_THRESHOLD
+    if edge is not None and (int(edge) != edge or edge < 0):
+        msg = f"edge must be a whole number of pixels >= 0, got {edge!r}"
+        raise BFPSFValueError(msg, edge)
     parameters = {
         "maxlag": maxlag, "ptc_model": ptc_model,
         "fit_b": fit_b if isinstance(fit_b, str) else bool(fit_b),
         "saturation": None if saturation is None else float(saturation),
+        "edge": None if edge is None else int(edge),
         "mean_tolerance": None if mean_tolerance is None else float(mean_tolerance),
         "clip_nsigma": None if clip_nsigma is None else float(clip_nsigma),
         "pedestal_nsigma": float(pedestal_nsigma), "pedestal_degree": int(pedestal_degree),
@@ -261,7 +272,7 @@ def calibrate_from_ptc(path, *, amps=None, maxlag="auto", ptc_model="full", fit_
         parameters, options = _settings(
             maxlag=maxlag if maxlag == "auto" else min(maxlag, side - 1),
             ptc_model=ptc_model, fit_b=fit_b, saturation=None,
-            mean_tolerance=None, clip_nsigma=None,
+            mean_tolerance=None, clip_nsigma=None, edge=None,
             pedestal_nsigma=pedestal_nsigma, pedestal_degree=pedestal_degree,
             linearity_threshold=linearity_threshold, solve_shifts=solve_shifts,
             shift_method=shift_method, thickness=thickness, n_monte_carlo=n_monte_carlo,

@@ -17,9 +17,16 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from .flats import Flat
 from .kernels import FASTMATH, flag_row, flagged_positions
 
-__all__ = ["MaskReport", "pair_mask"]
+__all__ = ["DEFAULT_EDGE", "MaskReport", "pair_mask"]
 
 log = logging.getLogger(__name__)
+
+#: Pixels masked along each edge of an amplifier's image by default, as cp_pipe's PTC ISR
+#: configuration does (``numEdgeSuspect = 10``, ``edgeMaskLevel = 'AMP'``; its LSSTCam
+#: pipelines use 20). The first rows and columns of a sensor collect less charge, and
+#: lose a fraction that grows with the flux (GalSim's SiliconSensor: 4.4, 1.4, 0.7 and 0.3 %
+#: in the first four rows at 100 ke-), which the PTC would read as a gain non-linearity.
+DEFAULT_EDGE = 10
 
 
 @dataclass(frozen=True)
@@ -33,6 +40,8 @@ class MaskReport:
     ----------
     nonfinite : int
         Pixels that are NaN or infinite in either flat.
+    edge : int
+        Pixels within the edge border.
     saturated : int
         Pixels at or above the saturation level in either flat.
     columns : int
@@ -47,6 +56,7 @@ class MaskReport:
 
     nonfinite: int
     saturated: int
+    edge: int
     columns: int
     defects: int
     total: int
@@ -59,7 +69,7 @@ class MaskReport:
 
     def __str__(self):
         return (f"{self.total} of {self.npix} pixels masked ({100 * self.fraction:.3g} %): "
-                f"{self.nonfinite} non-finite, {self.saturated} saturated, "
+                f"{self.nonfinite} non-finite, {self.saturated} saturated, {self.edge} in the edge border, "
                 f"{self.columns} in hot/dark columns, {self.defects} in defect clusters")
 
 
@@ -316,8 +326,10 @@ def _bad_columns(levels, nsigma, window=31):
     usable = np.isfinite(levels)
     if np.count_nonzero(usable) < 3:
         return np.zeros(levels.size, dtype=bool)
-    reference = np.where(usable, levels, np.nanmedian(levels))
-    residual = levels - _neighbour_median(reference, window)
+    # columns with no good pixel (the edge border) are left out of the neighbours: filled
+    # with the median level, they bent the running median of a sloped flat near its edges
+    residual = np.full(levels.size, np.nan)
+    residual[usable] = levels[usable] - _neighbour_median(levels[usable], window)
     sigma = _robust_sigma(residual)
     if not np.isfinite(sigma) or sigma == 0:
         return np.zeros(levels.size, dtype=bool)
@@ -350,14 +362,15 @@ def _clustered(highs, shape):
     return clustered
 
 
-def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma=3.0,
-              defect_box=128):
+def pair_mask(flat1, flat2, *, saturation=None, edge=DEFAULT_EDGE, column_nsigma=5.0,
+              defect_nsigma=3.0, defect_box=128):
     """Mask of the pixels of a flat pair that must not enter the covariances.
 
     Causes, in order (each is evaluated on the pixels not already masked):
 
     1. non-finite pixels (NaN or inf) in either image: masked and counted, never an error;
-    2. pixels at or above ``saturation`` (ADU) in either image;
+    2. pixels at or above ``saturation`` (ADU) in either image, and the ``edge`` pixels along
+       each side of the image;
     3. hot or dark columns: the level of a column (mean of its pixels within 5 local sigma
        of the local mean), in either image or their difference, departs from the running
        median of the levels of its 30 neighbouring columns by more than ``column_nsigma``
@@ -378,6 +391,8 @@ def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma
         The two flats of a pair, ADU.
     saturation : float, optional
         Saturation level, ADU. Default None: no saturation mask.
+    edge : int, optional
+        Pixels masked along each side of the image (one amplifier). Default `DEFAULT_EDGE`.
     column_nsigma : float, optional
         Threshold of the column test, in robust sigma of the column medians. Default 5.
     defect_nsigma : float, optional
@@ -404,6 +419,11 @@ def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma
     if image1.ndim != 2 or image1.shape != image2.shape:
         msg = f"flats of a pair must be 2-D images of one shape, got {image1.shape} and {image2.shape}"
         raise BFPSFInputError(msg, (image1.shape, image2.shape))
+    edge = int(edge)
+    if edge < 0 or 2 * edge >= min(image1.shape):
+        msg = (f"the edge border ({edge} pixels on each side) leaves no pixel of the "
+               f"{image1.shape[1]} x {image1.shape[0]} flats")
+        raise BFPSFInputError(msg, edge)
     if defect_box < 3:
         msg = f"defect_box must be at least 3 pixels, got {defect_box}"
         raise BFPSFValueError(msg, defect_box)
@@ -423,6 +443,10 @@ def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma
         n_saturated = int(np.count_nonzero(saturated))
         if n_saturated:
             bad = saturated if bad is None else bad | saturated
+    if edge:
+        border = np.ones(image1.shape, dtype=bool)
+        border[edge:-edge, edge:-edge] = False
+        bad = border if bad is None else bad | border
     if bad is not None and not bad.any():
         bad = None
     if bad is not None and bad.all():
@@ -444,7 +468,8 @@ def pair_mask(flat1, flat2, *, saturation=None, column_nsigma=5.0, defect_nsigma
     mask[:, bad_columns] = True
     mask.ravel()[defects] = True
 
-    report = MaskReport(nonfinite=n_nonfinite, saturated=n_saturated,
+    n_edge = image1.size - (image1.shape[0] - 2 * edge) * (image1.shape[1] - 2 * edge)
+    report = MaskReport(nonfinite=n_nonfinite, saturated=n_saturated, edge=n_edge,
                         columns=int(np.count_nonzero(bad_columns)) * image1.shape[0],
                         defects=int(defects.size), total=int(np.count_nonzero(mask)),
                         npix=int(mask.size))

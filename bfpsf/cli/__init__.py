@@ -74,6 +74,15 @@ def star_image_options(parser, *, saturation, wings=True, threshold=True, backgr
                              f"({SATURATION_DEFAULT})")
 
 
+def flat_edge_option(parser):
+    """``--edge``: the border of each amplifier's flats left out of the statistics (None: the
+    calibration's default, `bfpsf.calibration.flat_mask.DEFAULT_EDGE`)."""
+    parser.add_argument("--edge", type=non_negative_int, default=None, metavar="PIXELS",
+                        help="pixels masked along each side of each amplifier's flats, whose "
+                             "edges collect less charge as the flux grows (default 10, as "
+                             "cp_pipe's PTC; 0 keeps every pixel)")
+
+
 def maxlag_option(text):
     """``--maxlag``: 'auto' or a positive integer."""
     if text == "auto":

@@ -12,7 +12,8 @@ from ..errors import BFPSFInputError
 from ..files import check_outputs, input_files
 from ..outputs import make_directory, write_json
 from ..resources import check_time
-from . import maxlag_option, non_negative_int, positive_float, positive_int, saturation_option
+from . import (flat_edge_option, maxlag_option, non_negative_int, positive_float, positive_int,
+               saturation_option)
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 AMPLIFIER_PLOT = "amplifiers.png"
@@ -56,6 +57,7 @@ def add_parser(subparsers):
                              "'exponential', or G15's 'quadratic'")
     parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help="mask pixels at or above this level (ADU)")
+    flat_edge_option(parser)
     parser.add_argument("--shift-method", choices=("electrostatic", "ei"),
                         default="electrostatic",
                         help="solver of the boundary shifts: the electrostatic sensor model of "
@@ -88,6 +90,10 @@ def _detectors(args):
         msg = "give flat files (or detector directories), or --from-ptc PTC.fits; not both"
         raise BFPSFInputError(msg, args.flats)
     if args.from_ptc:
+        for option, value in (("--edge", args.edge), ("--saturation", args.saturation)):
+            if value is not None:
+                msg = f"{option} applies to flats; cp_pipe measured {args.from_ptc} with its own"
+                raise BFPSFInputError(msg, option)
         return {"": None}, {"": Path(args.output)}
     paths = [Path(path) for path in args.flats]
     directories = [path.is_dir() for path in paths]
@@ -190,7 +196,7 @@ def run(args):
             shift_method=args.shift_method, thickness=args.thickness,
             n_monte_carlo=args.n_monte_carlo, seed=args.seed, progress=args.progress,
             amps=args.amp, overscan=args.overscan, workers=args.workers,
-            scheduler=args.scheduler)
+            scheduler=args.scheduler, **({} if args.edge is None else {"edge": args.edge}))
     for calibration in calibrations.values():
         check_outputs(_plot_paths(args, calibration), args.overwrite, directories=[args.plots],
                       inputs=inputs)

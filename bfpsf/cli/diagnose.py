@@ -26,7 +26,7 @@ from pathlib import Path
 from ..diagnosis.problem import describe_slope
 from ..diagnosis.signature import describe_entry, describe_rejection
 from ..errors import BFPSFInputError
-from . import maxlag_option, positive_float, positive_int, star_image_options
+from . import flat_edge_option, maxlag_option, positive_float, positive_int, star_image_options
 
 __all__ = ["add_parser", "run"]
 
@@ -51,6 +51,7 @@ def add_parser(subparsers):
     data.add_argument("--maxlag", type=maxlag_option, default="auto", metavar="auto|N",
                       help="calibration lags: 'auto' (default, as bfpsf calibrate) or an "
                            "integer")
+    flat_edge_option(data)
     data.add_argument("--no-fit-b", dest="fit_b", action="store_const", const="none",
                       default="off-origin",
                       help="calibrate without the Astier+19 b term (few or small flats); by "
@@ -109,7 +110,7 @@ def _observables(args):
             args.flats, args.images, beta=args.beta, maxlag=args.maxlag, n_bins=args.bins,
             fit_b=args.fit_b, amp=args.amp, holdout_fraction=args.holdout_fraction,
             background=args.background, saturation=args.saturation, progress=None,
-            position_bins=args.position_bins)
+            position_bins=args.position_bins, edge=args.edge)
         # the flats' calibration warns as `bfpsf calibrate` does: a new user's diagnose had
         # been silent on electrostatic parameters ended on their bounds
         for warning in getattr(observables.meta.get("calibration"), "warnings", ()):

@@ -308,7 +308,7 @@ def ptc_observable(calibration):
 def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=10, gain=None,
                             calibration=None, fit_b="off-origin", amp=None,
                             holdout_fraction=0.5, n_monte_carlo=30, background=None,
-                            progress=False, position_bins=1, saturation=None):
+                            progress=False, position_bins=1, saturation=None, edge=None):
     """Observables from flat-field FITS and spot / star images (ADU, bias subtracted).
 
     The flats are calibrated (`bfpsf.calibrate`, with ``n_monte_carlo`` bootstrap samples of
@@ -326,7 +326,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     the bins by the stars' column (`_binned_sizes`): the residual's dependence on the distance
     from the amplifier, each row then carrying its stars' mean column (``x_detector``). Every
     row carries the stars' mean skewness (`bfpsf.diagnosis.odd_moments.star_skewness`), the
-    odd part of the residual.
+    odd part of the residual. ``edge`` is the border of the flats left out of their statistics
+    (default that of `bfpsf.calibrate`).
 
     The model spot is the P0 that ``bfpsf psf`` would fit (`bfpsf.model.psf_fit.fit_psf`, its
     defaults, the calibrated shifts) from the isolated stars of the exposures the loop fits
@@ -343,7 +344,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     ``meta['star_residual']``, with the stacked image in ``meta['residual_images']``).
     """
     cal = calibration or calibrate(list(flats), maxlag=maxlag, n_monte_carlo=n_monte_carlo,
-                                   fit_b=fit_b, amps=amp)
+                                   fit_b=fit_b, amps=amp,
+                                   **({} if edge is None else {"edge": edge}))
     if not isinstance(cal, Calibration):
         msg = (f"the flats hold {len(cal)} amplifiers ({', '.join(cal.names)}); the closed loop "
                "works on one: choose it with --amp NAME")
