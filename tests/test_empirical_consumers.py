@@ -116,6 +116,50 @@ def test_every_evaluation_applies_the_term(truth):
                                model.star_image(flux, 120.3, 40.2, half_size=12), rtol=1e-9)
 
 
+def test_a_row_term_is_applied_at_the_star_row(truth, tmp_path):
+    """A term that changes with the row (a parallel-transfer effect): every evaluation
+    applies it at the star's row (star_image, table and exact evaluate, a gridded model),
+    the model varies over the field between the rows it was learned on, ``at(x, y)`` folds
+    it, and the product keeps its row reference and range."""
+    flux = 1.2e6
+    term = EmpiricalTerm({"yy": {"constant": 0.1, "row": 0.08}, "xx": {"flux2_row": 0.03}},
+                         y_reference=500.0, y_range=(0.0, 1000.0))
+    model = truth.with_empirical_term(term)
+    images = {}
+    for y in (120.3, 880.0):
+        plain = truth.star_image(flux, 40.2, y, half_size=12)
+        images[y] = model.star_image(flux, 40.2, y, half_size=12)
+        expected = sum(change * apply_pattern(plain, pattern, total=flux)
+                       for pattern, change in zip(("xx", "yy"),
+                                                  term.variance_change(flux, y=y)))
+        np.testing.assert_allclose(images[y] - plain, expected, rtol=0, atol=1e-9 * flux)
+        row = int(np.floor(y + 0.5))
+        rows, columns = np.mgrid[row - 12:row + 13, 28:53].astype(float)
+        np.testing.assert_allclose(model.evaluate(columns, rows, flux, 40.2, y), images[y],
+                                   rtol=0, atol=2e-5 * images[y].max())
+        exact = FluxDependentPSF(truth.data, SHIFTS, oversampling=4, mode="exact")
+        np.testing.assert_allclose(exact.with_empirical_term(term).evaluate(
+            columns, rows, flux, 40.2, y), images[y], rtol=0, atol=1e-4 * images[y].max())
+        np.testing.assert_allclose(model.at(40.2, y).star_image(flux, 40.2, y, half_size=12),
+                                   images[y], rtol=1e-12)
+    # the term moves Myy by 0.08 x (880 - 120) / 1000 per F_ref between the two rows
+    d_myy = _plain_moments(images[880.0])[1] - _plain_moments(images[120.3])[1]
+    assert d_myy == pytest.approx(0.08 * (880.0 - 120.3) / 1000 * flux / FLUX_REFERENCE,
+                                  rel=0.02)
+    assert model.varies_over_field and model.reference_position == (0.0, 500.0)
+    np.testing.assert_array_equal(model.field_nodes[0], [0.0])
+    np.testing.assert_array_equal(model.field_nodes[1], [0.0, 1000.0])
+    assert model.at(3.0, 880.0).empirical.position_dependent is False
+    grid = GriddedFluxDependentPSF([truth, truth], [0.0], [0.0, 1000.0]).with_empirical_term(term)
+    np.testing.assert_allclose(grid.star_image(flux, 40.2, 880.0, half_size=12), images[880.0],
+                               rtol=1e-12)
+    path = tmp_path / "row.fits"
+    model.write(path)
+    back = FluxDependentPSF.read(path)
+    assert back == model and back.empirical.y_range == (0.0, 1000.0)
+    assert back.empirical.y_reference == 500.0
+
+
 def test_product_round_trip_keeps_the_term(truth, tmp_path):
     """save / load (single and grid), value equality and pickling with the term; a product
     without one reads back without one."""

@@ -725,3 +725,20 @@ def test_a_field_without_sky_between_its_stars_is_named(workdir, capsys):
     assert code == 1 and err.startswith("bfpsf psf: error: crowded.fits: ") and \
         "too few for its sky; give the sky (--background) or a smaller --size" in err
     assert err.count("\n") == 1
+
+
+@pytest.mark.parametrize("text, expected", [("3", 3), ("1x3", (1, 3)), ("2X2", (2, 2)),
+                                            ("0", None), ("1x0", None), ("3y", None),
+                                            ("1x2x3", None), ("x", None)])
+def test_position_bins_take_columns_or_columns_by_rows(text, expected):
+    """``diagnose --position-bins``: N (columns) or NxM (columns by rows, 1x3 the rows only);
+    anything else is one line naming the form."""
+    import argparse
+
+    from bfpsf.cli.diagnose import position_bins_option
+
+    if expected is None:
+        with pytest.raises(argparse.ArgumentTypeError, match="expected N or NxM"):
+            position_bins_option(text)
+    else:
+        assert position_bins_option(text) == expected

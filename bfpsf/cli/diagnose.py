@@ -20,6 +20,7 @@ mode ``star_residual``: the stacked residual of the stars against P(F), ``rms_ov
 ``chi2_per_pixel``, ``n_stars`` and its radial profile).
 """
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -58,9 +59,12 @@ def add_parser(subparsers):
                            "default b is fitted off the origin, as bfpsf calibrate does")
     data.add_argument("--bins", type=positive_int, default=None,
                       help="peak bins of the measured sizes (default 10)")
-    data.add_argument("--position-bins", type=positive_int, default=None, metavar="N",
+    data.add_argument("--position-bins", type=position_bins_option, default=None,
+                      metavar="N|NxM",
                       help="also split the bins in N ranges of column (distance from the "
-                           "amplifier), for the residual's position dependence (default 1)")
+                           "amplifier), or N of column x M of row (the parallel transfers: "
+                           "1x3 splits the rows only), for the residual's position "
+                           "dependence (default 1)")
     tables = parser.add_argument_group("table mode")
     tables.add_argument("--correlations", metavar="FILE",
                         help="measured a / correlation table (corr_meas, Poisson_CCD, cp_pipe)")
@@ -118,6 +122,19 @@ def _observables(args):
         return observables
     msg = ("give --flats and --images, or --correlations and --sizes, or --measured NAME")
     raise BFPSFInputError(msg)
+
+
+def position_bins_option(text):
+    """``--position-bins``: N (ranges of column) or NxM (of column and of row), each >= 1."""
+    parts = text.lower().split("x")
+    try:
+        if len(parts) > 2:
+            raise argparse.ArgumentTypeError(text)
+        values = tuple(positive_int(part) for part in parts)
+    except argparse.ArgumentTypeError:
+        msg = f"expected N or NxM of positive integers (e.g. 3 or 1x3), got {text!r}"
+        raise argparse.ArgumentTypeError(msg) from None
+    return values if len(values) == 2 else values[0]
 
 
 def _check_binning(args):

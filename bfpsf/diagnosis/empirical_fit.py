@@ -4,8 +4,8 @@ When the loop leaves a size residual that no catalogue effect matches (`bfpsf.di
 `fit_empirical` fits `bfpsf.model.empirical.EmpiricalTerm` to it: per axis, the residual
 sigma^2 - sigma_model^2 is [c(x, t) F / F_ref + q(x, t) (F / F_ref)^2] (through the adaptive
 moments' response to the patterns, `adaptive_response`) plus an intercept per group, c and q
-each a constant plus a position term (x - x_ref) / 1000 and an exposure term (t - t_ref); the
-position and exposure terms enter only where the residual report found that dependence
+each a constant plus a position term (x - x_ref) / 1000, a row term (y - y_ref) / 1000 and an
+exposure term (t - t_ref); the position, row and exposure terms enter only where the residual report found that dependence
 (`bfpsf.diagnosis.unexplained.describe_unexplained`). Weighted least squares with the sizes' errors.
 
 `evaluate_empirical` applies a term to other data (the held-out exposures of the loop's split;
@@ -29,13 +29,17 @@ __all__ = ["fit_empirical", "evaluate_empirical", "predicted_size_change",
 
 
 
-def _terms(sizes, fluxes, x_reference, exposure_reference, position, exposure):
+def _terms(sizes, fluxes, references, position, exposure, row=False):
     """Columns multiplying each term of c and q (`EmpiricalTerm`) per entry: the flux basis
-    (F / F_ref, (F / F_ref)^2) times (1, position, exposure)."""
+    (F / F_ref, (F / F_ref)^2) times (1, position, row, exposure); ``references`` are the
+    column, row and exposure the terms are centred on."""
+    x_reference, y_reference, exposure_reference = references
     scaled = np.asarray(fluxes, float) / FLUX_REFERENCE
     dependence = {"": np.ones(len(sizes))}
     if position and sizes.x_detector is not None:
         dependence["position"] = (sizes.x_detector - x_reference) / 1000.0
+    if row and sizes.y_detector is not None:
+        dependence["row"] = (sizes.y_detector - y_reference) / 1000.0
     if exposure and sizes.exposure is not None:
         dependence["exposure"] = np.asarray(sizes.exposure, float) - exposure_reference
     columns = {}
@@ -89,21 +93,21 @@ def _mxy_rows(sizes, model_sigma, residual, cross_residual):
 
 
 def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, exposure=False,
-                  response=None, cross_residual=None):
+                  response=None, cross_residual=None, row=False):
     """Fit the empirical term to a size residual (and a cross-moment one).
 
     Parameters
     ----------
     sizes : SizeTable
-        Groups, positions (``x_detector``) and exposures of the entries.
+        Groups, positions (``x_detector``, ``y_detector``) and exposures of the entries.
     fluxes : ndarray (n,)
         Total flux of each entry, e-.
     model_sigma : (ndarray, ndarray)
         The model's sigma_x, sigma_y of each entry, pixels.
     residual : (ndarray, ndarray)
         Measured minus model sigma_x, sigma_y, pixels (errors from ``sizes``).
-    position, exposure : bool
-        Fit a position / an exposure dependence of the coefficients.
+    position, exposure, row : bool
+        Fit a dependence of the coefficients on the column / the exposure / the row.
     response : dict, optional
         `adaptive_response` of the measured sizes (default: the plain moments' identity):
         the coefficients are those of the patterns; both axes are fitted jointly.
@@ -116,9 +120,9 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
     -------
     EmpiricalTerm
     """
-    x_reference = float(np.mean(sizes.x_detector)) if sizes.x_detector is not None else 0.0
-    exposure_reference = float(np.mean(sizes.exposure)) if sizes.exposure is not None else 0.0
-    terms = _terms(sizes, fluxes, x_reference, exposure_reference, position, exposure)
+    references = [float(np.mean(values)) if values is not None else 0.0
+                  for values in (sizes.x_detector, sizes.y_detector, sizes.exposure)]
+    terms = _terms(sizes, fluxes, references, position, exposure, row)
     response = response or _IDENTITY
     moments = MOMENTS if cross_residual is not None else MOMENTS[:2]
     patterns = PATTERNS if cross_residual is not None else PATTERNS[:2]
@@ -148,10 +152,12 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
             coefficients.setdefault(pattern, {})[name] = float(params[column])
             errors.setdefault(pattern, {})[name] = float(np.sqrt(abs(covariance[column,
                                                                                 column])))
-    x_range = (None if sizes.x_detector is None else
-               (float(np.min(sizes.x_detector)), float(np.max(sizes.x_detector))))
-    return EmpiricalTerm(coefficients, errors=errors, x_reference=x_reference,
-                         exposure_reference=exposure_reference, x_range=x_range)
+    x_range, y_range = (None if values is None else (float(np.min(values)),
+                                                     float(np.max(values)))
+                        for values in (sizes.x_detector, sizes.y_detector))
+    return EmpiricalTerm(coefficients, errors=errors, x_reference=references[0],
+                         y_reference=references[1], exposure_reference=references[2],
+                         x_range=x_range, y_range=y_range)
 
 
 def _moment_changes(term, sizes, fluxes, response):
@@ -159,7 +165,8 @@ def _moment_changes(term, sizes, fluxes, response):
     `adaptive_response`), pixel^2."""
     x = sizes.x_detector
     exposure = None if sizes.exposure is None else np.asarray(sizes.exposure, float)
-    changes = dict(zip(PATTERNS, term.variance_change(fluxes, x=x, exposure=exposure)))
+    changes = dict(zip(PATTERNS, term.variance_change(fluxes, x=x, exposure=exposure,
+                                                      y=sizes.y_detector)))
     response = response or _IDENTITY
     return [sum(response[pattern][moment] * change for pattern, change in changes.items())
             for moment in MOMENTS]

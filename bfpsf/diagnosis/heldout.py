@@ -192,10 +192,11 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
     diagonal = any(entry["observable"] == "cross moment e2" for entry in result.unexplained)
     if not (left or diagonal) or observables.sizes is None:
         return result
-    position = any((entry.get("position_dependence") or {}).get("kind", "none") != "none"
-                   for entry in left)
-    exposure = any((entry.get("exposure_dependence") or {}).get("kind", "none") != "none"
-                   for entry in left)
+    def shows(key):
+        return any((entry.get(key) or {}).get("kind", "none") != "none" for entry in left)
+
+    position, row, exposure = (shows(key) for key in ("position_dependence", "row_dependence",
+                                                      "exposure_dependence"))
     step = _kept_step(result, state, result.confirmed)
     model = observables.spot_model
 
@@ -209,11 +210,11 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
                 if diagonal else {})
 
     response = adaptive_response(model, float(np.median(observables.sizes.peak_e)))
-    options = {"position": position, "exposure": exposure, "response": response}
+    options = {"position": position, "row": row, "exposure": exposure, "response": response}
     term = fit_empirical(*inputs(state["observables"]), **options,
                          **cross(state["observables"]))
     validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
-                  "position_term": position, "exposure_term": exposure,
+                  "position_term": position, "row_term": row, "exposure_term": exposure,
                   "diagonal_term": diagonal}
     if heldout is not None:
         validation["heldout"] = evaluate_empirical(term, *inputs(heldout), response,

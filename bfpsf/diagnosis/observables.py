@@ -107,7 +107,24 @@ def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=Non
                        correlations=correlations, meta=meta, ptc=ptc)
 
 
-def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=None,
+def position_grid(position_bins):
+    """``position_bins`` as (columns, rows): an int N is N ranges of column (the distance
+    from the amplifier) and one of row, as ``--position-bins N``; a pair as given."""
+    if np.ndim(position_bins) == 0:
+        return int(position_bins), 1
+    columns, rows = (int(value) for value in position_bins)
+    return columns, rows
+
+
+def _quantile_cells(values, count):
+    """Index 0..count-1 of each value's quantile range (all 0 for one range)."""
+    if values is None or count <= 1:
+        return None
+    edges = np.quantile(values, np.linspace(0.0, 1.0, count + 1))
+    return np.clip(np.searchsorted(edges, values, side="right") - 1, 0, count - 1)
+
+
+def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=None, y=None,
                   skew=None, position_bins=1):
     """Mean peak and sizes in quantile bins of flux for each exposure (the same bin edges for
     all), errors from the scatter pooled over the rows of each flux bin (`_pool_errors`);
@@ -117,19 +134,24 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
     depends on its sub-pixel phase (by 30 % for a 3 px FWHM), and so does its size, so bins
     of measured peak would select phases and bias the sizes with the peak.
 
-    With ``x`` (star columns, pixels) and ``position_bins`` > 1, every bin is also split in
-    that many quantile ranges of x (the distance from the amplifier): the rows carry their
-    mean x (``x_detector``) and the x range is their intercept group. With ``skew`` ((skew_x,
+    With ``x`` and ``y`` (star columns and rows, pixels) and ``position_bins`` (N, or
+    (N columns, M rows), `position_grid`) above one, every bin is also split in that many
+    quantile ranges of x (the distance from the amplifier) and of y (the row, the parallel
+    transfers): the rows carry their stars' mean x (``x_detector``) where the columns are
+    split and mean y (``y_detector``) where the rows are, and each cell of the grid is an
+    intercept group. With ``skew`` ((skew_x,
     skew_y) per star, `bfpsf.diagnosis.odd_moments.star_skewness`, and optionally the cross
     moment e2) the rows carry their means and errors (stars without one left out of it).
     """
     edges = np.quantile(flux, np.linspace(0.0, 1.0, n_bins + 1))
     index = np.clip(np.searchsorted(edges, flux, side="right") - 1, 0, n_bins - 1)
+    n_columns, n_rows = position_grid(position_bins)
+    x_cell, y_cell = _quantile_cells(x, n_columns), _quantile_cells(y, n_rows)
     column = np.zeros(flux.size, int)
-    if x is not None and position_bins > 1:
-        x_edges = np.quantile(x, np.linspace(0.0, 1.0, int(position_bins) + 1))
-        column = np.clip(np.searchsorted(x_edges, x, side="right") - 1, 0,
-                         int(position_bins) - 1)
+    if x_cell is not None:
+        column = column + x_cell * n_rows
+    if y_cell is not None:
+        column = column + y_cell
     rows, row_members = [], []
     for image in np.unique(exposure):
         for part in np.unique(column):
@@ -141,7 +163,8 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
                 row = [peak[members].mean(), sigma_x[members].mean(), sigma_y[members].mean(),
                        sigma_x[members].std(ddof=1) / root_n,
                        sigma_y[members].std(ddof=1) / root_n, image, part,
-                       np.nan if x is None else x[members].mean()]
+                       np.nan if x_cell is None else x[members].mean(),
+                       np.nan if y_cell is None else y[members].mean()]
                 for values in (skew if skew is not None else ()):
                     known = members & np.isfinite(values)
                     row += ([values[known].mean(), values[known].std(ddof=1)
@@ -156,14 +179,16 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
     # own scatter is a poor error and, as a weight, inflates chi2 by (n - 1) / (n - 3)
     _pool_errors(rows, row_members, (sigma_x, sigma_y, *(skew if skew is not None else ())))
     extra = {}
-    if x is not None:
+    if x_cell is not None:
         extra["x_detector"] = rows[:, 7]
-    if skew is not None and np.all(np.isfinite(rows[:, 8:12])) and np.all(rows[:, [9, 11]] > 0):
-        extra.update(skew_x=rows[:, 8], skew_x_err=rows[:, 9], skew_y=rows[:, 10],
-                     skew_y_err=rows[:, 11])
-    if (skew is not None and len(skew) > 2 and np.all(np.isfinite(rows[:, 12:14]))
-            and np.all(rows[:, 13] > 0)):
-        extra.update(cross=rows[:, 12], cross_err=rows[:, 13])
+    if y_cell is not None:
+        extra["y_detector"] = rows[:, 8]
+    if skew is not None and np.all(np.isfinite(rows[:, 9:13])) and np.all(rows[:, [10, 12]] > 0):
+        extra.update(skew_x=rows[:, 9], skew_x_err=rows[:, 10], skew_y=rows[:, 11],
+                     skew_y_err=rows[:, 12])
+    if (skew is not None and len(skew) > 2 and np.all(np.isfinite(rows[:, 13:15]))
+            and np.all(rows[:, 14] > 0)):
+        extra.update(cross=rows[:, 13], cross_err=rows[:, 14])
     return SizeTable(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], label=label,
                      exposure=rows[:, 5].astype(int), group=rows[:, 6].astype(int), **extra)
 
@@ -171,7 +196,7 @@ def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=No
 def _pool_errors(rows, row_members, quantities):
     """Errors of binned means from the scatter pooled over every row of the same flux bin
     (rows of a few stars each estimate their own scatter badly: 3 stars give it to 50 %)."""
-    columns = ((1, 3), (2, 4), (8, 9), (10, 11))
+    columns = ((1, 3), (2, 4), (9, 10), (11, 12))
     for values, (mean_column, error_column) in zip(quantities, columns):
         for k in {k for k, _ in row_members}:
             deviations, count = [], 0
@@ -321,10 +346,11 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     read by `bfpsf.io.amplifiers`). ``background`` is the images' sky level, ADU per pixel
     (default: the sky surface of each image, `bfpsf.measure.sky.estimate_sky`).
     ``saturation`` is the images' saturation level, ADU (default the header's SATURATE or a variant; the calibration's
-    turnoff where lower): saturated stars are flagged and not used. ``position_bins`` > 1
-    also splits
-    the bins by the stars' column (`_binned_sizes`): the residual's dependence on the distance
-    from the amplifier, each row then carrying its stars' mean column (``x_detector``). Every
+    turnoff where lower): saturated stars are flagged and not used. ``position_bins`` N > 1
+    also splits the bins by the stars' column (`_binned_sizes`): the residual's dependence on
+    the distance from the amplifier, each row then carrying its stars' mean column
+    (``x_detector``); (N, M) splits them in N ranges of column and M of row (``y_detector``,
+    the parallel transfers). Every
     row carries the stars' mean skewness (`bfpsf.diagnosis.odd_moments.star_skewness`), the
     odd part of the residual. ``edge`` is the border of the flats left out of their statistics
     (default that of `bfpsf.calibrate`).
@@ -357,7 +383,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     gain = cal.gain if gain is None else gain
 
     fluxes, peaks, sigma_x, sigma_y, exposure = [], [], [], [], []
-    columns, skews = [], []
+    columns, rows, skews = [], [], []
     pixels, tables, sky_noise, levels = [], [], [], []
     for index, path in enumerate(images):
         amplifiers = read_amplifiers(path, amp, what="image")
@@ -384,26 +410,28 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         sigma_y.append(np.asarray(table["sigma_y"], float)[good])
         exposure.append(np.full(good.sum(), index))
         columns.append(np.asarray(table["x"], float)[good])
+        rows.append(np.asarray(table["y"], float)[good])
         # the odd moments and the cross moment e2 (measure_sources' column) of each star
         skews.append(np.column_stack([np.array(star_skewness(
             prepared.sky_subtracted, table[good])).T.reshape(-1, 2),
             np.asarray(table["e2"], float)[good]]))
-    fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews = (
-        np.concatenate(v) for v in (fluxes, peaks, sigma_x, sigma_y, exposure, columns, skews))
+    fluxes, peaks, sigma_x, sigma_y, exposure, columns, rows, skews = (
+        np.concatenate(v) for v in (fluxes, peaks, sigma_x, sigma_y, exposure, columns, rows,
+                                    skews))
     if fluxes.size < 9:  # the size bins need 3 of 3 stars; no quantile of nothing
         msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean star(s), too few to "
                "diagnose (9 or more)")
         raise BFPSFInputError(msg, fluxes.size)
-    if n_bins * position_bins > fluxes.size:  # more bins than stars; before they allocate
+    cells = int(np.prod(position_grid(position_bins)))
+    if n_bins * cells > fluxes.size:  # more bins than stars; before they allocate
         msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean stars cannot fill "
-               f"{n_bins} peak bins x {position_bins} position bin(s) of 3 or more stars; "
+               f"{n_bins} peak bins x {cells} position bin(s) of 3 or more stars; "
                f"give --bins N --position-bins M (n_bins, position_bins) with N x M <= "
                f"{max(fluxes.size // 3, 1)}")
         raise BFPSFInputError(msg, n_bins)
+    # (one position range: the bins' mean columns or rows would differ by chance only)
     sizes = _binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
-                          f"{len(images)} images",
-                          # one position bin: the bins' mean columns differ by chance only
-                          x=columns if position_bins > 1 else None, skew=skews.T,
+                          f"{len(images)} images", x=columns, y=rows, skew=skews.T,
                           position_bins=position_bins)
     # P0 from the exposures the loop fits (`bfpsf.diagnosis.loop.split_observables`)
     fitted = np.unique(sizes.exposure)

@@ -42,7 +42,7 @@ smallest p-value (the observable that contradicts it) with the amplitudes of its
 
 Dimensions (`signature_parts`): ``observable`` (linearity, correlations, PTC, sizes: flats and
 stars must agree), ``axis`` (sizes X, Y), ``position`` (near and far half from the amplifier,
-with ``SizeTable.x_detector``) and ``exposure_order`` (first and second half of the night,
+with ``SizeTable.x_detector``), ``row`` (low and high rows, with ``SizeTable.y_detector``) and ``exposure_order`` (first and second half of the night,
 with ``SizeTable.exposure``). ``flux`` (faint and bright half of the peaks) is available but
 off by default: on the null user path (FITS images, P0 fitted from the stars) the faint
 half's BF amplitude differs from the bright half's by more than 3 sigma (the faint stars'
@@ -85,7 +85,7 @@ SIGNATURE_ALPHA = 1e-3
 #: rendered second-order spots it moved 5 % at t = 40 and 31 +- 12 % at t = 10; on stars
 #: without BF, a linear residual, 95 %).
 TEMPLATE_TOLERANCE = {"observable": 0.3, "axis": 0.1, "flux": 0.3, "position": 0.0,
-                      "exposure_order": 0.0, "flux_shape": 0.15}
+                      "row": 0.0, "exposure_order": 0.0, "flux_shape": 0.15}
 
 
 def _halves(values):
@@ -137,6 +137,8 @@ def signature_parts(problem, observables, *, flux=False):
     splits = {"flux": (sizes.peak_e, ("faint", "bright"))} if flux else {}
     if sizes.x_detector is not None:
         splits["position"] = (sizes.x_detector, ("near the amplifier", "far from it"))
+    if sizes.y_detector is not None:
+        splits["row"] = (sizes.y_detector, ("low rows", "high rows"))
     if sizes.exposure is not None:
         order = np.unique(sizes.exposure, return_inverse=True)[1]
         splits["exposure_order"] = (order, ("early", "late"))
@@ -395,7 +397,7 @@ def describe_entry(entry):
         words.append("with a 1/flux part ("
                      + ("larger" if dependence["inverse_1e5"] > 0 else "smaller")
                      + " on the faint stars)")
-    for key in ("position_dependence", "exposure_dependence"):
+    for key in ("position_dependence", "row_dependence", "exposure_dependence"):
         kind = (entry.get(key) or {}).get("kind")
         if kind and kind != "none":
             words.append(kind)

@@ -42,8 +42,8 @@ def _column(values, name, n=None, positive=False):
 
 
 #: Optional per-entry columns of a `SizeTable` beyond the colour and the exposure.
-_OPTIONAL_COLUMNS = ("x_detector", "skew_x", "skew_y", "skew_x_err", "skew_y_err", "cross",
-                     "cross_err")
+_OPTIONAL_COLUMNS = ("x_detector", "y_detector", "skew_x", "skew_y", "skew_x_err", "skew_y_err",
+                     "cross", "cross_err")
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,8 @@ class SizeTable:
         Mean position of the entry's stars on the detector along X (distance from the
         amplifier), pixels: the position dependence of the residual
         (`bfpsf.diagnosis.signature`).
+    y_detector : ndarray (n,) or None
+        The same along Y (the row: the parallel transfers to the serial register), pixels.
     skew_x, skew_y, skew_x_err, skew_y_err : ndarray (n,) or None
         Third standardised moments of the stars along X and Y (`bfpsf.validation.effects_bench.skewness`)
         and their errors: the odd (centroid- and skew-like) part of the residual.
@@ -91,6 +93,7 @@ class SizeTable:
     label: str = ""
     exposure: np.ndarray = None
     x_detector: np.ndarray = None
+    y_detector: np.ndarray = None
     skew_x: np.ndarray = None
     skew_y: np.ndarray = None
     skew_x_err: np.ndarray = None

@@ -152,7 +152,8 @@ def describe_unexplained(problem, observables, model, prediction=None):
     (``SizeTable.skew_x``, ``skew_y``), else that of the stacked star residual under
     reflection along the axis; its flux dependence the highest significant power of peak;
     its ``position_dependence`` (the slope's change with the distance from the amplifier,
-    per 1000 pixels, with ``SizeTable.x_detector``) and ``exposure_dependence`` (per exposure
+    per 1000 pixels, with ``SizeTable.x_detector``), ``row_dependence`` (the same along the
+    rows, with ``SizeTable.y_detector``) and ``exposure_dependence`` (per exposure
     of the night, with ``SizeTable.exposure``), each with its significance and a kind
     (``none`` below `UNEXPLAINED_NSIGMA`); ``flats`` says whether a flat observable is
     unexplained too (``stars; the flats' linearity too``, naming them: the same effect or
@@ -174,7 +175,7 @@ def describe_unexplained(problem, observables, model, prediction=None):
     list of dict
         {observable, axis, parity, flux_dependence, significance (sigma)} and, for sizes,
         sign, slope, slope_err (the noise's and the prediction's), position_dependence,
-        exposure_dependence, flats.
+        row_dependence, exposure_dependence, flats.
     """
     residual = problem.residual - model
     out = []
@@ -202,12 +203,18 @@ def describe_unexplained(problem, observables, model, prediction=None):
                                                                  sizes.intercepts),
                              "significance": float(significance),
                              "slope": float(fit.slope), "slope_err": float(slope_err),
-                             "position_dependence": None, "exposure_dependence": None}
+                             "position_dependence": None, "row_dependence": None,
+                             "exposure_dependence": None}
                     if sizes.x_detector is not None and np.ptp(sizes.x_detector) > 0:
                         entry["position_dependence"] = _dependence(
                             sizes, values, errors, sizes.x_detector, 1000.0,
                             ("rising with distance from the amplifier",
                              "falling with distance from the amplifier"))
+                    if sizes.y_detector is not None and np.ptp(sizes.y_detector) > 0:
+                        entry["row_dependence"] = _dependence(
+                            sizes, values, errors, sizes.y_detector, 1000.0,
+                            ("rising with the row (parallel transfers)",
+                             "falling with the row (parallel transfers)"))
                     if sizes.exposure is not None and np.unique(sizes.exposure).size > 2:
                         order = np.unique(sizes.exposure, return_inverse=True)[1]
                         entry["exposure_dependence"] = _dependence(

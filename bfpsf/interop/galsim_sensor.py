@@ -204,20 +204,23 @@ class BFSensor(galsim.Sensor):
         if self._base_delta is not None:
             collected -= self._base_delta
         collected = collected + self._empirical_delta(collected - self._base, self._landed,
-                                                      image.bounds.xmin)
+                                                      image.bounds.xmin, image.bounds.ymin)
         image.array[:, :] = collected / self.gain
         return added_flux
 
-    def _empirical_delta(self, collected_e, landed_e, xmin):
+    def _empirical_delta(self, collected_e, landed_e, xmin, ymin):
         """The EMPIRICAL term of one stamp's star (0 without a term): its pattern on the
         star's collected charge ``collected_e``, at the landed charge's total and
-        charge-weighted column (GalSim's 1-based ``xmin`` -> bfpsf's 0-based columns)."""
+        charge-weighted column and row (GalSim's 1-based ``xmin``, ``ymin`` -> bfpsf's
+        0-based pixels)."""
         total = float(landed_e.sum())
         if self.empirical is None or total <= 0:
             return 0.0
         columns = np.arange(landed_e.shape[1]) + xmin - 1.0
+        rows = np.arange(landed_e.shape[0]) + ymin - 1.0
         column = float((landed_e.sum(axis=0) * columns).sum() / total)
-        return self.empirical.delta(collected_e, total, column, total=total)
+        row = float((landed_e.sum(axis=1) * rows).sum() / total)
+        return self.empirical.delta(collected_e, total, column, total=total, y=row)
 
     def calculate_pixel_areas(self, image, orig_center=galsim.PositionI(0, 0), use_flux=True):
         """Pixel areas at the end of the exposure, 1 + sum_(dx,dy) a(dx, dy) Q(x+dx, y+dy).
@@ -315,6 +318,7 @@ def draw_with_bf(profile, shifts, *, image=None, nx=None, ny=None, scale=1.0, of
     galsim.PoissonDeviate(galsim.BaseDeviate(rng)).generate_from_expectation(counts)
     collected = sensor._forward(counts)  # pylint: disable=protected-access
     # a refined calibration's EMPIRICAL term, as BFSensor adds it to a stamp's star
-    collected = collected + sensor._empirical_delta(collected, counts, image.bounds.xmin)
+    collected = collected + sensor._empirical_delta(collected, counts, image.bounds.xmin,
+                                                    image.bounds.ymin)
     image.array[:, :] = collected / gain
     return image

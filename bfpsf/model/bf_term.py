@@ -119,9 +119,9 @@ class BFTerm:
     ``density_profile``, ``empirical`` and tables): R at any phase, the operator on any
     charge, and the flux beyond which the first-order model breaks."""
 
-    def _bf_term_exact(self, dx, dy, flux, x=None):
+    def _bf_term_exact(self, dx, dy, flux, position=None):
         """g F |F| R at offsets (dx, dy), R computed on the pixel grid through each point
-        (and the EMPIRICAL term of a star at column ``x``, `_stamp_delta`)."""
+        (and the EMPIRICAL term of a star at ``position`` = (x, y), `_stamp_delta`)."""
         result = np.zeros(dx.shape)
         # The grid through a point (x, y) has the phase of its offset from the star.
         phase_x = dx - np.floor(dx + 0.5)
@@ -133,7 +133,7 @@ class BFTerm:
             px, py = phase_x[members][0], phase_y[members][0]
             # Offsets dx = n + px from the star: the star sits at phase -px on this grid.
             stamp = pixelised_stamp(self, x_phase=-px, y_phase=-py, half_size=half)
-            delta = self._stamp_delta(stamp, flux, -px, -py, x)
+            delta = self._stamp_delta(stamp, flux, -px, -py, position)
             col = np.rint(dx[members] - px).astype(int) + half
             row = np.rint(dy[members] - py).astype(int) + half
             inside = (col >= 0) & (col <= 2 * half) & (row >= 0) & (row <= 2 * half)
@@ -170,10 +170,10 @@ class BFTerm:
                           f"negative above {self.first_order_flux:.3g} for these boundary shifts",
                           BFPSFWarning, stacklevel=3)
 
-    def _stamp_delta(self, stamp, flux, x_phase, y_phase, x=None):
+    def _stamp_delta(self, stamp, flux, x_phase, y_phase, position=None):
         """BF term (image unit) of a star of flux F on its pixelised unit stamp (star at
         ``(x_phase, y_phase)`` from the central pixel), as mode='exact' computes it, with the
-        EMPIRICAL term of a star at column ``x`` (default the term's reference column)."""
+        EMPIRICAL term of a star at ``position`` = (x, y) (default the term's reference)."""
         density = self.boundary_density(x_phase, y_phase, stamp.shape[0] // 2)
         if self.buildup_steps is not None:
             delta = self._buildup_delta(stamp, flux, density)
@@ -183,14 +183,16 @@ class BFTerm:
         # the EMPIRICAL term of a refined calibration (issue 22; not physics), on the star's
         # image with its BF: the table mode interpolates the same (`_empirical_table_term`)
         if self.empirical is not None:
+            x, y = (None, None) if position is None else position
             delta = delta + self.empirical.delta(flux * stamp + delta,
                                                  self.electrons_per_unit * abs(flux), x,
-                                                 total=flux)
+                                                 total=flux, y=y)
         return delta
 
-    def _empirical_table_term(self, xi, yi, outside, flux, x):
+    def _empirical_table_term(self, xi, yi, outside, flux, position):
         """The EMPIRICAL term in table mode (image unit) at fractional data indices, for a
-        star of flux F at column ``x``: sum_k v_k(F, x) B_k[F p + g F |F| R], to second order
+        star of flux F at ``position`` = (x, y): sum_k v_k(F, x, y) B_k[F p + g F |F| R], to
+        second order
         in the BF term, from the series of B_k[P0] along R tabulated at every phase
         (`bfpsf.model.empirical.pattern_tables`), as ``star_image`` applies it to the star's
         image."""
@@ -204,8 +206,8 @@ class BFTerm:
             self._tables["pattern_splines"] = splines
         g = self.electrons_per_unit
         term = np.zeros(np.shape(xi))
-        for pattern, change in zip(PATTERNS, self.empirical.variance_change(g * abs(flux),
-                                                                            x=x)):
+        changes = self.empirical.variance_change(g * abs(flux), x=position[0], y=position[1])
+        for pattern, change in zip(PATTERNS, changes):
             if change:
                 e = g * abs(flux)
                 term += float(change) * flux * sum(e ** n * spline(xi, yi, grid=False)

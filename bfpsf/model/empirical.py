@@ -20,10 +20,12 @@ along its axis of any star, B_xy as much to Mxy alone (exactly for the unweighte
 a pixelised image away from its edges; no transfer crosses the stamp's edge, so the flux is
 conserved exactly), and
 
-    c_k(x, t) = constant_k + position_k (x - x_ref) / 1000 + exposure_k (t - t_ref),
-    q_k(x, t) = flux2_k + flux2_position_k (x - x_ref) / 1000 + flux2_exposure_k (t - t_ref),
+    c_k(x, y, t) = constant_k + position_k (x - x_ref) / 1000 + row_k (y - y_ref) / 1000
+                   + exposure_k (t - t_ref),
+    q_k(x, y, t) = the same with flux2_k, flux2_position_k, flux2_row_k, flux2_exposure_k,
 
-x the column (distance from the amplifier, pixels), t the exposure's order in the night. F_ref
+x the column (distance from the amplifier, pixels), y the row (the parallel transfers), t the
+exposure's order in the night. F_ref
 is 1e6 e- of total flux. It is labelled empirical everywhere: it describes, it does not
 explain, and it is valid only over the fluxes, positions and exposures it was learned on.
 
@@ -54,7 +56,10 @@ __all__ = ["EmpiricalTerm", "PATTERNS", "PATTERN_KIND", "FLUX_REFERENCE", "apply
 PATTERNS = ("xx", "yy", "xy")
 #: Reference total flux of the coefficients, e-.
 FLUX_REFERENCE = 1e6
-_TERMS = ("constant", "position", "exposure", "flux2", "flux2_position", "flux2_exposure")
+_TERMS = ("constant", "position", "row", "exposure", "flux2", "flux2_position", "flux2_row",
+          "flux2_exposure")
+#: The terms that change over the detector: along the columns and along the rows.
+_FIELD_TERMS = ("position", "flux2_position", "row", "flux2_row")
 
 
 #: The pattern's name in a term's record (`EmpiricalTerm.to_dict`): a record without it, or
@@ -197,22 +202,24 @@ class EmpiricalTerm:
     coefficients : dict
         Pattern (``'xx'``, ``'yy'``, ``'xy'``; a missing one is 0: a record fitted before the
         diagonal pattern holds two) -> {``constant`` (pixel^2 per F_ref), ``position``
-        (pixel^2 per F_ref per 1000 pixels), ``exposure`` (pixel^2 per F_ref per exposure),
-        ``flux2``, ``flux2_position``, ``flux2_exposure`` (the same for q, pixel^2 per
-        F_ref^2)}; missing terms are 0.
+        (pixel^2 per F_ref per 1000 pixels of column), ``row`` (the same per 1000 rows),
+        ``exposure`` (pixel^2 per F_ref per exposure), ``flux2``, ``flux2_position``,
+        ``flux2_row``, ``flux2_exposure`` (the same for q, pixel^2 per F_ref^2)}; missing
+        terms are 0.
     errors : dict
         Same layout: 1-sigma errors.
-    x_reference : float
-        Column the position term is centred on, pixels.
+    x_reference, y_reference : float
+        Column the position term and row the row term are centred on, pixels.
     exposure_reference : float
         Exposure order the exposure term is centred on.
     validation : dict
         How it did on data it was not fitted on (`bfpsf.diagnosis.empirical_fit`).
     label : str
         Always ``'empirical'``.
-    x_range : (float, float) or None
-        Columns of the stars it was learned on, pixels (a PSF model that applies a position
-        term takes it as its field nodes, `bfpsf.model.psf.FluxDependentPSF.field_nodes`).
+    x_range, y_range : (float, float) or None
+        Columns and rows of the stars it was learned on, pixels (a PSF model that applies a
+        position or row term takes them as its field nodes,
+        `bfpsf.model.psf.FluxDependentPSF.field_nodes`).
     """
 
     coefficients: dict
@@ -222,6 +229,8 @@ class EmpiricalTerm:
     validation: dict = field(default_factory=dict)
     label: str = "empirical"
     x_range: tuple = None
+    y_reference: float = 0.0
+    y_range: tuple = None
 
     def __post_init__(self):
         for pattern, terms in self.coefficients.items():
@@ -233,48 +242,66 @@ class EmpiricalTerm:
                 msg = f"empirical coefficients of {pattern!r} must be finite, got {terms}"
                 raise BFPSFValueError(msg, terms)
 
-    def coefficient(self, pattern, x=None, exposure=None, *, order=1):
+    def coefficient(self, pattern, x=None, exposure=None, *, order=1, y=None):
         """c_k (``order=1``, pixel^2 per F_ref) or q_k (``order=2``, per F_ref^2) at column
-        ``x`` and exposure order ``exposure`` (the references when None)."""
+        ``x``, row ``y`` and exposure order ``exposure`` (the references when None)."""
         terms = self.coefficients.get(pattern, {})
         prefix = "" if order == 1 else "flux2_"
         value = terms.get("constant" if order == 1 else "flux2", 0.0)
         if x is not None:
             value = value + terms.get(prefix + "position", 0.0) * (
                 np.asarray(x, float) - self.x_reference) / 1000.0
+        if y is not None:
+            value = value + terms.get(prefix + "row", 0.0) * (
+                np.asarray(y, float) - self.y_reference) / 1000.0
         if exposure is not None:
             value = value + terms.get(prefix + "exposure", 0.0) * (
                 np.asarray(exposure, float) - self.exposure_reference)
         return value
 
-    def variance_change(self, flux, x=None, exposure=None):
-        """(dMxx, dMyy, dMxy) of a star of total flux ``flux`` (e-), pixel^2 (`PATTERNS`)."""
+    def variance_change(self, flux, x=None, exposure=None, *, y=None):
+        """(dMxx, dMyy, dMxy) of a star of total flux ``flux`` (e-) at column ``x`` and row
+        ``y``, pixel^2 (`PATTERNS`)."""
         scale = np.asarray(flux, float) / FLUX_REFERENCE
-        return tuple(scale * self.coefficient(pattern, x, exposure)
-                     + scale ** 2 * self.coefficient(pattern, x, exposure, order=2)
+        return tuple(scale * self.coefficient(pattern, x, exposure, y=y)
+                     + scale ** 2 * self.coefficient(pattern, x, exposure, order=2, y=y)
                      for pattern in PATTERNS)
 
-    def delta(self, image, flux, x=None, exposure=None, total=None):
-        """The term's change of a star image of total flux ``flux`` (e-), image units;
-        ``total`` is that flux in the image's unit (default the image's sum:
-        `apply_pattern`)."""
-        changes = self.variance_change(float(flux), x, exposure)
+    def delta(self, image, flux, x=None, exposure=None, total=None, *, y=None):
+        """The term's change of a star image of total flux ``flux`` (e-) at column ``x`` and
+        row ``y``, image units; ``total`` is that flux in the image's unit (default the
+        image's sum: `apply_pattern`)."""
+        changes = self.variance_change(float(flux), x, exposure, y=y)
         out = np.zeros_like(np.asarray(image, float))
         for pattern, change in zip(PATTERNS, changes):
             if change:
                 out = out + float(change) * apply_pattern(image, pattern, total)
         return out
 
+    def _depends_on(self, names):
+        return any(terms.get(name, 0.0) for terms in self.coefficients.values()
+                   for name in names)
+
     @property
     def position_dependent(self):
-        """True when a coefficient changes with the column (a ``position`` term)."""
-        return any(terms.get(name, 0.0) for terms in self.coefficients.values()
-                   for name in ("position", "flux2_position"))
+        """True when a coefficient changes over the detector (a ``position`` term along the
+        columns or a ``row`` term)."""
+        return self._depends_on(_FIELD_TERMS)
 
-    def at(self, x=None, exposure=None):
+    @property
+    def column_dependent(self):
+        """True when a coefficient changes with the column."""
+        return self._depends_on(("position", "flux2_position"))
+
+    @property
+    def row_dependent(self):
+        """True when a coefficient changes with the row."""
+        return self._depends_on(("row", "flux2_row"))
+
+    def at(self, x=None, exposure=None, y=None):
         """The term with its position and exposure dependence evaluated: constants only (for
         a PSF that holds one position and one exposure)."""
-        return self.at_exposure(exposure).at_position(x)
+        return self.at_exposure(exposure).at_position(x, y)
 
     def at_exposure(self, exposure=None):
         """The term at exposure order ``exposure`` (default its reference): the exposure
@@ -283,34 +310,44 @@ class EmpiricalTerm:
         coefficients = {}
         for pattern, terms in self.coefficients.items():
             coefficients[pattern] = {name: value for name, value in terms.items()
-                                     if name in ("position", "flux2_position")}
+                                     if name in _FIELD_TERMS}
             coefficients[pattern]["constant"] = float(self.coefficient(pattern, None,
                                                                        exposure))
             coefficients[pattern]["flux2"] = float(self.coefficient(pattern, None, exposure,
                                                                     order=2))
         reference = self.exposure_reference if exposure is None else float(exposure)
-        return EmpiricalTerm(coefficients, errors=self.errors, x_reference=self.x_reference,
-                             exposure_reference=reference, validation=self.validation,
-                             x_range=self.x_range)
+        return self._replaced(coefficients, exposure_reference=reference)
 
-    def at_position(self, x=None):
-        """The term at column ``x`` (default its reference): the position terms folded into
-        the constants (the exposure terms kept)."""
-        if x is None or not self.position_dependent:
+    def _replaced(self, coefficients, **references):
+        """A copy with other coefficients (and references)."""
+        options = {"errors": self.errors, "x_reference": self.x_reference,
+                   "y_reference": self.y_reference,
+                   "exposure_reference": self.exposure_reference,
+                   "validation": self.validation, "x_range": self.x_range,
+                   "y_range": self.y_range}
+        options.update(references)
+        return EmpiricalTerm(coefficients, **options)
+
+    def at_position(self, x=None, y=None):
+        """The term at column ``x`` and row ``y`` (default its references): the position and
+        row terms folded into the constants (the exposure terms kept)."""
+        if not self.position_dependent or (x is None and y is None):
             return self
         coefficients = {}
         for pattern, terms in self.coefficients.items():
             coefficients[pattern] = {name: value for name, value in terms.items()
                                      if name in ("exposure", "flux2_exposure")}
+            field_only = EmpiricalTerm({pattern: {key: value for key, value in terms.items()
+                                                  if key not in ("exposure",
+                                                                 "flux2_exposure")}},
+                                       x_reference=self.x_reference,
+                                       y_reference=self.y_reference)
             for name, order in (("constant", 1), ("flux2", 2)):
-                terms_x = {key: terms.get(key, 0.0) for key in ("constant", "position",
-                                                                 "flux2", "flux2_position")}
-                coefficients[pattern][name] = float(EmpiricalTerm(
-                    {pattern: terms_x}, x_reference=self.x_reference).coefficient(
-                        pattern, x, order=order))
-        return EmpiricalTerm(coefficients, errors=self.errors, x_reference=float(x),
-                             exposure_reference=self.exposure_reference,
-                             validation=self.validation, x_range=self.x_range)
+                coefficients[pattern][name] = float(field_only.coefficient(
+                    pattern, x, order=order, y=y))
+        return self._replaced(coefficients,
+                              x_reference=self.x_reference if x is None else float(x),
+                              y_reference=self.y_reference if y is None else float(y))
 
     def to_dict(self):
         """JSON-ready form (stored in a refined calibration's ``refinement['empirical']`` and
@@ -323,6 +360,10 @@ class EmpiricalTerm:
                   "validation": self.validation}
         if self.x_range is not None:
             record["x_range"] = [float(value) for value in self.x_range]
+        if self.y_range is not None:
+            record["y_range"] = [float(value) for value in self.y_range]
+        if self.y_reference:
+            record["y_reference"] = float(self.y_reference)
         return record
 
     @classmethod
@@ -348,7 +389,10 @@ class EmpiricalTerm:
                    exposure_reference=float(record.get("exposure_reference", 0.0)),
                    validation=record.get("validation", {}),
                    x_range=None if record.get("x_range") is None else tuple(
-                       float(value) for value in record["x_range"]))
+                       float(value) for value in record["x_range"]),
+                   y_reference=float(record.get("y_reference", 0.0)),
+                   y_range=None if record.get("y_range") is None else tuple(
+                       float(value) for value in record["y_range"]))
 
     @classmethod
     def from_calibration(cls, calibration):

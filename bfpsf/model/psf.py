@@ -124,11 +124,13 @@ class FluxDependentPSF(BFTerm, BFPSFModel):
     @property
     def reference_position(self):
         """The position taken when none is given: (0, 0), the model being the same
-        everywhere; with an EMPIRICAL term that changes with the column, that term's
-        reference column (rounded to a pixel centre) and row 0."""
-        if self.empirical is not None and self.empirical.position_dependent:
-            return (float(np.floor(self.empirical.x_reference + 0.5)), 0.0)
-        return (0.0, 0.0)
+        everywhere; with an EMPIRICAL term that changes with the column or the row, that
+        term's reference column or row (rounded to a pixel centre)."""
+        term = self.empirical
+        if term is None or not term.position_dependent:
+            return (0.0, 0.0)
+        return (float(np.floor(term.x_reference + 0.5)) if term.column_dependent else 0.0,
+                float(np.floor(term.y_reference + 0.5)) if term.row_dependent else 0.0)
 
     def __init__(self, data, shifts, *, flux=flux.default, x_0=x_0.default, y_0=y_0.default,
                  origin=None, oversampling=1, flux_unit=None, gain=None, mode="table",
@@ -297,27 +299,31 @@ class FluxDependentPSF(BFTerm, BFPSFModel):
 
     def at(self, x=None, y=None):
         """The model at image position (x, y): a single P(F) is the same everywhere, itself;
-        with an EMPIRICAL term that changes with the column, a copy with the term at ``x``."""
-        if x is None or self.empirical is None or not self.empirical.position_dependent:
+        with an EMPIRICAL term that changes with the column or the row, a copy with the term
+        at (x, y)."""
+        if (x is None and y is None) or not self.varies_over_field:
             return self
-        return self.with_empirical_term(self.empirical.at_position(x))
+        return self.with_empirical_term(self.empirical.at_position(x, y))
 
     @property
     def varies_over_field(self):
-        """True only with an EMPIRICAL term that changes with the column."""
+        """True only with an EMPIRICAL term that changes with the column or the row."""
         return self.empirical is not None and self.empirical.position_dependent
 
     @property
     def field_nodes(self):
         """(x_nodes, y_nodes), pixels: the reference position; with an EMPIRICAL term that
-        changes with the column, the ends of the columns it was learned on (the term is
-        linear in the column, so interpolating between them is exact)."""
+        changes with the column (the row), the ends of the columns (rows) it was learned on
+        (the term is linear in each, so interpolating between them is exact)."""
         x_ref, y_ref = self.reference_position
-        if self.varies_over_field and self.empirical.x_range is not None:
-            low, high = self.empirical.x_range
-            if high > low:
-                return np.array([low, high], dtype=float), np.array([y_ref])
-        return np.array([x_ref]), np.array([y_ref])
+        nodes = [np.array([x_ref]), np.array([y_ref])]
+        if self.varies_over_field:
+            term = self.empirical
+            for axis, (dependent, span) in enumerate(((term.column_dependent, term.x_range),
+                                                      (term.row_dependent, term.y_range))):
+                if dependent and span is not None and span[1] > span[0]:
+                    nodes[axis] = np.array(span, dtype=float)
+        return tuple(nodes)
 
     def _value_state(self):
         options = self.options
@@ -413,12 +419,12 @@ class FluxDependentPSF(BFTerm, BFPSFModel):
                 xi, yi, grid=False)
             result[outside] = self.fill_value
             if self.empirical is not None:
-                result += self._empirical_table_term(xi, yi, outside, flux, x_0)
+                result += self._empirical_table_term(xi, yi, outside, flux, (x_0, y_0))
             return result.reshape(shape)
         result = flux * self._base_spline(xi, yi, grid=False)
         result[outside] = self.fill_value
         # Charge may cross the edge of the P0 support: keep it (conservation).
-        result += self._bf_term_exact(dx, dy, flux, x_0)
+        result += self._bf_term_exact(dx, dy, flux, (x_0, y_0))
         return result.reshape(shape)
 
     def _table_spline(self, weight):
@@ -459,7 +465,7 @@ class FluxDependentPSF(BFTerm, BFPSFModel):
         self._warn_beyond_first_order(flux)
         stamp = pixelised_stamp(self, x_phase=x_phase, y_phase=y_phase, half_size=half)
         return flux * stamp + self._stamp_delta(stamp, flux, x_phase, y_phase,
-                                                self.position_or_reference(x, y)[0])
+                                                self.position_or_reference(x, y))
 
     def __repr__(self):
         return (f"<FluxDependentPSF(flux={float(self.flux.value):g}, "

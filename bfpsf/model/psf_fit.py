@@ -35,6 +35,7 @@ all stars at once: 3600 stars and a 3 x 3 grid take about a minute on one core
 (``benchmarks/bench_psf_fit.py``).
 """
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,8 +53,14 @@ from .psf_fit_stars import STAR_FLAGS, as_star_list, cut_stars, neighbour_table,
 
 __all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS", "DEFAULT_SIZE"]
 
+log = logging.getLogger(__name__)
+
 #: Default side of P0's support and of the star cutouts, pixels (``bfpsf psf --size``).
 DEFAULT_SIZE = 25
+#: Chi-square, in units of the least one so far, at which the iteration is taken to diverge
+#: and stops (the least one's iterate is returned; a slow drift away from the optimum, 1.3x
+#: on a sparse grid, is left to run).
+DIVERGED = 10.0
 
 
 @dataclass(frozen=True)
@@ -136,13 +143,13 @@ def _star_models(grid, weights, stars, free_positions):
 
 def _with_empirical(term, model, d_flux, stars):
     """Every star's table-mode model and flux derivative with the EMPIRICAL term of a
-    refined calibration (`bfpsf.model.empirical`) at its flux and column: sum_k v_k(F, x)
+    refined calibration (`bfpsf.model.empirical`) at its flux, column and row: sum_k v_k(F, x, y)
     B_k[model], as `FluxDependentPSF` applies it (its position derivative neglected)."""
     flux = np.abs(stars.flux)
     step = 1e-3 * np.maximum(flux, 1.0)
-    changes = term.variance_change(flux, x=stars.x_0)
+    changes = term.variance_change(flux, x=stars.x_0, y=stars.y_0)
     slopes = [(after - before) / step for after, before in
-              zip(term.variance_change(flux + step, x=stars.x_0), changes)]
+              zip(term.variance_change(flux + step, x=stars.x_0, y=stars.y_0), changes)]
     signs = np.sign(stars.flux)[:, None, None]
     out, derivative = model.copy(), d_flux.copy()
     for pattern, change, slope in zip(PATTERNS, changes, slopes):
@@ -369,10 +376,15 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         weight = np.where(((stars.flags & 8) == 0)[:, None, None] & stars.p0[:, None, None],
                           flux**2 / variance, 0.0)
         update = node_solution(residual / flux, weight, dense_weights, xs, ys, npix)
-        new_data = normalise_nodes(
-            [node + damping * without_translation(step, node)
-             for node, step in zip(fitted.data, update)], (over, over), x_nodes, y_nodes,
-            dense_weights)
+        stepped = [node + damping * without_translation(step, node)
+                   for node, step in zip(fitted.data, update)]
+        if chi2 > DIVERGED * best[0] or not all(node.sum() > 0 for node in stepped):
+            # diverging (a new user's 54 stars of one exposure: P0's total went negative 12
+            # iterations after the positions were freed): the best iterate is the result
+            log.warning("P0 fit diverging at iteration %d (chi-square %.3g, least %.3g): "
+                        "keeping the iterate of least chi-square", iteration, chi2, best[0])
+            break
+        new_data = normalise_nodes(stepped, (over, over), x_nodes, y_nodes, dense_weights)
         change = float(max(np.abs(new - old).max() / np.abs(old).max()
                            for new, old in zip(new_data, fitted.data)))
         changes.append(change)
