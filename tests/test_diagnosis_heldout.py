@@ -277,7 +277,7 @@ def test_binned_size_errors_give_chi2_one_with_few_stars_per_bin():
     """Six stars per flux bin and exposure (a new user's field of stars at random sub-pixel
     phases): each bin's own scatter as its error made the null's size chi2 per point 2.8 and
     named effects on it; the scatter pooled over the exposures gives chi2 per point 1."""
-    from bfpsf.diagnosis.observables import _binned_sizes
+    from bfpsf.diagnosis.binning import binned_sizes
 
     rng = np.random.default_rng(11)
     levels, exposures, per_bin = 6, 40, 6
@@ -287,7 +287,7 @@ def test_binned_size_errors_give_chi2_one_with_few_stars_per_bin():
     # the phase scatter of a pixelised star's size: 0.02 px, the same at every exposure
     sigma_x = truth_x + 0.02 * rng.standard_normal(flux.size)
     sigma_y = 1.25 + 0.02 * rng.standard_normal(flux.size)
-    table = _binned_sizes(flux, flux / 16, sigma_x, sigma_y, exposure, levels, "sizes")
+    table = binned_sizes(flux, flux / 16, sigma_x, sigma_y, exposure, levels, "sizes")
     expected = 1.30 + 0.02 * np.array([flux[(exposure == e) & np.isclose(flux, f, rtol=1e-9)]
                                        .mean() for e, f in zip(table.exposure,
                                                                16 * table.peak_e)]) / 1e6

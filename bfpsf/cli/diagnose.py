@@ -64,7 +64,8 @@ def add_parser(subparsers):
                       help="also split the bins in N ranges of column (distance from the "
                            "amplifier), or N of column x M of row (the parallel transfers: "
                            "1x3 splits the rows only), for the residual's position "
-                           "dependence (default 1)")
+                           "dependence (default: 2x2 where every exposure has 12 stars "
+                           "per peak bin, else 1)")
     tables = parser.add_argument_group("table mode")
     tables.add_argument("--correlations", metavar="FILE",
                         help="measured a / correlation table (corr_meas, Poisson_CCD, cp_pipe)")
@@ -150,7 +151,7 @@ def _check_binning(args):
                f"of {mode} come binned already")
         raise BFPSFInputError(msg)
     args.bins = 10 if args.bins is None else args.bins
-    args.position_bins = 1 if args.position_bins is None else args.position_bins
+    args.position_bins = "auto" if args.position_bins is None else args.position_bins
 
 
 def run(args):
@@ -225,6 +226,8 @@ def run(args):
         print(f"unexplained: {describe_entry(entry)}")
     for line in _empirical_lines(result):
         print(line)
+    if observables.meta.get("position_bins"):
+        print(f"position bins: {observables.meta['position_bins']}")
     verdict = result.verdict
     if verdict.get("star_residual_chi2_per_pixel") is not None:
         print(f"star residual chi2 per pixel {verdict['star_residual_chi2_per_pixel']:.1f} "

@@ -21,11 +21,11 @@ from ..measure.prepare import prepare_image
 from ..measure.sources import aperture_fraction, measure_sources, sky_level
 from ..model.psf_fit import DEFAULT_SIZE, fit_psf
 from ..moments.result import moments_from_hsm
+from .binning import auto_position_bins, binned_sizes, position_grid
 from .odd_moments import star_skewness
 from .spot_model import FLUX_SCALE, SpotForwardModel, flux_of_peak
 from .star_residual import stacked_star_residual
-from .tables import (CorrelationTable, LinearityTable, Observables, PTCTable, SizeTable,
-                     interleaved)
+from .tables import CorrelationTable, LinearityTable, Observables, PTCTable, interleaved
 
 __all__ = ["matched_profile", "observables_from_sizes", "observables_from_images",
            "flat_observables", "ptc_observable", "lamp_error_floor", "bf_scale_error",
@@ -105,113 +105,6 @@ def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=Non
         meta["scale_err"] = bf_scale_error(model, shift_draws, sizes.peak_e)
     return Observables(sizes=sizes, spot_model=model, linearity=linearity,
                        correlations=correlations, meta=meta, ptc=ptc)
-
-
-def position_grid(position_bins):
-    """``position_bins`` as (columns, rows): an int N is N ranges of column (the distance
-    from the amplifier) and one of row, as ``--position-bins N``; a pair as given."""
-    if np.ndim(position_bins) == 0:
-        return int(position_bins), 1
-    columns, rows = (int(value) for value in position_bins)
-    return columns, rows
-
-
-def _quantile_cells(values, count):
-    """Index 0..count-1 of each value's quantile range (all 0 for one range)."""
-    if values is None or count <= 1:
-        return None
-    edges = np.quantile(values, np.linspace(0.0, 1.0, count + 1))
-    return np.clip(np.searchsorted(edges, values, side="right") - 1, 0, count - 1)
-
-
-def _binned_sizes(flux, peak, sigma_x, sigma_y, exposure, n_bins, label, *, x=None, y=None,
-                  skew=None, position_bins=1):
-    """Mean peak and sizes in quantile bins of flux for each exposure (the same bin edges for
-    all), errors from the scatter pooled over the rows of each flux bin (`_pool_errors`);
-    bins with fewer than 3 stars are left out.
-
-    Bins are in total flux, not in measured peak: at one flux the peak of a pixelised star
-    depends on its sub-pixel phase (by 30 % for a 3 px FWHM), and so does its size, so bins
-    of measured peak would select phases and bias the sizes with the peak.
-
-    With ``x`` and ``y`` (star columns and rows, pixels) and ``position_bins`` (N, or
-    (N columns, M rows), `position_grid`) above one, every bin is also split in that many
-    quantile ranges of x (the distance from the amplifier) and of y (the row, the parallel
-    transfers): the rows carry their stars' mean x (``x_detector``) where the columns are
-    split and mean y (``y_detector``) where the rows are, and each cell of the grid is an
-    intercept group. With ``skew`` ((skew_x,
-    skew_y) per star, `bfpsf.diagnosis.odd_moments.star_skewness`, and optionally the cross
-    moment e2) the rows carry their means and errors (stars without one left out of it).
-    """
-    edges = np.quantile(flux, np.linspace(0.0, 1.0, n_bins + 1))
-    index = np.clip(np.searchsorted(edges, flux, side="right") - 1, 0, n_bins - 1)
-    n_columns, n_rows = position_grid(position_bins)
-    x_cell, y_cell = _quantile_cells(x, n_columns), _quantile_cells(y, n_rows)
-    column = np.zeros(flux.size, int)
-    if x_cell is not None:
-        column = column + x_cell * n_rows
-    if y_cell is not None:
-        column = column + y_cell
-    rows, row_members = [], []
-    for image in np.unique(exposure):
-        for part in np.unique(column):
-            for k in range(n_bins):
-                members = (index == k) & (exposure == image) & (column == part)
-                if members.sum() < 3:
-                    continue
-                root_n = np.sqrt(members.sum())
-                row = [peak[members].mean(), sigma_x[members].mean(), sigma_y[members].mean(),
-                       sigma_x[members].std(ddof=1) / root_n,
-                       sigma_y[members].std(ddof=1) / root_n, image, part,
-                       np.nan if x_cell is None else x[members].mean(),
-                       np.nan if y_cell is None else y[members].mean()]
-                for values in (skew if skew is not None else ()):
-                    known = members & np.isfinite(values)
-                    row += ([values[known].mean(), values[known].std(ddof=1)
-                             / np.sqrt(known.sum())] if known.sum() >= 3 else [np.nan, np.nan])
-                rows.append(row)
-                row_members.append((k, members))
-    if len(rows) < 3:
-        msg = f"only {len(rows)} peak bins hold 3 or more stars: too few to diagnose"
-        raise BFPSFInputError(msg, len(rows))
-    rows = np.array(rows)
-    # always pooled: a row of one exposure holds a few stars (6 in a new user's field), whose
-    # own scatter is a poor error and, as a weight, inflates chi2 by (n - 1) / (n - 3)
-    _pool_errors(rows, row_members, (sigma_x, sigma_y, *(skew if skew is not None else ())))
-    extra = {}
-    if x_cell is not None:
-        extra["x_detector"] = rows[:, 7]
-    if y_cell is not None:
-        extra["y_detector"] = rows[:, 8]
-    if skew is not None and np.all(np.isfinite(rows[:, 9:13])) and np.all(rows[:, [10, 12]] > 0):
-        extra.update(skew_x=rows[:, 9], skew_x_err=rows[:, 10], skew_y=rows[:, 11],
-                     skew_y_err=rows[:, 12])
-    if (skew is not None and len(skew) > 2 and np.all(np.isfinite(rows[:, 13:15]))
-            and np.all(rows[:, 14] > 0)):
-        extra.update(cross=rows[:, 13], cross_err=rows[:, 14])
-    return SizeTable(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], label=label,
-                     exposure=rows[:, 5].astype(int), group=rows[:, 6].astype(int), **extra)
-
-
-def _pool_errors(rows, row_members, quantities):
-    """Errors of binned means from the scatter pooled over every row of the same flux bin
-    (rows of a few stars each estimate their own scatter badly: 3 stars give it to 50 %)."""
-    columns = ((1, 3), (2, 4), (9, 10), (11, 12))
-    for values, (mean_column, error_column) in zip(quantities, columns):
-        for k in {k for k, _ in row_members}:
-            deviations, count = [], 0
-            for (bin_k, members), row in zip(row_members, rows):
-                if bin_k != k:
-                    continue
-                known = members & np.isfinite(values)
-                deviations.append(values[known] - values[known].mean())
-                count += 1
-            deviations = np.concatenate(deviations)
-            pooled = np.sqrt(np.sum(deviations ** 2) / max(deviations.size - count, 1))
-            for index, (bin_k, members) in enumerate(row_members):
-                if bin_k == k:
-                    known = members & np.isfinite(values)
-                    rows[index, error_column] = pooled / np.sqrt(max(known.sum(), 1))
 
 
 def bf_scale_error(spot_model, shift_draws, peaks_e):
@@ -333,7 +226,8 @@ def ptc_observable(calibration):
 def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=10, gain=None,
                             calibration=None, fit_b="off-origin", amp=None,
                             holdout_fraction=0.5, n_monte_carlo=30, background=None,
-                            progress=False, position_bins=1, saturation=None, edge=None):
+                            progress=False, position_bins="auto", saturation=None,
+                            edge=None):
     """Observables from flat-field FITS and spot / star images (ADU, bias subtracted).
 
     The flats are calibrated (`bfpsf.calibrate`, with ``n_monte_carlo`` bootstrap samples of
@@ -347,10 +241,13 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
     (default: the sky surface of each image, `bfpsf.measure.sky.estimate_sky`).
     ``saturation`` is the images' saturation level, ADU (default the header's SATURATE or a variant; the calibration's
     turnoff where lower): saturated stars are flagged and not used. ``position_bins`` N > 1
-    also splits the bins by the stars' column (`_binned_sizes`): the residual's dependence on
+    also splits the bins by the stars' column (`bfpsf.diagnosis.binning.binned_sizes`): the residual's dependence on
     the distance from the amplifier, each row then carrying its stars' mean column
     (``x_detector``); (N, M) splits them in N ranges of column and M of row (``y_detector``,
-    the parallel transfers). Every
+    the parallel transfers); ``'auto'`` (default) is
+    `bfpsf.diagnosis.binning.AUTO_POSITION_GRID` where every exposure has the stars for it
+    (`bfpsf.diagnosis.binning.auto_position_bins`), else 1, said in
+    ``meta['position_bins']``. Every
     row carries the stars' mean skewness (`bfpsf.diagnosis.odd_moments.star_skewness`), the
     odd part of the residual. ``edge`` is the border of the flats left out of their statistics
     (default that of `bfpsf.calibrate`).
@@ -422,6 +319,13 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean star(s), too few to "
                "diagnose (9 or more)")
         raise BFPSFInputError(msg, fluxes.size)
+    chosen = None
+    if isinstance(position_bins, str):
+        if position_bins != "auto":
+            msg = f"position_bins must be an int, (columns, rows) or 'auto', got {position_bins!r}"
+            raise BFPSFValueError(msg, position_bins)
+        position_bins, chosen = auto_position_bins(np.bincount(exposure)[np.unique(exposure)],
+                                                   n_bins)
     cells = int(np.prod(position_grid(position_bins)))
     if n_bins * cells > fluxes.size:  # more bins than stars; before they allocate
         msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean stars cannot fill "
@@ -430,7 +334,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
                f"{max(fluxes.size // 3, 1)}")
         raise BFPSFInputError(msg, n_bins)
     # (one position range: the bins' mean columns or rows would differ by chance only)
-    sizes = _binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
+    sizes = binned_sizes(fluxes, peaks, sigma_x, sigma_y, exposure, n_bins,
                           f"{len(images)} images", x=columns, y=rows, skew=skews.T,
                           position_bins=position_bins)
     # P0 from the exposures the loop fits (`bfpsf.diagnosis.loop.split_observables`)
@@ -464,7 +368,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
             "image_paths": [str(path) for path in images],
             "p0_exposures": [int(index) for index in fitted],
             "p0_stars": int(np.sum(fit.stars["flags"] == 0)),
-            "p0_converged": bool(fit.converged), "aperture_fraction": fraction}
+            "p0_converged": bool(fit.converged), "aperture_fraction": fraction,
+            "position_bins": chosen or "x".join(map(str, position_grid(position_bins)))}
     try:
         ptc = ptc_observable(cal)
     except (BFPSFInputError, BFPSFValueError) as error:
