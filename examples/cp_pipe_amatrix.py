@@ -20,7 +20,8 @@ import numpy as np
 
 import bfpsf
 from bfpsf.calibration.measured import read_measured_area
-from bfpsf.measure.slopes import fit_bf_slope, model_size_increments
+from bfpsf.measure.slopes import fit_bf_slope
+from bfpsf.measure.model_slopes import model_size_increments
 
 SET, FILE = "cp_pipe_r22_s11", "amatrix_LSSTCam_R22_S11_E2V-CCD250-382.csv"
 

@@ -21,7 +21,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import bfpsf
-from bfpsf.measure.slopes import bf_slopes, fit_bf_slope, model_size_increments
+from bfpsf.measure.slopes import bf_slopes, fit_bf_slope
+from bfpsf.measure.model_slopes import model_size_increments
 
 SHIFTS = bfpsf.BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
 STAR = galsim.Moffat(beta=3.5, fwhm=3.5)

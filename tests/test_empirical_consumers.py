@@ -263,7 +263,7 @@ def test_photometry_and_slope_apply_the_term(user_path):
     prediction of the refined product exceeds that of its P0 without the term by the
     term's size slope, and the star sizes leave no residual."""
     from bfpsf.cli import main
-    from bfpsf.measure.slopes import predicted_slopes
+    from bfpsf.measure.model_slopes import predicted_slopes
 
     directory, images, stars, _ = user_path
     offsets = {}

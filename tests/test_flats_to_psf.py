@@ -17,7 +17,8 @@ from bfpsf import calibrate
 from bfpsf.calibration.boundary_shifts import solve_boundary_shifts
 from bfpsf.interop.silicon_truth import silicon_boundary_shifts, silicon_diffusion_sigma
 from bfpsf.moments.adaptive import adaptive_moments_batch
-from bfpsf.measure.slopes import fit_bf_slope, model_size_increments
+from bfpsf.measure.slopes import fit_bf_slope
+from bfpsf.measure.model_slopes import model_size_increments
 from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.validation.simulate_flats import simulate_flats
 from bfpsf.validation.simulate_spots import simulate_spots

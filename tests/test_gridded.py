@@ -259,7 +259,7 @@ def test_unconverged_grid_fit_keeps_its_best_iterate():
     truth at each star's own FWHM and phase, measured: e1 rms 0.0035 and sigma_x rms 0.0054
     px, against 0.0048 and 0.0072 for the last iterate."""
     from bfpsf.moments.adaptive import adaptive_moments_batch
-    from bfpsf.measure.slopes import model_star_sizes
+    from bfpsf.measure.model_slopes import model_star_sizes
     from bfpsf.validation.simulate_fields import simulate_field
 
     shape = (320, 320)

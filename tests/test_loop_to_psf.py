@@ -143,7 +143,7 @@ def test_loop_model_predicts_what_psf_predicts(quick_inputs):
     from bfpsf.calibration import calibrate
     from bfpsf.diagnosis.observables import matched_profile, observables_from_images
     from bfpsf.diagnosis.spot_model import SpotForwardModel
-    from bfpsf.measure.slopes import model_size_increments
+    from bfpsf.measure.model_slopes import model_size_increments
 
     flats, images, _ = quick_inputs
     images = images[:2]

@@ -297,7 +297,7 @@ def test_slope_residual_leaves_no_field_variation(grid_field):
     size of the BF slope's 2 %, and a slope set by where the bright stars happened to fall."""
     from astropy.table import Table
 
-    from bfpsf.measure.slopes import model_star_sizes
+    from bfpsf.measure.model_slopes import model_star_sizes
 
     directory, psf, xy, fluxes = grid_field
     stars, result = _measure_and_slope(directory, "residual")
@@ -305,6 +305,10 @@ def test_slope_residual_leaves_no_field_variation(grid_field):
         raw, residual = result[axis], result["model_residual"][axis]
         print(f"grid field {axis}: raw {raw['slope']:+.5f} +- {raw['slope_err']:.5f}, residual "
               f"{residual['slope']:+.5f} +- {residual['slope_err']:.5f}")
+        # the prediction is fitted on the measured fit's stars: measured minus predicted is
+        # the residual (a new user's printout had 0.0145 - 0.0170 against +0.0055)
+        assert raw["slope"] - result["prediction"][axis]["slope"] == pytest.approx(
+            residual["slope"], abs=1e-9)
         assert residual["slope_err"] < 0.25 * raw["slope_err"]
         assert abs(residual["slope"]) < 3 * residual["slope_err"] + 0.02 * raw["slope"]
         assert abs(residual["intercept"]) < 0.01  # star minus model at zero flux, pixels

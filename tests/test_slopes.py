@@ -89,3 +89,29 @@ def test_bf_slopes_on_table_uses_flags_and_errors():
     assert result["x"].slope < result["iq"].slope < result["y"].slope
     with pytest.raises(BFPSFInputError, match="lacks columns"):
         bf_slopes(Table({"peak_e": peak}))
+
+
+def test_images_of_different_seeing_get_their_own_intercept():
+    """Stars of three exposures whose seeing differs by 1 % and whose bright stars fall in
+    the sharper one: one intercept turned the seeing into a slope (a new user's IQ slope
+    0.0091 beside sigma_x 0.0136 and sigma_y 0.0164); an intercept per ``image`` gives the
+    slope within 3 sigma, and every fit keeps the rows it used."""
+    rng = np.random.default_rng(4)
+    tables = []
+    for image, (seeing, top) in enumerate(((1.00, 4e4), (0.99, 1.5e5), (1.01, 8e4))):
+        peak = rng.uniform(3e3, top, 80)
+        size = 1.6 * seeing + 0.015 * peak / PEAK_UNIT_E + 0.002 * rng.standard_normal(80)
+        tables.append(Table({"image": np.full(80, image), "peak_e": peak, "sigma_x": size,
+                             "sigma_y": size, "iq": size, "sigma_x_err": np.full(80, 0.002),
+                             "sigma_y_err": np.full(80, 0.002), "iq_err": np.full(80, 0.002)}))
+    from astropy.table import vstack
+
+    table = vstack(tables)
+    fits = bf_slopes(table)
+    assert abs(fits["iq"].slope - 0.015) < 3 * fits["iq"].slope_err
+    single = bf_slopes(table[[name for name in table.colnames if name != "image"]])
+    assert abs(single["iq"].slope - 0.015) > 5 * single["iq"].slope_err
+    assert fits["x"].rows.shape == (len(table),) and fits["x"].rows.sum() == fits["x"].n_points
+    # fitted again on those rows, without clipping: the same slope
+    again = bf_slopes(table, rows={"x": fits["x"].rows})
+    assert again["x"].slope == pytest.approx(fits["x"].slope, abs=1e-12)

@@ -62,10 +62,13 @@ def add_parser(subparsers):
     return parser
 
 
-def _model_residual(stars, args, colour_fit, psf):
+def _model_residual(stars, args, colour_fit, psf, slopes):
     """Slopes of the sizes measured minus the sizes of the flux-dependent PSF at each star's
-    own flux, position and phase (zero-flux size, field variation and BF change together)."""
-    from ..measure.slopes import bf_slopes, model_star_sizes, star_positions
+    own flux, position and phase (zero-flux size, field variation and BF change together),
+    on the stars of the measured fits (``slopes``), and the slopes the model predicts on
+    them: the measured slope minus the predicted one is the residual's."""
+    from ..measure.slopes import bf_slopes
+    from ..measure.model_slopes import model_star_sizes, predicted_slopes, star_positions
     from ..measure.sources import model_flux
 
     if "flux_e" not in stars.colnames:
@@ -79,8 +82,11 @@ def _model_residual(stars, args, colour_fit, psf):
                         ("e2", "e2")):
         if column in residual.colnames:
             residual[column] = residual[column] - model[key]
-    return bf_slopes(residual, min_peak_e=args.min_peak, max_peak_e=args.max_peak,
-                     use_errors=not args.unweighted, colour_fit=colour_fit)
+    rows = {key: fit.rows for key, fit in slopes.items() if key != "n_stars"}
+    options = {"min_peak_e": args.min_peak, "max_peak_e": args.max_peak,
+               "use_errors": not args.unweighted}
+    return (bf_slopes(residual, colour_fit=colour_fit, rows=rows, **options),
+            predicted_slopes(psf, stars, rows=rows, sizes=model, **options))
 
 
 def _summary(slopes):
@@ -115,13 +121,10 @@ def run(args):
     summary["n_stars"] = int(slopes["n_stars"])
     residual = prediction = psf = None
     if args.psf is not None:
-        from ..measure.slopes import predicted_slopes
         from ..model.psf import FluxDependentPSF
 
         psf = FluxDependentPSF.read(args.psf)
-        residual = _model_residual(stars, args, colour_fit, psf)
-        prediction = predicted_slopes(psf, stars, min_peak_e=args.min_peak,
-                                      max_peak_e=args.max_peak, use_errors=not args.unweighted)
+        residual, prediction = _model_residual(stars, args, colour_fit, psf, slopes)
         summary["model_residual"] = _summary(residual)
         for key in ("x", "y", "iq", "e1", "e2"):
             if key not in summary["model_residual"]:

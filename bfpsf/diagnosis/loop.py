@@ -55,8 +55,8 @@ from .problem import (build_problem, effect_columns, effect_design, effect_value
 from .result import DiagnosisResult
 from .signature import (SIGNATURE_ALPHA, contradiction, cross_test, flux_shape_test,
                         parity_test, signature_parts, signature_test)
-from .unexplained import (STAR_CHI2_FACTOR, UNEXPLAINED_NSIGMA, describe_unexplained,
-                          verdict)
+from .unexplained import (STAR_CHI2_FACTOR, UNEXPLAINED_NSIGMA, describe_unexplained, verdict,
+                          with_scale_parts)
 
 __all__ = ["DiagnosisResult", "diagnose", "DEFAULT_THRESHOLD", "slope_residuals", "split_observables",
            "describe_unexplained", "UNEXPLAINED_NSIGMA", "verdict", "STAR_CHI2_FACTOR"]
@@ -435,6 +435,7 @@ def _with_verdict(result, observables):
     import dataclasses
 
     meta = observables.meta
-    return dataclasses.replace(result, verdict=verdict(
-        result.unexplained, result.nuisance, meta.get("star_residual"),
+    unexplained = with_scale_parts(result.unexplained, result.nuisance)
+    return dataclasses.replace(result, unexplained=unexplained, verdict=verdict(
+        unexplained, result.nuisance, meta.get("star_residual"),
         meta.get("star_chi2_null", 1.0)))

@@ -403,4 +403,9 @@ def describe_entry(entry):
             words.append(kind)
     if entry.get("flats"):
         words.append(entry["flats"])
+    part = entry.get("scale_part")
+    if part:
+        words.append(f"within the flats' BF amplitude error (the size scale on this axis "
+                     f"{part['value']:+.2f} +- {part['error']:.2f}, prior {part['prior']:.2f}: "
+                     "it may be the calibration, not a second effect)")
     return ", ".join(words)

@@ -12,7 +12,8 @@ from ..least_squares import weighted_least_squares
 from ..measure.slopes import fit_bf_slope
 from .signature import SIGNATURE_ALPHA, TEMPLATE_TOLERANCE, cross_test
 
-__all__ = ["describe_unexplained", "verdict", "UNEXPLAINED_NSIGMA", "STAR_CHI2_FACTOR"]
+__all__ = ["describe_unexplained", "verdict", "with_scale_parts", "UNEXPLAINED_NSIGMA",
+           "STAR_CHI2_FACTOR"]
 
 
 #: The stacked star residual's chi2 per pixel is "far above" its null expectation beyond this
@@ -54,6 +55,32 @@ def verdict(unexplained, nuisance, star=None, null_expectation=1.0):
                        f"{null_expectation:.1f} (limit {limit:.1f})")
     return {"success": not reasons, "reasons": reasons, "star_residual_chi2_per_pixel": chi2,
             "null_expectation": float(null_expectation), "limit": limit}
+
+
+def with_scale_parts(unexplained, nuisance):
+    """The unexplained size entries with the part of the size scale on their axis, where the
+    scale was contradicted and dropped.
+
+    The flats' BF amplitude is uncertain (the scale's prior); when something else acts on one
+    axis, the scale is contradicted by ``axis`` and dropped, and the flats' own error comes
+    back as an unexplained residual on the other axis (a new user's ITL stars, a smear along
+    Y: "unexplained sizes x, 7.2 sigma" beside the real Y, the scale's X part +0.48 +- 0.06
+    within its prior 0.56). Each entry on an axis whose scale part lies within 3 of the
+    prior's sigma gets ``scale_part`` {value, error, prior}, said by `describe_entry`."""
+    scale = nuisance.get("calibration_scale") or {}
+    test = (scale.get("signature") or {}).get("axis")
+    if not scale.get("contradicted_by") or not test or not scale.get("prior"):
+        return unexplained
+    parts = {label: (amplitude[0], error[0]) for label, amplitude, error in
+             zip(test["parts"], test["amplitudes"], test["errors"])}
+    out = []
+    for entry in unexplained:
+        part = parts.get(entry.get("axis")) if entry["observable"] == "sizes" else None
+        if part is not None and abs(part[0]) <= 3.0 * scale["prior"]:
+            entry = dict(entry, scale_part={"value": float(part[0]), "error": float(part[1]),
+                                            "prior": float(scale["prior"])})
+        out.append(entry)
+    return out
 
 
 #: Significance (sigma) above which a residual is reported as unexplained.

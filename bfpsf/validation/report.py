@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..diagnosis.signature import describe_entry
 from ..files import refuse_overwrite
 from ..outputs import save_figure, write_text
 from ..plotting.diagnose import (plot_candidates, plot_ptc_residuals, plot_radial_profile,
@@ -131,20 +132,15 @@ def diagnosis_markdown(result, *, title="bfpsf diagnose", figures=(), context=()
         lines += [f"- `{name}`: {'confirmed' if ok else 'NOT CONFIRMED'} on the held-out data"
                   for name, ok in data["confirmed"].items()]
     for name, value in data.get("nuisance", {}).items():
-        lines += ["", f"Size-prediction scale (nuisance, prior from the flats' a errors "
-                  f"{format_number(value['prior'])}): {format_number(value['value'])} +- "
-                  f"{format_number(value['error'])}."]
+        lines += ["", f"Size-prediction scale (nuisance; prior {format_number(value['prior'])}: "
+                  "the spread of the predicted size slope over the calibration's shift "
+                  "samples, which carries every shift's error, not a(0, 0)'s alone): "
+                  f"{format_number(value['value'])} +- {format_number(value['error'])}."]
     lines += ["", "## Unexplained", ""]
     if not data.get("unexplained"):
         lines.append("Nothing significant left unexplained.")
-    for entry in data.get("unexplained", []):
-        dependence = entry["flux_dependence"] or {}
-        lines.append(f"- {entry['observable']}"
-                     + (f", axis {entry['axis']}" if entry["axis"] else "")
-                     + f": {format_number(entry['significance'])} sigma"
-                     + (f", stacked star residual {entry['parity']} under reflection"
-                        if entry["parity"] else "")
-                     + (f", grows {dependence.get('kind')} with flux" if dependence else ""))
+    # the line the command prints: axis, parity, flux, column, row and exposure dependence
+    lines += [f"- {describe_entry(entry)}" for entry in data.get("unexplained", [])]
     if data.get("residual_physical"):
         lines += ["", "'physical only': every effect with a physical value fixed at it, no free "
                   f"parameter ({', '.join(data['residual_physical']['effects'])})."]
