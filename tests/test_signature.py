@@ -121,3 +121,30 @@ def test_template_tolerance_is_a_factor_not_a_licence():
     assert one_amplitude_chi2([0.12, 0.10], errors, 0.3) < chi2.isf(0.05, 1)
     # tau = 0: the weighted chi2 about the weighted mean
     assert one_amplitude_chi2([1.0, 3.0], np.eye(2), 0.0) == pytest.approx(2.0)
+
+
+def test_the_dropped_size_scale_is_named_on_the_axis_it_may_cover():
+    """`with_scale_parts`: the scale contradicted by axis (X part +1.05 +- 0.21, Y +2.0 +-
+    0.2, prior 0.56, as a new user's Y smear on ITL stars): the X entry says the flats' BF
+    amplitude may hold it, the Y entry (the effect) does not; an X-only effect (Y part near
+    0) leaves its X entry alone, and a scale that was kept changes nothing."""
+    from bfpsf.diagnosis.signature import describe_entry
+    from bfpsf.diagnosis.unexplained import with_scale_parts
+
+    def entries():
+        return [{"observable": "sizes", "axis": axis, "significance": 5.0} for axis in "xy"]
+
+    def nuisance(x, y, against="axis"):
+        return {"calibration_scale": {"prior": 0.56, "contradicted_by": against, "signature": {
+            "axis": {"parts": ["x", "y"], "amplitudes": [[x], [y]],
+                     "errors": [[0.21], [0.2]]}}}}
+
+    x_entry, y_entry = with_scale_parts(entries(), nuisance(1.05, 2.0))
+    assert x_entry["scale_part"] == {"value": 1.05, "error": 0.21, "prior": 0.56}
+    assert "it may be the calibration" in describe_entry(x_entry)
+    assert "scale_part" not in y_entry
+    assert "scale_part" not in with_scale_parts(entries()[:1], nuisance(1.4, 0.02))[0]
+    assert with_scale_parts(entries(), nuisance(1.05, 2.0, against=None)) == entries()
+    # beyond 3 sigma of the prior: not the calibration's
+    assert all("scale_part" not in entry
+               for entry in with_scale_parts(entries(), nuisance(1.8, 3.0)))

@@ -58,14 +58,16 @@ def add_parser(subparsers):
                       help="calibrate without the Astier+19 b term (few or small flats); by "
                            "default b is fitted off the origin, as bfpsf calibrate does")
     data.add_argument("--bins", type=positive_int, default=None,
-                      help="peak bins of the measured sizes (default 10)")
+                      help="peak bins of the measured sizes (default 10; fewer, down to 4, "
+                           "where that lets every exposure fill the default 2x2 position "
+                           "grid with 3 stars per cell)")
     data.add_argument("--position-bins", type=position_bins_option, default=None,
                       metavar="N|NxM",
                       help="also split the bins in N ranges of column (distance from the "
                            "amplifier), or N of column x M of row (the parallel transfers: "
                            "1x3 splits the rows only), for the residual's position "
                            "dependence (default: 2x2 where every exposure has 12 stars "
-                           "per peak bin, else 1)")
+                           "per peak bin, 48 or more, else 1)")
     tables = parser.add_argument_group("table mode")
     tables.add_argument("--correlations", metavar="FILE",
                         help="measured a / correlation table (corr_meas, Poisson_CCD, cp_pipe)")
@@ -150,7 +152,9 @@ def _check_binning(args):
         msg = (f"{given[0]} bins the stars of images mode (--flats and --images); the sizes "
                f"of {mode} come binned already")
         raise BFPSFInputError(msg)
-    args.bins = 10 if args.bins is None else args.bins
+    # images mode chooses the peak bins with the position grid where neither is given
+    if not (args.flats or args.images):
+        args.bins = 10 if args.bins is None else args.bins
     args.position_bins = "auto" if args.position_bins is None else args.position_bins
 
 

@@ -21,7 +21,7 @@ from ..measure.prepare import prepare_image
 from ..measure.sources import aperture_fraction, measure_sources, sky_level
 from ..model.psf_fit import DEFAULT_SIZE, fit_psf
 from ..moments.result import moments_from_hsm
-from .binning import auto_position_bins, binned_sizes, position_grid
+from .binning import DEFAULT_BINS, auto_position_bins, binned_sizes, position_grid
 from .odd_moments import star_skewness
 from .spot_model import FLUX_SCALE, SpotForwardModel, flux_of_peak
 from .star_residual import stacked_star_residual
@@ -223,7 +223,7 @@ def ptc_observable(calibration):
 
 
 
-def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=10, gain=None,
+def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=None, gain=None,
                             calibration=None, fit_b="off-origin", amp=None,
                             holdout_fraction=0.5, n_monte_carlo=30, background=None,
                             progress=False, position_bins="auto", saturation=None,
@@ -232,7 +232,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
 
     The flats are calibrated (`bfpsf.calibrate`, with ``n_monte_carlo`` bootstrap samples of
     the shifts), the sources of every image measured (`bfpsf.measure.sources.measure_sources`,
-    unflagged sources only) and their sizes averaged in ``n_bins`` quantile bins of flux for
+    unflagged sources only) and their sizes averaged in ``n_bins`` quantile bins of flux (None:
+    10, or as many as the default position grid leaves, `bfpsf.diagnosis.binning.auto_position_bins`) for
     each image (rows labelled by exposure, for the held-out split). ``fit_b`` is passed to
     `bfpsf.calibrate` (its default, 'off-origin', as ``bfpsf calibrate``; False for a few
     small flats, whose b term is unconstrained). The loop
@@ -324,8 +325,10 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=1
         if position_bins != "auto":
             msg = f"position_bins must be an int, (columns, rows) or 'auto', got {position_bins!r}"
             raise BFPSFValueError(msg, position_bins)
-        position_bins, chosen = auto_position_bins(np.bincount(exposure)[np.unique(exposure)],
-                                                   n_bins)
+        position_bins, n_bins, chosen = auto_position_bins(
+            np.bincount(exposure)[np.unique(exposure)], n_bins)
+    elif n_bins is None:
+        n_bins = DEFAULT_BINS
     cells = int(np.prod(position_grid(position_bins)))
     if n_bins * cells > fluxes.size:  # more bins than stars; before they allocate
         msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean stars cannot fill "

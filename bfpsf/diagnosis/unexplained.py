@@ -65,17 +65,21 @@ def with_scale_parts(unexplained, nuisance):
     axis, the scale is contradicted by ``axis`` and dropped, and the flats' own error comes
     back as an unexplained residual on the other axis (a new user's ITL stars, a smear along
     Y: "unexplained sizes x, 7.2 sigma" beside the real Y, the scale's X part +0.48 +- 0.06
-    within its prior 0.56). Each entry on an axis whose scale part lies within 3 of the
-    prior's sigma gets ``scale_part`` {value, error, prior}, said by `describe_entry`."""
+    within its prior 0.56). The entry on the axis whose scale part is the smaller (the
+    other holds the effect that contradicted the scale), when that part lies within 3 of the
+    prior's sigma, gets ``scale_part`` {value, error, prior}, said by `describe_entry` (an
+    X-only smear, whose Y part is near 0, leaves its X entry as it is)."""
     scale = nuisance.get("calibration_scale") or {}
     test = (scale.get("signature") or {}).get("axis")
     if not scale.get("contradicted_by") or not test or not scale.get("prior"):
         return unexplained
     parts = {label: (amplitude[0], error[0]) for label, amplitude, error in
              zip(test["parts"], test["amplitudes"], test["errors"])}
+    smaller = min(parts, key=lambda label: abs(parts[label][0]))
     out = []
     for entry in unexplained:
-        part = parts.get(entry.get("axis")) if entry["observable"] == "sizes" else None
+        part = (parts[smaller] if entry["observable"] == "sizes" and entry.get("axis") == smaller
+                else None)
         if part is not None and abs(part[0]) <= 3.0 * scale["prior"]:
             entry = dict(entry, scale_part={"value": float(part[0]), "error": float(part[1]),
                                             "prior": float(scale["prior"])})
