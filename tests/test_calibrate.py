@@ -38,13 +38,15 @@ def expected_area(sensor, nsteps, maxlag):
 
 
 def run(sensor, levels, *, pairs, size, nsteps, maxlag, seed=0, n_monte_carlo=20,
-        solve_shifts=True, **options):
-    """Simulate flats with `simulate_flats` (``options`` inject effects) and calibrate them."""
+        solve_shifts=True, edge=None, **options):
+    """Simulate flats with `simulate_flats` (``options`` inject effects) and calibrate them
+    (``edge``: the calibration's border, default its own)."""
     flats = simulate_flats(sensor, levels, pairs=pairs, size=size, nsteps=nsteps, gain=GAIN,
                            read_noise_e=READ_NOISE, seed=seed, **options)
     return calibrate([image for image, _, _ in flats],
                      exptimes=[exptime for _, exptime, _ in flats], maxlag=maxlag,
-                     n_monte_carlo=n_monte_carlo, solve_shifts=solve_shifts)
+                     n_monte_carlo=n_monte_carlo, solve_shifts=solve_shifts,
+                     **({} if edge is None else {"edge": edge}))
 
 
 def assert_matches_truth(calibration, truth, lags, label, *, absolute=True):
@@ -75,22 +77,24 @@ ITL_LEVELS = [100.0, *np.linspace(3e5 / 26, 3e5, 26)]
 
 @pytest.fixture(scope="module")
 def itl_calibration():
-    # 27 levels x 1 pair of 212 x 212 (192^2 inside the default edge border): about 20 s of
-    # GalSim on one core. The gain to about
+    # 27 levels x 1 pair of 192 x 192, all of them used (edge 0: simulate_flats draws a
+    # margin around the image and crops it, so these flats have no sensor edge; the default
+    # border is tested in test_simulate_flats -k edge_border): about 17 s of GalSim on one
+    # core. The gain to about
     # 0.4 % and a(0, 0) to about 2 % (1 sigma): the tests here ask for 3 sigma; the slow
     # variant has the pixels for the acceptance's 0.5 % and 3 %.
     # (4 Monte Carlo refits of the shifts: their errors are only checked to exist here)
-    return run("lsst_itl_50_8", ITL_LEVELS, pairs=1, size=212, nsteps=ITL_NSTEPS, maxlag=4,
-               n_monte_carlo=4)
+    return run("lsst_itl_50_8", ITL_LEVELS, pairs=1, size=192, nsteps=ITL_NSTEPS, maxlag=4,
+               n_monte_carlo=4, edge=0)
 
 
 @pytest.mark.slow
 def test_itl_area_coefficients_match_galsim_full():
-    # 27 levels x 2 pairs of 276 x 276 (256^2 inside the default edge border): about 80 s of
-    # GalSim on one core. sigma(gain) ~ 0.2 % and sigma(a00) ~ 1 %, the least that makes
+    # 27 levels x 2 pairs of 256 x 256, all used (edge 0, as `itl_calibration`): about 70 s
+    # of GalSim on one core. sigma(gain) ~ 0.2 % and sigma(a00) ~ 1 %, the least that makes
     # "gain within 0.5 %, a(0, 0) within 3 %" a 2.5-3 sigma requirement
-    calibration = run("lsst_itl_50_8", ITL_LEVELS, pairs=2, size=276, nsteps=ITL_NSTEPS,
-                      maxlag=4)
+    calibration = run("lsst_itl_50_8", ITL_LEVELS, pairs=2, size=256, nsteps=ITL_NSTEPS,
+                      maxlag=4, edge=0)
     assert_matches_truth(calibration, expected_area("lsst_itl_50_8", ITL_NSTEPS, 4), 2,
                          "lsst_itl_50_8")
 
@@ -200,10 +204,10 @@ E2V_LEVELS = [100.0, *np.linspace(1.5e5 / 20, 1.5e5, 20)]  # a00 mu = -0.33 at t
 @pytest.mark.slow
 def test_e2v_area_coefficients_match_galsim():
     """A thick sensor (a00 mu = -0.33 at 150 ke-): the full model, not the first-order fit."""
-    # 21 levels x 2 pairs of 404 x 404 (384^2 inside the default edge border), 20 steps:
-    # about 11 minutes of GalSim on one core
-    calibration = run("lsst_e2v_50_8", E2V_LEVELS, pairs=2, size=404, nsteps=E2V_NSTEPS,
-                      maxlag=8)
+    # 21 levels x 2 pairs of 384 x 384, all used (edge 0, as `itl_calibration`), 20 steps:
+    # about 10 minutes of GalSim on one core
+    calibration = run("lsst_e2v_50_8", E2V_LEVELS, pairs=2, size=384, nsteps=E2V_NSTEPS,
+                      maxlag=8, edge=0)
     truth = expected_area("lsst_e2v_50_8", E2V_NSTEPS, 4)
     assert_matches_truth(calibration, truth, 4, "lsst_e2v_50_8")
     table = calibration.ptc
