@@ -296,12 +296,12 @@ def test_binned_size_errors_give_chi2_one_with_few_stars_per_bin():
 
 
 @pytest.mark.parametrize("stars, n_bins, grid, bins", [
-    (126, None, (2, 2), 10), (48, None, (2, 2), 4), (40, None, 1, 10), (48, 4, (2, 2), 4),
+    (126, None, (2, 2), 10), (80, None, (2, 2), 6), (54, None, 1, 10), (48, 4, (2, 2), 4),
     (48, 6, 1, 6), (200, 8, (2, 2), 8)])
 def test_default_position_grid_where_the_stars_fill_it(stars, n_bins, grid, bins):
     """``position_bins='auto'``: a 2 x 2 grid where the exposure with the fewest stars puts 3
     in every cell of every peak bin; the peak bins, when the user gave none, shrink to as few
-    as 4 for it; a grid that does not fit is not tested, and the report says so."""
+    as 6 for it; a grid that does not fit is not tested, and the report says so."""
     from bfpsf.diagnosis.binning import auto_position_bins
 
     chosen, n, words = auto_position_bins([stars + 10, stars], n_bins)

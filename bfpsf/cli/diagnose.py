@@ -58,7 +58,7 @@ def add_parser(subparsers):
                       help="calibrate without the Astier+19 b term (few or small flats); by "
                            "default b is fitted off the origin, as bfpsf calibrate does")
     data.add_argument("--bins", type=positive_int, default=None,
-                      help="peak bins of the measured sizes (default 10; fewer, down to 4, "
+                      help="peak bins of the measured sizes (default 10; fewer, down to 6, "
                            "where that lets every exposure fill the default 2x2 position "
                            "grid with 3 stars per cell)")
     data.add_argument("--position-bins", type=position_bins_option, default=None,
@@ -67,7 +67,7 @@ def add_parser(subparsers):
                            "amplifier), or N of column x M of row (the parallel transfers: "
                            "1x3 splits the rows only), for the residual's position "
                            "dependence (default: 2x2 where every exposure has 12 stars "
-                           "per peak bin, 48 or more, else 1)")
+                           "per peak bin, 72 or more, else 1)")
     tables = parser.add_argument_group("table mode")
     tables.add_argument("--correlations", metavar="FILE",
                         help="measured a / correlation table (corr_meas, Poisson_CCD, cp_pipe)")
