@@ -54,7 +54,7 @@ from .problem import (build_problem, effect_columns, effect_design, effect_value
                       slope_residuals, summarise)
 from .result import DiagnosisResult
 from .signature import (SIGNATURE_ALPHA, contradiction, cross_test, flux_shape_test,
-                        parity_test, signature_parts, signature_test)
+                        parity_test, signature_parts, signature_test, tolerances)
 from .unexplained import (STAR_CHI2_FACTOR, UNEXPLAINED_NSIGMA, describe_unexplained, verdict,
                           with_scale_parts)
 
@@ -193,6 +193,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     ambiguous = {}
     rejected = {}
     parts = signature_parts(problem, observables)
+    tolerance = tolerances(observables.meta)
     linear = np.zeros(problem.residual.size)
     if "sizes" in problem.slices:
         # a size change linear in peak on both axes: the flux_shape dimension's competitor
@@ -209,7 +210,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
         base = np.column_stack([problem.nuisance if nuisance is None else nuisance]
                                + [designs[other] for other in free])
         test = signature_test(problem.residual - offset, problem.sigma, base, design, parts,
-                              alpha=signature_alpha)
+                              alpha=signature_alpha, tolerance=tolerance)
         if flux and np.any(linear):
             test["flux_shape"] = flux_shape_test(problem.residual - offset, problem.sigma, base,
                                                  design, linear,

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..least_squares import weighted_least_squares
 from ..measure.slopes import fit_bf_slope
-from .signature import SIGNATURE_ALPHA, TEMPLATE_TOLERANCE, cross_test
+from .signature import SIGNATURE_ALPHA, cross_test, tolerances
 
 __all__ = ["describe_unexplained", "verdict", "with_scale_parts", "UNEXPLAINED_NSIGMA",
            "STAR_CHI2_FACTOR"]
@@ -155,11 +155,11 @@ def _odd_parity(sizes, axis):
     return "odd" if abs(slope) > UNEXPLAINED_NSIGMA * error else "even"
 
 
-def _prediction_slope_variance(prediction, block, peak_e, errors, group):
+def _prediction_slope_variance(prediction, block, peak_e, errors, group, axis_tolerance):
     """Variance of a size residual's slope that the model's fitted part carries on held-out
     data, where its parameters come from the fit part: their covariance, and the templates'
-    accuracy between the axes (`TEMPLATE_TOLERANCE` ['axis'] of the slope the fitted part
-    adds on this axis). A new user's BF-only seed (the flats' scale -0.46 +- 0.04, so the
+    accuracy between the axes (``axis_tolerance``, `bfpsf.diagnosis.signature.tolerances`,
+    of the slope the fitted part adds on this axis). A new user's BF-only seed (the flats' scale -0.46 +- 0.04, so the
     model moved each axis by some 80 % of raw) read "unexplained sizes y 4.2 sigma" against
     the held-out noise alone."""
     if prediction is None:
@@ -170,7 +170,7 @@ def _prediction_slope_variance(prediction, block, peak_e, errors, group):
     gradient = np.array([fit_bf_slope(peak_e, design[block, j], size_err=errors, group=group,
                                       scale_errors=False, clip_nsigma=None).slope
                          for j in range(design.shape[1])])
-    template = TEMPLATE_TOLERANCE["axis"] * float(gradient @ values)
+    template = axis_tolerance * float(gradient @ values)
     return float(max(gradient @ covariance @ gradient, 0.0)) + template ** 2
 
 
@@ -222,7 +222,8 @@ def describe_unexplained(problem, observables, model, prediction=None):
                                    scale_errors=False, clip_nsigma=None)
                 rows = np.arange(block.start, block.stop)[index * n:(index + 1) * n]
                 slope_err = np.hypot(fit.slope_err, np.sqrt(_prediction_slope_variance(
-                    prediction, rows, sizes.peak_e, errors, sizes.intercepts)))
+                    prediction, rows, sizes.peak_e, errors, sizes.intercepts,
+                    tolerances(observables.meta)["axis"])))
                 significance = abs(fit.slope) / slope_err
                 if significance > UNEXPLAINED_NSIGMA:
                     parity = _odd_parity(sizes, axis)
