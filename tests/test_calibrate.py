@@ -45,8 +45,7 @@ def run(sensor, levels, *, pairs, size, nsteps, maxlag, seed=0, n_monte_carlo=20
                            read_noise_e=READ_NOISE, seed=seed, **options)
     return calibrate([image for image, _, _ in flats],
                      exptimes=[exptime for _, exptime, _ in flats], maxlag=maxlag,
-                     n_monte_carlo=n_monte_carlo, solve_shifts=solve_shifts,
-                     **({} if edge is None else {"edge": edge}))
+                     n_monte_carlo=n_monte_carlo, solve_shifts=solve_shifts, edge=edge)
 
 
 def assert_matches_truth(calibration, truth, lags, label, *, absolute=True):

@@ -63,7 +63,7 @@ def calibrate(sources, *, exptimes=None, maxlag="auto", ptc_model="full", fit_b=
         Saturation level, ADU; pixels at or above it are masked. Default None.
     edge : int, optional
         Pixels masked along each side of each amplifier's image
-        (`bfpsf.calibration.flat_mask.pair_mask`). Default
+        (`bfpsf.calibration.flat_mask.pair_mask`). Default (or None)
         `~bfpsf.calibration.flat_mask.DEFAULT_EDGE` (10, as cp_pipe's PTC configuration):
         the edges of a sensor lose charge in a way that grows with the flux.
     mean_tolerance : float, optional
@@ -147,7 +147,8 @@ def calibrate_detectors(detectors, *, exptimes=None, maxlag="auto", ptc_model="f
         Per detector, in the order given.
     """
     parameters, options = _settings(
-        maxlag=maxlag, ptc_model=ptc_model, fit_b=fit_b, saturation=saturation, edge=edge,
+        maxlag=maxlag, ptc_model=ptc_model, fit_b=fit_b, saturation=saturation,
+        edge=DEFAULT_EDGE if edge is None else edge,
         mean_tolerance=mean_tolerance, clip_nsigma=clip_nsigma, pedestal_nsigma=pedestal_nsigma,
         pedestal_degree=pedestal_degree, linearity_threshold=linearity_threshold,
         solve_shifts=solve_shifts, shift_method=shift_method, thickness=thickness,

@@ -196,7 +196,7 @@ def run(args):
             shift_method=args.shift_method, thickness=args.thickness,
             n_monte_carlo=args.n_monte_carlo, seed=args.seed, progress=args.progress,
             amps=args.amp, overscan=args.overscan, workers=args.workers,
-            scheduler=args.scheduler, **({} if args.edge is None else {"edge": args.edge}))
+            scheduler=args.scheduler, edge=args.edge)
     for calibration in calibrations.values():
         check_outputs(_plot_paths(args, calibration), args.overwrite, directories=[args.plots],
                       inputs=inputs)

@@ -50,16 +50,17 @@ def auto_position_bins(stars_per_exposure, n_bins=None):
     cells = int(np.prod(AUTO_POSITION_GRID))
     fewest = int(np.min(stars_per_exposure))
     fits = fewest // (3 * cells)
-    bins = (DEFAULT_BINS if n_bins is None and fits >= DEFAULT_BINS else
-            fits if n_bins is None and fits >= MIN_GRID_BINS else
-            DEFAULT_BINS if n_bins is None else int(n_bins))
+    if n_bins is not None:
+        bins = fewest_bins = int(n_bins)
+    else:
+        bins = fits if MIN_GRID_BINS <= fits < DEFAULT_BINS else DEFAULT_BINS
+        fewest_bins = MIN_GRID_BINS
     grid = "x".join(map(str, AUTO_POSITION_GRID))
     if fits >= bins:
         return AUTO_POSITION_GRID, bins, (f"{grid} (auto: {fewest} or more stars per "
                                           f"exposure, {bins} peak bins)")
     return 1, bins, (f"not tested (auto: {fewest} stars in an exposure; a {grid} grid of "
-                     f"{bins if n_bins is not None else MIN_GRID_BINS} peak bins needs "
-                     f"{3 * cells * (bins if n_bins is not None else MIN_GRID_BINS)}: "
+                     f"{fewest_bins} peak bins needs {3 * cells * fewest_bins}: "
                      "give --bins and --position-bins)")
 
 

@@ -275,8 +275,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
     ``meta['star_residual']``, with the stacked image in ``meta['residual_images']``).
     """
     cal = calibration or calibrate(list(flats), maxlag=maxlag, n_monte_carlo=n_monte_carlo,
-                                   fit_b=fit_b, amps=amp,
-                                   **({} if edge is None else {"edge": edge}))
+                                   fit_b=fit_b, amps=amp, edge=edge)
     if not isinstance(cal, Calibration):
         msg = (f"the flats hold {len(cal)} amplifiers ({', '.join(cal.names)}); the closed loop "
                "works on one: choose it with --amp NAME")

@@ -68,6 +68,7 @@ beyond BF's own share on an elliptical star; a diagonal effect contradicts them 
 """
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.stats import chi2 as chi2_distribution
 
 from ..least_squares import weighted_least_squares
@@ -239,8 +240,6 @@ def one_amplitude_chi2(values, covariance, tau):
     generalised-least-squares chi2 about the weighted mean, exact chi-square with m - 1
     degrees of freedom, and asymptotically so for tau > 0.
     """
-    from scipy.optimize import least_squares
-
     values = np.asarray(values, float)
     whiten = _whitener(np.asarray(covariance, float))
     white = whiten @ values

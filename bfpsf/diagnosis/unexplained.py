@@ -64,8 +64,8 @@ def with_scale_parts(unexplained, nuisance):
     The flats' BF amplitude is uncertain (the scale's prior); when something else acts on one
     axis, the scale is contradicted by ``axis`` and dropped, and the flats' own error comes
     back as an unexplained residual on the other axis (a new user's ITL stars, a smear along
-    Y: "unexplained sizes x, 7.2 sigma" beside the real Y, the scale's X part +0.48 +- 0.06
-    within its prior 0.56). The entry on the axis whose scale part is the smaller (the
+    Y: "unexplained sizes x, 7.2 sigma" beside the real Y, the scale's X part +1.21 +- 0.11
+    within 3 of its prior's 0.56). The entry on the axis whose scale part is the smaller (the
     other holds the effect that contradicted the scale), when that part lies within 3 of the
     prior's sigma, gets ``scale_part`` {value, error, prior}, said by `describe_entry` (an
     X-only smear, whose Y part is near 0, leaves its X entry as it is)."""
@@ -237,16 +237,14 @@ def describe_unexplained(problem, observables, model, prediction=None):
                              "slope": float(fit.slope), "slope_err": float(slope_err),
                              "position_dependence": None, "row_dependence": None,
                              "exposure_dependence": None}
-                    if sizes.x_detector is not None and np.ptp(sizes.x_detector) > 0:
-                        entry["position_dependence"] = _dependence(
-                            sizes, values, errors, sizes.x_detector, 1000.0,
-                            ("rising with distance from the amplifier",
-                             "falling with distance from the amplifier"))
-                    if sizes.y_detector is not None and np.ptp(sizes.y_detector) > 0:
-                        entry["row_dependence"] = _dependence(
-                            sizes, values, errors, sizes.y_detector, 1000.0,
-                            ("rising with the row (parallel transfers)",
-                             "falling with the row (parallel transfers)"))
+                    for key, along, what in (
+                            ("position_dependence", sizes.x_detector,
+                             "with distance from the amplifier"),
+                            ("row_dependence", sizes.y_detector,
+                             "with the row (parallel transfers)")):
+                        if along is not None and np.ptp(along) > 0:
+                            entry[key] = _dependence(sizes, values, errors, along, 1000.0,
+                                                     (f"rising {what}", f"falling {what}"))
                     if sizes.exposure is not None and np.unique(sizes.exposure).size > 2:
                         order = np.unique(sizes.exposure, return_inverse=True)[1]
                         entry["exposure_dependence"] = _dependence(
