@@ -440,22 +440,24 @@ def refine_with_spot_series(calibration, paths):
 
 
 def refinement_draws(calibration, refined, n_draws=12, seed=7):
-    """Shifts drawn within the refinement's errors (the x/y quadrupole q and the scale s, the
+    """Shifts drawn within the refinement's errors (the x/y quadrupole q, the scale s and the
+    split d, the
     loop's 1-sigma errors), around the refined shifts: the spread of the figures over them is
     the refined path's calibration error (the flats' own samples no longer apply: the spots
     fixed the directions the flats could not)."""
-    from bfpsf.diagnosis.catalogue import add_shifts, quadrupole_shifts
+    from bfpsf.diagnosis.catalogue import add_shifts, quadrupole_shifts, split_shifts
 
     record = refined.refinement["parameters"]
     q_err = record["xy_anisotropy"]["error"][0] if "xy_anisotropy" in record else 0.0
     s_err = record.get("calibration_scale (nuisance)", {}).get("error", 0.0)
+    d_err = record.get("calibration_split (nuisance)", {}).get("error", 0.0)
     scale = 1.0 + refined.refinement["scale"]
     rng = np.random.default_rng(seed)
     draws = []
-    for dq, ds in rng.normal(size=(n_draws, 2)) * (q_err, s_err):
-        # the quadrupole is added before the scale (refine_calibration)
+    for dq, ds, dd in rng.normal(size=(n_draws, 3)) * (q_err, s_err, d_err):
+        # the quadrupole is added before the scale and split (refine_calibration)
         shifted = add_shifts(refined.shifts, quadrupole_shifts(calibration.shifts, dq * scale))
-        draws.append(shifted.scaled(1.0 + ds / scale))
+        draws.append(split_shifts(shifted.scaled(1.0 + ds / scale), dd))
     return draws
 
 

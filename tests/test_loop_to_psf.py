@@ -180,10 +180,11 @@ def quick_inputs(tmp_path_factory):
 def test_output_calib_then_psf_cli_quick(tmp_path, quick_inputs):
     """The user path in CI: ``diagnose --output-calib`` on 2 of 4 exposures (3 levels), then
     ``psf --calib REFINED`` on the other 2: the refinement recorded is the one ``psf`` applies,
-    the shifts are the flats' times (1 + s), and the held-out residual is within the errors
+    the shifts are the flats' times (1 + s) with the split d moved (`split_shifts`), and the held-out residual is within the errors
     of 54 spots (small flats: their BF amplitude error is large and the loop may or may not
     confirm a scale on so few spots)."""
     from bfpsf.calibration.product import Calibration
+    from bfpsf.diagnosis.catalogue import split_shifts
 
     flats, images, truths = quick_inputs
     out = _loop_then_psf(tmp_path, flats, images, truths, n_bins=3)
@@ -191,8 +192,10 @@ def test_output_calib_then_psf_cli_quick(tmp_path, quick_inputs):
     record = refined.refinement
     assert sorted(record["applied"]) == out["refined"]["psf"]["refinement_applied"]
     assert record["provenance"]["images"] == out["loop"]["holdout"]["fit_images"]
-    np.testing.assert_allclose(refined.shifts.north, cal.shifts.north * (1 + record["scale"]),
-                               rtol=1e-12)
+    expected = split_shifts(cal.shifts.scaled(1 + record["scale"]), record["split"])
+    for side in ("north", "east"):
+        np.testing.assert_allclose(getattr(refined.shifts, side), getattr(expected, side),
+                                   rtol=1e-12)
     for axis in ("x", "y"):
         residual, error = out["refined"]["residual"][axis]
         assert abs(residual) < 2.0 + 3 * error

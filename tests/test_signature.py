@@ -148,22 +148,3 @@ def test_the_dropped_size_scale_is_named_on_the_axis_it_may_cover():
     # beyond 3 sigma of the prior: not the calibration's
     assert all("scale_part" not in entry
                for entry in with_scale_parts(entries(), nuisance(1.8, 3.0)))
-
-
-def test_axis_tolerance_carries_the_flats_split_error():
-    """`tolerances`: between the axes, the templates' 10 % and the flats' error of the X / Y
-    split of the predicted BF in quadrature (a new user's E2V flats, split known to 16 %:
-    0.19). Parts 0.50 and 0.91 +- 0.05 contradict 10 % and not 19 %; parts a factor 3.6
-    apart (0.25 and 0.91) contradict both."""
-    from scipy.stats import chi2
-
-    from bfpsf.diagnosis.signature import TEMPLATE_TOLERANCE, one_amplitude_chi2, tolerances
-
-    assert tolerances()["axis"] == TEMPLATE_TOLERANCE["axis"]
-    wide = tolerances({"axis_err": 0.156})["axis"]
-    assert wide == pytest.approx(np.hypot(0.1, 0.156))
-    errors = np.eye(2) * 0.05 ** 2
-    limit = chi2.isf(1e-3, 1)
-    assert one_amplitude_chi2([0.5, 0.91], errors, 0.1) > limit
-    assert one_amplitude_chi2([0.5, 0.91], errors, wide) < limit
-    assert one_amplitude_chi2([0.25, 0.91], errors, wide) > limit

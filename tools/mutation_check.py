@@ -1,138 +1,202 @@
-"""Break each physics operator by a sign or a factor of two and check that a quick test fails.
+"""Mutation check: each physics operator broken by a sign or a factor of two must fail a quick test.
 
-A test suite that passes with a broken operator cannot catch an error in it (issue 24). For
-each mutation below, a copy of the package is made with one line changed, the quick tests that
-exercise the operator are run against it (``-x``, first failure stops), and the first failing
-test is reported. A mutation that no quick test catches is listed as SURVIVED and the script
-exits 1.
+For every mutation below, the quick tests named beside it run with the operator replaced
+(``pytest -x -p mutation_check``, the mutation chosen by ``BFPSF_MUTATION``); the mutation is
+*caught* when at least one of them fails. A mutation that every test survives is a physics
+error the suite cannot see (issue 24: a test that cannot fail is a defect).
 
-Usage (from the repository root, about 10-20 minutes on 2 cores)::
+The replacement is made in every bfpsf module that holds the operator (``from .x import f``
+copies the name), before the tests are collected.
 
-    OMP_NUM_THREADS=1 python tools/mutation_check.py [--only NAME] [--list]
+Run: ``OMP_NUM_THREADS=1 python tools/mutation_check.py [--only NAME]`` (a few minutes:
+``-x`` stops each run at its first failure). Prints one line per mutation (caught by which
+test, or SURVIVED) and exits 1 if any survived.
 """
 
 import argparse
+import dataclasses
 import os
 import re
-import shutil
 import subprocess
 import sys
-import tempfile
+import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+import numpy as np
 
-# name, file, exact text, replacement, what it breaks, the quick tests that should catch it
-MUTATIONS = [
-    ("redistribution factor x2", "bfpsf/model/redistribution.py",
-     "        kernel_factor = 0.5 * factor", "        kernel_factor = 1.0 * factor",
-     "G15 eq. scrambling_model: the (Q_p + Q_q) / 2 density doubled",
-     ["tests/test_redistribution.py", "tests/test_galsim_sensor.py", "tests/test_psf_model.py"]),
-    ("redistribution sign", "bfpsf/model/redistribution.py",
-     "    kernels = [shifts.north * kernel_factor, shifts.east * kernel_factor]",
-     "    kernels = [-shifts.north * kernel_factor, -shifts.east * kernel_factor]",
-     "boundaries move the wrong way (charge attracts)",
-     ["tests/test_redistribution.py", "tests/test_galsim_sensor.py", "tests/test_psf_model.py"]),
-    ("redistribution east only x2", "bfpsf/model/redistribution.py",
-     "    kernels = [shifts.north * kernel_factor, shifts.east * kernel_factor]",
-     "    kernels = [shifts.north * kernel_factor, 2 * shifts.east * kernel_factor]",
-     "the serial boundaries' shifts doubled (x/y balance)",
-     ["tests/test_redistribution.py", "tests/test_galsim_sensor.py", "tests/test_psf_model.py"]),
-    ("exact density weights", "bfpsf/model/density.py",
-     "    line = (7.0 * (sub[r - 1] + sub[r]) - (sub[r - 2] + sub[r + 1])) / 12.0",
-     "    line = (7.0 * (sub[r - 1] + sub[r]) - (sub[r - 2] + sub[r + 1])) / 6.0",
-     "the boundary density of an oversampled image doubled along y",
-     ["tests/test_redistribution.py", "tests/test_psf_model.py"]),
-    ("inverse sign", "bfpsf/model/inverse.py",
-     "        x = image - forward_delta(image)", "        x = image + forward_delta(image)",
-     "the first-order inverse adds the BF instead of removing it",
-     ["tests/test_redistribution.py"]),
-    ("inverse iteration", "bfpsf/model/inverse.py",
-     "            x = x + residual", "            x = x + 2 * residual",
-     "the fixed-point update over-steps",
-     ["tests/test_redistribution.py"]),
-    ("build-up source", "bfpsf/model/buildup.py",
-     "source=collected + 0.5 * (arriving + moved)", "source=collected + 1.0 * (arriving + moved)",
-     "the charge collected during a step counted whole",
-     ["tests/test_redistribution.py", "tests/test_galsim_sensor.py", "tests/test_psf_model.py"]),
-    ("cdmodel halving", "bfpsf/interop/cdmodel.py",
-     "    return galsim.cdmodel.BaseCDModel(shifts.west / 2.0, shifts.east / 2.0,",
-     "    return galsim.cdmodel.BaseCDModel(shifts.west / 1.0, shifts.east / 1.0,",
-     "GalSim's a_t = a^N / 2 conversion",
-     ["tests/test_galsim_sensor.py", "tests/test_redistribution.py"]),
-    ("moments centroid step", "bfpsf/measure/moments.py",
-     "            step_x = np.clip(2.0 * bx / (a_sum * shiftscale), -_STEP_BOUND, _STEP_BOUND)",
-     "            step_x = np.clip(-2.0 * bx / (a_sum * shiftscale), -_STEP_BOUND, _STEP_BOUND)",
-     "the adaptive centroid update walks away along x",
-     ["tests/test_moments.py"]),
-    ("moments size step", "bfpsf/measure/moments.py",
-     "            step_xx = np.clip(4.0 * (cxx / a_sum - 0.5 * m_xx) / semi_b2, -_STEP_BOUND, _STEP_BOUND)",
-     "            step_xx = np.clip(4.0 * (cxx / a_sum - 0.25 * m_xx) / semi_b2, -_STEP_BOUND, _STEP_BOUND)",
-     "the weighted-covariance condition M / 2 broken along x",
-     ["tests/test_moments.py"]),
-    ("single-image variance", "bfpsf/calibration/covariance.py",
-     "    cov = cov / 2.0 / clip_factor**2", "    cov = cov / 1.0 / clip_factor**2",
-     "var(difference) taken as the single-image variance",
-     ["tests/test_covariance.py", "tests/test_ptc.py"]),
-    ("A+19 second order", "bfpsf/calibration/ptc_full.py",
-     "    model = mu * delta + 2.0 / 3.0 * mu**3 * c.ravel() + 5.0 / 6.0 * mu**4 * ac",
-     "    model = mu * delta + 4.0 / 3.0 * mu**3 * c.ravel() + 5.0 / 6.0 * mu**4 * ac",
-     "the b term of A+19 eq. 20 doubled",
-     ["tests/test_ptc.py"]),
-    ("electrostatic area", "bfpsf/calibration/shifts_electrostatic.py",
-     "    return alpha * (north[:-1] - north[1:] + east[:, :-1] - east[:, 1:])",
-     "    return alpha * (north[:-1] - north[1:] + 2 * (east[:, :-1] - east[:, 1:]))",
-     "the area of the electrostatic model counts the E/W boundaries twice",
-     ["tests/test_shifts_electrostatic.py"]),
-]
+ROOT = Path(__file__).resolve().parent.parent
 
 
-def apply(tree, mutation):
-    name, relative, old, new = mutation[:4]
-    path = tree / relative
-    text = path.read_text()
-    if text.count(old) != 1:
-        raise SystemExit(f"{name}: the text to mutate is not found once in {relative}; "
-                         "update tools/mutation_check.py")
-    path.write_text(text.replace(old, new))
+def _scaled_delta(original, factor):
+    """An operator image -> image returning image + factor * (its change of the image)."""
+    def mutated(image, *args, **kwargs):
+        out = original(image, *args, **kwargs)
+        return np.asarray(image, dtype=float) + factor * (out - np.asarray(image, dtype=float))
+    return mutated
 
 
-def run(mutation, tree):
-    name, relative, _, _, _, tests = mutation
-    env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1", MPLBACKEND="Agg")
-    command = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider",
-               "--rootdir", str(tree), *[str(tree / test) for test in tests]]
-    result = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True)
-    failed = re.findall(r"^FAILED (\S+)", result.stdout, flags=re.M)
-    caught = result.returncode != 0
-    return caught, (failed[0].split("/")[-1] if failed else result.stdout.strip().splitlines()[-1])
+def _redistribution_factor(original, factor):
+    def mutated(*args, **kwargs):
+        kwargs["factor"] = factor * kwargs.get("factor", 0.5)
+        return original(*args, **kwargs)
+    return mutated
 
 
-def main(argv=None):
+def _moments(original, **changes):
+    def mutated(*args, **kwargs):
+        result = original(*args, **kwargs)
+        return dataclasses.replace(result, **{name: change(getattr(result, name))
+                                              for name, change in changes.items()})
+    return mutated
+
+
+def _covariance_x2(original):
+    def mutated(*args, **kwargs):
+        cov, npix = original(*args, **kwargs)
+        return 2.0 * cov, npix
+    return mutated
+
+
+def _gain_x2(original):
+    def mutated(*args, **kwargs):
+        fit = original(*args, **kwargs)
+        return dataclasses.replace(fit, gain=2.0 * fit.gain)
+    return mutated
+
+
+def _density_x2(original):
+    def mutated(*args, **kwargs):
+        pixels, (north, east) = original(*args, **kwargs)
+        return pixels, (2.0 * north, 2.0 * east)
+    return mutated
+
+
+def _negated(original):
+    def mutated(*args, **kwargs):
+        return -original(*args, **kwargs)
+    return mutated
+
+
+def _doubled(original):
+    def mutated(*args, **kwargs):
+        return 2.0 * original(*args, **kwargs)
+    return mutated
+
+
+def _cdmodel_x2(original):
+    def mutated(shifts, *args, **kwargs):
+        return original(shifts.scaled(2.0), *args, **kwargs)
+    return mutated
+
+
+def _b_term_x2(original):
+    def mutated(mean_e, a, c, *args, **kwargs):
+        return original(mean_e, a, 2.0 * c, *args, **kwargs)
+    return mutated
+
+
+def _sky_high(original):
+    def mutated(*args, **kwargs):
+        sky = original(*args, **kwargs)
+        coefficients = (sky.coefficients[0] + 5.0 * max(sky.rms, 1.0),) + sky.coefficients[1:]
+        return dataclasses.replace(sky, coefficients=coefficients)
+    return mutated
+
+
+#: name -> (module, function, how it is broken, the quick tests that must catch it)
+MUTATIONS = {
+    "redistribution x2": ("bfpsf.model.redistribution", "add_redistribution",
+                          lambda f: _redistribution_factor(f, 2.0),
+                          ["tests/test_galsim_sensor.py", "tests/test_photometry.py"]),
+    "redistribution sign": ("bfpsf.model.redistribution", "add_redistribution",
+                            lambda f: _redistribution_factor(f, -1.0),
+                            ["tests/test_galsim_sensor.py", "tests/test_photometry.py"]),
+    "inverse x2": ("bfpsf.model.inverse", "correct", lambda f: _scaled_delta(f, 2.0),
+                   ["tests/test_redistribution.py"]),
+    "build-up x2": ("bfpsf.model.buildup", "redistribute_buildup",
+                    lambda f: _scaled_delta(f, 2.0),
+                    ["tests/test_psf_model.py", "tests/test_redistribution.py"]),
+    "exact density x2": ("bfpsf.model.density", "exact_boundary_density", _density_x2,
+                         ["tests/test_psf_model.py", "tests/test_redistribution.py"]),
+    "R table sign": ("bfpsf.model.bf_term", "bf_response_table", _negated,
+                     ["tests/test_psf_model.py"]),
+    "moments mxx x2": ("bfpsf.moments.adaptive", "adaptive_moments_batch",
+                       lambda f: _moments(f, mxx=lambda v: 2.0 * v), ["tests/test_moments.py"]),
+    "moments mxy sign": ("bfpsf.moments.adaptive", "adaptive_moments_batch",
+                         lambda f: _moments(f, mxy=lambda v: -v), ["tests/test_moments.py"]),
+    "covariance x2": ("bfpsf.calibration.covariance", "covariance_map", _covariance_x2,
+                      ["tests/test_covariance.py"]),
+    "PTC gain x2": ("bfpsf.calibration.ptc", "fit_ptc", _gain_x2, ["tests/test_ptc.py"]),
+    "sky high by 5 rms": ("bfpsf.measure.sky", "estimate_sky", _sky_high,
+                          ["tests/test_defaults_matrix.py"]),
+    "cdmodel a_t x2": ("bfpsf.interop.cdmodel", "shifts_to_cdmodel", _cdmodel_x2,
+                       ["tests/test_galsim_sensor.py", "tests/test_redistribution.py"]),
+    "A+19 b term x2": ("bfpsf.calibration.ptc_full", "_model_electrons", _b_term_x2,
+                       ["tests/test_ptc.py"]),
+    "electrostatic area x2": ("bfpsf.calibration.shifts_electrostatic", "electrostatic_area",
+                              _doubled, ["tests/test_shifts_electrostatic.py"]),
+}
+
+
+def _all_bfpsf_modules():
+    import importlib
+    import pkgutil
+
+    import bfpsf
+
+    for info in pkgutil.walk_packages(bfpsf.__path__, "bfpsf."):
+        if ".piff" in info.name or info.name.endswith("__main__"):
+            continue
+        importlib.import_module(info.name)
+
+
+def pytest_configure(config):
+    """The pytest plug-in side: break the operator named by ``BFPSF_MUTATION``."""
+    import importlib
+
+    module_name, function, mutate, _ = MUTATIONS[os.environ["BFPSF_MUTATION"]]
+    _all_bfpsf_modules()
+    original = getattr(importlib.import_module(module_name), function)
+    mutated = mutate(original)
+    for name, module in list(sys.modules.items()):
+        if name.startswith("bfpsf") and getattr(module, function, None) is original:
+            setattr(module, function, mutated)
+
+
+def run(name):
+    """(caught, first failing test or None, seconds)."""
+    *_, tests = MUTATIONS[name]
+    env = dict(os.environ, BFPSF_MUTATION=name, OMP_NUM_THREADS="1", MPLBACKEND="Agg",
+               PYTHONPATH=os.pathsep.join([str(ROOT / "tools"), str(ROOT),
+                                           os.environ.get("PYTHONPATH", "")]))
+    start = time.perf_counter()
+    process = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "mutation_check",
+                              "-p", "no:cacheprovider", *tests], cwd=ROOT, env=env,
+                             capture_output=True, text=True)
+    failed = re.findall(r"^(?:FAILED|ERROR) (\S+)", process.stdout, re.M)
+    if process.returncode != 0 and not failed:  # the run itself broke: not a catch
+        tail = (process.stdout + process.stderr).strip().splitlines()[-3:]
+        raise RuntimeError(f"{name}: pytest exited {process.returncode} without a failing "
+                           f"test: {' / '.join(tail)}")
+    return bool(failed), (failed[0] if failed else None), time.perf_counter() - start
+
+
+def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", help="run the mutations whose name contains this text")
-    parser.add_argument("--list", action="store_true", help="list the mutations and stop")
-    args = parser.parse_args(argv)
-    chosen = [m for m in MUTATIONS if args.only is None or args.only in m[0]]
-    if args.list:
-        for name, relative, _, _, what, _ in chosen:
-            print(f"{name:32s} {relative}: {what}")
-        return 0
-    survived = 0
-    print("| mutation | file | breaks | first quick test failing |")
-    print("|---|---|---|---|")
-    for mutation in chosen:
-        with tempfile.TemporaryDirectory() as scratch:
-            tree = Path(scratch) / "repo"
-            shutil.copytree(ROOT, tree, ignore=shutil.ignore_patterns(
-                ".git", ".venv*", "__pycache__", ".pytest_cache", ".hypothesis", "*.egg-info"))
-            apply(tree, mutation)
-            caught, test = run(mutation, tree)
-        survived += not caught
-        print(f"| {mutation[0]} | {mutation[1]} | {mutation[4]} | "
-              f"{test if caught else 'SURVIVED: ' + test} |", flush=True)
-    return 1 if survived else 0
+    parser.add_argument("--only", help="one mutation (default: all)")
+    args = parser.parse_args()
+    names = [args.only] if args.only else list(MUTATIONS)
+    survived = []
+    for name in names:
+        caught, test, seconds = run(name)
+        where = f"{MUTATIONS[name][0]}.{MUTATIONS[name][1]}"
+        print(f"{name:22s} ({where}): "
+              f"{'caught by ' + str(test) if caught else 'SURVIVED'} ({seconds:.0f} s)", flush=True)
+        if not caught:
+            survived.append(name)
+    print(f"{len(names) - len(survived)} of {len(names)} mutations caught")
+    sys.exit(1 if survived else 0)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -247,6 +247,8 @@ def with_heldout(result, state, heldout, fraction):
         problem, model, _ = _evaluate(state, heldout, step)
         evaluations.append((problem, model))
         chi2.append(float((((problem.residual - model) / problem.sigma) ** 2).sum()))
+    # the first step fits the global nuisances together (the size scale and, where the flats
+    # give its prior, the X / Y split): one confirmation, under the scale's name
     names = ["calibration_scale (nuisance)"] * (len(state["steps"]) - 1 - len(result.selected))
     names += result.selected
     confirmed = {name: chi2[k + 1] < chi2[k] for k, name in enumerate(names)}

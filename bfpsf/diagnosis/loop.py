@@ -51,10 +51,10 @@ from ..least_squares import weighted_least_squares
 from .catalogue import CATALOGUE, get_effect
 from .heldout import split_observables, with_empirical, with_heldout
 from .problem import (build_problem, effect_columns, effect_design, effect_values,
-                      slope_residuals, summarise)
+                      global_priors, slope_residuals, summarise)
 from .result import DiagnosisResult
 from .signature import (SIGNATURE_ALPHA, contradiction, cross_test, flux_shape_test,
-                        parity_test, signature_parts, signature_test, tolerances)
+                        TEMPLATE_TOLERANCE, parity_test, signature_parts, signature_test)
 from .unexplained import (STAR_CHI2_FACTOR, UNEXPLAINED_NSIGMA, describe_unexplained, verdict,
                           with_scale_parts)
 
@@ -106,20 +106,27 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
     fit_part, heldout = (split_observables(observables, holdout_fraction) if holdout_fraction
                          else (observables, None))
     result, state = _run_loop(fit_part, *options)
-    scale = result.nuisance.get("calibration_scale") or {}
-    if scale.get("contradicted_by"):
-        # the size scale's signature is contradicted: the effects were chosen and fitted with
-        # it free, so the loop runs again without it (its test is kept in the report); a
-        # candidate that needed it (an effect fitted beside a scale far from the flats') is
-        # then judged on its own
+    contradicted = {}
+    while True:
+        against = {name: entry for name, entry in result.nuisance.items()
+                   if entry.get("contradicted_by") and name not in contradicted}
+        if not against:
+            break
+        # a global nuisance's signature is contradicted: the effects were chosen and fitted
+        # with it free, so the loop runs again without it (without the split too when the
+        # scale goes; its test is kept in the report); a candidate that needed it (an effect
+        # fitted beside a scale far from the flats') is then judged on its own
+        contradicted.update(against)
+        dropped = (("scale_err", "split_err") if "calibration_scale" in contradicted
+                   else ("split_err",))
         observables, fit_part, heldout = (
             None if part is None else dataclasses.replace(
                 part, meta={key: value for key, value in part.meta.items()
-                            if key != "scale_err"})
+                            if key not in dropped})
             for part in (observables, fit_part, heldout))
         result, state = _run_loop(fit_part, *options)
-        result = dataclasses.replace(result, nuisance=dict(result.nuisance,
-                                                           calibration_scale=scale))
+    if contradicted:
+        result = dataclasses.replace(result, nuisance=dict(result.nuisance, **contradicted))
     if heldout is not None:
         result = with_heldout(result, state, heldout, holdout_fraction)
     else:
@@ -193,7 +200,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     ambiguous = {}
     rejected = {}
     parts = signature_parts(problem, observables)
-    tolerance = tolerances(observables.meta)
+    tolerance = TEMPLATE_TOLERANCE
     linear = np.zeros(problem.residual.size)
     if "sizes" in problem.slices:
         # a size change linear in peak on both axes: the flux_shape dimension's competitor
@@ -312,32 +319,35 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                             "physical": physical}
 
     nuisance = {}
-    if problem.global_columns:
-        column = problem.global_columns[0]
-        nuisance["calibration_scale"] = {
-            "value": float(params[column]),
-            "error": float(np.sqrt(abs(covariance[column, column]))),
-            "prior": float(observables.meta["scale_err"])}
-        if signature_alpha:
-            # the size scale is a nuisance within the flats' error, with a signature of its
-            # own (isotropic, the same everywhere): tested like a candidate, and its pull
-            # against the flats' prior must stay within 3 sigma
-            test = signature(problem.nuisance[:, [column]],
-                             nuisance=np.delete(problem.nuisance, column, axis=1))
-            entry = nuisance["calibration_scale"]
-            pull = entry["value"] / entry["prior"] if entry["prior"] > 0 else 0.0
-            test["flats_prior"] = {"parts": ["flats", "stars"], "amplitudes": [[0.0],
-                                   [entry["value"]]], "errors": [[entry["prior"]],
-                                   [entry["error"]]], "chi2": pull ** 2, "dof": 1,
-                                   "p_value": float(_chi2.sf(pull ** 2, 1)),
-                                   "matches": bool(abs(pull) <= 3.0)}
-            entry.update(signature=test, contradicted_by=contradiction(test))
-            # and within the physical range of the scale (`CalibrationScale.bounds`): a new
-            # user's isotropic spill was taken as +1.5, within 2.2 sigma of 150^2 flats
-            scale = get_effect("calibration_scale")
-            if entry["contradicted_by"] is None and not scale.allows([entry["value"]],
-                                                                     [entry["error"]]):
-                entry.update(contradicted_by="bounds", bounds=list(scale.bounds[0]))
+    priors = global_priors(observables.meta)
+    for (name, prior), column in zip(priors.items(), problem.global_columns):
+        entry = nuisance[name] = {"value": float(params[column]),
+                                  "error": float(np.sqrt(abs(covariance[column, column]))),
+                                  "prior": float(prior)}
+        if not signature_alpha:
+            continue
+        # the flats' scale and split are nuisances within the flats' errors, each with a
+        # signature of its own (the same everywhere, in every exposure): tested like a
+        # candidate, and the pull against the flats' prior must stay within 3 sigma
+        test = signature(problem.nuisance[:, [column]],
+                         nuisance=np.delete(problem.nuisance, column, axis=1))
+        if name == "calibration_split":
+            # its template is X against Y by construction: the axis parts are not one
+            # amplitude of it
+            test.pop("axis", None)
+        pull = entry["value"] / entry["prior"]
+        test["flats_prior"] = {"parts": ["flats", "stars"], "amplitudes": [[0.0],
+                               [entry["value"]]], "errors": [[entry["prior"]],
+                               [entry["error"]]], "chi2": pull ** 2, "dof": 1,
+                               "p_value": float(_chi2.sf(pull ** 2, 1)),
+                               "matches": bool(abs(pull) <= 3.0)}
+        entry.update(signature=test, contradicted_by=contradiction(test))
+        # and the scale within its physical range (`CalibrationScale.bounds`): a new user's
+        # isotropic spill was taken as +1.5, within 2.2 sigma of 150^2 flats
+        scale = get_effect("calibration_scale")
+        if (name == "calibration_scale" and entry["contradicted_by"] is None
+                and not scale.allows([entry["value"]], [entry["error"]])):
+            entry.update(contradicted_by="bounds", bounds=list(scale.bounds[0]))
     curves = {}
     sizes = observables.sizes
     if sizes is not None:
@@ -365,12 +375,14 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     foldable = [name for name in selected if family(name) in _FOLDABLE
                 or (family(name) == "second_order" and parameters[name]["value"][0] > 0)]
     values = fit(foldable)[0]
+    folded_globals = {name: float(values[column])
+                      for name, column in zip(priors, problem.global_columns)}
     folded = {"names": foldable,
               "effects": {name: np.asarray(value).tolist() for name, value in
                           effect_values(values, problem, foldable, fixed, by_name,
                                          family).items()},
-              "scale_nuisance": (float(values[problem.global_columns[0]])
-                                 if problem.global_columns else None)}
+              "scale_nuisance": folded_globals.get("calibration_scale"),
+              "split_nuisance": folded_globals.get("calibration_split")}
     result = DiagnosisResult(residual_before=summarise(problem, observables, model_before),
                              candidates=candidates, selected=selected,
                              residual_after=summarise(problem, observables, model_after),

@@ -22,6 +22,7 @@ from ..measure.sources import aperture_fraction, measure_sources, sky_level
 from ..model.psf_fit import DEFAULT_SIZE, fit_psf
 from ..moments.result import moments_from_hsm
 from .binning import DEFAULT_BINS, auto_position_bins, binned_sizes, position_grid
+from .catalogue import split_shifts
 from .odd_moments import star_skewness
 from .spot_model import FLUX_SCALE, SpotForwardModel, flux_of_peak
 from .star_residual import stacked_star_residual
@@ -90,7 +91,8 @@ def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=Non
     ``bfpsf psf`` does), else a GalSim profile matched to the zero-flux intercepts of the sizes
     (`matched_profile`). With ``shift_draws`` (shifts drawn within the calibration's errors),
     the relative errors of the predicted BF amplitude and of its X / Y split
-    (`bf_scale_error`) are kept in ``meta['scale_err']`` and ``meta['axis_err']``; ``peak_to_flux`` relates the table's peaks to fluxes
+    (`bf_scale_error`) are kept in ``meta['scale_err']`` and ``meta['split_err']``;
+    ``peak_to_flux`` relates the table's peaks to fluxes
     (`SpotForwardModel`); ``area`` (the calibrated a, 1/e-) is kept in ``meta['area']`` for
     the ``sum_rule_tail`` candidate.
     """
@@ -102,35 +104,44 @@ def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=Non
     if area is not None:
         meta["area"] = np.asarray(area, dtype=float)
     if len(shift_draws):
-        meta["scale_err"], meta["axis_err"] = bf_scale_error(model, shift_draws, sizes.peak_e)
+        meta["scale_err"], meta["split_err"] = bf_scale_error(model, shift_draws, sizes.peak_e)
     return Observables(sizes=sizes, spot_model=model, linearity=linearity,
                        correlations=correlations, meta=meta, ptc=ptc)
 
 
 def bf_scale_error(spot_model, shift_draws, peaks_e):
-    """Relative errors of the predicted BF slope from the calibration's shift errors: of its
-    amplitude, and of its split between X and Y.
+    """Errors of the predicted BF slope from the calibration's shift errors: the relative
+    error of its amplitude, and the error of its X / Y split in units of `split_shifts`.
 
     The model spot's size change between the faintest and brightest peak is recomputed with
     each of ``shift_draws`` (shifts drawn within the calibration's errors: its bootstrap
-    samples, `Calibration.shift_samples`). The amplitude's error is the rms of its ratio to
-    the nominal one, averaged over X and Y: the loop gives the size block a common scale
-    within it (a nuisance with a Gaussian prior), the prediction being no better than its
-    flats. The split's error is the rms of the X ratio over the Y ratio: the signature
-    test's tolerance between the axes adds it to the templates' own 10 %, as flats that fix
-    a^N against a^E poorly (a new user's 16 pairs of 160^2 E2V flats, a^N / (a^N + a^E) at
-    (0, 0) 0.42 +- 0.10) predict X against Y no better (its BF-only stars had the size scale
-    contradicted by axis, 0.35 +- 0.07 on X and 0.85 +- 0.09 on Y, and `flux_diffusion`
-    named). (0, 0) with fewer than 3 draws.
+    samples, `Calibration.shift_samples`). The amplitude's error is the rms of the log of its
+    ratio to the nominal one, averaged over X and Y (their common part); the split's, the rms
+    of the log of the X ratio over the Y ratio, divided by what a unit split (`split_shifts`)
+    does to that log. The
+    size block (`bfpsf.diagnosis.problem`) gives both a nuisance with a Gaussian prior of
+    that width: the prediction is no better than its flats. Flats that fix a^N against a^E
+    poorly (a new user's 16 pairs of 160^2 E2V flats, a^N / (a^N + a^E) at (0, 0)
+    0.42 +- 0.10) predict X against Y no better: its BF-only stars, with the scale alone
+    free, had the scale contradicted by axis (0.35 +- 0.07 on X, 0.85 +- 0.09 on Y) and
+    `flux_diffusion` named. (0, 0) with fewer than 3 draws.
     """
     if len(shift_draws) < 3:
         return 0.0, 0.0
     peaks = np.array([np.min(peaks_e), np.max(peaks_e)])
-    nominal = np.array([np.diff(v)[0] for v in spot_model.sizes(peaks)])
-    ratios = np.array([np.array([np.diff(v)[0] for v in spot_model.sizes(peaks, shifts=shifts)])
-                       / nominal for shifts in shift_draws])
-    return (float(np.mean(np.std(ratios, axis=0, ddof=1))),
-            float(np.std(ratios[:, 0] / ratios[:, 1], ddof=1)))
+
+    def increments(shifts=None):
+        options = {} if shifts is None else {"shifts": shifts}
+        return np.array([np.diff(v)[0] for v in spot_model.sizes(peaks, **options)])
+
+    nominal = increments()
+    ratios = np.array([increments(shifts) / nominal for shifts in shift_draws])
+    step = 0.1
+    moved = increments(split_shifts(spot_model.shifts, step)) / nominal
+    per_split = np.log(moved[0] / moved[1]) / step
+    logs = np.log(ratios)
+    return (float(np.std(logs.mean(axis=1), ddof=1)),
+            float(np.std(logs[:, 0] - logs[:, 1], ddof=1) / abs(per_split)))
 
 
 def lamp_error_floor(exptime, mean_e, shot_e):

@@ -17,10 +17,10 @@ import numpy as np
 
 from ..measure.slopes import fit_bf_slope
 from ..moments.shapes import MAG_PER_SIZE_ERROR
-from .catalogue import get_effect
+from .catalogue import get_effect, split_template
 
 __all__ = ["Problem", "build_problem", "describe_slope", "effect_columns", "effect_design",
-           "effect_values",
+           "effect_values", "global_priors",
            "slope_residuals", "BF_DETECTION_SIGMA",
            "summarise"]
 
@@ -38,15 +38,19 @@ class Problem:
     residual: np.ndarray   # data - fixed base prediction
     sigma: np.ndarray
     nuisance: np.ndarray   # (N, m)
-    global_columns: tuple = ()  # nuisance columns held fixed on held-out data (size scale)
+    # nuisance columns held fixed on held-out data: the size scale and split (`global_priors`)
+    global_columns: tuple = ()
 
 
 def _size_block(observables):
     """Size residuals; nuisance: an intercept per group, exposure and axis
-    (`SizeTable.intercepts`) and, when the observables
-    carry the calibration's BF amplitude error (``meta['scale_err']``), a common scale of the
-    shifts within it (a Gaussian prior, one pseudo data point): the prediction is no better
-    than its flats. The scale is a global nuisance: fitted in-sample, fixed on held-out data.
+    (`SizeTable.intercepts`) and, when the observables carry the calibration's errors of the
+    BF prediction (``meta['scale_err']``, ``meta['split_err']``,
+    `bfpsf.diagnosis.observables.bf_scale_error`), a common scale of the shifts and a move of
+    their X / Y split (`bfpsf.diagnosis.catalogue.split_shifts`) within them (Gaussian
+    priors, one pseudo data point each): the prediction is no better than its flats. Both are
+    global nuisances (`global_priors`, in that order): fitted in-sample, fixed on held-out
+    data.
     """
     sizes, model = observables.sizes, observables.spot_model
     predicted_x, predicted_y = model.sizes(sizes.peak_e)
@@ -55,15 +59,32 @@ def _size_block(observables):
     intercepts = sizes.intercept_design()
     zeros = np.zeros_like(intercepts)
     nuisance = np.block([[intercepts, zeros], [zeros, intercepts]])
-    scale_err = float(observables.meta.get("scale_err", 0.0) or 0.0)
-    if not scale_err > 0:
+    priors = global_priors(observables.meta)
+    if not priors:
         return residual, sigma, nuisance
-    template = get_effect("calibration_scale").templates(observables)["sizes"]
-    nuisance = np.hstack([nuisance, template])
-    prior_design = np.zeros((1, nuisance.shape[1]))
-    prior_design[0, -1] = 1.0
-    return (residual, sigma, nuisance, (prior_design, np.array([scale_err])),
-            (nuisance.shape[1] - 1,))
+    templates = {"calibration_scale": lambda: get_effect("calibration_scale").templates(
+                     observables)["sizes"],
+                 "calibration_split": lambda: split_template(observables)}
+    nuisance = np.hstack([nuisance] + [templates[name]() for name in priors])
+    prior_design = np.zeros((len(priors), nuisance.shape[1]))
+    columns = tuple(range(nuisance.shape[1] - len(priors), nuisance.shape[1]))
+    prior_design[np.arange(len(priors)), columns] = 1.0
+    return (residual, sigma, nuisance, (prior_design, np.array(list(priors.values()))),
+            columns)
+
+
+def global_priors(meta):
+    """The size block's global nuisances and their prior widths: ``calibration_scale``
+    (``meta['scale_err']``) and, beside it, ``calibration_split`` (``meta['split_err']``)
+    where they are positive; {} without the scale's."""
+    scale_err = float((meta or {}).get("scale_err", 0.0) or 0.0)
+    if not scale_err > 0:
+        return {}
+    out = {"calibration_scale": scale_err}
+    split_err = float((meta or {}).get("split_err", 0.0) or 0.0)
+    if split_err > 0:
+        out["calibration_split"] = split_err
+    return out
 
 
 def _linearity_block(observables):

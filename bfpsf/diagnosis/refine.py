@@ -6,6 +6,9 @@ the PSF model can use it:
 
 * ``calibration_scale`` (the candidate and the size block's scale nuisance): every boundary
   shift times (1 + s);
+* ``calibration_split`` (the size block's split nuisance): a^E times (1 + d / 2) and a^N
+  times (1 - d / 2) (`bfpsf.diagnosis.catalogue.split_shifts`): the X / Y share the stars
+  fix within the flats' error of it;
 * ``xy_anisotropy``: the area-preserving quadrupole of the nearest boundaries
   (`bfpsf.diagnosis.catalogue.quadrupole_shifts`) added to the shifts: the flux dependence of
   star sizes in X and Y constrains what the flats cannot see;
@@ -33,7 +36,7 @@ import numpy as np
 from ..errors import BFPSFValueError
 from ..outputs import json_safe
 from ..calibration.linearity import linearise
-from .catalogue import add_shifts, quadrupole_shifts
+from .catalogue import add_shifts, quadrupole_shifts, split_shifts
 
 __all__ = ["refine_calibration", "linearise", "undo_refined_linearity", "BUILDUP_STEPS"]
 
@@ -96,18 +99,24 @@ def refine_calibration(calibration, result, *, provenance=None):
     anisotropy = None
     applied, not_applied, parameters = {}, {}, {}
     linearity_c, buildup = 0.0, None
-    scale = 0.0
+    scale, split = 0.0, 0.0
     folded = result.folded or {"names": [], "effects": {}, "scale_nuisance": None}
-    nuisance = folded.get("scale_nuisance")
-    against = (result.nuisance.get("calibration_scale") or {}).get("contradicted_by")
-    if against:
-        not_applied["calibration_scale (nuisance)"] = (
-            f"its signature is contradicted by {against} (an effect outside the catalogue)")
-    elif nuisance is not None and result.confirmed.get("calibration_scale (nuisance)", True):
-        scale += nuisance
-        applied["calibration_scale (nuisance)"] = "shifts times (1 + s)"
-        parameters["calibration_scale (nuisance)"] = dict(result.nuisance["calibration_scale"],
-                                                          value=nuisance)
+    for name, key, how in (("calibration_scale", "scale_nuisance", "shifts times (1 + s)"),
+                           ("calibration_split", "split_nuisance",
+                            "a^E times (1 + d / 2), a^N times (1 - d / 2)")):
+        value = folded.get(key)
+        against = (result.nuisance.get(name) or {}).get("contradicted_by")
+        label = f"{name} (nuisance)"
+        if value is None:
+            continue
+        if against:
+            not_applied[label] = (f"its signature is contradicted by {against} (an effect "
+                                  "outside the catalogue)")
+        elif result.confirmed.get("calibration_scale (nuisance)", True):
+            # the held-out step of the global nuisances confirms the scale and split together
+            scale, split = (scale + value, split) if key == "scale_nuisance" else (scale, value)
+            applied[label] = how
+            parameters[label] = dict(result.nuisance[name], value=value)
     for name in result.selected:
         family = name.split("@")[0]
         parameters[name] = result.parameters[name]
@@ -133,16 +142,16 @@ def refine_calibration(calibration, result, *, provenance=None):
         elif family == "second_order":
             buildup = BUILDUP_STEPS
             applied[name] = f"build-up of the shifts integrated in {BUILDUP_STEPS} steps"
-    if scale:
-        shifts = shifts.scaled(1.0 + scale)
+
+    def refine_sample(sample):
+        sample = sample if anisotropy is None else add_shifts(sample, anisotropy)
+        return split_shifts(sample.scaled(1.0 + scale), split)
+
+    shifts = split_shifts(shifts.scaled(1.0 + scale), split) if scale or split else shifts
     # the calibration's uncertainty follows the same refinement, sample by sample
     samples = {}
     if calibration.shift_samples_north is not None:
-        refined = []
-        for sample in calibration.shift_samples():
-            if anisotropy is not None:
-                sample = add_shifts(sample, anisotropy)
-            refined.append(sample.scaled(1.0 + scale))
+        refined = [refine_sample(sample) for sample in calibration.shift_samples()]
         samples = {"shift_samples_north": np.array([sample.north for sample in refined]),
                    "shift_samples_east": np.array([sample.east for sample in refined])}
         if len(refined) >= 2:
@@ -152,7 +161,7 @@ def refine_calibration(calibration, result, *, provenance=None):
                   "applied": applied, "not_applied": not_applied,
                   "confirmed": dict(result.confirmed), "holdout": result.holdout,
                   "linearity_c_per_1e5": linearity_c, "buildup_steps": buildup,
-                  "scale": scale, "provenance": dict(provenance or {})}
+                  "scale": scale, "split": split, "provenance": dict(provenance or {})}
     if result.empirical and not result.empirical.get("validation", {}).get("validated", True):
         not_applied["empirical"] = ("the EMPIRICAL term did not lower the slope residual on "
                                     "data it was not fitted on")

@@ -30,8 +30,10 @@ class DiagnosisResult:
         Arrays for the plots: ``peak_e``, ``sigma_x``, ``sigma_y``, errors, ``base_x``,
         ``base_y`` (base model with fitted intercepts), ``final_x``, ``final_y``, ``group``.
     nuisance : dict
-        Fitted global nuisances: ``calibration_scale`` {value, error, prior} when the size
-        prediction carries the flats' BF amplitude error (``meta['scale_err']``).
+        Fitted global nuisances: ``calibration_scale`` and ``calibration_split`` {value,
+        error, prior, signature, contradicted_by} when the size prediction carries the flats'
+        errors of the BF amplitude and of its X / Y split (``meta['scale_err']``,
+        ``meta['split_err']``, `bfpsf.diagnosis.problem.global_priors`).
     residual_before_heldout, residual_after_heldout : dict or None
         With a held-out split: the residual summaries (same keys as ``residual_after``) on the
         held-out data, the effects and global nuisances fixed at their in-sample values and
@@ -68,7 +70,8 @@ class DiagnosisResult:
         out).
     folded : dict
         The joint fit of the selected effects a calibration can hold (``names``, ``effects``:
-        name -> values, ``scale_nuisance``), for `bfpsf.diagnosis.refine`.
+        name -> values, ``scale_nuisance``, ``split_nuisance``), for
+        `bfpsf.diagnosis.refine`.
     ptc_curves : dict
         PTC residuals for the plot (empty without a PTC observable): ``mean_e``,
         ``residual_raw`` (data minus the calibrated sum-rule model, nothing refitted),

@@ -75,7 +75,6 @@ from ..least_squares import weighted_least_squares
 
 __all__ = ["SIGNATURE_ALPHA", "TEMPLATE_TOLERANCE", "CROSS_TOLERANCE", "CROSS_FLOOR",
            "signature_parts", "signature_test", "one_amplitude_chi2", "flux_shape_test",
-           "tolerances",
            "contradiction",
            "parity_test", "cross_test", "describe_entry",
            "describe_rejection"]
@@ -88,15 +87,6 @@ SIGNATURE_ALPHA = 1e-3
 #: without BF, a linear residual, 95 %).
 TEMPLATE_TOLERANCE = {"observable": 0.3, "axis": 0.1, "flux": 0.3, "position": 0.0,
                       "row": 0.0, "exposure_order": 0.0, "flux_shape": 0.15}
-
-
-def tolerances(meta=None):
-    """`TEMPLATE_TOLERANCE` for one data set: between the axes, the templates' own 10 % and
-    the flats' error of the X / Y split of the predicted BF (``meta['axis_err']``,
-    `bfpsf.diagnosis.observables.bf_scale_error`) in quadrature."""
-    out = dict(TEMPLATE_TOLERANCE)
-    out["axis"] = float(np.hypot(out["axis"], float((meta or {}).get("axis_err", 0.0) or 0.0)))
-    return out
 
 
 def _halves(values):

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..least_squares import weighted_least_squares
 from ..measure.slopes import fit_bf_slope
-from .signature import SIGNATURE_ALPHA, cross_test, tolerances
+from .signature import SIGNATURE_ALPHA, TEMPLATE_TOLERANCE, cross_test
 
 __all__ = ["describe_unexplained", "verdict", "with_scale_parts", "UNEXPLAINED_NSIGMA",
            "STAR_CHI2_FACTOR"]
@@ -45,9 +45,11 @@ def verdict(unexplained, nuisance, star=None, null_expectation=1.0):
     reasons = [f"unexplained {entry['observable']}"
                + (f" {entry['axis']}" if entry.get("axis") else "")
                + f" ({entry['significance']:.1f} sigma)" for entry in unexplained]
-    against = (nuisance.get("calibration_scale") or {}).get("contradicted_by")
-    if against:
-        reasons.append(f"the size scale is contradicted by {against}")
+    for name, what in (("calibration_scale", "size scale"),
+                       ("calibration_split", "X / Y split of the size prediction")):
+        against = (nuisance.get(name) or {}).get("contradicted_by")
+        if against:
+            reasons.append(f"the {what} is contradicted by {against}")
     chi2 = None if star is None else float(star["chi2_per_pixel"])
     limit = STAR_CHI2_FACTOR * float(null_expectation)
     if chi2 is not None and chi2 > limit:
@@ -158,7 +160,7 @@ def _odd_parity(sizes, axis):
 def _prediction_slope_variance(prediction, block, peak_e, errors, group, axis_tolerance):
     """Variance of a size residual's slope that the model's fitted part carries on held-out
     data, where its parameters come from the fit part: their covariance, and the templates'
-    accuracy between the axes (``axis_tolerance``, `bfpsf.diagnosis.signature.tolerances`,
+    accuracy between the axes (``axis_tolerance``, `bfpsf.diagnosis.signature.TEMPLATE_TOLERANCE`,
     of the slope the fitted part adds on this axis). A new user's BF-only seed (the flats' scale -0.46 +- 0.04, so the
     model moved each axis by some 80 % of raw) read "unexplained sizes y 4.2 sigma" against
     the held-out noise alone."""
@@ -223,7 +225,7 @@ def describe_unexplained(problem, observables, model, prediction=None):
                 rows = np.arange(block.start, block.stop)[index * n:(index + 1) * n]
                 slope_err = np.hypot(fit.slope_err, np.sqrt(_prediction_slope_variance(
                     prediction, rows, sizes.peak_e, errors, sizes.intercepts,
-                    tolerances(observables.meta)["axis"])))
+                    TEMPLATE_TOLERANCE["axis"])))
                 significance = abs(fit.slope) / slope_err
                 if significance > UNEXPLAINED_NSIGMA:
                     parity = _odd_parity(sizes, axis)

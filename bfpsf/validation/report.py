@@ -131,11 +131,18 @@ def diagnosis_markdown(result, *, title="bfpsf diagnose", figures=(), context=()
                   "that does not lower the held-out chi2 is not confirmed.", ""]
         lines += [f"- `{name}`: {'confirmed' if ok else 'NOT CONFIRMED'} on the held-out data"
                   for name, ok in data["confirmed"].items()]
+    titles = {"calibration_scale": ("Size-prediction scale", "the spread of the predicted "
+                                    "size slope over the calibration's shift samples, which "
+                                    "carries every shift's error, not a(0, 0)'s alone"),
+              "calibration_split": ("Size-prediction X / Y split", "the spread of the "
+                                    "predicted X slope over the Y slope over the shift "
+                                    "samples: a^E against a^N")}
     for name, value in data.get("nuisance", {}).items():
-        lines += ["", f"Size-prediction scale (nuisance; prior {format_number(value['prior'])}: "
-                  "the spread of the predicted size slope over the calibration's shift "
-                  "samples, which carries every shift's error, not a(0, 0)'s alone): "
-                  f"{format_number(value['value'])} +- {format_number(value['error'])}."]
+        title, prior = titles.get(name, (name, "the flats' error"))
+        against = value.get("contradicted_by")
+        lines += ["", f"{title} (nuisance; prior {format_number(value['prior'])}: {prior}): "
+                  f"{format_number(value['value'])} +- {format_number(value['error'])}"
+                  + (f"; contradicted by {against}, not applied." if against else ".")]
     lines += ["", "## Unexplained", ""]
     if not data.get("unexplained"):
         lines.append("Nothing significant left unexplained.")
