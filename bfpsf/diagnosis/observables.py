@@ -116,9 +116,9 @@ def bf_scale_error(spot_model, shift_draws, peaks_e):
     The model spot's size change between the faintest and brightest peak is recomputed with
     each of ``shift_draws`` (shifts drawn within the calibration's errors: its bootstrap
     samples, `Calibration.shift_samples`). The amplitude's error is the rms of the log of its
-    ratio to the nominal one, averaged over X and Y (their common part); the split's, the rms
-    of the log of the X ratio over the Y ratio, divided by what a unit split (`split_shifts`)
-    does to that log. The
+    ratio to the nominal one on each axis, averaged over X and Y (a split error moves each
+    axis too: the wider, conservative prior); the split's, the rms of the log of the X ratio
+    over the Y ratio, divided by what a unit split (`split_shifts`) does to that log. The
     size block (`bfpsf.diagnosis.problem`) gives both a nuisance with a Gaussian prior of
     that width: the prediction is no better than its flats. Flats that fix a^N against a^E
     poorly (a new user's 16 pairs of 160^2 E2V flats, a^N / (a^N + a^E) at (0, 0)
@@ -140,7 +140,7 @@ def bf_scale_error(spot_model, shift_draws, peaks_e):
     moved = increments(split_shifts(spot_model.shifts, step)) / nominal
     per_split = np.log(moved[0] / moved[1]) / step
     logs = np.log(ratios)
-    return (float(np.std(logs.mean(axis=1), ddof=1)),
+    return (float(np.mean(np.std(logs, axis=0, ddof=1))),
             float(np.std(logs[:, 0] - logs[:, 1], ddof=1) / abs(per_split)))
 
 
