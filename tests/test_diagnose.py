@@ -677,3 +677,22 @@ def test_a_nonlinearity_is_named_beside_a_bf_amplitude_the_flats_did_not_predict
         nuisance = result.nuisance.get(name) or {}
         total = value + (0.0 if nuisance.get("contradicted_by") else nuisance.get("value", 0))
         assert total == pytest.approx(truth, abs=3 * error)
+
+
+def test_the_verdict_says_how_much_the_flats_errors_could_hide():
+    """`hiding_room`: an undeclared effect shaped like BF hides in the scale's 3 sigma and in
+    half the split's (each axis moves by d / 2): precise flats leave no caveat, a new user's
+    20 ITL flats of 130^2 (priors 0.64 and 1.31) leave 192 % isotropic and 196 % on one
+    axis, said in the verdict; a contradicted nuisance hides nothing (it is not applied)."""
+    from bfpsf.diagnosis.unexplained import hiding_room, verdict
+
+    def nuisance(scale, split, against=None):
+        return {"calibration_scale": {"prior": scale, "contradicted_by": against},
+                "calibration_split": {"prior": split, "contradicted_by": None}}
+
+    assert hiding_room(nuisance(0.05, 0.1)) == []
+    assert hiding_room({}) == []
+    (line,) = verdict([], nuisance(0.64, 1.31))["caveats"]
+    assert "isotropic up to 192 %, on one axis up to 196 %" in line
+    (line,) = hiding_room(nuisance(0.64, 0.3, against="axis"))
+    assert "isotropic" not in line and "on one axis up to 45 %" in line

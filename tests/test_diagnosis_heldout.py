@@ -207,6 +207,50 @@ def test_refined_calibration_round_trip(flat_sets, tmp_path):
     assert get_effect("xy_anisotropy").name == "xy_anisotropy"
 
 
+def test_refined_samples_carry_the_stars_errors_of_scale_and_split(flat_sets):
+    """Each shift sample of the flats carries its own BF scale and X / Y split
+    (`bf_scale_error`'s ``draws``); where the stars fixed them, `refine_calibration`
+    re-centres every sample on the stars' values within the fit's errors. Samples drawn as
+    the nominal shifts times 1 + s_i (rms 0.3) with the split moved by d_i (rms 0.5): the
+    refined samples' spread is the stars' 0.02 and 0.05 (to the sampling error of 40
+    samples), not the flats' (a new user's ``slope --psf`` after refinement: +- 0.0178 px
+    per 100 ke-, 107 % of the raw slope, every pull 0; re-centred +- 0.0022)."""
+    import dataclasses
+
+    from bfpsf.diagnosis.catalogue import split_shifts
+    from bfpsf.diagnosis.loop import DiagnosisResult
+
+    cal = flat_sets["lsst_itl_50_8", "null"]
+    rng = np.random.default_rng(5)
+    scales, splits = rng.normal(0.0, 0.3, 40), rng.normal(0.0, 0.5, 40)
+    samples = [split_shifts(cal.shifts.scaled(1 + s), d) for s, d in zip(scales, splits)]
+    cal = dataclasses.replace(cal, shift_samples_north=np.array([x.north for x in samples]),
+                              shift_samples_east=np.array([x.east for x in samples]))
+    result = DiagnosisResult(
+        residual_before={}, candidates=[], residual_after={}, threshold=-10.0, selected=[],
+        parameters={},
+        nuisance={"calibration_scale": {"value": 0.1, "error": 0.02, "prior": 0.3,
+                                        "draws": scales.tolist()},
+                  "calibration_split": {"value": -0.2, "error": 0.05, "prior": 0.5,
+                                        "draws": splits.tolist()}},
+        folded={"names": [], "effects": {}, "scale_nuisance": 0.1, "split_nuisance": -0.2},
+        confirmed={"calibration_scale (nuisance)": True})
+    refined = refine_calibration(cal, result)
+    nominal = refined.shifts
+    np.testing.assert_allclose(nominal.north, split_shifts(cal.shifts.scaled(1.1), -0.2).north,
+                               rtol=1e-12)
+    centre = (nominal.north[nominal.radius + 1, nominal.radius],
+              nominal.east[nominal.radius, nominal.radius + 1])
+    north = refined.shift_samples_north[:, nominal.radius + 1, nominal.radius] / centre[0]
+    east = refined.shift_samples_east[:, nominal.radius, nominal.radius + 1] / centre[1]
+    # north = (1 + 0.1 + ds) / 1.1 exp(-dd / 2), east the same with exp(+dd / 2)
+    scale_part = np.log(north * east) / 2
+    split_part = np.log(east / north)
+    assert np.std(scale_part, ddof=1) == pytest.approx(0.02 / 1.1, rel=0.3)
+    assert np.std(split_part, ddof=1) == pytest.approx(0.05, rel=0.3)
+    assert abs(np.mean(split_part)) < 3 * 0.05 / np.sqrt(40)
+
+
 # -- the full variant: SiliconSensor flats and spots ---------------------------------------------
 def _write_silicon_set(directory, sensor, *, nonlinearity=0.0, spots_cache=None):
     """12 flat pairs (192^2, 0.1 % lamp jitter) and 4 spot exposures (6 peaks 3-120 ke-, 9

@@ -238,6 +238,8 @@ def run(args):
               f"(null expectation {verdict['null_expectation']:.1f})")
     print("verdict: " + ("explained" if verdict.get("success") else
                          "NOT EXPLAINED: " + "; ".join(verdict.get("reasons", []))))
+    for caveat in verdict.get("caveats", []):
+        print(f"caveat: {caveat}")
     for label, values in rows:
         if "slope_x_percent" in values:
             print(f"{label}: BF slope residual X {describe_slope(values, 'x')}, "
@@ -272,6 +274,7 @@ def _add_signature_report(result, directory):
     verdict = result.verdict or {}
     lines.append("Verdict: " + ("explained." if verdict.get("success") else
                                 "**NOT EXPLAINED**: " + "; ".join(verdict.get("reasons", []))))
+    lines += [f"- caveat: {caveat}" for caveat in verdict.get("caveats", [])]
     for name, entry in result.rejected.items():
         lines.append(f"- rejected {describe_rejection(name, entry)}")
     for entry in result.unexplained:

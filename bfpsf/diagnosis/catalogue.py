@@ -104,8 +104,9 @@ def quadrupole_shifts(shifts, amplitude):
 
 
 def split_shifts(shifts, split):
-    """The shifts with their X / Y split moved by ``split``: a^E times (1 + split / 2), a^N
-    times (1 - split / 2).
+    """The shifts with their X / Y split moved by ``split``: a^E times exp(split / 2), a^N
+    times exp(-split / 2) (1 +- split / 2 to first order; the exponential keeps both signs
+    for any split, and two moves add).
 
     The flats fix the sum a(0, 0) of a pixel's four boundaries far better than its share
     between the E/W and the N/S boundaries (a new user's 16 pairs of 160^2 E2V flats:
@@ -114,7 +115,7 @@ def split_shifts(shifts, split):
     size block's split nuisance, `bfpsf.diagnosis.problem`). Parity is kept; the area
     a(0, 0) changes only at second order when a^N and a^E are alike.
     """
-    return BoundaryShifts(shifts.north * (1.0 - 0.5 * split), shifts.east * (1.0 + 0.5 * split),
+    return BoundaryShifts(shifts.north * np.exp(-0.5 * split), shifts.east * np.exp(0.5 * split),
                           check=False)
 
 

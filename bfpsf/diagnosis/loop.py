@@ -364,7 +364,8 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     for (name, prior), column in zip(priors.items(), problem.global_columns):
         entry = nuisance[name] = {"value": float(params[column]),
                                   "error": float(np.sqrt(abs(covariance[column, column]))),
-                                  "prior": float(prior)}
+                                  "prior": float(prior),
+                                  "draws": list(observables.meta.get("draws", {}).get(name, []))}
         if not signature_alpha:
             continue
         # the flats' scale and split are nuisances within the flats' errors, each with a

@@ -91,7 +91,8 @@ def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=Non
     ``bfpsf psf`` does), else a GalSim profile matched to the zero-flux intercepts of the sizes
     (`matched_profile`). With ``shift_draws`` (shifts drawn within the calibration's errors),
     the relative errors of the predicted BF amplitude and of its X / Y split
-    (`bf_scale_error`) are kept in ``meta['scale_err']`` and ``meta['split_err']``;
+    (`bf_scale_error`) are kept in ``meta['scale_err']`` and ``meta['split_err']``, each
+    draw's own in ``meta['draws']``;
     ``peak_to_flux`` relates the table's peaks to fluxes
     (`SpotForwardModel`); ``area`` (the calibrated a, 1/e-) is kept in ``meta['area']`` for
     the ``sum_rule_tail`` candidate.
@@ -104,7 +105,8 @@ def observables_from_sizes(sizes, shifts, *, shift_draws=(), area=None, beta=Non
     if area is not None:
         meta["area"] = np.asarray(area, dtype=float)
     if len(shift_draws):
-        meta["scale_err"], meta["split_err"] = bf_scale_error(model, shift_draws, sizes.peak_e)
+        meta["scale_err"], meta["split_err"], meta["draws"] = bf_scale_error(
+            model, shift_draws, sizes.peak_e)
     return Observables(sizes=sizes, spot_model=model, linearity=linearity,
                        correlations=correlations, meta=meta, ptc=ptc)
 
@@ -124,10 +126,12 @@ def bf_scale_error(spot_model, shift_draws, peaks_e):
     poorly (a new user's 16 pairs of 160^2 E2V flats, a^N / (a^N + a^E) at (0, 0)
     0.42 +- 0.10) predict X against Y no better: its BF-only stars, with the scale alone
     free, had the scale contradicted by axis (0.35 +- 0.07 on X, 0.85 +- 0.09 on Y) and
-    `flux_diffusion` named. (0, 0) with fewer than 3 draws.
+    `flux_diffusion` named. Also each draw's own scale and split, in the order of
+    ``shift_draws`` (`refine_calibration` re-centres the calibration's samples on what the
+    stars fixed). (0, 0, {}) with fewer than 3 draws.
     """
     if len(shift_draws) < 3:
-        return 0.0, 0.0
+        return 0.0, 0.0, {}
     peaks = np.array([np.min(peaks_e), np.max(peaks_e)])
 
     def increments(shifts=None):
@@ -140,8 +144,9 @@ def bf_scale_error(spot_model, shift_draws, peaks_e):
     moved = increments(split_shifts(spot_model.shifts, step)) / nominal
     per_split = np.log(moved[0] / moved[1]) / step
     logs = np.log(ratios)
-    return (float(np.mean(np.std(logs, axis=0, ddof=1))),
-            float(np.std(logs[:, 0] - logs[:, 1], ddof=1) / abs(per_split)))
+    scale, split = np.expm1(logs.mean(axis=1)), (logs[:, 0] - logs[:, 1]) / per_split
+    return (float(np.mean(np.std(logs, axis=0, ddof=1))), float(np.std(split, ddof=1)),
+            {"calibration_scale": scale.tolist(), "calibration_split": split.tolist()})
 
 
 def lamp_error_floor(exptime, mean_e, shot_e):

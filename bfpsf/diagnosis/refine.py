@@ -6,8 +6,8 @@ the PSF model can use it:
 
 * ``calibration_scale`` (the candidate and the size block's scale nuisance): every boundary
   shift times (1 + s);
-* ``calibration_split`` (the size block's split nuisance): a^E times (1 + d / 2) and a^N
-  times (1 - d / 2) (`bfpsf.diagnosis.catalogue.split_shifts`): the X / Y share the stars
+* ``calibration_split`` (the size block's split nuisance): a^E times exp(d / 2) and a^N
+  times exp(-d / 2) (`bfpsf.diagnosis.catalogue.split_shifts`): the X / Y share the stars
   fix within the flats' error of it;
 * ``xy_anisotropy``: the area-preserving quadrupole of the nearest boundaries
   (`bfpsf.diagnosis.catalogue.quadrupole_shifts`) added to the shifts: the flux dependence of
@@ -103,7 +103,7 @@ def refine_calibration(calibration, result, *, provenance=None):
     folded = result.folded or {"names": [], "effects": {}, "scale_nuisance": None}
     for name, key, how in (("calibration_scale", "scale_nuisance", "shifts times (1 + s)"),
                            ("calibration_split", "split_nuisance",
-                            "a^E times (1 + d / 2), a^N times (1 - d / 2)")):
+                            "a^E times exp(d / 2), a^N times exp(-d / 2)")):
         value = folded.get(key)
         against = (result.nuisance.get(name) or {}).get("contradicted_by")
         label = f"{name} (nuisance)"
@@ -143,15 +143,34 @@ def refine_calibration(calibration, result, *, provenance=None):
             buildup = BUILDUP_STEPS
             applied[name] = f"build-up of the shifts integrated in {BUILDUP_STEPS} steps"
 
-    def refine_sample(sample):
+    # each sample of the flats' shifts carries its own scale and split (`bf_scale_error`):
+    # where the stars fixed them, the sample is re-centred on the stars' values, drawn within
+    # the fit's errors, so the refined calibration's spread is the stars' in those two
+    # directions and the flats' in the others
+    own = {name: np.asarray(result.nuisance[name].get("draws") or [], float)
+           for name in ("calibration_scale", "calibration_split")
+           if f"{name} (nuisance)" in applied}
+    rng = np.random.default_rng(0)
+
+    def refine_sample(index, sample):
         sample = sample if anisotropy is None else add_shifts(sample, anisotropy)
-        return split_shifts(sample.scaled(1.0 + scale), split)
+        sample_scale, sample_split = scale, split
+        for name, draws in own.items():
+            if draws.size != len(calibration.shift_samples_north):
+                continue
+            error = rng.normal(0.0, result.nuisance[name]["error"])
+            if name == "calibration_scale":
+                sample, sample_scale = sample.scaled(1.0 / (1.0 + draws[index])), scale + error
+            else:
+                sample, sample_split = split_shifts(sample, -draws[index]), split + error
+        return split_shifts(sample.scaled(1.0 + sample_scale), sample_split)
 
     shifts = split_shifts(shifts.scaled(1.0 + scale), split) if scale or split else shifts
     # the calibration's uncertainty follows the same refinement, sample by sample
     samples = {}
     if calibration.shift_samples_north is not None:
-        refined = [refine_sample(sample) for sample in calibration.shift_samples()]
+        refined = [refine_sample(index, sample)
+                   for index, sample in enumerate(calibration.shift_samples())]
         samples = {"shift_samples_north": np.array([sample.north for sample in refined]),
                    "shift_samples_east": np.array([sample.east for sample in refined])}
         if len(refined) >= 2:
