@@ -687,12 +687,16 @@ def test_the_verdict_says_how_much_the_flats_errors_could_hide():
     from bfpsf.diagnosis.unexplained import hiding_room, verdict
 
     def nuisance(scale, split, against=None):
-        return {"calibration_scale": {"prior": scale, "contradicted_by": against},
-                "calibration_split": {"prior": split, "contradicted_by": None}}
+        return {"calibration_scale": {"prior": scale, "contradicted_by": against,
+                                      "value": 0.62, "error": 0.02},
+                "calibration_split": {"prior": split, "contradicted_by": None,
+                                      "value": -0.14, "error": 0.09}}
 
     assert hiding_room(nuisance(0.05, 0.1)) == []
     assert hiding_room({}) == []
     (line,) = verdict([], nuisance(0.64, 1.31))["caveats"]
     assert "isotropic up to 192 %, on one axis up to 196 %" in line
+    # and how much of it this set's stars took
+    assert "the scale +0.62 +- 0.02, 1.0 of its prior and the X / Y split -0.14" in line
     (line,) = hiding_room(nuisance(0.64, 0.3, against="axis"))
     assert "isotropic" not in line and "on one axis up to 45 %" in line

@@ -400,3 +400,28 @@ def test_python_consumers_of_a_refined_calibration(user_path, truth):
               for label, calib in (("plain", plain), ("refined", refined))}
     assert _plain_moments(images["refined"])[0] - _plain_moments(images["plain"])[0] == \
         pytest.approx(TERM.variance_change(images["plain"].sum())[0], rel=0.02)
+
+
+def test_a_term_of_the_night_warns_without_the_exposure_order(caplog):
+    """A refined calibration's EMPIRICAL term that changes over the night, applied without an
+    exposure order, is taken at the middle of the exposures it was learned on: said, with
+    the orders' meaning (a new user's late exposures kept 70 % of the excess at that silent
+    default); an order beyond those learned is said too; one within them is not."""
+    import logging
+    from types import SimpleNamespace
+
+    from bfpsf.model.empirical import EmpiricalTerm, empirical_of
+
+    term = EmpiricalTerm({"xx": {"constant": 0.01, "exposure": 0.002}}, exposure_reference=3.5,
+                         exposure_range=(0.0, 7.0))
+    calibration = SimpleNamespace(refinement={"empirical": term.to_dict()})
+    assert EmpiricalTerm.from_dict(term.to_dict()).exposure_range == (0.0, 7.0)
+    with caplog.at_level(logging.WARNING, logger="bfpsf"):
+        empirical_of(calibration)
+        assert "applied at exposure order 3.5" in caplog.text and "0 to 7" in caplog.text
+        caplog.clear()
+        assert empirical_of(calibration, 9.5).coefficient("xx") == pytest.approx(0.022)
+        assert "outside the orders" in caplog.text
+        caplog.clear()
+        empirical_of(calibration, 6.0)
+        assert caplog.text == ""

@@ -476,7 +476,9 @@ def test_full_flats_and_spot_series_user_path(request, tmp_path, full_set,
     # the refinement the spots ask for: on the flats' draw before they conserved charge an
     # X/Y quadrupole too (q = 1.08 +- 0.14); on the present draw the spots' X and Y agree
     # with the flats' balance (scale X +0.158 +- 0.006, Y +0.157 +- 0.005) and only the BF
-    # scale is applied (+0.157 +- 0.004, the flats' prior +-0.115)
+    # scale is applied (+0.157 +- 0.004, the flats' prior +-0.115); with the flats' edge
+    # border and the split nuisance (2026-11-27, seventeenth session): scale +0.091 +- 0.005
+    # (prior 0.123), split -0.018 +- 0.012 (prior 0.056)
     assert refined.refinement["applied"]
     row = figures(*full_set, FIT_EXPOSURES, FULL_GRID, refined.shifts,
                   samples=refinement_draws(e2v_flats_calibration, refined))
@@ -491,7 +493,10 @@ def test_full_flats_and_spot_series_user_path(request, tmp_path, full_set,
     for name in ("e1", "e2"):
         value, error = row["shapes"][name]["P(F)"]
         assert abs(value) <= 2e-4
-        assert np.hypot(error, row["spread"][name]) < 1e-4
+        # the calibration error of e1 carries the X / Y split the spots fix (+-0.012 of the
+        # split: +-1.2e-4 of e1, seventeenth session; 1e-4 had held while the split's error
+        # was not propagated)
+        assert np.hypot(error, row["spread"][name]) < 1.5e-4
     bias, error = row["photometry"]
     assert abs(bias) <= 1.0 + 2 * error
 

@@ -148,3 +148,10 @@ def test_the_dropped_size_scale_is_named_on_the_axis_it_may_cover():
     # beyond 3 sigma of the prior: not the calibration's
     assert all("scale_part" not in entry
                for entry in with_scale_parts(entries(), nuisance(1.8, 3.0)))
+    # a residual that changes over the night (or over the detector) is no calibration error
+    # (a new user's night-growing smear read "rising over the night" and "it may be the
+    # calibration" in one line)
+    growing = [dict(entry, exposure_dependence={"kind": "rising over the night"})
+               for entry in entries()]
+    assert all("scale_part" not in entry
+               for entry in with_scale_parts(growing, nuisance(1.05, 2.0)))

@@ -50,8 +50,10 @@ def add_parser(subparsers):
                              "between nodes, as photutils GriddedPSFModel); default one P0")
     parser.add_argument("--exposure-order", type=finite_float, default=None, metavar="T",
                         help="exposure order of the images in the night, for a refined "
-                             "calibration's EMPIRICAL term that changes over the night "
-                             "(default the middle of the exposures it was learned on)")
+                             "calibration's EMPIRICAL term that changes over the night: "
+                             "0-based, in the order of the images given to bfpsf diagnose "
+                             "(default the middle of the exposures it was learned on, with a "
+                             "warning)")
     parser.add_argument("--max-iterations", type=positive_int, default=40,
                         help="iterations of the P0 fit (default 40)")
     parser.add_argument("--no-bf", dest="include_bf", action="store_false",

@@ -155,9 +155,11 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
     x_range, y_range = (None if values is None else (float(np.min(values)),
                                                      float(np.max(values)))
                         for values in (sizes.x_detector, sizes.y_detector))
+    exposure_range = (None if sizes.exposure is None else
+                      (float(np.min(sizes.exposure)), float(np.max(sizes.exposure))))
     return EmpiricalTerm(coefficients, errors=errors, x_reference=references[0],
                          y_reference=references[1], exposure_reference=references[2],
-                         x_range=x_range, y_range=y_range)
+                         x_range=x_range, y_range=y_range, exposure_range=exposure_range)
 
 
 def _moment_changes(term, sizes, fluxes, response):

@@ -78,20 +78,22 @@ def hiding_room(nuisance):
     0.64 and 1.31) took a Y smear of +51 % of the Y slope as a split of -0.14 and read
     "explained"; the refined calibration, with N shifts 1.58 times the BF-only set's, still
     fitted the held-out stars (Y -0.5 % of raw)."""
-    room = {}
-    for name, share, kind in (("calibration_scale", 1.0, "isotropic"),
-                              ("calibration_split", 0.5, "on one axis")):
-        prior = (nuisance.get(name) or {}).get("prior")
-        if prior and not (nuisance.get(name) or {}).get("contradicted_by"):
-            room[kind] = 300.0 * share * float(prior)
+    room, used = {}, []
+    for name, share, kind, what in (("calibration_scale", 1.0, "isotropic", "scale"),
+                                    ("calibration_split", 0.5, "on one axis", "X / Y split")):
+        entry = nuisance.get(name) or {}
+        if entry.get("prior") and not entry.get("contradicted_by"):
+            room[kind] = 300.0 * share * float(entry["prior"])
+            used.append(f"the {what} {entry['value']:+.2f} +- {entry['error']:.2f}, "
+                        f"{abs(entry['value']) / entry['prior']:.1f} of its prior")
     if not room or max(room.values()) <= HIDING_ROOM_PERCENT:
         return []
     return ["the flats' errors leave room for an undeclared effect that grows with flux like "
             "BF and has no other signature: "
             + ", ".join(f"{kind} up to {value:.0f} %" for kind, value in room.items())
             + " of the raw slope, it would be taken as the flats' BF scale or X / Y split and "
-              "not reported (more or larger flat pairs narrow this); the refined calibration "
-              "still fits the stars"]
+              "not reported (more or larger flat pairs narrow this); the stars took "
+            + " and ".join(used) + "; the refined calibration still fits the stars"]
 
 
 def with_scale_parts(unexplained, nuisance):
@@ -115,8 +117,13 @@ def with_scale_parts(unexplained, nuisance):
     smaller = min(parts, key=lambda label: abs(parts[label][0]))
     out = []
     for entry in unexplained:
+        # a calibration error is the same at every position and in every exposure: an entry
+        # that changes with them is not the scale's (a new user's night-growing smear read
+        # "rising over the night" and "it may be the calibration" in one line)
+        varies = any((entry.get(key) or {}).get("kind", "none") != "none" for key in
+                     ("position_dependence", "row_dependence", "exposure_dependence"))
         part = (parts[smaller] if entry["observable"] == "sizes" and entry.get("axis") == smaller
-                else None)
+                and not varies else None)
         if part is not None and abs(part[0]) <= 3.0 * scale["prior"]:
             entry = dict(entry, scale_part={"value": float(part[0]), "error": float(part[1]),
                                             "prior": float(scale["prior"])})

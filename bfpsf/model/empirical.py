@@ -43,11 +43,14 @@ Odd (centroid- and skew-like) residuals are reported by the loop but not correct
 takes a flux-dependent centroid shift into its position.
 """
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import BFPSFValueError
+
+log = logging.getLogger(__name__)
 
 __all__ = ["EmpiricalTerm", "PATTERNS", "PATTERN_KIND", "FLUX_REFERENCE", "apply_pattern",
            "pattern_series", "empirical_of", "with_empirical", "pattern_tables"]
@@ -220,6 +223,9 @@ class EmpiricalTerm:
         Columns and rows of the stars it was learned on, pixels (a PSF model that applies a
         position or row term takes them as its field nodes,
         `bfpsf.model.psf.FluxDependentPSF.field_nodes`).
+    exposure_range : (float, float) or None
+        Exposure orders it was learned on (0-based, in the order of the images given to
+        ``bfpsf diagnose``).
     """
 
     coefficients: dict
@@ -231,6 +237,7 @@ class EmpiricalTerm:
     x_range: tuple = None
     y_reference: float = 0.0
     y_range: tuple = None
+    exposure_range: tuple = None
 
     def __post_init__(self):
         for pattern, terms in self.coefficients.items():
@@ -364,6 +371,8 @@ class EmpiricalTerm:
             record["y_range"] = [float(value) for value in self.y_range]
         if self.y_reference:
             record["y_reference"] = float(self.y_reference)
+        if self.exposure_range is not None:
+            record["exposure_range"] = [float(value) for value in self.exposure_range]
         return record
 
     @classmethod
@@ -392,7 +401,9 @@ class EmpiricalTerm:
                        float(value) for value in record["x_range"]),
                    y_reference=float(record.get("y_reference", 0.0)),
                    y_range=None if record.get("y_range") is None else tuple(
-                       float(value) for value in record["y_range"]))
+                       float(value) for value in record["y_range"]),
+                   exposure_range=None if record.get("exposure_range") is None else tuple(
+                       float(value) for value in record["exposure_range"]))
 
     @classmethod
     def from_calibration(cls, calibration):
@@ -414,7 +425,31 @@ def empirical_of(calibrations, exposure=None):
         msg = ("the calibrations hold different EMPIRICAL terms (or some none); one PSF "
                "applies one (refine them together with bfpsf diagnose)")
         raise BFPSFValueError(msg, len(records))
-    return next(iter(records.values())).at_exposure(exposure) if records else None
+    if not records:
+        return None
+    term = next(iter(records.values()))
+    _warn_exposure(term, exposure)
+    return term.at_exposure(exposure)
+
+
+def _warn_exposure(term, exposure):
+    """A warning where a term that changes over the night is applied without an exposure
+    order, or beyond the orders it was learned on (a new user's late exposures kept 70 % of
+    a night-growing excess at the silent default, the middle of the learned night)."""
+    changes = any(terms.get(name, 0.0) for terms in term.coefficients.values()
+                  for name in ("exposure", "flux2_exposure"))
+    if not changes:
+        return
+    learned = term.exposure_range
+    span = "" if learned is None else f" {learned[0]:g} to {learned[1]:g}"
+    if exposure is None:
+        log.warning("the calibration's EMPIRICAL term changes over the night; it is applied at "
+                    "exposure order %g, the middle of the exposures it was learned on%s: give "
+                    "the images' order (--exposure-order; 0-based, in the order of the images "
+                    "given to bfpsf diagnose)", term.exposure_reference, span)
+    elif learned is not None and not learned[0] <= exposure <= learned[1]:
+        log.warning("exposure order %g is outside the orders the EMPIRICAL term was learned "
+                    "on (%g to %g): it is extrapolated", exposure, learned[0], learned[1])
 
 
 def with_empirical(psf, calibration, *, x=None, exposure=None):
