@@ -190,8 +190,12 @@ def _sigint_blocked():
 
 
 INTERRUPTED_MAP = """
-import os, sys, time
+import os, signal, sys, time
 from bfpsf.parallel import parallel_session
+
+# a terminal starts programs with SIGINT at its default; a suite started in the background
+# by a non-interactive shell inherits it ignored, and Python then installs no handler
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 def slow(value):
     # one write of the whole line: the two workers' print()s once interleaved on the shared
