@@ -62,10 +62,10 @@ def _size_block(observables):
     priors = global_priors(observables.meta)
     if not priors:
         return residual, sigma, nuisance
-    templates = {"calibration_scale": lambda: get_effect("calibration_scale").templates(
-                     observables)["sizes"],
-                 "calibration_split": lambda: split_template(observables)}
-    nuisance = np.hstack([nuisance] + [templates[name]() for name in priors])
+    templates = [get_effect("calibration_scale").templates(observables)["sizes"]]
+    if "calibration_split" in priors:
+        templates.append(split_template(observables))
+    nuisance = np.hstack([nuisance] + templates)
     prior_design = np.zeros((len(priors), nuisance.shape[1]))
     columns = tuple(range(nuisance.shape[1] - len(priors), nuisance.shape[1]))
     prior_design[np.arange(len(priors)), columns] = 1.0

@@ -99,24 +99,26 @@ def refine_calibration(calibration, result, *, provenance=None):
     anisotropy = None
     applied, not_applied, parameters = {}, {}, {}
     linearity_c, buildup = 0.0, None
-    scale, split = 0.0, 0.0
     folded = result.folded or {"names": [], "effects": {}, "scale_nuisance": None}
+    nuisances = {}  # the global nuisances applied: name -> value
     for name, key, how in (("calibration_scale", "scale_nuisance", "shifts times (1 + s)"),
                            ("calibration_split", "split_nuisance",
                             "a^E times exp(d / 2), a^N times exp(-d / 2)")):
         value = folded.get(key)
-        against = (result.nuisance.get(name) or {}).get("contradicted_by")
-        label = f"{name} (nuisance)"
         if value is None:
             continue
+        label = f"{name} (nuisance)"
+        against = (result.nuisance.get(name) or {}).get("contradicted_by")
         if against:
             not_applied[label] = (f"its signature is contradicted by {against} (an effect "
                                   "outside the catalogue)")
         elif result.confirmed.get("calibration_scale (nuisance)", True):
             # the held-out step of the global nuisances confirms the scale and split together
-            scale, split = (scale + value, split) if key == "scale_nuisance" else (scale, value)
+            nuisances[name] = value
             applied[label] = how
             parameters[label] = dict(result.nuisance[name], value=value)
+    scale = nuisances.get("calibration_scale", 0.0)
+    split = nuisances.get("calibration_split", 0.0)
     for name in result.selected:
         family = name.split("@")[0]
         parameters[name] = result.parameters[name]
@@ -147,22 +149,20 @@ def refine_calibration(calibration, result, *, provenance=None):
     # where the stars fixed them, the sample is re-centred on the stars' values, drawn within
     # the fit's errors, so the refined calibration's spread is the stars' in those two
     # directions and the flats' in the others
-    own = {name: np.asarray(result.nuisance[name].get("draws") or [], float)
-           for name in ("calibration_scale", "calibration_split")
-           if f"{name} (nuisance)" in applied}
+    count = 0 if calibration.shift_samples_north is None else len(calibration.shift_samples_north)
+    own = {name: draws for name in nuisances
+           if (draws := np.asarray(result.nuisance[name].get("draws") or [], float)).size == count}
     rng = np.random.default_rng(0)
 
     def refine_sample(index, sample):
         sample = sample if anisotropy is None else add_shifts(sample, anisotropy)
         sample_scale, sample_split = scale, split
-        for name, draws in own.items():
-            if draws.size != len(calibration.shift_samples_north):
-                continue
-            error = rng.normal(0.0, result.nuisance[name]["error"])
-            if name == "calibration_scale":
-                sample, sample_scale = sample.scaled(1.0 / (1.0 + draws[index])), scale + error
-            else:
-                sample, sample_split = split_shifts(sample, -draws[index]), split + error
+        if "calibration_scale" in own:
+            sample = sample.scaled(1.0 / (1.0 + own["calibration_scale"][index]))
+            sample_scale += rng.normal(0.0, result.nuisance["calibration_scale"]["error"])
+        if "calibration_split" in own:
+            sample = split_shifts(sample, -own["calibration_split"][index])
+            sample_split += rng.normal(0.0, result.nuisance["calibration_split"]["error"])
         return split_shifts(sample.scaled(1.0 + sample_scale), sample_split)
 
     shifts = split_shifts(shifts.scaled(1.0 + scale), split) if scale or split else shifts
