@@ -12,6 +12,7 @@ import numpy as np
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
 from .empirical_fit import adaptive_response, early_late, evaluate_empirical, fit_empirical
+from .nuisances import HELDOUT_LABEL
 from .problem import build_problem, effect_design, summarise
 from .tables import CorrelationTable, LinearityTable, Observables, PTCTable
 from .tables import interleaved as _interleaved
@@ -123,7 +124,7 @@ def _kept_step(result, state, confirmed):
     loop again without it)."""
     kept = [name for name in result.selected if confirmed.get(name, True)]
     step = next(s for s in reversed(state["steps"]) if all(n in kept for n in s["names"]))
-    if step.get("global") is not None and not confirmed.get("calibration_scale (nuisance)",
+    if step.get("global") is not None and not confirmed.get(HELDOUT_LABEL,
                                                              True):
         covariance = np.array(step["covariance"], float)
         n_global = np.size(step["global"])
@@ -249,7 +250,7 @@ def with_heldout(result, state, heldout, fraction):
         chi2.append(float((((problem.residual - model) / problem.sigma) ** 2).sum()))
     # the first step fits the global nuisances together (the size scale and, where the flats
     # give its prior, the X / Y split): one confirmation, under the scale's name
-    names = ["calibration_scale (nuisance)"] * (len(state["steps"]) - 1 - len(result.selected))
+    names = [HELDOUT_LABEL] * (len(state["steps"]) - 1 - len(result.selected))
     names += result.selected
     confirmed = {name: chi2[k + 1] < chi2[k] for k, name in enumerate(names)}
     before = summarise(evaluations[0][0], heldout, evaluations[0][1])

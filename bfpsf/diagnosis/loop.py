@@ -50,6 +50,7 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
 from .catalogue import CATALOGUE, get_effect
 from .heldout import split_observables, with_empirical, with_heldout
+from .nuisances import GLOBAL_NUISANCES, SCALE, SPLIT
 from .problem import (build_problem, effect_columns, effect_design, effect_values,
                       global_priors, slope_residuals, summarise)
 from .result import DiagnosisResult
@@ -67,7 +68,7 @@ log = logging.getLogger(__name__)
 _FOLDABLE = ("calibration_scale", "xy_anisotropy", "gain_nonlinearity")
 
 #: The candidate a contradicted one may be named with (`_run_loop`'s ``with_scale``).
-_SCALE = "calibration_scale"
+_SCALE = SCALE.name
 
 #: Delta BIC below which a candidate is added (Kass & Raftery 1995: "very strong").
 DEFAULT_THRESHOLD = -10.0
@@ -120,8 +121,8 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
         # scale goes; its test is kept in the report); a candidate that needed it (an effect
         # fitted beside a scale far from the flats') is then judged on its own
         contradicted.update(against)
-        dropped = (("scale_err", "split_err") if "calibration_scale" in contradicted
-                   else ("split_err",))
+        dropped = ((SCALE.error_key, SPLIT.error_key) if SCALE.name in contradicted
+                   else (SPLIT.error_key,))
         observables, fit_part, heldout = (
             None if part is None else dataclasses.replace(
                 part, meta={key: value for key, value in part.meta.items()
@@ -373,7 +374,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
         # candidate, and the pull against the flats' prior must stay within 3 sigma
         test = signature(problem.nuisance[:, [column]],
                          nuisance=np.delete(problem.nuisance, column, axis=1))
-        if name == "calibration_split":
+        if name == SPLIT.name:
             # its template is X against Y by construction: the axis parts are not one
             # amplitude of it
             test.pop("axis", None)
@@ -386,8 +387,8 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
         entry.update(signature=test, contradicted_by=contradiction(test))
         # and the scale within its physical range (`CalibrationScale.bounds`): a new user's
         # isotropic spill was taken as +1.5, within 2.2 sigma of 150^2 flats
-        scale = get_effect("calibration_scale")
-        if (name == "calibration_scale" and entry["contradicted_by"] is None
+        scale = get_effect(_SCALE)
+        if (name == _SCALE and entry["contradicted_by"] is None
                 and not scale.allows([entry["value"]], [entry["error"]])):
             entry.update(contradicted_by="bounds", bounds=list(scale.bounds[0]))
     curves = {}
@@ -423,8 +424,8 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
               "effects": {name: np.asarray(value).tolist() for name, value in
                           effect_values(values, problem, foldable, fixed, by_name,
                                          family).items()},
-              "scale_nuisance": folded_globals.get("calibration_scale"),
-              "split_nuisance": folded_globals.get("calibration_split")}
+              **{entry.folded_key: folded_globals.get(entry.name)
+                 for entry in GLOBAL_NUISANCES}}
     result = DiagnosisResult(residual_before=summarise(problem, observables, model_before),
                              candidates=candidates, selected=selected,
                              residual_after=summarise(problem, observables, model_after),
@@ -454,7 +455,7 @@ def _bounded(effect, values, errors, params, covariance, global_columns, is_fixe
     size scale beside the nuisance of the same template (the flats' scale, with its prior),
     where the bounds are those of the stars' total scale (the candidate alone is uncertain
     by the prior: stars without BF fitted it -0.98 +- 0.21, the total -0.98 +- 0.008)."""
-    if effect.name != "calibration_scale" or is_fixed or not global_columns:
+    if effect.name != _SCALE or is_fixed or not global_columns:
         return values, errors
     own, nuisance = params.size - 1, global_columns[0]
     variance = (covariance[own, own] + covariance[nuisance, nuisance]

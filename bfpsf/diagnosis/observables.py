@@ -23,6 +23,7 @@ from ..model.psf_fit import DEFAULT_SIZE, fit_psf
 from ..moments.result import moments_from_hsm
 from .binning import DEFAULT_BINS, auto_position_bins, binned_sizes, position_grid
 from .catalogue import split_shifts
+from .nuisances import SCALE, SPLIT
 from .odd_moments import star_skewness
 from .spot_model import FLUX_SCALE, SpotForwardModel, flux_of_peak
 from .star_residual import stacked_star_residual
@@ -146,7 +147,7 @@ def bf_scale_error(spot_model, shift_draws, peaks_e):
     logs = np.log(ratios)
     scale, split = np.expm1(logs.mean(axis=1)), (logs[:, 0] - logs[:, 1]) / per_split
     return (float(np.mean(np.std(logs, axis=0, ddof=1))), float(np.std(split, ddof=1)),
-            {"calibration_scale": scale.tolist(), "calibration_split": split.tolist()})
+            {SCALE.name: scale.tolist(), SPLIT.name: split.tolist()})
 
 
 def lamp_error_floor(exptime, mean_e, shot_e):

@@ -18,6 +18,7 @@ import numpy as np
 from ..measure.slopes import fit_bf_slope
 from ..moments.shapes import MAG_PER_SIZE_ERROR
 from .catalogue import get_effect, split_template
+from .nuisances import GLOBAL_NUISANCES, SCALE, SPLIT
 
 __all__ = ["Problem", "build_problem", "describe_slope", "effect_columns", "effect_design",
            "effect_values", "global_priors",
@@ -62,8 +63,8 @@ def _size_block(observables):
     priors = global_priors(observables.meta)
     if not priors:
         return residual, sigma, nuisance
-    templates = [get_effect("calibration_scale").templates(observables)["sizes"]]
-    if "calibration_split" in priors:
+    templates = [get_effect(SCALE.name).templates(observables)["sizes"]]
+    if SPLIT.name in priors:
         templates.append(split_template(observables))
     nuisance = np.hstack([nuisance] + templates)
     prior_design = np.zeros((len(priors), nuisance.shape[1]))
@@ -74,16 +75,18 @@ def _size_block(observables):
 
 
 def global_priors(meta):
-    """The size block's global nuisances and their prior widths: ``calibration_scale``
-    (``meta['scale_err']``) and, beside it, ``calibration_split`` (``meta['split_err']``)
-    where they are positive; {} without the scale's."""
-    scale_err = float((meta or {}).get("scale_err", 0.0) or 0.0)
-    if not scale_err > 0:
-        return {}
-    out = {"calibration_scale": scale_err}
-    split_err = float((meta or {}).get("split_err", 0.0) or 0.0)
-    if split_err > 0:
-        out["calibration_split"] = split_err
+    """The size block's global nuisances (`bfpsf.diagnosis.nuisances.GLOBAL_NUISANCES`) and
+    their prior widths: ``calibration_scale`` (``meta['scale_err']``) and, beside it,
+    ``calibration_split`` (``meta['split_err']``) where they are positive; {} without the
+    scale's."""
+    out = {}
+    for nuisance in GLOBAL_NUISANCES:
+        width = float((meta or {}).get(nuisance.error_key, 0.0) or 0.0)
+        if not width > 0:
+            if nuisance is SCALE:
+                return {}
+            continue
+        out[nuisance.name] = width
     return out
 
 

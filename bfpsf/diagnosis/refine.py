@@ -37,6 +37,7 @@ from ..errors import BFPSFValueError
 from ..outputs import json_safe
 from ..calibration.linearity import linearise
 from .catalogue import add_shifts, quadrupole_shifts, split_shifts
+from .nuisances import GLOBAL_NUISANCES, HELDOUT_LABEL, SCALE, SPLIT
 
 __all__ = ["refine_calibration", "linearise", "undo_refined_linearity", "BUILDUP_STEPS"]
 
@@ -101,24 +102,22 @@ def refine_calibration(calibration, result, *, provenance=None):
     linearity_c, buildup = 0.0, None
     folded = result.folded or {"names": [], "effects": {}, "scale_nuisance": None}
     nuisances = {}  # the global nuisances applied: name -> value
-    for name, key, how in (("calibration_scale", "scale_nuisance", "shifts times (1 + s)"),
-                           ("calibration_split", "split_nuisance",
-                            "a^E times exp(d / 2), a^N times exp(-d / 2)")):
-        value = folded.get(key)
+    for entry in GLOBAL_NUISANCES:
+        value = folded.get(entry.folded_key)
         if value is None:
             continue
-        label = f"{name} (nuisance)"
-        against = (result.nuisance.get(name) or {}).get("contradicted_by")
+        label = f"{entry.name} (nuisance)"
+        against = (result.nuisance.get(entry.name) or {}).get("contradicted_by")
         if against:
             not_applied[label] = (f"its signature is contradicted by {against} (an effect "
                                   "outside the catalogue)")
-        elif result.confirmed.get("calibration_scale (nuisance)", True):
+        elif result.confirmed.get(HELDOUT_LABEL, True):
             # the held-out step of the global nuisances confirms the scale and split together
-            nuisances[name] = value
-            applied[label] = how
-            parameters[label] = dict(result.nuisance[name], value=value)
-    scale = nuisances.get("calibration_scale", 0.0)
-    split = nuisances.get("calibration_split", 0.0)
+            nuisances[entry.name] = value
+            applied[label] = entry.how
+            parameters[label] = dict(result.nuisance[entry.name], value=value)
+    scale = nuisances.get(SCALE.name, 0.0)
+    split = nuisances.get(SPLIT.name, 0.0)
     for name in result.selected:
         family = name.split("@")[0]
         parameters[name] = result.parameters[name]
@@ -131,7 +130,7 @@ def refine_calibration(calibration, result, *, provenance=None):
         # the values of the joint fit of what the calibration holds
         value = folded["effects"][name]
         parameters[name] = dict(parameters[name], folded_value=value)
-        if family == "calibration_scale":
+        if family == SCALE.name:
             scale += value[0]
             applied[name] = "shifts times (1 + s)"
         elif family == "xy_anisotropy":
@@ -157,12 +156,12 @@ def refine_calibration(calibration, result, *, provenance=None):
     def refine_sample(index, sample):
         sample = sample if anisotropy is None else add_shifts(sample, anisotropy)
         sample_scale, sample_split = scale, split
-        if "calibration_scale" in own:
-            sample = sample.scaled(1.0 / (1.0 + own["calibration_scale"][index]))
-            sample_scale += rng.normal(0.0, result.nuisance["calibration_scale"]["error"])
-        if "calibration_split" in own:
-            sample = split_shifts(sample, -own["calibration_split"][index])
-            sample_split += rng.normal(0.0, result.nuisance["calibration_split"]["error"])
+        if SCALE.name in own:
+            sample = sample.scaled(1.0 / (1.0 + own[SCALE.name][index]))
+            sample_scale += rng.normal(0.0, result.nuisance[SCALE.name]["error"])
+        if SPLIT.name in own:
+            sample = split_shifts(sample, -own[SPLIT.name][index])
+            sample_split += rng.normal(0.0, result.nuisance[SPLIT.name]["error"])
         return split_shifts(sample.scaled(1.0 + sample_scale), sample_split)
 
     shifts = split_shifts(shifts.scaled(1.0 + scale), split) if scale or split else shifts

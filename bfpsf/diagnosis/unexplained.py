@@ -10,6 +10,7 @@ import numpy as np
 
 from ..least_squares import weighted_least_squares
 from ..measure.slopes import fit_bf_slope
+from .nuisances import GLOBAL_NUISANCES, SCALE
 from .signature import SIGNATURE_ALPHA, TEMPLATE_TOLERANCE, cross_test
 
 __all__ = ["describe_unexplained", "verdict", "with_scale_parts", "hiding_room",
@@ -51,11 +52,10 @@ def verdict(unexplained, nuisance, star=None, null_expectation=1.0):
     reasons = [f"unexplained {entry['observable']}"
                + (f" {entry['axis']}" if entry.get("axis") else "")
                + f" ({entry['significance']:.1f} sigma)" for entry in unexplained]
-    for name, what in (("calibration_scale", "size scale"),
-                       ("calibration_split", "X / Y split of the size prediction")):
-        against = (nuisance.get(name) or {}).get("contradicted_by")
+    for entry in GLOBAL_NUISANCES:
+        against = (nuisance.get(entry.name) or {}).get("contradicted_by")
         if against:
-            reasons.append(f"the {what} is contradicted by {against}")
+            reasons.append(f"the {entry.what} is contradicted by {against}")
     chi2 = None if star is None else float(star["chi2_per_pixel"])
     limit = STAR_CHI2_FACTOR * float(null_expectation)
     if chi2 is not None and chi2 > limit:
@@ -79,13 +79,14 @@ def hiding_room(nuisance):
     "explained"; the refined calibration, with N shifts 1.58 times the BF-only set's, still
     fitted the held-out stars (Y -0.5 % of raw)."""
     room, used = {}, []
-    for name, share, kind, what in (("calibration_scale", 1.0, "isotropic", "scale"),
-                                    ("calibration_split", 0.5, "on one axis", "X / Y split")):
-        entry = nuisance.get(name) or {}
+    for global_nuisance in GLOBAL_NUISANCES:
+        entry = nuisance.get(global_nuisance.name) or {}
         if entry.get("prior") and not entry.get("contradicted_by"):
-            room[kind] = 300.0 * share * float(entry["prior"])
-            used.append(f"the {what} {entry['value']:+.2f} +- {entry['error']:.2f}, "
-                        f"{abs(entry['value']) / entry['prior']:.1f} of its prior")
+            room[global_nuisance.room_kind] = (300.0 * global_nuisance.room_share
+                                               * float(entry["prior"]))
+            used.append(f"the {global_nuisance.short} {entry['value']:+.2f} +- "
+                        f"{entry['error']:.2f}, {abs(entry['value']) / entry['prior']:.1f} of "
+                        "its prior")
     if not room or max(room.values()) <= HIDING_ROOM_PERCENT:
         return []
     return ["the flats' errors leave room for an undeclared effect that grows with flux like "
@@ -108,7 +109,7 @@ def with_scale_parts(unexplained, nuisance):
     other holds the effect that contradicted the scale), when that part lies within 3 of the
     prior's sigma, gets ``scale_part`` {value, error, prior}, said by `describe_entry` (an
     X-only smear, whose Y part is near 0, leaves its X entry as it is)."""
-    scale = nuisance.get("calibration_scale") or {}
+    scale = nuisance.get(SCALE.name) or {}
     test = (scale.get("signature") or {}).get("axis")
     if not scale.get("contradicted_by") or not test or not scale.get("prior"):
         return unexplained

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..diagnosis.nuisances import GLOBAL_NUISANCES
 from ..diagnosis.signature import describe_entry
 from ..files import refuse_overwrite
 from ..outputs import save_figure, write_text
@@ -131,12 +132,7 @@ def diagnosis_markdown(result, *, title="bfpsf diagnose", figures=(), context=()
                   "that does not lower the held-out chi2 is not confirmed.", ""]
         lines += [f"- `{name}`: {'confirmed' if ok else 'NOT CONFIRMED'} on the held-out data"
                   for name, ok in data["confirmed"].items()]
-    titles = {"calibration_scale": ("Size-prediction scale", "the spread of the predicted "
-                                    "size slope over the calibration's shift samples, which "
-                                    "carries every shift's error, not a(0, 0)'s alone"),
-              "calibration_split": ("Size-prediction X / Y split", "the spread of the "
-                                    "predicted X slope over the Y slope over the shift "
-                                    "samples: a^E against a^N")}
+    titles = {entry.name: (entry.title, entry.prior_text) for entry in GLOBAL_NUISANCES}
     for name, value in data.get("nuisance", {}).items():
         title, prior = titles.get(name, (name, "the flats' error"))
         against = value.get("contradicted_by")
