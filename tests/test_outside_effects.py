@@ -592,8 +592,10 @@ def test_user_path_reports_a_dependence_on_the_row(tmp_path):
 def test_a_diverging_p0_fit_keeps_its_best_iterate(tmp_path, monkeypatch, caplog):
     """One exposure of 54 bench spots in bands of rows (stamps cut at 24 px, so no P0 fits
     them well): the P0 iteration diverged and, its total going negative, the diagnosis
-    stopped with "the stacked PSF has non-positive total". It now stops at 10 times the
-    least chi-square and returns that iterate, not converged, with a warning."""
+    stopped with "the stacked PSF has non-positive total". At 10 times the least chi-square
+    it now goes back to that iterate with the positions fixed and half the step, and
+    converges; with no smaller step left (``MIN_DAMPING``) it stops there and returns that
+    iterate, not converged, with a warning."""
     import logging
 
     import bfpsf.model.psf_fit as psf_fit
@@ -613,6 +615,9 @@ def test_a_diverging_p0_fit_keeps_its_best_iterate(tmp_path, monkeypatch, caplog
                                flux_unit="electron", gain=gain, neighbours=[neighbours])
 
     with caplog.at_level(logging.WARNING, logger="bfpsf.model.psf_fit"):
+        settled = fit()
+        assert settled.converged and "P0 fit diverging" not in caplog.text
+        monkeypatch.setattr(psf_fit, "MIN_DAMPING", 1.0)  # no smaller step
         result = fit()
         assert not result.converged and result.iterations < 20
         assert "P0 fit diverging" in caplog.text
@@ -622,7 +627,7 @@ def test_a_diverging_p0_fit_keeps_its_best_iterate(tmp_path, monkeypatch, caplog
         monkeypatch.setattr(psf_fit, "DIVERGED", np.inf)
         late = fit()
         assert late.iterations > result.iterations and "P0 fit diverging" in caplog.text
-    for fitted in (result, late):
+    for fitted in (settled, result, late):
         assert fitted.psf.data.sum() > 0
 
 

@@ -17,7 +17,11 @@ contradict, `bfpsf.diagnosis.signature`), ``verdict``, ``empirical`` (the EMPIRI
 learned from what is left, with its out-of-sample validation; None when nothing is left) (plus ``nuisance``, ``output_calib``,
 ``parameters``, ``ambiguous``, ``residual_physical``, ``threshold``, ``inputs``, and in images
 mode ``star_residual``: the stacked residual of the stars against P(F), ``rms_over_peak``,
-``chi2_per_pixel``, ``n_stars`` and its radial profile).
+``chi2_per_pixel``, ``n_stars`` and its radial profile; with ``--output-calib``
+``star_residual_refined``: the held-out exposures' stacked residual against P(F) from the
+flats' calibration and from the refined one, ``flats`` and ``refined`` each with
+``chi2_per_pixel``, ``rms_over_peak`` and ``n_stars``. The verdict keeps the flats' figure:
+what the refinement absorbed is not evidence that it was the calibration's).
 """
 
 import argparse
@@ -210,6 +214,8 @@ def run(args):
               f"({', '.join(refined.refinement['applied']) or 'nothing applied'})")
         for name, why in refined.refinement.get("not_applied", {}).items():
             print(f"  not applied: {name}: {why}")
+        summary["star_residual_refined"] = _refined_star_residual(
+            args, observables, refined, (result.holdout or {}).get("heldout_exposures"))
     summary["inputs"] = {key: value for key, value in observables.meta.items()
                          if isinstance(value, (str, float, int, bool)) or value is None}
     star = observables.meta.get("star_residual")
@@ -236,6 +242,8 @@ def run(args):
     if verdict.get("star_residual_chi2_per_pixel") is not None:
         print(f"star residual chi2 per pixel {verdict['star_residual_chi2_per_pixel']:.1f} "
               f"(null expectation {verdict['null_expectation']:.1f})")
+    for line in _refined_star_lines(summary.get("star_residual_refined")):
+        print(line)
     print("verdict: " + ("explained" if verdict.get("success") else
                          "NOT EXPLAINED: " + "; ".join(verdict.get("reasons", []))))
     for caveat in verdict.get("caveats", []):
@@ -258,14 +266,44 @@ def run(args):
                                       context=context,
                                       residual_images=observables.meta.get("residual_images"),
                                       star_residual=star, overwrite=args.overwrite)
-        _add_signature_report(result, Path(args.report))
+        _add_signature_report(result, Path(args.report), summary.get("star_residual_refined"))
         print(f"report: {path}", file=sys.stderr)
     return 0
 
 
-def _add_signature_report(result, directory):
+def _refined_star_residual(args, observables, refined, heldout):
+    """The stacked star residual of the held-out exposures (every exposure without a split)
+    against P(F) from the flats' calibration and from the refined one, each through the
+    user's path (`bfpsf.diagnosis.star_residual.star_residual_with`): what the refinement
+    did to the stars' pixels, which the loop never fits."""
+    from ..diagnosis.star_residual import star_residual_with
+
+    paths = observables.meta["image_paths"]
+    exposures = list(heldout or range(len(paths)))
+    out = {"exposures": exposures, "heldout": bool(heldout)}
+    for label, calibration in (("flats", observables.meta["calibration"]),
+                               ("refined", refined)):
+        star = star_residual_with(calibration, paths, exposures, amp=args.amp,
+                                  background=args.background, saturation=args.saturation)
+        out[label] = None if star is None else {key: star[key] for key in (
+            "chi2_per_pixel", "rms_over_peak", "n_stars")}
+    return out
+
+
+def _refined_star_lines(entry):
+    """The refined calibration's star residual, one line (none without it)."""
+    if not entry or not entry.get("flats") or not entry.get("refined"):
+        return []
+    which = "held-out exposures" if entry["heldout"] else "every exposure"
+    return [f"star residual chi2 per pixel on the {which} ({entry['refined']['n_stars']} "
+            f"stars, each exposure its own P0): {entry['flats']['chi2_per_pixel']:.1f} with "
+            f"the flats' calibration, {entry['refined']['chi2_per_pixel']:.1f} with the "
+            "refined one"]
+
+
+def _add_signature_report(result, directory, refined_star=None):
     """signatures.png and a section of report.md: what was rejected and why, what is left,
-    the EMPIRICAL term and the verdict (issue 22)."""
+    the EMPIRICAL term, the verdict (issue 22) and the refined calibration's star residual."""
     from ..outputs import save_figure, write_text
     from ..plotting.diagnose import plot_signatures
 
@@ -275,6 +313,7 @@ def _add_signature_report(result, directory):
     lines.append("Verdict: " + ("explained." if verdict.get("success") else
                                 "**NOT EXPLAINED**: " + "; ".join(verdict.get("reasons", []))))
     lines += [f"- caveat: {caveat}" for caveat in verdict.get("caveats", [])]
+    lines += [f"- {line}" for line in _refined_star_lines(refined_star)]
     for name, entry in result.rejected.items():
         lines.append(f"- rejected {describe_rejection(name, entry)}")
     for entry in result.unexplained:

@@ -26,7 +26,7 @@ from .catalogue import split_shifts
 from .nuisances import SCALE, SPLIT
 from .odd_moments import star_skewness
 from .spot_model import FLUX_SCALE, SpotForwardModel, flux_of_peak
-from .star_residual import stacked_star_residual
+from .star_residual import STACK_HALF_SIZE, stacked_star_residual
 from .tables import CorrelationTable, LinearityTable, Observables, PTCTable, interleaved
 
 __all__ = ["matched_profile", "observables_from_sizes", "observables_from_images",
@@ -414,7 +414,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
               for index in range(len(pixels))]
     meta["star_residual_p0"] = ("per exposure" if all(model is not psf for model in models)
                                 else "per exposure where 10 isolated stars or more")
-    star = stacked_star_residual(pixels, tables, models, half_size=min(psf.half_size, 7),
+    star = stacked_star_residual(pixels, tables, models,
+                                 half_size=min(psf.half_size, STACK_HALF_SIZE),
                                  noise_e=float(np.median(sky_noise)))
     if star is not None:
         observables.meta["star_residual"] = star

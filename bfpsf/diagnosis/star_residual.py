@@ -2,9 +2,17 @@
 
 import numpy as np
 
+from ..io.amplifiers import read_amplifiers
+from ..io.saturation import saturation_e
+from ..measure.prepare import linearity_of, prepare_image
+from ..measure.sources import measure_sources, sky_level
 from ..plotting.diagnose import radial_profile
+from ..workflow import psf_from_images
 
-__all__ = ["stacked_star_residual"]
+__all__ = ["stacked_star_residual", "star_residual_with"]
+
+#: Half size of the stacked stamps (or the PSF's, if smaller), pixels.
+STACK_HALF_SIZE = 7
 
 
 def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, min_peak_e=0.0):
@@ -55,9 +63,10 @@ def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, m
                 continue        # too close to the edge for a full stamp
             data = image[cy - half:cy + half + 1, cx - half:cx + half + 1]
             flux = float(table["flux_e"][row])
-            model = psf.star_image(flux, x_phase=x - cx, y_phase=y - cy, half_size=half)
+            # at its position: an EMPIRICAL term may change over the detector
+            model = psf.star_image(flux, x, y, x_phase=x - cx, y_phase=y - cy, half_size=half)
             flux *= float(np.sum(data * model) / np.sum(model * model))
-            model = psf.star_image(flux, x_phase=x - cx, y_phase=y - cy, half_size=half)
+            model = psf.star_image(flux, x, y, x_phase=x - cx, y_phase=y - cy, half_size=half)
             total = total + (data - model) / flux
             variance = variance + (np.clip(model, 0, None) + noise_e ** 2) / flux ** 2
             model_sum = model_sum + model / flux
@@ -73,3 +82,50 @@ def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, m
             "chi2_per_pixel": float(np.mean((stack / sigma) ** 2)), "n_stars": count,
             "radius": radius, "profile": profile}
 
+
+
+def star_residual_with(calibration, paths, exposures, *, amp=None, background=None,
+                       saturation=None):
+    """The stacked star residual of some exposures against the P(F) a calibration gives them
+    through the user's path: each image prepared (`prepare_image`, with a refined
+    calibration's linearity correction) and its own P0 fitted with the calibration
+    (`bfpsf.workflow.psf_from_images`: its build-up and EMPIRICAL term included, at the
+    exposure's order in ``paths``), as ``bfpsf psf`` would on that image alone.
+
+    ``bfpsf diagnose --output-calib`` calls it twice on the held-out exposures, with the flats'
+    calibration and with the refined one: the same stars and the same path, so the two chi2
+    compare (the stack of every exposure, `stacked_star_residual` in the observables, uses
+    the loop's own P0 fit).
+
+    Parameters
+    ----------
+    calibration : bfpsf.calibration.product.Calibration
+    paths : sequence of str
+        Every image given to diagnose, in its order.
+    exposures : sequence of int
+        Indices into ``paths`` of the exposures to stack.
+    amp, background, saturation
+        As ``bfpsf diagnose``: the amplifier, a known sky (ADU) and a saturation level (ADU).
+
+    Returns
+    -------
+    dict or None
+        `stacked_star_residual`'s, with ``exposures``.
+    """
+    gain = float(calibration.gain)
+    pixels, tables, models, noise = [], [], [], []
+    for index in exposures:
+        amplifier = read_amplifiers(paths[index], amp, what="image")[0]
+        prepared = prepare_image(amplifier.data, gain=gain,
+                                 linearity_c_per_1e5=linearity_of(calibration),
+                                 background_e=None if background is None else background * gain)
+        level = saturation_e(amplifier, gain, saturation, calibration)
+        fit = psf_from_images([prepared], calibration, saturation_e=level, exposure=index)
+        pixels.append(prepared.sky_subtracted)
+        tables.append(measure_sources(prepared.image_e, saturation=level))
+        models.append(fit.psf)
+        noise.append(prepared.sky.rms if background is None else sky_level(prepared.image_e)[1])
+    star = stacked_star_residual(pixels, tables, models,
+                                 half_size=min(models[0].half_size, STACK_HALF_SIZE),
+                                 noise_e=float(np.median(noise)))
+    return None if star is None else dict(star, exposures=[int(index) for index in exposures])

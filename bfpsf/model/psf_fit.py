@@ -45,10 +45,11 @@ from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError, in
 from ..resources import check_psf_fit
 from ..shifts import BoundaryShifts, as_shifts
 from .empirical import PATTERNS, pattern_series
-from .gridded import GriddedFluxDependentPSF, bilinear_weights, grid_node_positions
+from .gridded import GriddedFluxDependentPSF, bilinear_weights
 from .psf import FluxDependentPSF
-from .psf_fit_grid import (Grid, Sampling, cardinal_splines, dense_weights_of, node_solution,
-                           normalise_nodes, project, recentred, without_translation)
+from .psf_fit_grid import (Grid, Sampling, cardinal_splines, dense_weights_of, grid_nodes,
+                           node_solution, normalise_nodes, project, recentred,
+                           without_translation)
 from .psf_fit_stars import STAR_FLAGS, as_star_list, cut_stars, neighbour_table, star_table
 
 __all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS", "DEFAULT_SIZE"]
@@ -57,10 +58,11 @@ log = logging.getLogger(__name__)
 
 #: Default side of P0's support and of the star cutouts, pixels (``bfpsf psf --size``).
 DEFAULT_SIZE = 25
-#: Chi-square, in units of the least one so far, at which the iteration is taken to diverge
-#: and stops (the least one's iterate is returned; a slow drift away from the optimum, 1.3x
-#: on a sparse grid, is left to run).
+#: Chi-square, in units of the least one so far, at which the iteration is taken to diverge:
+#: it goes on from the least one's iterate with half the step, down to `MIN_DAMPING`, then
+#: stops there (a slow drift away from the optimum, 1.3x on a sparse grid, is left to run).
 DIVERGED = 10.0
+MIN_DAMPING = 1.0 / 8
 
 
 @dataclass(frozen=True)
@@ -250,7 +252,9 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         are refitted). Default 5.
     damping : float, optional
         Fraction of the binned residual added to P0 at each iteration (0 < damping <= 1).
-        Default 1.
+        Default 1; halved, down to `MIN_DAMPING`, where the iteration diverges (it goes
+        back to its iterate of least chi-square and fixes the positions there) or its change
+        grows three times running with the positions fixed.
     max_iterations : int, optional
         Default 40.
     tolerance : float, optional
@@ -302,7 +306,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     if np.any(~np.isfinite(skies)) or np.any(skies < 0):
         msg = f"sky_e must be finite and >= 0 e- per pixel, got {sky_e!r}"
         raise BFPSFValueError(msg, sky_e)
-    x_nodes, y_nodes = _grid_nodes(grid, images)
+    x_nodes, y_nodes = grid_nodes(grid, images)
     n_nodes = x_nodes.size * y_nodes.size
     # refused before anything is allocated when its memory or time is beyond the limits
     check_psf_fit(sum(len(xy) for xy in positions), size, over,
@@ -378,9 +382,20 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         update = node_solution(residual / flux, weight, dense_weights, xs, ys, npix)
         stepped = [node + damping * without_translation(step, node)
                    for node, step in zip(fitted.data, update)]
-        if chi2 > DIVERGED * best[0] or not all(node.sum() > 0 for node in stepped):
-            # diverging (a new user's 54 stars of one exposure: P0's total went negative 12
-            # iterations after the positions were freed): the best iterate is the result
+        diverged = chi2 > DIVERGED * best[0] or not all(node.sum() > 0 for node in stepped)
+        if diverged and damping > MIN_DAMPING:
+            # diverging (27 spots of one exposure at 3 x 3 phases, chi-square x25 once the
+            # positions were free): on from the best iterate, positions fixed, half the step
+            log.info("P0 fit diverging at iteration %d (chi-square %.3g, least %.3g): back to "
+                     "the iterate of least chi-square, positions fixed, step %.3g",
+                     iteration, chi2, best[0], damping / 2)
+            _, fitted, stars.flux[:], stars.x_0[:], stars.y_0[:] = best
+            positions_settled, damping = True, damping / 2
+            continue
+        if diverged:
+            # still diverging at the smallest step (a new user's 54 stars of one exposure:
+            # P0's total went negative 12 iterations after the positions were freed): the
+            # best iterate is the result
             log.warning("P0 fit diverging at iteration %d (chi-square %.3g, least %.3g): "
                         "keeping the iterate of least chi-square", iteration, chi2, best[0])
             break
@@ -388,6 +403,11 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         change = float(max(np.abs(new - old).max() / np.abs(old).max()
                            for new, old in zip(new_data, fitted.data)))
         changes.append(change)
+        if (not free_positions and iteration > hold_positions + 3 and damping > MIN_DAMPING
+                and len(changes) >= 4 and np.all(np.diff(changes[-4:]) > 0)):
+            # with the positions fixed the change should shrink: grown 3 times running, the
+            # step overshoots where few stars constrain P0 (the same spots: 0.0016 -> 0.014)
+            damping /= 2
         bar.set_postfix(change=f"{change:.2e}")
         fitted = Grid(new_data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs)
         fitted.cardinal = cardinal
@@ -459,22 +479,6 @@ def _mean_shifts(shift_sets, star_set):
     padded = [one.padded(radius) for one in shift_sets]
     return BoundaryShifts(sum(w * one.north for w, one in zip(weights, padded)),
                           sum(w * one.east for w, one in zip(weights, padded)), check=False)
-
-
-def _grid_nodes(grid, images):
-    """Node coordinates (x_nodes, y_nodes) of the grid over the images (one node: (0, 0))."""
-    if grid is None:
-        return np.zeros(1), np.zeros(1)
-    grid = np.asarray(grid)
-    if grid.shape != (2,) or np.any(grid != np.round(grid)) or np.any(grid < 1):
-        msg = f"grid must be two positive integers (nx, ny), got {grid!r}"
-        raise BFPSFValueError(msg, grid)
-    shapes = {image.shape for image in images}
-    if len(shapes) != 1:
-        msg = f"a grid needs images of one shape (it covers the image), got {sorted(shapes)}"
-        raise BFPSFInputError(msg, sorted(shapes))
-    ny, nx = shapes.pop()
-    return grid_node_positions(int(grid[0]), nx), grid_node_positions(int(grid[1]), ny)
 
 
 def _fit_step(fitted, dense_weights, stars, free_positions, shapes):

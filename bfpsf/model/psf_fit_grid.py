@@ -7,12 +7,13 @@ import numpy as np
 import scipy.ndimage
 from scipy.interpolate import make_interp_spline
 
-from ..errors import BFPSFInputError
+from ..errors import BFPSFInputError, BFPSFValueError
+from .gridded import grid_node_positions
 from .psf import FluxDependentPSF
 
 __all__ = ["Grid", "Sampling", "cardinal_splines", "project", "dense_weights_of",
            "node_solution", "normalise", "normalise_nodes", "without_translation", "recentred",
-           "fill_empty"]
+           "fill_empty", "grid_nodes"]
 
 
 def fill_empty(stack, weight):
@@ -227,3 +228,20 @@ def recentred(data, oversampling):
     shifted = scipy.ndimage.shift(data, [-offset for offset in offsets], order=3,
                                   mode="constant")
     return normalise(shifted, (oversampling, oversampling))
+
+
+def grid_nodes(grid, images):
+    """Node coordinates (x_nodes, y_nodes) of `fit_psf`'s ``grid`` over the images (one node:
+    (0, 0))."""
+    if grid is None:
+        return np.zeros(1), np.zeros(1)
+    grid = np.asarray(grid)
+    if grid.shape != (2,) or np.any(grid != np.round(grid)) or np.any(grid < 1):
+        msg = f"grid must be two positive integers (nx, ny), got {grid!r}"
+        raise BFPSFValueError(msg, grid)
+    shapes = {image.shape for image in images}
+    if len(shapes) != 1:
+        msg = f"a grid needs images of one shape (it covers the image), got {sorted(shapes)}"
+        raise BFPSFInputError(msg, sorted(shapes))
+    ny, nx = shapes.pop()
+    return grid_node_positions(int(grid[0]), nx), grid_node_positions(int(grid[1]), ny)
