@@ -285,6 +285,46 @@ def test_measure_uses_each_amplifiers_gain_and_flags_the_boundary(tmp_path):
             assert abs(row["flux_e"] / flux - 1) < 0.02, (row["flux_e"], flux)
 
 
+def test_one_amplifier_calibration_is_never_spread_over_a_detector(tmp_path, capsys):
+    """A new user's single-HDU calibration on a four-amplifier image was applied to every
+    amplifier (photometry -157 to +99 mmag, each amplifier having its own gain), and a
+    refined calibration of amplifier D to A, B and C: measure, psf and photometry now refuse
+    both in one line; ``--amp`` chooses the amplifier such a calibration is for."""
+    from dataclasses import replace
+
+    import galsim
+
+    from bfpsf.model.psf import FluxDependentPSF
+    from bfpsf.shifts import BoundaryShifts
+
+    image = tmp_path / "stars.fits"
+    _star_detector(image)
+    shifts = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 3)
+    single = replace(_tiny_calibration(), shifts=shifts)
+    single.write(tmp_path / "single.fits")
+    replace(single, amplifier="C01").write(tmp_path / "c01.fits")
+    FluxDependentPSF.from_galsim(galsim.Gaussian(sigma=1.5), shifts, oversampling=2,
+                                 size=15).write(tmp_path / "psf.fits")
+    runs = {"measure": [], "psf": ["--size", "15"], "photometry": ["--psf",
+                                                                  str(tmp_path / "psf.fits")]}
+    for command, options in runs.items():
+        for calibration, amp, wanted in (
+                ("single", None, "2 amplifiers with a calibration of one (from single-HDU "
+                                 "flats)"),
+                ("c01", None, "amplifier 'C00' with a calibration of amplifier 'C01': give "
+                              "the detector's calibration, or --amp C01")):
+            argv = [command, str(image), "--calib", str(tmp_path / f"{calibration}.fits"),
+                    "-o", str(tmp_path / f"{command}_{calibration}.out"), *options]
+            assert main(argv) == 1
+            error = capsys.readouterr().err.strip().splitlines()
+            assert len(error) == 1 and error[0].startswith(
+                f"bfpsf {command}: error: {image}: {wanted}"), error
+    # the amplifier chosen: a single-HDU calibration for it, or the calibration of its name
+    for calibration in ("single", "c01"):
+        assert main(["measure", str(image), "--calib", str(tmp_path / f"{calibration}.fits"),
+                     "--amp", "C01", "-o", str(tmp_path / f"ok_{calibration}.ecsv")]) == 0
+
+
 def _tiny_calibration():
     """A Calibration of Poisson flats (gain 1): only its fields are reused here."""
     rng = np.random.default_rng(0)
@@ -461,3 +501,23 @@ def test_psf_keeps_each_amplifiers_shifts(tmp_path, capsys):
     for amplifier in read_amplifiers(tmp_path / "stars.fits"):
         _, model, _ = _amplifier_model(psf, 1.0, None, amplifier, None, False)
         np.testing.assert_allclose(model.shifts.north, shifts[amplifier.name].north, rtol=1e-12)
+    # images and star tables of another camera (a single-HDU one) are refused in one line
+    # naming the files (a new user read "the PSF has no boundary shifts for amplifier ''")
+    single = tmp_path / "single.fits"
+    fits.PrimaryHDU(images[0], header=fits.Header({"EXPTIME": 1.0})).writeto(single)
+    capsys.readouterr()
+    assert main(["photometry", str(single), "--psf", str(tmp_path / "psf.fits"), "--gain", "1",
+                 "-o", str(tmp_path / "phot.ecsv")]) == 1
+    assert capsys.readouterr().err.strip() == (
+        f"bfpsf photometry: error: {single} with {tmp_path / 'psf.fits'}: the PSF was fitted on "
+        "amplifiers C00, C01, each with its own shifts: it has none for a single-HDU image")
+    assert main(["measure", str(single), "--gain", "1", "-o", str(tmp_path / "s.ecsv")]) == 0
+    assert main(["slope", str(tmp_path / "s.ecsv"), "--psf", str(tmp_path / "psf.fits")]) == 1
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith(
+        f"bfpsf slope: error: {tmp_path / 's.ecsv'} holds stars of a single-HDU image, but "), error
+    # and a product given as an image is named as such
+    assert main(["measure", str(tmp_path / "psf.fits"), "--gain", "1", "-o",
+                 str(tmp_path / "p.ecsv")]) == 1
+    assert capsys.readouterr().err.strip().endswith(
+        f"{tmp_path / 'psf.fits'} is a bfpsf PSF product (bfpsf psf), not an image")

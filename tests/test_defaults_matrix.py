@@ -279,3 +279,26 @@ def test_psf_warns_when_the_seeing_differs(data, products, tmp_path, capsys):
     entries = json.loads((tmp_path / "psf.json").read_text())["images"]
     # the wide image against the others: about 4 % in FWHM, somewhat less in adaptive sigma
     assert entries[2]["size_offset"] - np.median([e["size_offset"] for e in entries]) > 0.02
+
+
+def test_photometry_says_where_a_gridded_psf_is_extrapolated(data, products, tmp_path, capsys):
+    """A new user's 2 x 2 grid fitted on 320^2 pixels used on a 640^2 image: two thirds of the
+    stars beyond its field, about 7 mmag worse, without a word. Here the 220^2 frame tiled
+    2 x 2: the stars beyond the grid's field are counted in a warning; its own frame none."""
+    from astropy.io import fits
+
+    directory, field, images = data
+    tiled = tmp_path / "tiled.fits"
+    frame = fits.getdata(images[0])
+    fits.PrimaryHDU(np.tile(frame, (2, 2)), header=fits.getheader(images[0])).writeto(tiled)
+    psf = str(directory / "psf_gridded.fits")
+    capsys.readouterr()
+    assert main(["photometry", images[0], "--psf", psf, "-o", str(tmp_path / "own.ecsv")]) == 0
+    assert "beyond the field" not in capsys.readouterr().err
+    assert main(["photometry", str(tiled), "--psf", psf, "-o", str(tmp_path / "big.ecsv")]) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if "beyond" in line]
+    table = Table.read(tmp_path / "big.ecsv")
+    beyond = int(np.sum((table["x_fit"] > 221) | (table["y_fit"] > 221)))
+    assert beyond > len(table) / 2 and warnings == [
+        f"WARNING: {tiled}: {beyond} of {len(table)} stars lie beyond the field {psf} was "
+        "fitted on (x 0 to 219, y 0 to 219): its field dependence is extrapolated there"]

@@ -134,7 +134,7 @@ def test_per_amplifier_shifts_round_trip_and_evaluate_each_amplifier(base, tmp_p
           for name in ("C00", "C01")}
     # G15's first-order BF term is linear in the shifts: 0.6 and 1.4 of one profile
     np.testing.assert_allclose(bf["C01"] / 1.4, bf["C00"] / 0.6, atol=1e-9 * FLUX)
-    with pytest.raises(ValueError, match="no boundary shifts for amplifier 'C02'"):
+    with pytest.raises(ValueError, match="it has none for amplifier 'C02'"):
         back.for_amplifier("C02")
     # an amplifier's model keeps them (as the gridded model does): chaining gives the same
     chained = back.for_amplifier("C00").for_amplifier("C01")

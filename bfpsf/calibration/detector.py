@@ -106,18 +106,36 @@ def amplifiers_of(calibration):
     return {calibration.amplifier: calibration}
 
 
-def calibration_of_amplifier(calibration, name, where=""):
-    """The `Calibration` that applies to amplifier ``name``: the one of that name in a
-    `DetectorCalibration`, or a one-amplifier calibration for any amplifier.
+def calibration_of_amplifier(calibration, name, where="", n_amplifiers=1):
+    """The `Calibration` that applies to amplifier ``name`` of an image holding
+    ``n_amplifiers`` (after any ``--amp``): the one of that name in a `DetectorCalibration`;
+    a one-amplifier calibration for an amplifier of its own name, for a single-HDU image, or,
+    made from single-HDU flats (no name), for the one amplifier chosen of a detector.
+
+    A one-amplifier calibration is never spread over a detector's amplifiers: each has its own
+    gain and shifts (a new user's single-HDU calibration on four amplifiers gave photometry
+    off by -157 to +99 mmag, without a word).
 
     Raises
     ------
     BFPSFInputError
-        A calibration of several amplifiers has none named ``name``.
+        A calibration of several amplifiers has none named ``name``; a one-amplifier
+        calibration given for another amplifier, or for several.
     """
     amplifiers = amplifiers_of(calibration)
     if len(amplifiers) == 1:
-        return next(iter(amplifiers.values()))
+        own = next(iter(amplifiers))
+        prefix = f"{where}{': ' if where else ''}"
+        if own and name and own != name:
+            msg = (f"{prefix}amplifier {name!r} with a calibration of amplifier {own!r}: give "
+                   f"the detector's calibration, or --amp {own}")
+            raise BFPSFInputError(msg, name)
+        if not own and n_amplifiers > 1:
+            msg = (f"{prefix}{n_amplifiers} amplifiers with a calibration of one (from "
+                   "single-HDU flats): each amplifier has its own gain and shifts; calibrate "
+                   "the detector's multi-extension flats, or choose the amplifier with --amp")
+            raise BFPSFInputError(msg, n_amplifiers)
+        return amplifiers[own]
     if name not in amplifiers:
         msg = (f"{where}{': ' if where else ''}amplifier {name!r} is not in the calibration "
                f"(it has {', '.join(map(repr, amplifiers))})")

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from ..diagnosis.problem import describe_slope
 from ..diagnosis.signature import describe_entry, describe_rejection
-from ..errors import BFPSFInputError
+from ..errors import BFPSFInputError, BFPSFValueError
 from . import flat_edge_option, maxlag_option, positive_float, positive_int, star_image_options
 
 __all__ = ["add_parser", "run"]
@@ -189,9 +189,18 @@ def run(args):
         msg = f"--holdout-fraction must be in [0, 1), got {args.holdout_fraction}"
         raise BFPSFInputError(msg, args.holdout_fraction)
     observables = _observables(args)
-    result = diagnose(observables, threshold=args.threshold,
-                      prefer_physical=args.physical_first,
-                      holdout_fraction=args.holdout_fraction or None)
+    try:
+        result = diagnose(observables, threshold=args.threshold,
+                          prefer_physical=args.physical_first,
+                          holdout_fraction=args.holdout_fraction or None)
+    except BFPSFValueError as error:  # a fit the data cannot constrain (too few stars)
+        if isinstance(error, BFPSFInputError):
+            raise
+        images = observables.meta.get("image_paths") or []
+        what = f"{len(images)} images ({images[0]}, ...)" if images else "the data"
+        msg = (f"{what}: {error}: too few stars for the diagnosis; give more exposures, fewer "
+               "--bins or --position-bins, or --holdout-fraction 0")
+        raise BFPSFInputError(msg) from None
     summary = result.to_json_dict()
     images = observables.meta.get("image_paths")
     if result.holdout and images and observables.sizes.exposure is not None:

@@ -57,12 +57,12 @@ def add_parser(subparsers):
 
 
 def _gain(args, header, path, calibration, amplifier):
-    from ..calibration.detector import calibration_of_amplifier
-
+    """The gain of one amplifier: --gain, its calibration's (``calibration``, the
+    amplifier's own), or the header's."""
     if args.gain is not None:
         return float(args.gain)  # positive and finite (positive_float)
     if calibration is not None:
-        gain = calibration_of_amplifier(calibration, amplifier, str(path)).gain
+        gain = calibration.gain
         where = f"{args.calib}: the gain of amplifier {amplifier!r}"
     elif "GAIN" in header:
         where = f"{path}: header GAIN = {header['GAIN']!r}"
@@ -106,9 +106,9 @@ def run(args):
         sides = shared_sides([amplifier.layout for amplifier in amplifiers])
         for amplifier in amplifiers:
             header = amplifier.header
-            gain = _gain(args, header, path, calibration, amplifier.name)
             amplifier_calibration = None if calibration is None else calibration_of_amplifier(
-                calibration, amplifier.name, str(path))
+                calibration, amplifier.name, str(path), len(amplifiers))
+            gain = _gain(args, header, path, amplifier_calibration, amplifier.name)
             level = saturation_e(amplifier, gain, args.saturation, amplifier_calibration)
             # the one image preparation: e-, and a refined calibration's linearity undone
             linearity = (0.0 if amplifier_calibration is None

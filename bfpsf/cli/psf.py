@@ -83,7 +83,8 @@ def run(args):
         sides = shared_sides([amplifier.layout for amplifier in amplifiers])
         for amplifier in amplifiers:
             # each amplifier in electrons with its own gain
-            one = calibration_of_amplifier(calibration, amplifier.name, str(path))
+            one = calibration_of_amplifier(calibration, amplifier.name, str(path),
+                                           len(amplifiers))
             if one.shifts is None:
                 msg = (f"{args.calib} has no boundary shifts"
                        f"{f' for amplifier {one.amplifier}' if one.amplifier else ''} "
@@ -174,7 +175,9 @@ def run(args):
                   f"median: its seeing differs from theirs (PSF photometry of its sky-limited "
                   f"stars up to {abs(1e3 * MAG_PER_SIZE_ERROR * offset):.1f} mmag too "
                   f"{'faint' if offset > 0 else 'bright'}, less for bright stars); fit each "
-                  "exposure's PSF on its own images", file=sys.stderr)
+                  "exposure's PSF on its own images, or, if its stars lie in another part of "
+                  "the field than the others' (an amplifier), the PSF varies over the field: "
+                  "--grid", file=sys.stderr)
     n_detected = sum(entry["n_detected"] for entry in per_image)
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} isolated stars ({n_detected} "
           f"sources detected; the others blended, near an edge or with bad pixels) in "

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError
 from . import _real
-from ..files import check_outputs, input_files, read_table
+from ..files import about, check_outputs, input_files, read_table
 from ..outputs import save_figure, write_json
 
 
@@ -99,6 +99,23 @@ def _summary(slopes):
     return summary
 
 
+def _check_amplifiers(stars, psf, args):
+    """A PSF fitted on several amplifiers predicts for their stars only (as ``photometry``
+    refuses their images): a table measured elsewhere is refused in one line."""
+    fitted = set(getattr(psf, "amplifier_shifts", None) or {})
+    if not fitted:
+        return
+    column = stars["amplifier"] if "amplifier" in stars.colnames else [""]
+    # a single-HDU image's '' reads back from ECSV masked
+    names = {str(name) for name in np.ma.filled(np.ma.asarray(column), "")}
+    foreign = sorted(names - fitted)
+    if foreign:
+        what = ", ".join(repr(name) if name else "a single-HDU image" for name in foreign)
+        msg = (f"{args.stars} holds stars of {what}, but {args.psf} was fitted on amplifiers "
+               f"{', '.join(sorted(fitted))}: measure the images the PSF was fitted on")
+        raise BFPSFInputError(msg, args.stars)
+
+
 def run(args):
     from ..measure.colour import correct_size_colour
     from ..measure.slopes import bf_slopes
@@ -115,8 +132,9 @@ def run(args):
     if args.colour:
         stars, colour_fit = correct_size_colour(stars, args.colour,
                                                 max_peak_e=args.colour_max_peak)
-    slopes = bf_slopes(stars, min_peak_e=args.min_peak, max_peak_e=args.max_peak,
-                       use_errors=not args.unweighted, colour_fit=colour_fit)
+    with about(args.stars):
+        slopes = bf_slopes(stars, min_peak_e=args.min_peak, max_peak_e=args.max_peak,
+                           use_errors=not args.unweighted, colour_fit=colour_fit)
     summary = _summary(slopes)
     summary["n_stars"] = int(slopes["n_stars"])
     residual = prediction = psf = None
@@ -124,6 +142,7 @@ def run(args):
         from ..model.psf import FluxDependentPSF
 
         psf = FluxDependentPSF.read(args.psf)
+        _check_amplifiers(stars, psf, args)
         residual, prediction = _model_residual(stars, args, colour_fit, psf, slopes)
         summary["model_residual"] = _summary(residual)
         for key in ("x", "y", "iq", "e1", "e2"):

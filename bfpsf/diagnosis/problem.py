@@ -228,8 +228,8 @@ def describe_slope(values, axis, digits=2):
             text += f" +- {values[f'slope_{axis}_percent_err']:.{digits}f}"
         return text + " % of raw"
     return (f"{values[f'residual_slope_{axis}']:+.4f} +- "
-            f"{values[f'residual_slope_{axis}_err']:.4f} px per 100 ke- (the stars show no BF "
-            f"slope in {axis.upper()}: raw {values[f'raw_slope_{axis}']:+.4f} +- "
+            f"{values[f'residual_slope_{axis}_err']:.4f} px per 100 ke- (the stars' BF slope "
+            f"in {axis.upper()} is not significant: raw {values[f'raw_slope_{axis}']:+.4f} +- "
             f"{values[f'raw_slope_{axis}_err']:.4f})")
 
 

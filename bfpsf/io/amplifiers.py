@@ -174,6 +174,11 @@ def _hdu_name(index, hdu):
 def _image_hdus(path, hdus):
     """(index, hdu) of the amplifier images; raises on HDUs the package cannot interpret."""
     images = []
+    for key, what in (("BFPSFVER", "PSF product (bfpsf psf)"),
+                      ("BFSCHEMA", "calibration (bfpsf calibrate)")):
+        if key in hdus[0].header:  # a product of bfpsf given as an image
+            msg = f"{path} is a bfpsf {what}, not an image"
+            raise BFPSFInputError(msg, str(path))
     for index, hdu in enumerate(hdus):
         if not hdu.is_image:
             if hdu.name in ALLOWED_TABLES:

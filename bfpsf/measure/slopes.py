@@ -274,7 +274,8 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
     missing = [name for name in ("peak_e", "sigma_x", "sigma_y", "iq") if name not in
                table.colnames]
     if missing:
-        msg = f"the star table lacks columns {missing}"
+        msg = (f"the star table lacks columns {missing} (bfpsf slope reads the table of "
+               "bfpsf measure)")
         raise BFPSFInputError(msg, missing)
     if flag_mask is None:
         flag_mask = ~(MomentsFlag.BAD_PIXELS | _STAMP_EDGE)

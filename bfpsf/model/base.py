@@ -216,8 +216,9 @@ class BFPSFModel(Fittable2DModel):
         if not self.amplifier_shifts:
             return self
         if name not in self.amplifier_shifts:
-            msg = (f"the PSF has no boundary shifts for amplifier {name!r} (it has "
-                   f"{', '.join(sorted(self.amplifier_shifts))})")
+            what = f"amplifier {name!r}" if name else "a single-HDU image"
+            msg = (f"the PSF was fitted on amplifiers {', '.join(sorted(self.amplifier_shifts))}"
+                   f", each with its own shifts: it has none for {what}")
             raise BFPSFValueError(msg, name)
         return self.with_shifts(self.amplifier_shifts[name])
 
