@@ -89,3 +89,40 @@ def test_fluxes_are_total_and_do_not_drift_with_brightness(field):
     # drifts over seeds 24-29: +1.08, -1.14, +1.42, +0.28, +0.54, +0.84 mmag (sd 0.9 against
     # errors of 0.42-0.53: P0 fitted from 120 stars adds about 0.7 mmag seed to seed)
     assert abs(drift) < 3 * np.hypot(error, 0.7) and error < 0.6
+
+
+def test_sky_and_wings_fit_recovers_each_plane_and_the_power_law():
+    """The joint fit of every image's sky plane and the stars' r^-p glow on an analytic case
+    (planes, glow of 0.03 F r^-3 beyond a 7-pixel half support: 2.5 % of F; 1 e- of noise; one
+    image empty of stars): its block solution (each image's plane projected out, the
+    amplitude from what is left) gives the planes and the wings' fraction (on a new user's
+    four amplifiers of eight exposures the dense least squares it replaces took 589 s and
+    2 GB against 13 s and 0.48 GB, the same numbers to 1e-15)."""
+    from bfpsf.measure.total_flux import _beyond_square, fit_sky_and_wings
+
+    rng = np.random.default_rng(7)
+    half, amplitude, power, shape = 7, 0.03, 3.0, (120, 150)
+    planes = [(300.0, 0.05, -0.02), (120.0, -0.03, 0.04), (505.0, 0.0, 0.01)]
+    images, stars = [], []
+    y, x = np.mgrid[:shape[0], :shape[1]]
+    for index, (level, slope_x, slope_y) in enumerate(planes):
+        n = 0 if index == 2 else 6
+        star_x, star_y = rng.uniform(20, 130, n), rng.uniform(20, 100, n)
+        flux = rng.uniform(2e5, 2e6, n)
+        sky = level + slope_x * (x - (shape[1] - 1) / 2) + slope_y * (y - (shape[0] - 1) / 2)
+        glow = np.zeros(shape)  # A F r^-p beyond each star's support, to the image's edge
+        for x_0, y_0, value in zip(star_x, star_y, flux):
+            outside = ((np.abs(x - np.rint(x_0)) > half) | (np.abs(y - np.rint(y_0)) > half))
+            glow += np.where(outside, value * amplitude
+                             * np.hypot(x - x_0, y - y_0).clip(1.0) ** -power, 0.0)
+        images.append(sky + glow + rng.normal(0.0, 1.0, shape))
+        stars.append((star_x, star_y, flux))
+    skies, wings = fit_sky_and_wings(images, stars, half_size=half)
+    truth = amplitude * _beyond_square(power, half)
+    # measured: p 3.1, fraction 0.02161 against 0.02259 (-4 %), skies +0.69, +0.67 and
+    # +0.003 e-: the glow beyond the template's reach (6 half-widths, 45 px) goes into the
+    # planes of the images with stars (docs/limitations.md)
+    assert wings.power == pytest.approx(power, abs=0.15)
+    assert wings.fraction == pytest.approx(truth, rel=0.06)
+    for sky, (level, _, _), image_stars in zip(skies, planes, stars):
+        assert sky.level == pytest.approx(level, abs=1.0 if len(image_stars[0]) else 0.05)

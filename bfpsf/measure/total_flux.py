@@ -144,8 +144,7 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         fraction: the amplitude's statistical error and the range of p within chi-square + 1.
     """
     n_terms = (degree + 1) * (degree + 2) // 2
-    n_columns = 1 + n_terms * len(images_e)
-    sky_blocks, values, pair_sets, offsets, templates = [], [], [], [0], []
+    bases, values, pair_sets, offsets, templates = [], [], [], [0], []
     for index, (image, (x, y, flux)) in enumerate(zip(images_e, stars)):
         image = np.asarray(image, dtype=float)
         core = source_mask(image, reach=1.0, grow=1)
@@ -170,29 +169,47 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         template = SkyModel((0.0,) * n_terms, degree, image.shape, np.nan, "")
         templates.append(template)
         x_centre, y_centre, scale = template._scale()
-        block = np.zeros((keep.sum(), n_columns))
-        block[:, 1 + index * n_terms:1 + (index + 1) * n_terms] = _powers(
-            (columns[keep] - x_centre) / scale, (rows[keep] - y_centre) / scale, degree).T
-        sky_blocks.append(block)
+        bases.append(_powers((columns[keep] - x_centre) / scale,
+                             (rows[keep] - y_centre) / scale, degree).T)
         values.append(image[rows[keep], columns[keep]])
         offsets.append(offsets[-1] + int(keep.sum()))
-    design, values = np.vstack(sky_blocks), np.concatenate(values)
+    values = np.concatenate(values)
     pixel = np.concatenate([pairs[0] for pairs in pair_sets])
     radius = np.concatenate([pairs[1] for pairs in pair_sets])
     weight = np.concatenate([pairs[2] for pairs in pair_sets])
 
     def solve(power, keep):
-        design[:, 0] = np.bincount(pixel, weights=weight * radius**-power,
-                                   minlength=values.size)
-        solution = np.linalg.lstsq(design[keep], values[keep], rcond=None)[0]
-        return solution, values - design @ solution
+        """The least squares of [wing template, each image's sky terms] on the kept pixels,
+        by blocks: each image's sky is projected out of the data and of the wing template
+        (its terms touch its own pixels only), the amplitude is the ratio of what is left,
+        and each sky is its projection less the amplitude's share. The same solution as one
+        dense least squares, whose design (1 + terms x images columns) had taken 2 GB and
+        20 times the time on a new user's four amplifiers of eight exposures.
+        Returns (amplitude and the sky terms, deviation of every pixel, the wing
+        template's squared norm beyond the skies: the amplitude's inverse variance per rms^2)."""
+        wing = np.bincount(pixel, weights=weight * radius**-power, minlength=values.size)
+        wing_left, values_left, parts = np.empty_like(values), np.empty_like(values), []
+        for index, basis in enumerate(bases):
+            block = slice(offsets[index], offsets[index + 1])
+            mine = keep[block]
+            of_wing, of_values = np.linalg.lstsq(
+                basis[mine], np.column_stack([wing[block][mine], values[block][mine]]),
+                rcond=None)[0].T
+            wing_left[block] = wing[block] - basis @ of_wing
+            values_left[block] = values[block] - basis @ of_values
+            parts.append((of_wing, of_values))
+        norm = float(np.sum(wing_left[keep] ** 2))
+        amplitude = float(np.sum(wing_left[keep] * values_left[keep]) / norm) if norm > 0 else 0.0
+        solution = np.concatenate([[amplitude]] + [of_values - amplitude * of_wing
+                                                   for of_wing, of_values in parts])
+        return solution, values_left - amplitude * wing_left, norm
 
     keep = np.ones(values.size, dtype=bool)
     # a noiseless sky beyond the stars (a simulation, a known sky subtracted) has no scatter:
     # the floor keeps the clipping and the chi-square of the powers finite
     floor = 1e-12 * max(1.0, float(np.max(np.abs(values))) if values.size else 1.0)
     for _ in range(10):  # the clipping, at a Kolmogorov-like power
-        _, deviation = solve(11 / 3, keep)
+        _, deviation, _ = solve(11 / 3, keep)
         rms = max(1.4826 * float(np.median(np.abs(deviation[keep]))), floor)
         new_keep = np.abs(deviation) <= clip_nsigma * rms
         if np.array_equal(new_keep, keep):
@@ -201,15 +218,15 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
     chi2 = np.array([np.sum(solve(power, keep)[1][keep]**2) for power in _POWERS]) / rms**2
     best = int(np.argmin(chi2))
     power = float(_POWERS[best])
-    solution, deviation = solve(power, keep)
-    covariance = np.linalg.pinv(design[keep].T @ design[keep]) * rms**2
+    solution, deviation, norm = solve(power, keep)
+    amplitude_err = rms / np.sqrt(norm) if norm > 0 else 0.0
     amplitude = float(solution[0])
     fraction = amplitude * _beyond_square(power, half_size)
     # the powers within chi-square + 1, at their own best amplitudes
     within = np.flatnonzero(chi2 <= chi2[best] + 1.0)
     spread = [solve(_POWERS[k], keep)[0][0] * _beyond_square(_POWERS[k], half_size)
               for k in (within.min(), within.max())]
-    error = float(np.hypot(np.sqrt(covariance[0, 0]) * _beyond_square(power, half_size),
+    error = float(np.hypot(amplitude_err * _beyond_square(power, half_size),
                            (max(spread) - min(spread)) / 2))
     skies = []
     for index, template in enumerate(templates):
