@@ -516,6 +516,13 @@ def test_psf_keeps_each_amplifiers_shifts(tmp_path, capsys):
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and error[0].startswith(
         f"bfpsf slope: error: {tmp_path / 's.ecsv'} holds stars of a single-HDU image, but "), error
+    # a grid on a detector would span one amplifier's frame: refused, --amp fits one
+    assert main(["psf", str(tmp_path / "stars.fits"), "--calib", str(tmp_path / "cal.fits"),
+                 "-o", str(tmp_path / "grid.fits"), "--grid", "2", "2"]) == 1
+    assert capsys.readouterr().err.strip() == (
+        f"bfpsf psf: error: {tmp_path / 'stars.fits'}: --grid on 2 amplifiers would put its "
+        "nodes on one amplifier's frame, not the detector's: fit each amplifier's grid with "
+        "--amp NAME")
     # and a product given as an image is named as such
     assert main(["measure", str(tmp_path / "psf.fits"), "--gain", "1", "-o",
                  str(tmp_path / "p.ecsv")]) == 1

@@ -80,6 +80,13 @@ def run(args):
     prepared, calibrations, exclude, saturation, per_image = [], [], [], [], []
     for path in args.images:
         amplifiers, _ = read_image(path, args.amp)
+        if args.grid is not None and len(amplifiers) > 1:
+            # the grid spans one image's frame: on a detector each amplifier's (a new user's
+            # four amplifiers shared nodes at 0-159, the detector's field unmodelled)
+            msg = (f"{path}: --grid on {len(amplifiers)} amplifiers would put its nodes on "
+                   "one amplifier's frame, not the detector's: fit each amplifier's grid "
+                   "with --amp NAME")
+            raise BFPSFInputError(msg, str(path))
         sides = shared_sides([amplifier.layout for amplifier in amplifiers])
         for amplifier in amplifiers:
             # each amplifier in electrons with its own gain
