@@ -103,6 +103,14 @@ def _sky_high(original):
     return mutated
 
 
+def _wings_x2(original):
+    def mutated(*args, **kwargs):
+        skies, wings = original(*args, **kwargs)
+        return skies, dataclasses.replace(wings, amplitude=2 * wings.amplitude,
+                                          fraction=2 * wings.fraction)
+    return mutated
+
+
 #: name -> (module, function, how it is broken, the quick tests that must catch it)
 MUTATIONS = {
     "redistribution x2": ("bfpsf.model.redistribution", "add_redistribution",
@@ -129,6 +137,8 @@ MUTATIONS = {
     "PTC gain x2": ("bfpsf.calibration.ptc", "fit_ptc", _gain_x2, ["tests/test_ptc.py"]),
     "sky high by 5 rms": ("bfpsf.measure.sky", "estimate_sky", _sky_high,
                           ["tests/test_defaults_matrix.py"]),
+    "wings x2": ("bfpsf.measure.total_flux", "fit_sky_and_wings", _wings_x2,
+                 ["tests/test_total_flux_wings.py"]),
     "cdmodel a_t x2": ("bfpsf.interop.cdmodel", "shifts_to_cdmodel", _cdmodel_x2,
                        ["tests/test_galsim_sensor.py", "tests/test_redistribution.py"]),
     "A+19 b term x2": ("bfpsf.calibration.ptc_full", "_model_electrons", _b_term_x2,
