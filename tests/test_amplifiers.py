@@ -319,10 +319,14 @@ def test_one_amplifier_calibration_is_never_spread_over_a_detector(tmp_path, cap
             error = capsys.readouterr().err.strip().splitlines()
             assert len(error) == 1 and error[0].startswith(
                 f"bfpsf {command}: error: {image}: {wanted}"), error
-    # the amplifier chosen: a single-HDU calibration for it, or the calibration of its name
+    # the amplifier chosen: a single-HDU calibration for it (said once), or the calibration
+    # of its name
     for calibration in ("single", "c01"):
         assert main(["measure", str(image), "--calib", str(tmp_path / f"{calibration}.fits"),
                      "--amp", "C01", "-o", str(tmp_path / f"ok_{calibration}.ecsv")]) == 0
+        said = [line for line in capsys.readouterr().err.splitlines()
+                if "without an amplifier name" in line]
+        assert len(said) == (calibration == "single"), said
 
 
 def _tiny_calibration():
@@ -516,6 +520,26 @@ def test_psf_keeps_each_amplifiers_shifts(tmp_path, capsys):
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and error[0].startswith(
         f"bfpsf slope: error: {tmp_path / 's.ecsv'} holds stars of a single-HDU image, but "), error
+    # without --calib the detector product's gain is a mean of its amplifiers': refused
+    assert main(["photometry", str(tmp_path / "stars.fits"), "--amp", "C01", "--psf",
+                 str(tmp_path / "psf.fits"), "-o", str(tmp_path / "nocal.ecsv")]) == 1
+    assert capsys.readouterr().err.strip() == (
+        f"bfpsf photometry: error: {tmp_path / 'psf.fits'} was fitted on amplifiers C00, C01, "
+        "each with its own gain, which the product does not keep: give --calib CALIB.fits (or "
+        "--gain G)")
+    # a PSF of one amplifier (--amp) keeps its name: refused for the other (it had given the
+    # other's stars its gain, +313 mmag, without a word)
+    assert main(["psf", str(tmp_path / "stars.fits"), "--amp", "C00", "--calib",
+                 str(tmp_path / "cal.fits"), "-o", str(tmp_path / "psf_c00.fits"), "--size",
+                 "15", "--max-iterations", "8"]) == 0
+    assert sorted(FluxDependentPSF.read(tmp_path / "psf_c00.fits").amplifier_shifts) == ["C00"]
+    capsys.readouterr()
+    assert main(["photometry", str(tmp_path / "stars.fits"), "--amp", "C01", "--psf",
+                 str(tmp_path / "psf_c00.fits"), "--calib", str(tmp_path / "cal.fits"), "-o",
+                 str(tmp_path / "other.ecsv")]) == 1
+    assert capsys.readouterr().err.strip().endswith(
+        "the PSF was fitted on amplifiers C00, each with its own shifts: it has none for "
+        "amplifier 'C01'")
     # a grid on a detector would span one amplifier's frame: refused, --amp fits one
     assert main(["psf", str(tmp_path / "stars.fits"), "--calib", str(tmp_path / "cal.fits"),
                  "-o", str(tmp_path / "grid.fits"), "--grid", "2", "2"]) == 1

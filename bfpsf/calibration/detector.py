@@ -6,6 +6,7 @@
 give the calibration that applies to each amplifier of an image.
 """
 
+import logging
 from dataclasses import dataclass
 
 from .. import __version__
@@ -13,6 +14,8 @@ from ..errors import BFPSFInputError
 from ..files import open_product, refuse_overwrite
 from ..outputs import write_fits
 from .product import SCHEMA_VERSION, Calibration, group_names
+
+log = logging.getLogger(__name__)
 
 __all__ = ["DetectorCalibration", "read_calibration", "amplifiers_of",
            "calibration_of_amplifier"]
@@ -106,6 +109,11 @@ def amplifiers_of(calibration):
     return {calibration.amplifier: calibration}
 
 
+#: (calibration, amplifier) pairs already warned about (`calibration_of_amplifier`): once
+#: per run, not once per image.
+_WARNED = set()
+
+
 def calibration_of_amplifier(calibration, name, where="", n_amplifiers=1):
     """The `Calibration` that applies to amplifier ``name`` of an image holding
     ``n_amplifiers`` (after any ``--amp``): the one of that name in a `DetectorCalibration`;
@@ -135,6 +143,11 @@ def calibration_of_amplifier(calibration, name, where="", n_amplifiers=1):
                    "single-HDU flats): each amplifier has its own gain and shifts; calibrate "
                    "the detector's multi-extension flats, or choose the amplifier with --amp")
             raise BFPSFInputError(msg, n_amplifiers)
+        if not own and name and (id(calibration), name) not in _WARNED:
+            _WARNED.add((id(calibration), name))
+            log.warning("%sa calibration without an amplifier name (from single-HDU flats) "
+                        "is used for amplifier %r: right only if its flats were that "
+                        "amplifier's", prefix, name)
         return amplifiers[own]
     if name not in amplifiers:
         msg = (f"{where}{': ' if where else ''}amplifier {name!r} is not in the calibration "

@@ -138,6 +138,12 @@ def run(args):
                "number of e-/ADU); give --gain G")
         raise BFPSFInputError(msg, gain)
     calibration = read_calibration(args.calib) if args.calib else None
+    if calibration is None and args.gain is None and len(psf.amplifier_shifts or {}) > 1:
+        # the product's GAIN is a mean of its amplifiers' (a new user's +169 mmag on one)
+        msg = (f"{args.psf} was fitted on amplifiers {', '.join(sorted(psf.amplifier_shifts))}, "
+               "each with its own gain, which the product does not keep: give --calib "
+               "CALIB.fits (or --gain G)")
+        raise BFPSFInputError(msg, args.psf)
     tables, per_image = [], []
     for path in args.images:
         amplifiers, _ = read_image(path, args.amp)

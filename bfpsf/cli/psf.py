@@ -131,6 +131,12 @@ def run(args):
                      sky_slope=found["sky_slope"], sky_method=found["sky_method"],
                      **{key: found[key] for key in ("size_offset", "size_offset_err",
                                                     "n_sized", "seeing_bias_mmag")})
+    names = {entry["amplifier"] for entry in per_image}
+    if not fitted.psf.amplifier_shifts and len(names) == 1 and "" not in names:
+        # one amplifier of a detector (--amp): recorded, so that photometry and slope refuse
+        # the product for another (a new user's PSF of amplifier A gave B's stars A's gain,
+        # +313 mmag, without a word)
+        fitted.psf.amplifier_shifts = {names.pop(): fitted.psf.shifts}
     result = fitted.fit
     psf = fitted.psf
     gain = float(psf.gain)  # of the images the stars came from, weighted by their stars
