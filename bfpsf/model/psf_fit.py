@@ -78,7 +78,9 @@ class PSFFitResult:
         One row per input star: ``image``, ``x_init``, ``y_init``, ``x_fit``, ``y_fit``
         (pixels), ``flux_fit`` (e-), ``weight`` (share of the stack), ``flags`` (`STAR_FLAGS`).
     iterations : int
-    converged : bool
+    converged, diverged : bool
+        The change fell below ``tolerance``; or the iteration still diverged at its smallest
+        step (`MIN_DAMPING`) and stopped at its iterate of least chi-square.
     changes : ndarray
         Largest change of P0 at each iteration, relative to its peak.
     neighbours : astropy.table.Table
@@ -92,6 +94,7 @@ class PSFFitResult:
     converged: bool
     changes: np.ndarray
     neighbours: Table = None
+    diverged: bool = False
 
 
 def _exact_bf_terms(grid, weights, stars):
@@ -353,7 +356,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     fitted = Grid(data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs)
     fitted.cardinal = cardinal
     changes = []
-    converged = False
+    converged = diverged = False
     positions_settled, free_iterations, settle_factor = False, 0, 5.0
     best = None  # (chi-square, P0, fluxes, x_0, y_0) of the best iterate
     bar = tqdm(range(1, max_iterations + 1), disable=(False if progress else
@@ -393,9 +396,8 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
             positions_settled, damping = True, damping / 2
             continue
         if diverged:
-            # still diverging at the smallest step (a new user's 54 stars of one exposure:
-            # P0's total went negative 12 iterations after the positions were freed): the
-            # best iterate is the result
+            # still diverging at the smallest step (a new user's 54 stars of one exposure: P0's
+            # total went negative after the positions were freed): the best iterate is kept
             log.warning("P0 fit diverging at iteration %d (chi-square %.3g, least %.3g): "
                         "keeping the iterate of least chi-square", iteration, chi2, best[0])
             break
@@ -405,8 +407,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         changes.append(change)
         if (not free_positions and iteration > hold_positions + 3 and damping > MIN_DAMPING
                 and len(changes) >= 4 and np.all(np.diff(changes[-4:]) > 0)):
-            # with the positions fixed the change should shrink: grown 3 times running, the
-            # step overshoots where few stars constrain P0 (the same spots: 0.0016 -> 0.014)
+            # grown 3 times running with the positions fixed: the step overshoots (0.0016 -> 0.014)
             damping /= 2
         bar.set_postfix(change=f"{change:.2e}")
         fitted = Grid(new_data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs)
@@ -447,7 +448,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         raise BFPSFInputError(msg, n_kept)
     return PSFFitResult(psf=psf, stars=table,
                         iterations=len(changes), converged=converged, changes=np.array(changes),
-                        neighbours=neighbour_table(stars))
+                        neighbours=neighbour_table(stars), diverged=bool(diverged))
 
 
 def _shift_sets(shifts, n_images):
