@@ -110,8 +110,9 @@ def amplifiers_of(calibration):
 
 
 #: (calibration, amplifier) pairs already warned about (`calibration_of_amplifier`): once
-#: per run, not once per image.
-_WARNED = set()
+#: per run, not once per image. The calibrations themselves are held: an id is reused once
+#: its object is gone.
+_WARNED = []
 
 
 def calibration_of_amplifier(calibration, name, where="", n_amplifiers=1):
@@ -131,9 +132,9 @@ def calibration_of_amplifier(calibration, name, where="", n_amplifiers=1):
         calibration given for another amplifier, or for several.
     """
     amplifiers = amplifiers_of(calibration)
+    prefix = f"{where}{': ' if where else ''}"
     if len(amplifiers) == 1:
         own = next(iter(amplifiers))
-        prefix = f"{where}{': ' if where else ''}"
         if own and name and own != name:
             msg = (f"{prefix}amplifier {name!r} with a calibration of amplifier {own!r}: give "
                    f"the detector's calibration, or --amp {own}")
@@ -143,14 +144,15 @@ def calibration_of_amplifier(calibration, name, where="", n_amplifiers=1):
                    "single-HDU flats): each amplifier has its own gain and shifts; calibrate "
                    "the detector's multi-extension flats, or choose the amplifier with --amp")
             raise BFPSFInputError(msg, n_amplifiers)
-        if not own and name and (id(calibration), name) not in _WARNED:
-            _WARNED.add((id(calibration), name))
+        if not own and name and not any(known is calibration and named == name
+                                        for known, named in _WARNED):
+            _WARNED.append((calibration, name))
             log.warning("%sa calibration without an amplifier name (from single-HDU flats) "
                         "is used for amplifier %r: right only if its flats were that "
                         "amplifier's", prefix, name)
         return amplifiers[own]
     if name not in amplifiers:
-        msg = (f"{where}{': ' if where else ''}amplifier {name!r} is not in the calibration "
+        msg = (f"{prefix}amplifier {name!r} is not in the calibration "
                f"(it has {', '.join(map(repr, amplifiers))})")
         raise BFPSFInputError(msg, name)
     return amplifiers[name]

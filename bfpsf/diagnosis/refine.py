@@ -100,7 +100,7 @@ def refine_calibration(calibration, result, *, provenance=None):
     anisotropy = None
     applied, not_applied, parameters = {}, {}, {}
     linearity_c, buildup = 0.0, None
-    folded = result.folded or {"names": [], "effects": {}, "scale_nuisance": None}
+    folded = result.folded or {"names": [], "effects": {}}
     nuisances = {}  # the global nuisances applied: name -> value
     for entry in GLOBAL_NUISANCES:
         value = folded.get(entry.folded_key)

@@ -83,7 +83,6 @@ def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, m
             "radius": radius, "profile": profile}
 
 
-
 def star_residual_with(calibration, paths, exposures, *, amp=None, background=None,
                        saturation=None):
     """The stacked star residual of some exposures against the P(F) a calibration gives them

@@ -385,8 +385,8 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         update = node_solution(residual / flux, weight, dense_weights, xs, ys, npix)
         stepped = [node + damping * without_translation(step, node)
                    for node, step in zip(fitted.data, update)]
-        diverged = chi2 > DIVERGED * best[0] or not all(node.sum() > 0 for node in stepped)
-        if diverged and damping > MIN_DAMPING:
+        diverging = chi2 > DIVERGED * best[0] or not all(node.sum() > 0 for node in stepped)
+        if diverging and damping > MIN_DAMPING:
             # diverging (27 spots of one exposure at 3 x 3 phases, chi-square x25 once the
             # positions were free): on from the best iterate, positions fixed, half the step
             log.info("P0 fit diverging at iteration %d (chi-square %.3g, least %.3g): back to "
@@ -395,9 +395,9 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
             _, fitted, stars.flux[:], stars.x_0[:], stars.y_0[:] = best
             positions_settled, damping = True, damping / 2
             continue
-        if diverged:
-            # still diverging at the smallest step (a new user's 54 stars of one exposure: P0's
-            # total went negative after the positions were freed): the best iterate is kept
+        if diverging:
+            diverged = True
+            # diverging at the smallest step: its best iterate is kept (54 stars: P0's total < 0)
             log.warning("P0 fit diverging at iteration %d (chi-square %.3g, least %.3g): "
                         "keeping the iterate of least chi-square", iteration, chi2, best[0])
             break
