@@ -187,8 +187,12 @@ def fit_profile(area, area_err):
     curvature = jacobian.T @ (weights[:, None] * jacobian)
     diagonal = np.sqrt(np.diag(curvature))
     variances = None
-    if np.all(diagonal > 0) and np.linalg.cond(curvature / np.outer(diagonal, diagonal)) < 1e12:
-        variances = np.diag(np.linalg.inv(curvature)) * scale
+    normalised = curvature / np.outer(diagonal, diagonal) if np.all(diagonal > 0) else None
+    if normalised is not None and np.linalg.cond(normalised) < 1e12:
+        # invert the normalised matrix: a denormal curvature (a tail of 1e-165) is singular to
+        # np.linalg.inv although its normalised form is well conditioned
+        with np.errstate(over="ignore", divide="ignore"):
+            variances = np.diag(np.linalg.inv(normalised)) / diagonal ** 2 * scale
     if variances is not None and np.all(variances > 0):
         p0_err, p1_err = np.sqrt(variances)
     else:
