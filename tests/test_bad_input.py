@@ -200,6 +200,34 @@ def test_photometry_fit_shape_wider_than_the_star_spacing():
                                 "too low: check the image and --background)")
 
 
+def test_fit_shape_set_by_an_outlying_grid_node_names_the_node():
+    """A node fitted from too few stars (a new user's 10.2 px against 4.2-4.7) set a 31 px fit
+    box, and the error blamed the image: it names the node."""
+    import galsim
+
+    from bfpsf.interop.photutils import outlying_nodes
+    from bfpsf.measure.photometry import psf_photometry
+    from bfpsf.model.gridded import GriddedFluxDependentPSF
+    from bfpsf.model.psf import FluxDependentPSF
+
+    nodes = [FluxDependentPSF.from_galsim(galsim.Gaussian(fwhm=fwhm), SHIFTS, oversampling=2,
+                                          size=25) for fwhm in (4.2, 4.7, 4.4, 10.2)]
+    psf = GriddedFluxDependentPSF(nodes, [0.0, 99.0], [0.0, 99.0])
+    outliers, median = outlying_nodes(psf)
+    assert [(x, y) for x, y, _ in outliers] == [(99.0, 99.0)]
+    assert outliers[0][2] == pytest.approx(10.2, abs=0.1) and 4.4 < median < 4.8
+    # a 10 % field variation is no outlier
+    assert outlying_nodes(GriddedFluxDependentPSF(nodes[:2] * 2, [0.0, 99.0], [0.0, 99.0]))[0] == []
+    positions = np.array([(10.0 + 12 * i, 10.0 + 12 * j) for i in range(7) for j in range(7)])
+    with pytest.raises(BFPSFValueError) as error:
+        psf_photometry(np.zeros((100, 100)), psf, positions=positions, background_e=0.0)
+    assert str(error.value) == (
+        "fit shape 31 px (group separation 31 px) puts 49 of the 49 "
+        "stars in one group fitted together (at most 25): the PSF sets that fit shape from its "
+        "grid node (x 99, y 99) 10.2 px against a median FWHM 4.6 px over the nodes: a node "
+        "fitted from too few stars; refit the PSF with fewer --grid nodes or give a fit shape")
+
+
 def test_simulate_unknown_sensor(capsys, tmp_path):
     code, err = run(capsys, "simulate", "flats", "--sensor", "nosuch", "-o",
                     str(tmp_path / "sim"), "--levels", "1000", "--size", "16")

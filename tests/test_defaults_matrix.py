@@ -98,6 +98,32 @@ def test_psf_finds_the_sky_and_the_wings(data, products, kind):
         assert entry["sky_slope"] == pytest.approx(sky[1:], abs=0.01)
     # a Moffat of beta 3.5 has 0.12 % of its flux beyond the 25-pixel support
     assert summary["flux_correction"] == pytest.approx(1.0012, abs=0.003)
+    if kind == "gridded":  # 15 stars per node: no node stands out
+        assert summary["grid"]["outlying_nodes"] == []
+        assert sum(summary["grid"]["star_weights"]) == pytest.approx(summary["n_used"])
+
+
+def test_psf_names_grid_nodes_fitted_from_too_few_stars(tmp_path, capsys):
+    """27 stars on --grid 3 3 (1.3-7.7 stars per node): nodes of 1.9-4.3 px FWHM where the
+    stars' is 3.45 px are named, with the stars' weight at every node."""
+    field = simulate_field(PROFILE, n_images=1, shape=(220, 220), n_stars=30,
+                           min_separation=30, sensor=None, shifts=SHIFTS, seed=2111)
+    write_image_adu(tmp_path / "image.fits", field.images[0], gain=GAIN)
+    make_calibration(SHIFTS, GAIN, 5.0).write(tmp_path / "flats.fits")
+    assert main(["psf", str(tmp_path / "image.fits"), "--calib", str(tmp_path / "flats.fits"),
+                 "-o", str(tmp_path / "psf.fits"), "--json", str(tmp_path / "psf.json"),
+                 "--grid", "3", "3"]) == 0
+    grid = json.loads((tmp_path / "psf.json").read_text())["grid"]
+    err = capsys.readouterr().err
+    assert len(grid["outlying_nodes"]) >= 1
+    median = np.median(grid["fwhm_pixels"])
+    for node in grid["outlying_nodes"]:
+        assert not median / 1.3 < node["fwhm_pixels"] < median * 1.3
+        assert f"(x {node['x']:.0f}, y {node['y']:.0f}) {node['fwhm_pixels']:.1f} px" in err
+    assert "too few stars for --grid 3 3: use fewer nodes or more images" in err
+    assert min(grid["star_weights"]) < 2.0
+    # what it names is wrong against the truth (the stars' pixelised FWHM: 3.45-3.5 px)
+    assert max(abs(node["fwhm_pixels"] / 3.47 - 1) for node in grid["outlying_nodes"]) > 0.25
 
 
 @pytest.mark.parametrize("psf_kind", sorted(PSF_KINDS))

@@ -144,7 +144,7 @@ def run(args):
                                  "CONVERGD": bool(result.converged),
                                  "BFTERM": bool(args.include_bf)},
               overwrite=args.overwrite)
-    from ..interop.photutils import psf_fwhm
+    from ..interop.photutils import describe_outlying_nodes, outlying_nodes, psf_fwhm
 
     used = result.stars["flags"] == 0
     summary = {"output": str(args.output), "calibration": str(args.calib), "gain": gain,
@@ -164,10 +164,15 @@ def run(args):
                # the EMPIRICAL term (issue 22): it describes the stars, it explains nothing
                "empirical": None if psf.empirical is None else psf.empirical.to_dict()}
     if args.grid is not None:
+        outliers, median_fwhm = outlying_nodes(psf)
         summary["grid"] = {"nx": int(args.grid[0]), "ny": int(args.grid[1]),
                            "x_nodes": psf.x_nodes.tolist(), "y_nodes": psf.y_nodes.tolist(),
                            "fwhm_pixels": [psf_fwhm(psf, x, y) for y in psf.y_nodes
-                                           for x in psf.x_nodes]}
+                                           for x in psf.x_nodes],
+                           # each node's share of the used stars (their bilinear weights)
+                           "star_weights": node_star_weights(psf, result.stars[used]).tolist(),
+                           "outlying_nodes": [{"x": x, "y": y, "fwhm_pixels": fwhm}
+                                              for x, y, fwhm in outliers]}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     if result.diverged:  # flagged in the product (CONVERGD) and the JSON too
@@ -180,6 +185,15 @@ def run(args):
         print(f"WARNING: P0 did not converge in {result.iterations} iterations (last change "
               f"{100 * result.changes[-1]:.2g} % of the peak): raise --max-iterations or "
               "check the stars", file=sys.stderr)
+    if args.grid is not None and outliers:
+        # a node fitted from too few stars (a new user's 10.2 px against 4.2-4.7, unsaid until
+        # photometry blamed the image for a 31 px fit box)
+        weights = ", ".join(f"{weight:.1f}" for weight in summary["grid"]["star_weights"])
+        print(f"WARNING: {describe_outlying_nodes(outliers, median_fwhm)} (the used stars "
+              f"weigh {weights} at the nodes, row by row from y = {psf.y_nodes[0]:.0f}): a "
+              "field does not vary that much across one image; too few stars for "
+              f"--grid {args.grid[0]} {args.grid[1]}: use fewer nodes or more images",
+              file=sys.stderr)
     # each image against the others: their median offset is the estimator's (faint stars'
     # noise; +0.17 % on a new user's constant-seeing night), not a seeing
     offsets = [entry["size_offset"] for entry in per_image
@@ -206,3 +220,15 @@ def run(args):
           f"{'EMPIRICAL term applied; ' if psf.empirical is not None else ''}"
           f"wrote {args.output}")
     return 0
+
+
+def node_star_weights(psf, stars):
+    """The summed bilinear weight of ``stars`` (columns x_fit, y_fit) at each node of a
+    gridded ``psf``, row-major [y, x]."""
+    from ..model.gridded import bilinear_weights
+
+    indices, weights = bilinear_weights(np.asarray(stars["x_fit"], float),
+                                        np.asarray(stars["y_fit"], float), psf.x_nodes,
+                                        psf.y_nodes)
+    return np.bincount(indices.ravel(), weights=weights.ravel(),
+                       minlength=psf.x_nodes.size * psf.y_nodes.size)

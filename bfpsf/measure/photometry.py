@@ -13,7 +13,8 @@ import numpy as np
 from astropy.table import Table
 
 from ..errors import BFPSFInputError, BFPSFValueError
-from ..interop.photutils import default_fit_shape, make_psf_photometry
+from ..interop.photutils import (default_fit_shape, describe_outlying_nodes,
+                                make_psf_photometry, outlying_nodes)
 from ..model.base import BFPSFModel
 from .neighbours import sources_with_companions
 from .prepare import PreparedImage, prepare_image
@@ -202,11 +203,18 @@ def _check_groups(psf, fit_shape, group_separation, init):
     _, labels = connected_components(graph, directed=False)
     largest = int(np.bincount(labels).max())
     if largest > MAX_GROUP_SIZE:
+        outliers = describe_outlying_nodes(*outlying_nodes(psf)) if fit_shape is None else ""
+        if outliers:
+            # the image is not to blame (a new user's 31 px box came from one node of 10.2 px)
+            cause = (f"the PSF sets that fit shape from its {outliers}: a node fitted from too "
+                     "few stars; refit the PSF with fewer --grid nodes or give a fit shape")
+        else:
+            cause = ("the stars are closer than that (give a smaller fit shape), or the "
+                     "detection took noise for stars (a blank image, or a sky given too low: "
+                     "check the image and --background)")
         msg = (f"fit shape {side:g} px (group separation {separation:g} px) puts {largest} of "
                f"the {len(xy)} stars in one group fitted together (at most {MAX_GROUP_SIZE}): "
-               "the stars are closer than that (give a smaller fit shape), or the detection "
-               "took noise for stars (a blank image, or a sky given too low: check the image "
-               "and --background)")
+               + cause)
         raise BFPSFValueError(msg, side)
 
 
