@@ -137,5 +137,7 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
                                       stamp_size=size + 6)
     xy = np.column_stack([np.asarray(sources["x"], dtype=float),
                           np.asarray(sources["y"], dtype=float)])
-    clean = np.asarray(sources["flags"]) == 0
+    # neighbours' light biases a star's moments, not the P0 fit, which models the wings of
+    # every source it knows and fits the sky with their glow
+    clean = (np.asarray(sources["flags"]) & ~SourceFlag.NEIGHBOUR_LIGHT) == 0
     return xy[clean], int(sources.meta["n_detected"]), xy[~clean]

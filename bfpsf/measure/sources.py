@@ -18,6 +18,8 @@ from ..moments.moment_errors import moment_errors
 from ..moments.result import MomentsFlag
 from ..moments.shapes import distortion
 from ..resources import check_pixels
+from .neighbour_light import (NEIGHBOUR_LIGHT_ERROR_FRACTION, NEIGHBOUR_LIGHT_NSIGMA,
+                              neighbour_light)
 from .sky import estimate_sky
 
 __all__ = ["SourceFlag", "measure_sources", "sky_level", "source_flag_string",
@@ -33,14 +35,18 @@ class SourceFlag(MomentsFlag):
 
     ``BLENDED`` : another detection lies within ``blend_radius``. ``STAMP_EDGE`` : the stamp
     crosses the image border (missing pixels are masked). ``NO_COLOUR`` : a colour table was
-    given but no entry lies within ``match_radius``.
+    given but no entry lies within ``match_radius``. ``NEIGHBOUR_LIGHT`` : neighbours' light
+    under the star makes it larger, significantly and by more than its size error
+    (`bfpsf.measure.neighbour_light`).
     """
 
     BLENDED = 128
     STAMP_EDGE = 256
     NO_COLOUR = 512
+    NEIGHBOUR_LIGHT = 1024
 
-    NAMES = {**MomentsFlag.NAMES, 128: "blended", 256: "stamp_edge", 512: "no_colour"}
+    NAMES = {**MomentsFlag.NAMES, 128: "blended", 256: "stamp_edge", 512: "no_colour",
+             1024: "neighbour_light"}
 
 
 def source_flag_string(flags):
@@ -130,7 +136,8 @@ def _empty_table(colour_columns):
 
     names = ["id", *STAR_COLUMNS[:-1], "gauss_flux_e", "background_e", "background_rms_e",
              "mxx_err", "myy_err", "mxy_err", "sigma_x_err", "sigma_y_err", "iq_err",
-             "e1_err", "e2_err", "n_iter", "flags", "flag_string", *colour_columns]
+             "e1_err", "e2_err", "neighbour_size_bias", "n_iter", "flags", "flag_string",
+             *colour_columns]
     dtypes = [int] + [float] * (len(names) - 4 - len(colour_columns)) + [int, int, str] \
         + [float] * len(colour_columns)
     return Table(names=names, dtype=dtypes)
@@ -256,7 +263,8 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
         centroid), ``gauss_flux_e`` (matched Gaussian), ``background_e``,
         ``background_rms_e`` (per pixel), ``mxx``, ``myy``, ``mxy`` (pixel^2), ``sigma_x``,
         ``sigma_y``, ``iq`` (pixels), ``e1``, ``e2`` (distortion,
-        `bfpsf.moments.shapes.distortion`) and their ``*_err``, ``n_iter``, ``flags``
+        `bfpsf.moments.shapes.distortion`) and their ``*_err``, ``neighbour_size_bias``
+        (`bfpsf.measure.neighbour_light`), ``n_iter``, ``flags``
         (`SourceFlag`), ``flag_string`` and the colour columns.
     """
     from astropy.convolution import convolve
@@ -349,6 +357,15 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     near = (radius2 <= 4.0) & np.isfinite(stamps)
     peak = np.max(np.where(near, stamps, -np.inf), axis=(1, 2))
     peak[~np.isfinite(peak)] = np.nan
+    # neighbours' wings beyond their segments make a faint star large
+    _, light_bias, light_bias_err = neighbour_light(
+        stamps, weight, radius2, np.asarray(moments.sigma, float),
+        np.asarray(moments.flux, float), background_rms, usable=flags == 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        flags |= np.where((light_bias > NEIGHBOUR_LIGHT_NSIGMA * light_bias_err)
+                          & (light_bias > NEIGHBOUR_LIGHT_ERROR_FRACTION
+                             * errors["sigma_err"] / np.asarray(moments.sigma, float)),
+                          SourceFlag.NEIGHBOUR_LIGHT, 0)
     aperture_flux = _aperture_flux(stamps, radius2, moments.sigma, aperture_nsigma)
 
     from astropy.table import Table
@@ -377,6 +394,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     table["iq_err"] = errors["sigma_err"]
     table["e1_err"] = errors["e1_err"]
     table["e2_err"] = errors["e2_err"]
+    table["neighbour_size_bias"] = light_bias
     table["n_iter"] = np.asarray(moments.n_iter, dtype=int)
     if colour is not None:
         flags |= _match_colours(table, colour, colour_columns, match_radius)
