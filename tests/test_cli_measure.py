@@ -50,7 +50,9 @@ def test_measure_converts_adu_with_the_header_gain(star_image, tmp_path, capsys)
     np.testing.assert_allclose(stars["e2"], 2 * stars["mxy"] / trace)
     result = json.loads(summary.read_text())
     assert result["n_stars"] == len(stars) and result["images"][0]["gain"] == GAIN
-    assert "wrote" in capsys.readouterr().out
+    # isolated stars: none on a neighbour's light, and the count is said
+    assert result["n_neighbour_light"] == 0
+    assert "0 on a bright neighbour's light" in capsys.readouterr().out
 
     # --gain overrides the header: sizes are unchanged, electrons scale
     other = tmp_path / "stars_gain.ecsv"

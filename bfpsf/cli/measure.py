@@ -86,7 +86,7 @@ def run(args):
     from ..io.amplifiers import shared_sides
     from ..io.saturation import saturation_e
     from ..moments.adaptive import MomentsFlag
-    from ..measure.sources import measure_sources
+    from ..measure.sources import SourceFlag, measure_sources
     from ..measure.prepare import electrons, linearity_of
 
     check_outputs([args.output, args.json], args.overwrite,
@@ -139,9 +139,13 @@ def run(args):
                "n_clean": int(np.sum(stars["flags"] == 0)),
                "n_flagged": int(np.sum(stars["flags"] != 0)),
                "n_saturated": sum(entry["n_saturated"] for entry in summary_images),
+               # on a bright neighbour's wings, which make them large (slope leaves them out)
+               "n_neighbour_light": int(np.sum((stars["flags"] & SourceFlag.NEIGHBOUR_LIGHT)
+                                               != 0)),
                "images": summary_images}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     print(f"{len(stars)} sources ({summary['n_clean']} clean, {summary['n_saturated']} "
-          f"saturated) in {len(args.images)} image(s); wrote {args.output}")
+          f"saturated, {summary['n_neighbour_light']} on a bright neighbour's light, which "
+          f"makes them large) in {len(args.images)} image(s); wrote {args.output}")
     return 0

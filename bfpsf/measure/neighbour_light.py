@@ -27,7 +27,7 @@ __all__ = ["neighbour_light", "NEIGHBOUR_LIGHT_NSIGMA", "NEIGHBOUR_LIGHT_ERROR_F
 #: A star's predicted size bias must exceed this many times its own noise ...
 NEIGHBOUR_LIGHT_NSIGMA = 3.0
 #: ... and this fraction of the star's statistical size error to flag it ``NEIGHBOUR_LIGHT``.
-NEIGHBOUR_LIGHT_ERROR_FRACTION = 1.0
+NEIGHBOUR_LIGHT_ERROR_FRACTION = 1.5
 
 
 def neighbour_light(stamps, weight, radius2, sigma, flux, rms, *, usable=None):
