@@ -143,9 +143,14 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                              weights=counts))
     gain = float(np.average([prepared.gain for prepared in images], weights=counts))
 
+    # a static ePSF (include_bf=False) needs no shifts: flats without brighter-fatter give
+    # a calibration without them (zero shifts stand in)
+    shift_sets = [calibration.shifts if calibration.shifts is not None or include_bf
+                  else BoundaryShifts(np.zeros((3, 3)), np.zeros((3, 3)))
+                  for calibration in calibrations]
+
     def fit():
-        return fit_psf([prepared.sky_subtracted for prepared in images], positions,
-                       [calibration.shifts for calibration in calibrations],
+        return fit_psf([prepared.sky_subtracted for prepared in images], positions, shift_sets,
                        oversampling=oversampling, size=size, read_noise=noise,
                        sky_e=[max(prepared.sky.level, 0.0) for prepared in images],
                        include_bf=include_bf, max_iterations=max_iterations,

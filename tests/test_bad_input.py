@@ -214,7 +214,7 @@ def test_fit_shape_set_by_an_outlying_grid_node_names_the_node():
                                           size=25) for fwhm in (4.2, 4.7, 4.4, 10.2)]
     psf = GriddedFluxDependentPSF(nodes, [0.0, 99.0], [0.0, 99.0])
     outliers, median = outlying_nodes(psf)
-    assert [(x, y) for x, y, _ in outliers] == [(99.0, 99.0)]
+    assert [(x, y) for x, y, _, _ in outliers] == [(99.0, 99.0)]
     assert outliers[0][2] == pytest.approx(10.2, abs=0.1) and 4.4 < median < 4.8
     # a 10 % field variation is no outlier
     assert outlying_nodes(GriddedFluxDependentPSF(nodes[:2] * 2, [0.0, 99.0], [0.0, 99.0]))[0] == []

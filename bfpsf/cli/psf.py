@@ -27,6 +27,9 @@ from ._files import read_image
 #: Size offset of an image's stars from P0 above which (and above 3 sigma) `psf` warns that
 #: the seeing differs between its images: 0.3 %, about 3 mmag of photometry bias there.
 SEEING_TOLERANCE = 0.003
+#: A grid node whose used stars weigh less than this (their summed bilinear weights) is said
+#: to have too few: a new user's corner nodes of 6-9 came out broken, 15 fit (tests).
+MIN_NODE_STARS = 10
 
 
 def add_parser(subparsers):
@@ -92,10 +95,11 @@ def run(args):
             # each amplifier in electrons with its own gain
             one = calibration_of_amplifier(calibration, amplifier.name, str(path),
                                            len(amplifiers))
-            if one.shifts is None:
+            if one.shifts is None and args.include_bf:
                 msg = (f"{args.calib} has no boundary shifts"
                        f"{f' for amplifier {one.amplifier}' if one.amplifier else ''} "
-                       "(calibration solved without them)")
+                       "(its flats showed no brighter-fatter, or it was solved without "
+                       "them): a static ePSF needs none (--no-bf)")
                 raise BFPSFInputError(msg, args.calib)
             gain = float(one.gain)
             # a calibration refined by `bfpsf diagnose --output-calib`: its linearity
@@ -171,8 +175,9 @@ def run(args):
                                            for x in psf.x_nodes],
                            # each node's share of the used stars (their bilinear weights)
                            "star_weights": node_star_weights(psf, result.stars[used]).tolist(),
-                           "outlying_nodes": [{"x": x, "y": y, "fwhm_pixels": fwhm}
-                                              for x, y, fwhm in outliers]}
+                           "outlying_nodes": [{"x": x, "y": y, "fwhm_pixels": fwhm,
+                                               "dip": dip}
+                                              for x, y, fwhm, dip in outliers]}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     if result.diverged:  # flagged in the product (CONVERGD) and the JSON too
@@ -185,15 +190,21 @@ def run(args):
         print(f"WARNING: P0 did not converge in {result.iterations} iterations (last change "
               f"{100 * result.changes[-1]:.2g} % of the peak): raise --max-iterations or "
               "check the stars", file=sys.stderr)
-    if args.grid is not None and outliers:
-        # a node fitted from too few stars (a new user's 10.2 px against 4.2-4.7, unsaid until
-        # photometry blamed the image for a 31 px fit box)
-        weights = ", ".join(f"{weight:.1f}" for weight in summary["grid"]["star_weights"])
-        print(f"WARNING: {describe_outlying_nodes(outliers, median_fwhm)} (the used stars "
-              f"weigh {weights} at the nodes, row by row from y = {psf.y_nodes[0]:.0f}): a "
-              "field does not vary that much across one image; too few stars for "
-              f"--grid {args.grid[0]} {args.grid[1]}: use fewer nodes or more images",
-              file=sys.stderr)
+    if args.grid is not None:
+        weights = summary["grid"]["star_weights"]
+        few = int(np.sum(np.asarray(weights) < MIN_NODE_STARS))
+        if outliers or few:
+            # a node fitted from too few stars (a new user's 10.2 px against 4.2-4.7, unsaid
+            # until photometry blamed the image for a 31 px fit box; another's corner nodes
+            # of 6-9 stars dipped to -1.0 of their peak, photometry 0.3-0.5 mag off there)
+            what = (describe_outlying_nodes(outliers, median_fwhm) + "; " if outliers
+                    else "")
+            listed = ", ".join(f"{weight:.1f}" for weight in weights)
+            print(f"WARNING: {what}{few} of {len(weights)} grid nodes have less than "
+                  f"{MIN_NODE_STARS} stars' weight (the used stars weigh {listed} at the nodes, "
+                  f"row by row from y = {psf.y_nodes[0]:.0f}, x fastest; about 30 each fit "
+                  f"well): too few stars for --grid {args.grid[0]} {args.grid[1]}: use fewer "
+                  "nodes or more images", file=sys.stderr)
     # each image against the others: their median offset is the estimator's (faint stars'
     # noise; +0.17 % on a new user's constant-seeing night), not a seeing
     offsets = [entry["size_offset"] for entry in per_image

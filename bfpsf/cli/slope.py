@@ -154,8 +154,11 @@ def run(args):
                 # residual slope in percent of the stars' own size
                 entry["relative_percent"] = 100.0 * entry["slope"] / summary[key]["intercept"]
             # the residual's error with the calibration's: what a pull should divide by
-            entry["slope_err_total"] = float(np.hypot(entry["slope_err"],
-                                                      prediction[key]["slope_err"]))
+            # (a PSF without calibration samples, e.g. a static ePSF, has none: NaN)
+            calibration_err = prediction[key]["slope_err"]
+            entry["slope_err_total"] = float(np.hypot(entry["slope_err"], calibration_err)
+                                             if np.isfinite(calibration_err)
+                                             else entry["slope_err"])
             entry["pull"] = entry["slope"] / entry["slope_err_total"]
         summary["prediction"] = prediction
         summary["empirical"] = None if psf.empirical is None else psf.empirical.to_dict()
@@ -184,8 +187,11 @@ def run(args):
         fit = slopes[key]
         if residual is not None:
             entry = summary["model_residual"][key]
-            print(f"{label:8s} predicted by P(F) {prediction[key]['slope']:+.5f} +- "
-                  f"{prediction[key]['slope_err']:.5f} (calibration); residual after P(F) "
+            error = prediction[key]["slope_err"]
+            print(f"{label:8s} predicted by P(F) {prediction[key]['slope']:+.5f} "
+                  + (f"+- {error:.5f} (calibration)" if np.isfinite(error) else
+                     "(the PSF carries no calibration samples: no calibration error)")
+                  + "; residual after P(F) "
                   f"{entry['slope']:+.5f} +- {entry['slope_err_total']:.5f} pix/100ke- "
                   f"(pull {entry['pull']:+.1f})")
         print(f"{label:8s} slope {fit.slope:+.5f} +- {fit.slope_err:.5f} pix/100ke-  "

@@ -20,6 +20,9 @@ __all__ = ["default_fit_shape", "make_psf_photometry", "static_image_psf", "psf_
 #: factor is an outlier (`outlying_nodes`): a field rarely varies that much across one image,
 #: while a node fitted from too few stars does (a new user's 10.2 px against 4.2-4.7).
 NODE_FWHM_FACTOR = 1.3
+#: ... and so is a node whose P0 dips below -this of its peak: well-fitted P0s dip to -0.001 to
+#: -0.1, nodes fitted from 6-9 stars' weight to -0.2 to -1.7 (two new users' grids).
+NODE_NEGATIVE_LOBE = 0.2
 
 
 def psf_fwhm(psf, x=None, y=None):
@@ -48,30 +51,39 @@ def largest_fwhm(psf):
     return max(psf_fwhm(psf, x, y) for y in y_nodes for x in x_nodes)
 
 
-def outlying_nodes(psf, factor=NODE_FWHM_FACTOR):
-    """Field nodes whose `psf_fwhm` is more than ``factor`` from the median over the nodes.
+def outlying_nodes(psf, factor=NODE_FWHM_FACTOR, lobe=NODE_NEGATIVE_LOBE):
+    """Field nodes whose `psf_fwhm` is more than ``factor`` from the median over the nodes, or
+    whose P0 dips below ``-lobe`` of its peak.
 
     Returns
     -------
-    outliers : list of (x, y, fwhm)
-        Pixels; empty for a model with fewer than two nodes.
+    outliers : list of (x, y, fwhm, lobe)
+        Pixels, and the node's P0 minimum over its maximum; empty for a model with fewer than
+        two nodes.
     median : float
         The median FWHM over the nodes, pixels.
     """
     x_nodes, y_nodes = psf.field_nodes if isinstance(psf, BFPSFModel) else ([None], [None])
-    nodes = [(x, y, psf_fwhm(psf, x, y)) for y in y_nodes for x in x_nodes]
-    median = float(np.median([fwhm for _, _, fwhm in nodes]))
+    nodes = []
+    for y in y_nodes:
+        for x in x_nodes:
+            data = psf.at(x, y).data if isinstance(psf, BFPSFModel) else psf.data
+            nodes.append((x, y, psf_fwhm(psf, x, y), float(data.min() / data.max())))
+    median = float(np.median([node[2] for node in nodes]))
     if len(nodes) < 2:
         return [], median
-    return [(float(x), float(y), fwhm) for x, y, fwhm in nodes
-            if not median / factor <= fwhm <= median * factor], median
+    return [(float(x), float(y), fwhm, dip) for x, y, fwhm, dip in nodes
+            if not median / factor <= fwhm <= median * factor or dip < -lobe], median
 
 
 def describe_outlying_nodes(outliers, median):
     """One phrase naming the outlying nodes of `outlying_nodes` (empty when there are none)."""
     if not outliers:
         return ""
-    places = ", ".join(f"(x {x:.0f}, y {y:.0f}) {fwhm:.1f} px" for x, y, fwhm in outliers)
+    places = ", ".join(f"(x {x:.0f}, y {y:.0f}) {fwhm:.1f} px"
+                       + (f" with a dip of {dip:.2f} of its peak" if dip < -NODE_NEGATIVE_LOBE
+                          else "")
+                       for x, y, fwhm, dip in outliers)
     return (f"grid node{'s' if len(outliers) > 1 else ''} {places} against a median FWHM "
             f"{median:.1f} px over the nodes")
 

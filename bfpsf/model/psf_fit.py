@@ -24,8 +24,7 @@ construction of Anderson & King (2000) and photutils' `~photutils.psf.EPSFBuilde
    degenerate);
 4. once P0 has nearly settled, fix the positions (P0's odd part and the positions share a
    weakly constrained direction along which alternating updates creep); stop when the largest
-   change of P0 is below ``tolerance`` times its peak; recentre P0 on its centroid and refit
-   the stars.
+   change of P0 is below ``tolerance`` of its peak; recentre P0 (centroid) and refit the stars.
 
 Binning the residuals rather than the data removes the broadening that nearest-node binning
 would otherwise cause: at the fixed point the binned residuals vanish. Every star's model is a
@@ -78,11 +77,12 @@ class PSFFitResult:
         One row per input star: ``image``, ``x_init``, ``y_init``, ``x_fit``, ``y_fit``
         (pixels), ``flux_fit`` (e-), ``weight`` (share of the stack), ``flags`` (`STAR_FLAGS`).
     iterations : int
+        Iterations run (those that went back from a diverging step too).
     converged, diverged : bool
         The change fell below ``tolerance``; or the iteration still diverged at its smallest
         step (`MIN_DAMPING`) and stopped at its iterate of least chi-square.
     changes : ndarray
-        Largest change of P0 at each iteration, relative to its peak.
+        Largest change of P0, relative to its peak, at each iteration taken.
     neighbours : astropy.table.Table
         One row per neighbour modelled (``neighbours`` of `fit_psf` whose centre is in its
         image): ``image``, ``x_fit``, ``y_fit``, ``flux_fit`` (e-, with P0), ``flags``.
@@ -447,7 +447,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                "fits failed): check the sky level and the star list")
         raise BFPSFInputError(msg, n_kept)
     return PSFFitResult(psf=psf, stars=table,
-                        iterations=len(changes), converged=converged, changes=np.array(changes),
+                        iterations=iteration, converged=converged, changes=np.array(changes),
                         neighbours=neighbour_table(stars), diverged=bool(diverged))
 
 
