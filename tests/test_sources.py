@@ -211,3 +211,30 @@ def test_neighbour_light_flags_faint_stars_on_bright_ones_wings():
     assert abs(excess.mean() - np.mean(stars["neighbour_size_bias"])) < 2.5 * error
     kept = cKDTree(np.column_stack([table["x"], table["y"]])).query(isolated)[1]
     assert np.all((np.asarray(table["flags"])[kept] & SourceFlag.NEIGHBOUR_LIGHT) == 0)
+
+
+@pytest.mark.parametrize("deblend", [True, False])
+def test_a_faint_star_on_a_bright_one_s_wings_is_split_from_it(deblend):
+    """A 1.2e4 e- star 20 px from a 1e6 e- Kolmogorov x Airy star lies in the bright one's
+    segment (its wings are above the threshold there). Deblended, both are measured: the
+    bright one clean, the faint one flagged for the light it sits on; without deblending they
+    were one blended source, the brightest star lost to the slopes."""
+    profile = galsim.Convolve(galsim.Kolmogorov(fwhm=2.9), galsim.Airy(lam_over_diam=0.4))
+    rng = np.random.default_rng(3)
+    image = galsim.ImageF(200, 200)
+    bright, faint = (90.0, 90.0), (110.0, 90.5)
+    profile.withFlux(1e6).drawImage(image, center=(bright[0] + 1, bright[1] + 1))
+    profile.withFlux(1.2e4).drawImage(image, center=(faint[0] + 1, faint[1] + 1),
+                                      add_to_image=True)
+    for x, y in ((30.0, 30.0), (160.2, 40.3), (40.4, 160.1), (150.1, 150.2)):  # the share
+        profile.withFlux(3e4).drawImage(image, center=(x + 1, y + 1), add_to_image=True)
+    data = image.array + 300 + rng.normal(0.0, np.sqrt(300 + np.clip(image.array, 0, None)))
+    table = measure_sources(data, stamp_size=32, deblend=deblend)
+    distance, index = cKDTree(np.column_stack([table["x"], table["y"]])).query([bright, faint])
+    if not deblend:
+        assert len(table) == 5 and distance[1] > 5
+        assert table["flags"][index[0]] & SourceFlag.BLENDED
+        return
+    assert len(table) == 6 and distance.max() < 0.3
+    assert table["flags"][index[0]] == 0
+    assert table["flags"][index[1]] == SourceFlag.NEIGHBOUR_LIGHT
