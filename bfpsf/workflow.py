@@ -64,7 +64,8 @@ class PSFFromImages:
 
 def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=None,
                     threshold=None, saturation_e=None, include_bf=True, max_iterations=40,
-                    exclude=None, calibration_name="", shift_samples=None, exposure=None):
+                    exclude=None, calibration_name="", shift_samples=None, exposure=None,
+                    amplifiers=None):
     """Fit the flux-dependent PSF from prepared images (what ``bfpsf psf`` does).
 
     Parameters
@@ -92,6 +93,10 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         Exposure order in the night of the images, for the exposure dependence of a refined
         calibration's EMPIRICAL term (default the term's reference, the middle of the
         exposures it was learned on).
+    amplifiers : sequence of str, optional
+        The amplifier of each image (``''`` for none). A PSF fitted on the images of one
+        named amplifier records it (``amplifier_shifts``), so that photometry and ``slope``
+        refuse it for another amplifier; default the calibrations' amplifiers.
 
     Returns
     -------
@@ -190,11 +195,15 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     psf.calibration = str(calibration_name)
     psf.shift_samples = tuple(calibration_samples(calibrations, counts) if shift_samples is None
                               else shift_samples)
-    # each amplifier's shifts, for its stars (`BFPSFModel.for_amplifier`)
-    amplifiers = {getattr(calibration, "amplifier", ""): calibration.shifts
-                  for calibration in calibrations}
-    if len({id(calibration) for calibration in calibrations}) > 1 and len(amplifiers) > 1:
-        psf.amplifier_shifts = amplifiers
+    # each amplifier's shifts, for its stars (`BFPSFModel.for_amplifier`); one named
+    # amplifier is recorded too (a new user's PSF of amplifier A gave B's stars A's gain,
+    # +313 mmag, without a word)
+    names = (list(amplifiers) if amplifiers is not None
+             else [getattr(calibration, "amplifier", "") for calibration in calibrations])
+    by_name = dict(zip(names, shift_sets))
+    several = len({id(calibration) for calibration in calibrations}) > 1 and len(by_name) > 1
+    if several or (len(by_name) == 1 and "" not in by_name):
+        psf.amplifier_shifts = by_name if several else {names[0]: psf.shifts}
     linearities = {prepared.linearity_c_per_1e5 for prepared in images}
     if len(linearities) > 1:
         msg = ("the images had different linearity corrections; one PSF product records one "

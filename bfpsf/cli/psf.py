@@ -128,19 +128,14 @@ def run(args):
                                  threshold=args.threshold, saturation_e=saturation,
                                  include_bf=args.include_bf, max_iterations=args.max_iterations,
                                  exclude=exclude, calibration_name=calibration_name,
-                                 exposure=args.exposure_order)
+                                 exposure=args.exposure_order,
+                                 amplifiers=[entry["amplifier"] for entry in per_image])
     for entry, found in zip(per_image, fitted.images):
         entry.update(n_detected=found["n_detected"], n_isolated=found["n_isolated"],
                      n_amp_boundary=found["n_excluded"], background_e=found["background_e"],
                      sky_slope=found["sky_slope"], sky_method=found["sky_method"],
                      **{key: found[key] for key in ("size_offset", "size_offset_err",
                                                     "n_sized", "seeing_bias_mmag")})
-    names = {entry["amplifier"] for entry in per_image}
-    if not fitted.psf.amplifier_shifts and len(names) == 1 and "" not in names:
-        # one amplifier of a detector (--amp): recorded, so that photometry and slope refuse
-        # the product for another (a new user's PSF of amplifier A gave B's stars A's gain,
-        # +313 mmag, without a word)
-        fitted.psf.amplifier_shifts = {names.pop(): fitted.psf.shifts}
     result = fitted.fit
     psf = fitted.psf
     gain = float(psf.gain)  # of the images the stars came from, weighted by their stars
