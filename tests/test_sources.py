@@ -88,6 +88,14 @@ def test_saturated_blended_and_edge_sources_are_flagged_not_dropped():
     assert flags_near(60.3, 60.6) & SourceFlag.SATURATED
     assert flags_near(100.4, 140.7) == 0
     assert flags_near(1.6, 150.2) & (SourceFlag.STAMP_EDGE | SourceFlag.EDGE)
+    # the pixels beyond the image are the stamp edge's, not bad pixels (there are none)
+    assert not flags_near(1.6, 150.2) & SourceFlag.BAD_PIXELS
+    holed = image.copy()
+    holed[150, 3] = np.nan  # a bad pixel inside the image, in that star's stamp
+    again = measure_sources(holed, saturation=full_well)
+    near = cKDTree(np.stack([again["x"], again["y"]], 1)).query([1.6, 150.2])[1]
+    assert again["flags"][near] & SourceFlag.BAD_PIXELS
+    assert again["flags"][near] & SourceFlag.STAMP_EDGE
     # the pair 7.4 pixels apart: one merged segment or two detections, all flagged blended
     near_pair = tree.query_ball_point([143.6, 61.55], r=8.0)
     assert len(near_pair) >= 1

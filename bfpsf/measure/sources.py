@@ -359,6 +359,11 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
 
     flags = np.asarray(moments.flags, dtype=np.int64).copy()
     flags |= np.where(crosses, SourceFlag.STAMP_EDGE, 0)
+    # the pixels beyond the image are STAMP_EDGE's, not bad pixels (a new user read
+    # "bad_pixels|stamp_edge" on images without a bad pixel)
+    bad_inside = np.any(_cutouts(bad.astype(float), x_detect, y_detect, stamp_size)[0] == 1,
+                        axis=(1, 2))
+    flags &= ~np.where(crosses & ~bad_inside, MomentsFlag.BAD_PIXELS, 0)
     if blend_radius is None:
         blend_radius = stamp_size / 2.0
     separation = np.hypot(x_detect[:, None] - x_detect[None, :],
