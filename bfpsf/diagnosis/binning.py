@@ -29,6 +29,9 @@ AUTO_POSITION_GRID = (2, 2)
 #: 10 bins); a new user's 48 randomly placed stars lost 1.5 on X and none on Y.
 DEFAULT_BINS = 10
 MIN_GRID_BINS = 6
+#: The fewest peak bins one range is given by default (an exposure of fewer than 30 stars
+#: fills only ``stars // 3`` bins with 3 stars).
+MIN_ONE_RANGE_BINS = 3
 
 
 def auto_position_bins(stars_per_exposure, n_bins=None):
@@ -59,6 +62,12 @@ def auto_position_bins(stars_per_exposure, n_bins=None):
     if fits >= bins:
         return AUTO_POSITION_GRID, bins, (f"{grid} (auto: {fewest} or more stars per "
                                           f"exposure, {bins} peak bins)")
+    if n_bins is None:
+        # one range: as many bins as a typical exposure fills with 3 stars each, at least 3
+        # (helper-30's 9 stars per exposure in 10 bins left 5 binned points for 4 exposures
+        # held out, and the diagnosis stopped)
+        typical = int(np.median(stars_per_exposure))
+        bins = int(np.clip(typical // 3, MIN_ONE_RANGE_BINS, DEFAULT_BINS))
     return 1, bins, (f"not tested (auto: {fewest} stars in an exposure; a {grid} grid of "
                      f"{fewest_bins} peak bins needs {3 * cells * fewest_bins}: "
                      "give --bins and --position-bins)")
