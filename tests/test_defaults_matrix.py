@@ -349,6 +349,9 @@ def test_static_epsf_from_flats_without_brighter_fatter(data, tmp_path, capsys):
     output = tmp_path / "phot.ecsv"
     assert main(["photometry", images[0], "--psf", str(tmp_path / "static.fits"), "--calib",
                  str(tmp_path / "no_shifts.fits"), "-o", str(output)]) == 0
+    # the fits' flags and the detection's are told apart (a new user read "0 flagged" beside
+    # 58 rows of blended and neighbour_light in source_flags)
+    assert "fits flagged" in capsys.readouterr().out
     table = Table.read(output)
     matched, nearest = _matched(table, field.truth[0])
     ratio = np.asarray(table["flux_fit"])[matched] / field.truth[0]["flux_e"][nearest[matched]]

@@ -226,7 +226,9 @@ def run(args):
                "empirical": result.meta["empirical"]}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
+    n_blended = sum(entry["n_blended"] for entry in per_image)
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "
-          f"({summary['n_flagged']} flagged, {summary['n_saturated']} of them saturated); "
-          f"wrote {args.output}")
+          f"({summary['n_flagged']} fits flagged, {summary['n_saturated']} of them saturated; "
+          f"{n_blended} fitted in a group with their neighbours; detection's flags in "
+          f"source_flags); wrote {args.output}")
     return 0
