@@ -231,10 +231,7 @@ def run(args):
 def node_star_weights(psf, stars):
     """The summed bilinear weight of ``stars`` (columns x_fit, y_fit) at each node of a
     gridded ``psf``, row-major [y, x]."""
-    from ..model.gridded import bilinear_weights
-
-    indices, weights = bilinear_weights(np.asarray(stars["x_fit"], float),
-                                        np.asarray(stars["y_fit"], float), psf.x_nodes,
-                                        psf.y_nodes)
+    indices, weights = psf.weights(np.asarray(stars["x_fit"], float),
+                                   np.asarray(stars["y_fit"], float))
     return np.bincount(indices.ravel(), weights=weights.ravel(),
                        minlength=psf.x_nodes.size * psf.y_nodes.size)
