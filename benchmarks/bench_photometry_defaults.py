@@ -50,6 +50,7 @@ def main():
 
     from bfpsf.interop.photutils import static_image_psf
     from bfpsf.measure.photometry import psf_photometry
+    from bfpsf.model.wings import WingModel
     from bfpsf.model.psf import FluxDependentPSF
     from bfpsf.shifts import BoundaryShifts
 
@@ -57,7 +58,8 @@ def main():
     psf = FluxDependentPSF.from_galsim(galsim.Moffat(beta=3.0, fwhm=3.5), shifts,
                                        oversampling=2, size=25)
     # the wings of a beta 3 Moffat beyond the support, as psf_from_images measures them
-    psf.wing_amplitude, psf.wing_power = 15.0, 6.0
+    psf.wing_coefficients = WingModel.power_law(15.0, 6.0, psf.half_size).coefficients
+    psf.wing_tail_power = 6.0
     static = static_image_psf(psf)
     image = star_field(args.stars, 20, shifts)
     print(f"{args.stars} stars, Moffat FWHM 3.5 px, peaks 3-120 ke-, sloped sky, image "
@@ -65,7 +67,7 @@ def main():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # photutils warnings on unconverged noisy fits
         no_wings = psf.copy()
-        no_wings.wing_amplitude = 0.0
+        no_wings.wing_coefficients = ()
         (t_static, t_bf, t_plain), (r_static, r_bf, _) = best_times(
             [lambda model=model, wings=wings: psf_photometry(image, model, read_noise_e=5.0,
                                                              wings=wings)

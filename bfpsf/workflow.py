@@ -11,9 +11,8 @@ command line give the same numbers:
    image's boundary shifts (`bfpsf.model.psf_fit.fit_psf`, the build-up and the EMPIRICAL
    term of a refined calibration included; every other source, blends included, fitted
    alongside and subtracted from the stars' cutouts, not used for P0), the sky fitted jointly
-   with the wings of all those stars, the total-flux correction measured from the bright
-   isolated stars
-   (`bfpsf.measure.total_flux.flux_correction`), and the product metadata (calibration,
+   with the wings of all those stars, the total-flux correction measured from them
+   (`bfpsf.measure.total_flux.fit_sky_and_wings`), and the product metadata (calibration,
    linearity correction, per-amplifier shifts).
 3. `bfpsf.measure.photometry.psf_photometry` with the PSF product: the same sky model, the
    PSF's linearity correction, the total-flux correction.
@@ -28,10 +27,11 @@ import numpy as np
 from .errors import BFPSFInputError, BFPSFValueError
 from .measure.neighbours import isolated_stars
 from .measure.sources import DETECTION_THRESHOLD
-from .measure.total_flux import fit_sky_and_wings, wing_image
+from .measure.total_flux import fit_sky_and_wings
 from .moments.shapes import MAG_PER_SIZE_ERROR, size_offset
 from .model.empirical import empirical_of
 from .model.psf_fit import DEFAULT_SIZE, fit_psf
+from .model.wings import wing_image
 from .resources import check_psf_fit
 from .shifts import BoundaryShifts
 
@@ -210,7 +210,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                f"(got {sorted(linearities)})")
         raise BFPSFValueError(msg, sorted(linearities))
     psf.linearity_c_per_1e5 = linearities.pop() if linearities else 0.0
-    psf.wing_amplitude, psf.wing_power = wings.amplitude, wings.power
+    psf.wing_coefficients, psf.wing_tail_power = wings.coefficients, wings.tail_power
     # the flux beyond the support, over the flux inside it
     psf.flux_correction = 1.0 + wings.fraction
     psf.flux_correction_err = wings.fraction_err

@@ -106,8 +106,9 @@ def _sky_high(original):
 def _wings_x2(original):
     def mutated(*args, **kwargs):
         skies, wings = original(*args, **kwargs)
-        return skies, dataclasses.replace(wings, amplitude=2 * wings.amplitude,
-                                          fraction=2 * wings.fraction)
+        return skies, dataclasses.replace(
+            wings, coefficients=tuple(2 * value for value in wings.coefficients),
+            fraction=2 * wings.fraction)
     return mutated
 
 

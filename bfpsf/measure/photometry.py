@@ -19,7 +19,7 @@ from ..model.base import BFPSFModel
 from .neighbours import sources_with_companions
 from .prepare import PreparedImage, prepare_image
 from .sources import DETECTION_THRESHOLD
-from .total_flux import WingModel, wing_image
+from ..model.wings import WingModel, wing_image
 
 __all__ = ["psf_photometry", "image_read_noise", "PHOTOMETRY_COLUMNS"]
 
@@ -174,7 +174,8 @@ def _cross_term_image(psf, table, shape):
 
 def _glow(psf, table, shape):
     """The light of the fitted stars beyond the PSF support (the PSF's wing model), e-."""
-    wings = WingModel(psf.wing_amplitude, psf.wing_power, psf.half_size, 0.0, 0.0, 0)
+    wings = WingModel(tuple(psf.wing_coefficients), psf.wing_tail_power, psf.half_size, 0.0,
+                      0.0, 0)
     return wing_image(wings, np.asarray(table["x_fit"], float),
                       np.asarray(table["y_fit"], float), np.asarray(table["flux_fit"], float),
                       shape)
@@ -301,8 +302,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         when it was fitted), 1 for a photutils model: give the product's to compare a static
         P0 (`bfpsf.interop.photutils.static_image_psf`) at total fluxes too.
     wings : BFPSFModel, optional
-        The model whose wing model (``wing_amplitude``, ``wing_power``) gives the stars'
-        light beyond the support, subtracted with the sky of the final fit; default the PSF
+        The model whose wing profile (``wing_coefficients``, ``wing_tail_power``) gives the
+        stars' light beyond the support, subtracted with the sky of the final fit; default the PSF
         itself when it is a bfpsf model, none for a photutils model: give the product's to
         compare a static P0 with the same sky (without it, a static P0 took the Airy stars'
         wings into the sky, 304-305 e- against the true 300 and P(F)'s 299, and its faint
@@ -387,7 +388,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         # The 1 e-**2 floor keeps pixels beyond the PSF support of a sky-free image finite.
         stars = _model_image(photometry, result, data.shape)
         wing_model = psf if (bfpsf_model and wings is None) else wings
-        if (wing_model is not None and wing_model.wing_amplitude > 0
+        if (wing_model is not None and max(wing_model.wing_coefficients, default=0.0) > 0
                 and prepared.glow_e is None):
             # the sky again, beyond the fitted stars: their models within the support and
             # the glow of their wings beyond it (which is subtracted with it): the sky is

@@ -32,7 +32,7 @@ class PreparedImage:
     linearity_c_per_1e5 : float
         Linearity correction undone on input (0: none).
     glow_e : ndarray [y, x] or None
-        The stars' light beyond the PSF support (`bfpsf.measure.total_flux.wing_image`), e-,
+        The stars' light beyond the PSF support (`bfpsf.model.wings.wing_image`), e-,
         left out of the sky and subtracted with it (None: not modelled).
     """
 

@@ -20,7 +20,7 @@ over a field of bright stars they are a glow (8 e- per pixel for 60 Kolmogorov s
 3-120 ke- on 300^2 pixels) that a sky between the stars takes for sky. So the sky is fitted
 beyond the stars' total-flux model: ``bfpsf psf`` fits every image's plane jointly with the
 wings beyond P0's support of every source its P0 fit models, neighbours and blends too
-(`bfpsf.measure.total_flux.fit_sky_and_wings`), and the PSF product keeps that wing law;
+(`bfpsf.measure.total_flux.fit_sky_and_wings`), and the PSF product keeps that wing profile;
 photometry fits the plane, then again beyond its fitted stars (their models within the
 support and the glow of their wings beyond it; `bfpsf.measure.prepare.PreparedImage.with_glow`),
 in its model-weighted refit. Fitting the plane to the image
@@ -207,7 +207,7 @@ def estimate_sky(image_e, *, glow_e=None, mask=None, degree=1, clip_nsigma=3.0,
     image_e : array_like [y, x]
         Image, e- per pixel, sky included.
     glow_e : ndarray [y, x], optional
-        The stars' light beyond the PSF support (`bfpsf.measure.total_flux.wing_image`),
+        The stars' light beyond the PSF support (`bfpsf.model.wings.wing_image`),
         e-: the surface is fitted to ``image_e - glow_e`` (the sources still masked), so the
         sky is what is left beyond the stars' total-flux model.
     mask : ndarray of bool, optional

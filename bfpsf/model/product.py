@@ -41,6 +41,7 @@ from ..files import open_product, refuse_overwrite
 from ..outputs import write_fits
 from ..shifts import BoundaryShifts
 from .empirical import EmpiricalTerm
+from .wings import WingModel
 
 __all__ = ["PSF_SCHEMA_VERSION", "write_psf", "read_psf", "register_kind"]
 
@@ -118,8 +119,10 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     header["PIXRESP"] = (True, "pixel response included in P0")
     header["LINC"] = (float(psf.linearity_c_per_1e5), "linearity correction c per 1e5 e-")
     header["FLUXCORR"] = (float(psf.flux_correction), "total flux / flux in the P0 support")
-    header["WINGAMP"] = (float(psf.wing_amplitude), "wings beyond the support: A of A r^-p")
-    header["WINGPOW"] = (float(psf.wing_power), "wings beyond the support: p of A r^-p")
+    header["WINGN"] = (len(psf.wing_coefficients), "wing profile nodes (model.wings.WingModel)")
+    for index, value in enumerate(psf.wing_coefficients):
+        header[f"WINGC{index}"] = (float(value), f"wing profile: r^3 W at node {index}")
+    header["WINGPOW"] = (float(psf.wing_tail_power), "wings beyond the last node: r^-p")
     if np.isfinite(psf.flux_correction_err):  # absent: unknown (too few isolated stars)
         header["FLUXCERR"] = (float(psf.flux_correction_err), "error of FLUXCORR")
     for key, value in (meta or {}).items():
@@ -258,9 +261,8 @@ def read_psf(path, *, cls=None, **kwargs):
                     "linearity_c_per_1e5": float(header.get("LINC", 0.0)),
                     "flux_correction": float(header.get("FLUXCORR", 1.0)),
                     "flux_correction_err": float(header.get("FLUXCERR", np.nan)),
-                    "wing_amplitude": float(header.get("WINGAMP", 0.0)),
-                    "wing_power": float(header.get("WINGPOW", 4.0)),
                     "empirical": _read_empirical(hdul)}
+        wings = _read_wings(header)
         samples = ()
         if "SHIFT_N_SAMP" in hdul:
             samples = tuple(BoundaryShifts(north, east, check=False) for north, east in
@@ -280,17 +282,35 @@ def read_psf(path, *, cls=None, **kwargs):
         if grid[3] is not None and options.get("mode") == "table":
             options["bf_table"] = grid[3]
         psf = _kind("grid").from_data(grid[0], grid[1], grid[2], shifts, **options)
-        _set_metadata(psf, metadata)
+        _set_metadata(psf, {**metadata, **wings(psf.half_size)})
         psf.shift_samples = samples
         psf.amplifier_shifts = amplifier_shifts
         return psf
     if options.get("mode") != "table":
         options.pop("bf_table", None)  # an exact-mode override recomputes R
     psf = cls(data, shifts, **options)
-    _set_metadata(psf, metadata)
+    _set_metadata(psf, {**metadata, **wings(psf.half_size)})
     psf.shift_samples = samples
     psf.amplifier_shifts = amplifier_shifts
     return psf
+
+
+def _read_wings(header):
+    """The wing profile's metadata, as a function of the model's half-size: the nodes, or a
+    power law A r^-p (WINGAMP, WINGPOW) of a product written before them, put on the nodes."""
+    power = float(header.get("WINGPOW", 4.0))
+    if "WINGN" in header:
+        coefficients = tuple(float(header[f"WINGC{index}"])
+                             for index in range(int(header["WINGN"])))
+        return lambda half_size: {"wing_coefficients": coefficients, "wing_tail_power": power}
+    amplitude = float(header.get("WINGAMP", 0.0))
+
+    def legacy(half_size):
+        if amplitude <= 0:
+            return {"wing_coefficients": (), "wing_tail_power": power}
+        wings = WingModel.power_law(amplitude, power, half_size)
+        return {"wing_coefficients": wings.coefficients, "wing_tail_power": power}
+    return legacy
 
 
 def _set_metadata(psf, metadata):
