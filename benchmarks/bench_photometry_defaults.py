@@ -59,7 +59,7 @@ def main():
                                        oversampling=2, size=25)
     # the wings of a beta 3 Moffat beyond the support, as psf_from_images measures them
     psf.wing_coefficients = WingModel.power_law(15.0, 6.0, psf.half_size).coefficients
-    psf.wing_tail_power = 6.0
+    psf.wing_tail_power, psf.wing_half_size = 6.0, psf.half_size
     static = static_image_psf(psf)
     image = star_field(args.stars, 20, shifts)
     print(f"{args.stars} stars, Moffat FWHM 3.5 px, peaks 3-120 ke-, sloped sky, image "

@@ -175,17 +175,16 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         # (the wings' glow biases a sky between the stars; the sky, the wings), then P0
         # refitted on the images with that sky and glow; a known sky is subtracted and only
         # a constant left free (what the wings' glow adds to it is not sky)
+        stars = _stars_of_images(result, len(images))
         skies, wings = fit_sky_and_wings(
             [prepared.image_e - prepared.sky.image() if known else prepared.image_e
-             for prepared in images],
-            _stars_of_images(result, len(images)), half_size=size // 2,
+             for prepared in images], stars, half_size=size // 2,
             degree=0 if known else images[0].sky.degree)
         if known:
             break
         images = [prepared.with_sky(prepared.sky if prepared.sky.method == "known" else sky,
-                                    _glow(wings, stars, prepared.image_e.shape))
-                  for prepared, sky, stars in zip(
-                      images, skies, _stars_of_images(result, len(images)))]
+                                    _glow(wings, mine, prepared.image_e.shape))
+                  for prepared, sky, mine in zip(images, skies, stars)]
         result = fit()
     for entry, prepared in zip(per_image, images):
         entry.update(background_e=prepared.sky.level, sky_slope=list(prepared.sky.slope),
@@ -211,6 +210,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         raise BFPSFValueError(msg, sorted(linearities))
     psf.linearity_c_per_1e5 = linearities.pop() if linearities else 0.0
     psf.wing_coefficients, psf.wing_tail_power = wings.coefficients, wings.tail_power
+    psf.wing_half_size = wings.half_size
     # the flux beyond the support, over the flux inside it
     psf.flux_correction = 1.0 + wings.fraction
     psf.flux_correction_err = wings.fraction_err

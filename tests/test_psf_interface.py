@@ -194,6 +194,7 @@ def test_product_and_pickle_round_trip_by_value(kind, tmp_path):
     name, psf = kind
     psf.calibration = "calib.fits"
     psf.wing_coefficients, psf.wing_tail_power = (2e-3, 1.5e-3, 1e-3, 6e-4, 3e-4, 1e-4), 3.5
+    psf.wing_half_size = psf.half_size - 1
     path = tmp_path / "psf.fits"
     psf.save(path)
     back = BFPSFModel.load(path)
@@ -202,6 +203,7 @@ def test_product_and_pickle_round_trip_by_value(kind, tmp_path):
     assert back.linearity_c_per_1e5 == psf.linearity_c_per_1e5
     assert back.wing_coefficients == psf.wing_coefficients
     assert back.wing_tail_power == psf.wing_tail_power
+    assert back.wing_half_size == psf.wing_half_size
     np.testing.assert_equal(back.flux_correction_err, psf.flux_correction_err)  # NaN: unknown
     unpickled = pickle.loads(pickle.dumps(psf))
     assert unpickled == psf

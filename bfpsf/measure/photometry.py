@@ -174,8 +174,8 @@ def _cross_term_image(psf, table, shape):
 
 def _glow(psf, table, shape):
     """The light of the fitted stars beyond the PSF support (the PSF's wing model), e-."""
-    wings = WingModel(tuple(psf.wing_coefficients), psf.wing_tail_power, psf.half_size, 0.0,
-                      0.0, 0)
+    wings = WingModel(tuple(psf.wing_coefficients), psf.wing_tail_power,
+                      psf.wing_half_size or psf.half_size, 0.0, 0.0, 0)
     return wing_image(wings, np.asarray(table["x_fit"], float),
                       np.asarray(table["y_fit"], float), np.asarray(table["flux_fit"], float),
                       shape)

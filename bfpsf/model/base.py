@@ -29,8 +29,10 @@ calibration's linearity correction, applied to the images on input by
 `bfpsf.measure.prepare.prepare_image`), and ``flux_correction`` / ``flux_correction_err``: the ratio of
 a star's total flux to the flux P0 holds in its support (the wings beyond it), measured from
 the bright isolated stars, applied by photometry so that ``flux_fit`` is the total flux, with
-the profile of those wings, ``wing_coefficients`` and ``wing_tail_power``
-(`bfpsf.model.wings.WingModel`), whose glow the sky estimate leaves out; and
+the profile of those wings, ``wing_coefficients``, ``wing_tail_power`` and ``wing_half_size``
+(`bfpsf.model.wings.WingModel`, its nodes set by the support it was fitted beyond: 12 for
+``--size 25``, where the model's stamp ``half_size`` is 13), whose glow the sky estimate
+leaves out; and
 ``empirical``: the EMPIRICAL term of a calibration refined by ``bfpsf diagnose
 --output-calib`` (`bfpsf.model.empirical.EmpiricalTerm`, None without one), which every
 evaluation applies (``evaluate`` in both modes, ``star_image``, ``shape``, ``to_galsim``).
@@ -103,7 +105,7 @@ def validate_data(data):
 #: Metadata every kind carries (name -> default factory), copied by the derived models.
 _METADATA = {"calibration": str, "linearity_c_per_1e5": float,
              "flux_correction": lambda: 1.0, "flux_correction_err": lambda: float("nan"),
-             "wing_coefficients": tuple, "wing_tail_power": lambda: 4.0,
+             "wing_coefficients": tuple, "wing_tail_power": lambda: 4.0, "wing_half_size": int,
              "empirical": lambda: None}
 
 

@@ -123,6 +123,7 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     for index, value in enumerate(psf.wing_coefficients):
         header[f"WINGC{index}"] = (float(value), f"wing profile: r^3 W at node {index}")
     header["WINGPOW"] = (float(psf.wing_tail_power), "wings beyond the last node: r^-p")
+    header["WINGHALF"] = (int(psf.wing_half_size), "support half-width the wings lie beyond")
     if np.isfinite(psf.flux_correction_err):  # absent: unknown (too few isolated stars)
         header["FLUXCERR"] = (float(psf.flux_correction_err), "error of FLUXCORR")
     for key, value in (meta or {}).items():
@@ -302,14 +303,17 @@ def _read_wings(header):
     if "WINGN" in header:
         coefficients = tuple(float(header[f"WINGC{index}"])
                              for index in range(int(header["WINGN"])))
-        return lambda half_size: {"wing_coefficients": coefficients, "wing_tail_power": power}
+        half = int(header.get("WINGHALF", 0))
+        return lambda half_size: {"wing_coefficients": coefficients, "wing_tail_power": power,
+                                  "wing_half_size": half or half_size}
     amplitude = float(header.get("WINGAMP", 0.0))
 
     def legacy(half_size):
         if amplitude <= 0:
-            return {"wing_coefficients": (), "wing_tail_power": power}
+            return {"wing_coefficients": (), "wing_tail_power": power, "wing_half_size": half_size}
         wings = WingModel.power_law(amplitude, power, half_size)
-        return {"wing_coefficients": wings.coefficients, "wing_tail_power": power}
+        return {"wing_coefficients": wings.coefficients, "wing_tail_power": power,
+                "wing_half_size": half_size}
     return legacy
 
 
