@@ -34,6 +34,10 @@ __all__ = ["fit_sky_and_wings"]
 #: Powers tried for the light beyond the last node (W ~ r^-p there), chosen by chi-square.
 TAIL_POWERS = tuple(np.arange(2.5, 8.01, 0.5))
 
+#: Chi-square above the best within which the tail's powers make the error (half the range
+#: of their fractions): two sigma of a parabola, taken as one (`fit_sky_and_wings`).
+TAIL_CHI2 = 4.0
+
 #: Chi-square by which the free nodes must beat a power law to be taken: twice their extra
 #: parameters (Akaike's criterion).
 NODE_PENALTY = 2.0 * (WING_NODES - 1)
@@ -241,10 +245,13 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
     chi2, fits, models = results["nodes" if gain > NODE_PENALTY else "power law"]
     best = int(np.argmin(chi2))
     sky_terms, deviation = fits[best]
-    # the fractions of the tail powers within chi-square + 1, on a fine grid between the
-    # tried powers (the fraction moves by 7 % of itself from p = 3 to 3.5 for r^-3 wings)
+    # the fractions of the tail powers within chi-square + 4, on a fine grid between the
+    # tried powers (the fraction moves by 7 % of itself from p = 3 to 3.5 for r^-3 wings):
+    # the faint light beyond the last node sets the tail's power, and its chi-square is
+    # flat and not parabolic (a Kolmogorov star's true p, 3.4, at chi-square + 2.1 of the
+    # best, 5.0: half the range within + 1 had left the fraction 3.3 sigma low)
     fine = np.linspace(TAIL_POWERS[0], TAIL_POWERS[-1], 50 * len(TAIL_POWERS))
-    within = np.interp(fine, TAIL_POWERS, chi2) <= chi2[best] + 1.0
+    within = np.interp(fine, TAIL_POWERS, chi2) <= chi2[best] + TAIL_CHI2
     model = models[best]
     spread = np.append(np.interp(fine[within], TAIL_POWERS,
                                  [model.fraction for model in models]), model.fraction)
