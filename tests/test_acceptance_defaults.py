@@ -93,7 +93,8 @@ def run_defaults(field, calibration, directory, psf_options=()):
     calib, psf = str(directory / "calib.fits"), str(directory / "psf.fits")
     assert main(["psf", *images, "--calib", calib, "-o", psf, "--json",
                  str(directory / "psf.json"), *psf_options]) == 0
-    assert main(["photometry", *images, "--psf", psf, "-o", str(directory / "phot.ecsv")]) == 0
+    assert main(["photometry", *images, "--psf", psf, "-o", str(directory / "phot.ecsv"),
+                 "--json", str(directory / "phot.json")]) == 0
     figures = _photometry_figures(Table.read(directory / "phot.ecsv"), field, images)
     return figures, json.loads((directory / "psf.json").read_text()), images
 
@@ -117,13 +118,17 @@ def test_defaults_on_unseen_sets(name, e2v_flats_calibration, tmp_path):
     assert abs(scale - 1) < 3 * e2v_flats_calibration.gain_err / GAIN
     sky_errors = [entry["background_e"] - scale * sky[0]
                   for entry, sky in zip(summary["images"], field.skies)]
+    photometry = json.loads((tmp_path / "phot.json").read_text())
+    sky_errors_photometry = [entry["background_e"] - scale * sky[0]
+                             for entry, sky in zip(photometry["images"], field.skies)]
     print(f"\n[{name}] {figures['n']} stars: mean offset from the true total flux "
           f"{figures['mean']:+.2f} +- {figures['mean_err']:.2f} mmag (the gain's "
           f"{gain_mmag:+.2f}; the photometry's {figures['mean'] - gain_mmag:+.2f}), brightest - "
           f"faintest {figures['drift']:+.2f} +- {figures['drift_err']:.2f} mmag; "
           f"flux_correction {summary['flux_correction']:.4f} +- "
           f"{summary['flux_correction_err']:.4f}; sky at the centre - truth (in the "
-          f"calibration's e-) {', '.join(f'{value:+.2f}' for value in sky_errors)} e-")
+          f"calibration's e-) {', '.join(f'{value:+.2f}' for value in sky_errors)} e- (psf), "
+          f"{', '.join(f'{value:+.2f}' for value in sky_errors_photometry)} e- (photometry)")
     if psf_options:
         assert main(["measure", *images, "--calib", calib, "-o",
                      str(tmp_path / "stars.ecsv")]) == 0
