@@ -209,6 +209,11 @@ def run(args):
                               "background_e": table.meta["background_e"],
                               "sky": table.meta["sky"],
                               "flux_correction": table.meta["flux_correction"],
+                              # a scale common to every star, as the gain's error is: not
+                              # in flux_err
+                              "flux_correction_err": (
+                                  float(bf_model.flux_correction_err)
+                                  if np.isfinite(bf_model.flux_correction_err) else None),
                               "n_blended": int(np.sum(table["group_size"] > 1)),
                               "cross_term_refits": table.meta["cross_term_refits"]})
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]

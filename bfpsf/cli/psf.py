@@ -223,6 +223,9 @@ def run(args):
           f"{len(args.images)} image(s), {result.iterations} iterations "
           f"({'converged' if result.converged else 'NOT converged'}); "
           f"{summary['n_saturated']} saturated stars left out; "
+          f"total flux {psf.flux_correction:.4f}"
+          f"{f' +- {psf.flux_correction_err:.4f}' if np.isfinite(psf.flux_correction_err) else ''}"
+          f" times the flux in the {args.size}-pixel support; "
           f"{'EMPIRICAL term applied; ' if psf.empirical is not None else ''}"
           f"wrote {args.output}")
     return 0

@@ -316,7 +316,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     astropy.table.Table
         photutils' result table: ``x_fit``, ``y_fit`` (pixels), ``flux_fit``, ``flux_err``
         (e-; the star's total flux: the flux P0 holds times ``psf.flux_correction``, the
-        light beyond its support), ``sky_e`` (the sky subtracted under each star, e- per
+        light beyond its support; ``flux_err`` leaves out ``psf.flux_correction_err``, a
+        scale common to every star, as the gain's error is), ``sky_e`` (the sky subtracted under each star, e- per
         pixel), ``flags`` (photutils bit flags, `photutils.psf.decode_psf_flags`) and photutils'
         other columns; ``meta['background_e']`` holds the subtracted sky and
         ``meta['weights']`` the variance model, ``meta['cross_term_refits']`` the refits made,

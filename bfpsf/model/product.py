@@ -303,9 +303,9 @@ def _read_wings(header):
     if "WINGN" in header:
         coefficients = tuple(float(header[f"WINGC{index}"])
                              for index in range(int(header["WINGN"])))
-        half = int(header.get("WINGHALF", 0))
+        half = header.get("WINGHALF")
         return lambda half_size: {"wing_coefficients": coefficients, "wing_tail_power": power,
-                                  "wing_half_size": half or half_size}
+                                  "wing_half_size": half_size if half is None else int(half)}
     amplitude = float(header.get("WINGAMP", 0.0))
 
     def legacy(half_size):

@@ -67,8 +67,9 @@ class WingModel:
         Half-width of the support, pixels (the square inside is P0's).
     fraction, fraction_err : float
         Flux beyond the support over the flux inside it, and its error: ``flux_correction``
-        is 1 + ``fraction``. The error holds the nodes' statistical error and half of the
-        light beyond the last node (its shape there is extrapolated, not measured).
+        is 1 + ``fraction``. As fitted (`bfpsf.measure.total_flux.fit_sky_and_wings`), both
+        are averaged over the profiles the images allow, of which this one is the likeliest,
+        so ``fraction`` is near this profile's integral but need not equal it.
     n_stars : int
         Stars measured.
     """
