@@ -274,6 +274,10 @@ def test_cli_psf_and_photometry(cli_files):
     assert abs(np.median(ratio) - 1) < 1e-2
     phot_summary = json.loads((directory / "phot.json").read_text())
     assert phot_summary["n_stars"] == len(table)
+    # the correction's error, a scale common to every star, is stated beside the fluxes
+    assert table.meta["flux_correction_err"] == pytest.approx(summary["flux_correction_err"])
+    assert phot_summary["images"][0]["flux_correction_err"] == pytest.approx(
+        summary["flux_correction_err"])
     assert phot_summary["images"][0]["read_noise_source"] == "--read-noise"
     # psf (the sky fitted with the stars' wings) and photometry (the sky beyond the glow of
     # the product's wing model) find the true sky: 1000 e- of noise 32 e- on ~5e4 free

@@ -179,6 +179,10 @@ def run(args):
                                        # its wings taken out of the sky as P(F)'s are
                                        flux_correction=bf_model.flux_correction,
                                        wings=bf_model)
+                # and that correction's error (a scale common to every star: not in flux_err)
+                table.meta["flux_correction_err"] = (
+                    float(bf_model.flux_correction_err)
+                    if np.isfinite(bf_model.flux_correction_err) else None)
             level = saturation_e(amplifier, amp_gain, args.saturation, one)
             table["saturated"] = saturated_stars(
                 amplifier.data * amp_gain, level, table["x_fit"], table["y_fit"],
@@ -209,11 +213,7 @@ def run(args):
                               "background_e": table.meta["background_e"],
                               "sky": table.meta["sky"],
                               "flux_correction": table.meta["flux_correction"],
-                              # a scale common to every star, as the gain's error is: not
-                              # in flux_err
-                              "flux_correction_err": (
-                                  float(bf_model.flux_correction_err)
-                                  if np.isfinite(bf_model.flux_correction_err) else None),
+                              "flux_correction_err": table.meta["flux_correction_err"],
                               "n_blended": int(np.sum(table["group_size"] > 1)),
                               "cross_term_refits": table.meta["cross_term_refits"]})
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]

@@ -317,9 +317,11 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         photutils' result table: ``x_fit``, ``y_fit`` (pixels), ``flux_fit``, ``flux_err``
         (e-; the star's total flux: the flux P0 holds times ``psf.flux_correction``, the
         light beyond its support; ``flux_err`` leaves out ``psf.flux_correction_err``, a
-        scale common to every star, as the gain's error is), ``sky_e`` (the sky subtracted under each star, e- per
-        pixel), ``flags`` (photutils bit flags, `photutils.psf.decode_psf_flags`) and photutils'
-        other columns; ``meta['background_e']`` holds the subtracted sky and
+        scale common to every star, as the gain's error is), ``sky_e`` (the sky subtracted
+        under each star, e- per pixel), ``flags`` (photutils bit flags, `photutils.psf.decode_psf_flags`) and photutils'
+        other columns; ``meta['flux_correction']`` and ``meta['flux_correction_err']`` the
+        total-flux correction applied and its error (None when unknown or given),
+        ``meta['background_e']`` the subtracted sky and
         ``meta['weights']`` the variance model, ``meta['cross_term_refits']`` the refits made,
         ``meta['empirical']`` the EMPIRICAL term the model applied (its record, label
         ``'empirical'``; None without one).
@@ -415,8 +417,11 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     if source_flags is not None:
         result["source_flags"] = source_flags[np.asarray(result["id"], dtype=int) - 1]
     # the total flux: the light beyond P0's support (measured when the PSF was fitted)
+    correction_err = None  # its error, a scale common to every star (not in flux_err)
     if flux_correction is None:
         flux_correction = psf.flux_correction if bfpsf_model else 1.0
+        if bfpsf_model and np.isfinite(psf.flux_correction_err):
+            correction_err = float(psf.flux_correction_err)
     correction = float(flux_correction)
     if not (np.isfinite(correction) and correction > 0):
         msg = f"flux_correction must be a positive finite number, got {flux_correction!r}"
@@ -425,6 +430,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     result["flux_err"] = result["flux_err"] * correction
     result["sky_e"] = sky(np.asarray(result["x_fit"], float), np.asarray(result["y_fit"], float))
     result.meta["flux_correction"] = correction
+    result.meta["flux_correction_err"] = correction_err
     result.meta["background_e"] = sky.level
     result.meta["sky"] = {"method": sky.method, "degree": sky.degree,
                           "coefficients": list(sky.coefficients), "rms_e": sky.rms}
