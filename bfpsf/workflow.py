@@ -179,7 +179,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         skies, wings = fit_sky_and_wings(
             [prepared.image_e - prepared.sky.image() if known else prepared.image_e
              for prepared in images], stars, half_size=size // 2,
-            degree=0 if known else images[0].sky.degree)
+            degree=0 if known else images[0].sky.degree, oversampling=oversampling)
         if known:
             break
         images = [prepared.with_sky(prepared.sky if prepared.sky.method == "known" else sky,
