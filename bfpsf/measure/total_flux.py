@@ -65,11 +65,11 @@ def _node_integrals(half_size, oversampling=2):
     n_nodes = (2 * half_size + 1) * over + (1 - over % 2)
     edge = (n_nodes - 1) / (2 * over) + 1e-9
     phases = [((b - (n_nodes - 1) / 2) / over) % 1.0 for b in range(over)]
+    rows, columns = np.mgrid[-reach:reach + 1, -reach:reach + 1].astype(float)
     total = np.zeros(WING_NODES)
     for phase_x in phases:
         for phase_y in phases:
-            y, x = np.mgrid[-reach:reach + 1, -reach:reach + 1].astype(float)
-            x, y = x + phase_x, y + phase_y
+            x, y = columns + phase_x, rows + phase_y
             r = np.hypot(x, y)
             outside = ((np.abs(x) > edge) | (np.abs(y) > edge)) & (r <= outer)
             total += node_basis(r[outside], half_size).sum(axis=1)
@@ -156,8 +156,10 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
     skies : list of bfpsf.measure.sky.SkyModel
         ``method`` "fitted with the stars' wings".
     wings : WingModel
-        Its ``fraction`` (flux beyond the support over flux inside it) and the error of that
-        fraction: the nodes' covariance and half of the light beyond the last node.
+        The likeliest profile, with ``fraction`` (flux beyond P0's support over flux inside
+        it) and its error averaged over the profiles the images allow (both families, every
+        tail power, Akaike weights), the error at least half the range of the likeliest
+        family's fractions within chi-square + 4.
     """
     n_terms = (degree + 1) * (degree + 2) // 2
     bases, values, wings, tails, offsets, templates = [], [], [], [], [0], []
@@ -243,8 +245,7 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         if np.array_equal(new_keep, keep):
             break
         keep = new_keep
-        projected = None
-    if projected is None:
+    else:  # not settled: the projection of the last pixels kept
         projected = project(keep)
     # two families, each at every tail power: the free nodes, and a power law (the nodes on
     # A r^(3 - p), carried on at the same p)
@@ -269,7 +270,7 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
     # last node sets the power, and a flat chi-square over it (a two-component profile's,
     # whose best power, 2.5, gave 4.3 % against a true 3.1 %) spreads the weight over it
     criteria = {name: chi2 + 2 * PARAMETERS[name] for name, (chi2, _, _) in results.items()}
-    lowest = min(values.min() for values in criteria.values())
+    lowest = min(criterion.min() for criterion in criteria.values())
     name = min(criteria, key=lambda key: criteria[key].min())
     chi2, fits, models = results[name]
     best = int(np.argmin(chi2))

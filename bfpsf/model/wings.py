@@ -82,11 +82,6 @@ class WingModel:
     n_stars: int
 
     @classmethod
-    def none(cls, half_size):
-        """No wings known (too few isolated stars): no correction, an unknown error."""
-        return cls((), 4.0, int(half_size), 0.0, float("nan"), 0)
-
-    @classmethod
     def power_law(cls, amplitude, power, half_size):
         """A r^-p at the nodes (a product written before the nodes: its glow only)."""
         radii = node_radii(half_size)
