@@ -110,6 +110,27 @@ def test_too_few_stars():
         fit_psf(np.zeros((50, 50)), [[25.0, 25.0]], SHIFTS)
 
 
+def test_recentring_follows_the_core_not_a_spike_at_the_edge():
+    """The converged P0 is recentred on its core: a lobe at the support's edge (a diverged fit
+    of few stars left one as high as the core, 12 px out) must not move the core. The
+    centroid of every node moved it by 2 px there; here it would move it by 1.5 px."""
+    from bfpsf.model.psf_fit_grid import recentred
+
+    over = 2
+    nodes = np.arange(51) - 25.0
+    core_x, core_y = 0.3, -0.2  # node units
+    data = np.exp(-((nodes[None, :] - core_x) ** 2 + (nodes[:, None] - core_y) ** 2)
+                  / (2 * 3.0 ** 2))
+    lobe = 0.2 * data.sum() * np.exp(-((nodes[None, :] - 20) ** 2 + (nodes[:, None] + 13) ** 2)
+                                     / 2.0) / (2 * np.pi)
+    centred = recentred(data + lobe, over)
+    core = centred * (np.hypot(nodes[None, :], nodes[:, None]) < 10)
+    x = (core * nodes[None, :]).sum() / core.sum()
+    y = (core * nodes[:, None]).sum() / core.sum()
+    assert abs(x) < 0.01 and abs(y) < 0.01
+    assert centred.sum() == pytest.approx(over ** 2)
+
+
 @pytest.mark.slow
 def test_full_size_fit_against_the_naive_epsf():
     """144 noisy stars, oversampling 2: P(F) fit vs photutils EPSFBuilder on bright stars."""

@@ -20,8 +20,11 @@ __all__ = ["default_fit_shape", "make_psf_photometry", "static_image_psf", "psf_
 #: factor is an outlier (`outlying_nodes`): a field rarely varies that much across one image,
 #: while a node fitted from too few stars does (a new user's 10.2 px against 4.2-4.7).
 NODE_FWHM_FACTOR = 1.3
-#: ... and so is a node whose P0 dips below -this of its peak: well-fitted P0s dip to -0.001 to
-#: -0.1, nodes fitted from 6-9 stars' weight to -0.2 to -1.7 (two new users' grids).
+#: ... and so is a node whose P0 dips below -this of its peak within the fit box (where
+#: photometry uses it): well-fitted P0s dip to -0.001 to -0.1, nodes fitted from 6-9 stars'
+#: weight to -0.2 to -1.7 (two new users' grids). Beyond the box a well-fitted node may dip
+#: further at a single node of the support's edge (-0.31, 12.5 px out, a 2 x 2 grid's corner
+#: node of 13 stars' weight).
 NODE_NEGATIVE_LOBE = 0.2
 
 
@@ -53,13 +56,13 @@ def largest_fwhm(psf):
 
 def outlying_nodes(psf, factor=NODE_FWHM_FACTOR, lobe=NODE_NEGATIVE_LOBE):
     """Field nodes whose `psf_fwhm` is more than ``factor`` from the median over the nodes, or
-    whose P0 dips below ``-lobe`` of its peak.
+    whose P0 dips below ``-lobe`` of its peak within the default fit box (`default_fit_shape`).
 
     Returns
     -------
     outliers : list of (x, y, fwhm, lobe)
-        Pixels, and the node's P0 minimum over its maximum; empty for a model with fewer than
-        two nodes.
+        Pixels, and the node's P0 minimum within the fit box over its maximum; empty for a
+        model with fewer than two nodes.
     median : float
         The median FWHM over the nodes, pixels.
     """
@@ -67,13 +70,23 @@ def outlying_nodes(psf, factor=NODE_FWHM_FACTOR, lobe=NODE_NEGATIVE_LOBE):
     nodes = []
     for y in y_nodes:
         for x in x_nodes:
-            data = psf.at(x, y).data if isinstance(psf, BFPSFModel) else psf.data
-            nodes.append((x, y, psf_fwhm(psf, x, y), float(data.min() / data.max())))
+            nodes.append((x, y, psf_fwhm(psf, x, y)))
     median = float(np.median([node[2] for node in nodes]))
     if len(nodes) < 2:
         return [], median
+    half = default_fit_shape(psf) // 2
+    nodes = [(x, y, fwhm, _dip(psf.at(x, y), half)) for x, y, fwhm in nodes]
     return [(float(x), float(y), fwhm, dip) for x, y, fwhm, dip in nodes
             if not median / factor <= fwhm <= median * factor or dip < -lobe], median
+
+
+def _dip(psf, half):
+    """P0's minimum within ``half`` pixels of its centre, over its maximum."""
+    data = psf.data
+    centre = (np.asarray(data.shape) - 1) // 2
+    reach = np.round(half * np.asarray(psf.oversampling)).astype(int)
+    low, high = np.maximum(centre - reach, 0), centre + reach + 1
+    return float(data[low[0]:high[0], low[1]:high[1]].min() / data.max())
 
 
 def describe_outlying_nodes(outliers, median):
