@@ -1,6 +1,7 @@
 """PSF photometry with P(F): flux scale, grouped fits, predicted sizes, and the CLI."""
 
 import json
+import logging
 
 import galsim
 import numpy as np
@@ -450,7 +451,7 @@ def test_dense_kolmogorov_field_sky_at_defaults(tmp_path):
     assert abs(np.median(faint)) < 3.0 + 2 * error, (np.median(faint), error)
 
 
-def test_read_noise_from_the_image_when_the_calibration_left_it_undetermined(cli_files):
+def test_read_noise_from_the_image_when_the_calibration_left_it_undetermined(cli_files, caplog):
     """A calibration whose PTC left the read noise undetermined (a new user's: 0.43 +- 48.7
     e-) is not used for the pixel errors: ``bfpsf photometry`` measures it on the image's sky
     (the field's true 5 e- to within 10 %), and records where it came from; a determined one
@@ -461,7 +462,7 @@ def test_read_noise_from_the_image_when_the_calibration_left_it_undetermined(cli
     from astropy.io import fits
 
     from bfpsf.cli.photometry import _read_noise
-    from bfpsf.measure.photometry import image_read_noise
+    from bfpsf.measure.photometry import image_read_noise, sky_variance
     from bfpsf.measure.prepare import prepare_image
 
     directory, _, _ = cli_files
@@ -477,3 +478,13 @@ def test_read_noise_from_the_image_when_the_calibration_left_it_undetermined(cli
                            read_noise_e=None)
     assert table.meta["read_noise_source"] == "image"
     assert table.meta["read_noise_e"] == image_read_noise(prepared)
+    # a read noise the sky contradicts is said (a new user's calibration: 11.8 +- 2.1 e-
+    # against 5, on 240-380 e- of sky), with the image's; one the sky's variance cannot tell
+    # from the truth is not (on this field's sky, 0 and 5 e- differ by 2 %)
+    model = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS)
+    variance, level = sky_variance(prepared)
+    for noise, said in ((5.0, False), (0.0, False), (np.sqrt(0.4 * level), True)):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="bfpsf"):
+            psf_photometry(prepared, model, read_noise_e=noise)
+        assert ("times what the image's sky pixels show" in caplog.text) == said, noise

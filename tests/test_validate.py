@@ -180,3 +180,7 @@ def test_cli_diagnose_images_mode(tmp_path, capsys):
     assert "linearity_chi2_per_point" in summary["residual_before"]
     assert "correlations_chi2_per_point" in summary["residual_before"]
     assert (tmp_path / "r" / "report.md").exists()
+    # which exposures' own P0 (the star residual's) did not converge is said apart from the
+    # loop's P0 (`p0_converged`); the one exposure's converged here
+    assert summary["inputs"]["star_residual_p0"] == "per exposure"
+    assert summary["inputs"]["star_residual_p0_not_converged"] == []

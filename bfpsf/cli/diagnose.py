@@ -227,6 +227,9 @@ def run(args):
             args, observables, refined, (result.holdout or {}).get("heldout_exposures"))
     summary["inputs"] = {key: value for key, value in observables.meta.items()
                          if isinstance(value, (str, float, int, bool)) or value is None}
+    summary["inputs"]["star_residual_p0_not_converged"] = [
+        str(observables.meta["image_paths"][index])
+        for index in observables.meta.get("star_residual_p0_not_converged", [])]
     star = observables.meta.get("star_residual")
     if star is not None:
         summary["star_residual"] = {key: star[key] for key in (
@@ -249,8 +252,11 @@ def run(args):
         print(f"position bins: {observables.meta['position_bins']}")
     verdict = result.verdict
     if verdict.get("star_residual_chi2_per_pixel") is not None:
+        unsettled = summary["inputs"]["star_residual_p0_not_converged"]
+        note = (f"; the P0 of {', '.join(unsettled)} alone did not converge (the best iterate "
+                "is used)" if unsettled else "")
         print(f"star residual chi2 per pixel {verdict['star_residual_chi2_per_pixel']:.1f} "
-              f"(null expectation {verdict['null_expectation']:.1f})")
+              f"(null expectation {verdict['null_expectation']:.1f}{note})")
     for line in _refined_star_lines(summary.get("star_residual_refined")):
         print(line)
     print("verdict: " + ("explained" if verdict.get("success") else

@@ -410,10 +410,16 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
     # sky-subtracted images; the noise per pixel is the sky's (read noise included); each
     # exposure against its own P0 (its seeing: one P0 for a night whose seeing changed by 3 %
     # left a null's stars at chi2 12 per pixel), the loop's P0 where too few stars
-    models = [fit_p0([index]).psf if len(found[index][0]) >= 10 else psf
-              for index in range(len(pixels))]
-    meta["star_residual_p0"] = ("per exposure" if all(model is not psf for model in models)
-                                else "per exposure where 10 isolated stars or more")
+    own = {index: fit_p0([index]) for index in range(len(pixels)) if len(found[index][0]) >= 10}
+    models = [own[index].psf if index in own else psf for index in range(len(pixels))]
+    # (in the observables' meta: ``meta`` was copied into them above)
+    observables.meta["star_residual_p0"] = (
+        "per exposure" if all(model is not psf for model in models)
+        else "per exposure where 10 isolated stars or more")
+    # said beside the chi2: `p0_converged` is the loop's own P0 (a new user took a warning of
+    # one exposure's fit for it)
+    observables.meta["star_residual_p0_not_converged"] = [
+        int(index) for index, fit in own.items() if not fit.converged]
     star = stacked_star_residual(pixels, tables, models,
                                  half_size=min(psf.half_size, STACK_HALF_SIZE),
                                  noise_e=float(np.median(sky_noise)))

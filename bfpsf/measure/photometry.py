@@ -9,6 +9,8 @@ are fitted together (photutils' ``SourceGrouper``), and every group's final fit 
 the data minus the models of the stars outside it.
 """
 
+import logging
+
 import numpy as np
 from astropy.table import Table
 
@@ -21,7 +23,14 @@ from .prepare import PreparedImage, prepare_image
 from .sources import DETECTION_THRESHOLD
 from ..model.wings import WingModel, wing_image
 
-__all__ = ["psf_photometry", "image_read_noise", "PHOTOMETRY_COLUMNS"]
+__all__ = ["psf_photometry", "image_read_noise", "sky_variance", "PHOTOMETRY_COLUMNS"]
+
+log = logging.getLogger(__name__)
+
+#: A given read noise whose background variance (with the sky's Poisson variance) is more
+#: than this factor from the sky pixels' variance is said (`_check_read_noise`): the sky's
+#: own scatter is known to about 1 % from 1e4 pixels, its level to the gain's error.
+READ_NOISE_MISMATCH = 1.2
 
 #: Columns every photometry table holds (the ``bfpsf photometry`` contract), plus photutils'.
 PHOTOMETRY_COLUMNS = ["x_fit", "y_fit", "flux_fit", "flux_err", "flags"]
@@ -219,10 +228,9 @@ def _check_groups(psf, fit_shape, group_separation, init):
         raise BFPSFValueError(msg, side)
 
 
-def image_read_noise(prepared):
-    """Read noise of an image from its sky, e- rms: the variance of the sky pixels about the
-    fitted sky (1.4826 times their median absolute deviation, squared) less their Poisson
-    variance (the sky level), 0 when that is negative.
+def sky_variance(prepared):
+    """The sky pixels' variance about the fitted sky (1.4826 times their median absolute
+    deviation, squared) and their mean level, e-^2 and e-; None with fewer than 10 of them.
 
     Parameters
     ----------
@@ -230,16 +238,40 @@ def image_read_noise(prepared):
 
     Returns
     -------
-    float
+    (float, float) or None
     """
     data = prepared.sky_subtracted
     free = prepared.sky_pixels & np.isfinite(data)  # the pixels its sky was fitted on
     if free.sum() < 10:
-        return 0.0
+        return None
     values = data[free]
     spread = 1.4826 * np.median(np.abs(values - np.median(values)))
-    level = float(np.mean(np.clip(prepared.sky.image()[free], 0.0, None)))
-    return float(np.sqrt(max(spread ** 2 - level, 0.0)))
+    return float(spread ** 2), float(np.mean(np.clip(prepared.sky.image()[free], 0.0, None)))
+
+
+def image_read_noise(prepared):
+    """Read noise of an image from its sky, e- rms: `sky_variance` less the sky's Poisson
+    variance (its level), 0 when that is negative or there are too few sky pixels."""
+    sky = sky_variance(prepared)
+    return 0.0 if sky is None else float(np.sqrt(max(sky[0] - sky[1], 0.0)))
+
+
+def _check_read_noise(prepared, read_noise_e):
+    """Warn when a given read noise and the sky's level make a background variance
+    `READ_NOISE_MISMATCH` times larger or smaller than the sky pixels show: every flux error
+    scales with it (a new user's calibration gave 11.8 +- 2.1 e- where its images' read noise
+    was 5: 1.30 times the sky's variance, flux pulls of rms 0.74-0.89)."""
+    sky = sky_variance(prepared)
+    if sky is None or not sky[0] > 0:
+        return
+    variance, level = sky
+    ratio = (level + read_noise_e ** 2) / variance
+    if not 1 / READ_NOISE_MISMATCH <= ratio <= READ_NOISE_MISMATCH:
+        log.warning("read noise %.3g e- and a sky of %.4g e- make a background variance %.3g "
+                    "times what the image's sky pixels show (%.4g e-^2, read noise %.3g e-): "
+                    "faint stars' flux errors are %s by up to %.0f %%; give the read noise (--read-noise)",
+                    read_noise_e, level, ratio, variance, image_read_noise(prepared),
+                    "too large" if ratio > 1 else "too small", 100 * abs(np.sqrt(ratio) - 1))
 
 
 def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background_e=None,
@@ -358,6 +390,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     noise_source = "given"
     if read_noise_e is None:
         read_noise_e, noise_source = image_read_noise(prepared), "image"
+    else:
+        _check_read_noise(prepared, float(read_noise_e))
     variance = np.clip(np.where(finite, image, 0.0), 0.0, None) + read_noise_e**2
     error = np.sqrt(np.where(variance > 0, variance, 1.0))
     data = prepared.sky_subtracted

@@ -191,7 +191,7 @@ def plot_radial_profile(images, labels, *, ax=None):
         ax.plot(radius, profile, "o-", ms=3, label=label)
     ax.axhline(0, color="k", lw=0.8)
     ax.set_xlabel("radius (pixels)")
-    ax.set_ylabel("mean residual (e- per pixel)")
+    ax.set_ylabel("mean residual per pixel (unit as labelled)")
     ax.legend(fontsize=8)
     figure.tight_layout()
     return figure
