@@ -121,14 +121,24 @@ def _powers(u, v, degree):
     return np.stack([np.broadcast_to(term, np.shape(u)) for term in terms])
 
 
-def source_mask(image_e, *, threshold=2.0, reach=3.0, grow=2, smoothing_fwhm=3.0):
+#: A source masked for the sky peaks above this many RMS of the smoothed image (`source_mask`):
+#: a starless image's noise seldom makes one (four starless 300^2 images were 58 % free at 2
+#: RMS, 89 % at 3, 99 % at 4), and their sky is then within 0.06 e- of 384 e- (-1.0 at 2).
+SOURCE_PEAK = 4.0
+
+
+def source_mask(image_e, *, threshold=2.0, peak=SOURCE_PEAK, reach=3.0, grow=2,
+                smoothing_fwhm=3.0):
     """Pixels of the sources and their wings.
 
     Sources are where the smoothed image minus a rough sky exceeds ``threshold`` times its
-    noise; each is masked out to ``reach`` times its equivalent radius at that threshold
-    (sqrt(area / pi)) from its centroid, so a bright star's wings are masked further than a
-    faint one's: for a Moffat of beta 3 the wing left at the mask's edge is 3^-6 of the
-    threshold level, for a Kolmogorov profile (r^-11/3) 3^-3.7 = 2 % of it.
+    noise and peaks above ``peak`` times it; each is masked out to ``reach`` times its
+    equivalent radius at that threshold (sqrt(area / pi)) from its centroid, so a bright
+    star's wings are masked further than a faint one's: for a Moffat of beta 3 the wing left
+    at the mask's edge is 3^-6 of the threshold level, for a Kolmogorov profile (r^-11/3)
+    3^-3.7 = 2 % of it. Without the peak's condition the noise's own upward blobs were
+    masked (42 % of a starless 300^2 image) and the sky left beneath was 0.05 of its noise
+    low: -1.0 e- on 384 e- (a new user's faint stars 10 mmag bright).
 
     Parameters
     ----------
@@ -174,9 +184,11 @@ def source_mask(image_e, *, threshold=2.0, reach=3.0, grow=2, smoothing_fwhm=3.0
     if n_sources:
         index = np.arange(1, n_sources + 1)
         areas = ndimage.sum_labels(np.ones(image.shape), labels, index)
+        peaks = ndimage.maximum(smoothed - rough, labels, index)
         centres = ndimage.center_of_mass(np.ones(image.shape), labels, index)
         ny, nx = image.shape
-        for area, (y_c, x_c) in zip(areas, centres):
+        for area, (y_c, x_c) in zip(areas[peaks > peak * rms],
+                                    np.asarray(centres).reshape(-1, 2)[peaks > peak * rms]):
             radius = reach * np.sqrt(area / np.pi) + grow
             low_y, high_y = max(int(y_c - radius), 0), min(int(y_c + radius) + 2, ny)
             low_x, high_x = max(int(x_c - radius), 0), min(int(x_c + radius) + 2, nx)
