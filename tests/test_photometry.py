@@ -288,6 +288,12 @@ def test_cli_psf_and_photometry(cli_files):
         assert sky == pytest.approx(SKY, abs=0.5)
     print("sky", phot_summary["images"][0]["background_e"], summary["images"][0]["background_e"],
           "flux ratio", np.median(ratio))
+    # the two skies' slopes in one unit (e- per pixel per pixel): a flat sky, within 4 sigma
+    # of a plane fitted to ~5e4 pixels of 32 e- noise over 288 pixels (sigma 32 / sqrt(5e4
+    # 288^2 / 12) = 0.0017); the coefficients say what they multiply
+    assert np.abs(phot_summary["images"][0]["sky"]["slope"]).max() < 0.007
+    assert np.abs(summary["images"][0]["sky_slope"]).max() < 0.007
+    assert phot_summary["images"][0]["sky"]["coefficients_of"].startswith("powers of (x - 143.5)")
     # Outputs are never overwritten without --overwrite.
     assert main(["photometry", image, "--psf", psf_path, "-o", phot_path]) == 1
     with pytest.raises(BFPSFFileExistsError):

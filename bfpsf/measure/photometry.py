@@ -466,8 +466,14 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     result.meta["flux_correction"] = correction
     result.meta["flux_correction_err"] = correction_err
     result.meta["background_e"] = sky.level
+    # the coefficients are of the powers of (x - x_c) / s, (y - y_c) / s (`SkyModel`); the
+    # slope per pixel is what `bfpsf psf` reports (``sky_slope``): a new user compared the two
+    x_centre, y_centre, scale = sky._scale()
     result.meta["sky"] = {"method": sky.method, "degree": sky.degree,
-                          "coefficients": list(sky.coefficients), "rms_e": sky.rms}
+                          "coefficients": list(sky.coefficients),
+                          "coefficients_of": f"powers of (x - {x_centre:g}) / {scale:g} and "
+                                             f"(y - {y_centre:g}) / {scale:g}",
+                          "slope": list(sky.slope), "rms_e": sky.rms}
     result.meta["cross_term_refits"] = n_cross
     result.meta["weights"] = weights
     result.meta["read_noise_e"] = float(read_noise_e)
