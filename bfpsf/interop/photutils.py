@@ -81,7 +81,7 @@ def outlying_nodes(psf, factor=NODE_FWHM_FACTOR, lobe=NODE_NEGATIVE_LOBE):
     median = float(np.median([node[2] for node in nodes]))
     if len(nodes) < 2:
         return [], median
-    half = default_fit_shape(psf) // 2
+    half = _fit_side(max(node[2] for node in nodes)) // 2  # `default_fit_shape`'s box
     nodes = [(x, y, fwhm, _dip(psf.at(x, y), half)) for x, y, fwhm in nodes]
     return [(float(x), float(y), fwhm, dip) for x, y, fwhm, dip in nodes
             if not median / factor <= fwhm <= median * factor or dip < -lobe], median
@@ -111,7 +111,11 @@ def describe_outlying_nodes(outliers, median):
 def default_fit_shape(psf):
     """Odd fit box of about 3 FWHM (at least 5 pixels; the largest FWHM over the field),
     pixels."""
-    size = max(5, int(np.ceil(3 * largest_fwhm(psf))))
+    return _fit_side(largest_fwhm(psf))
+
+
+def _fit_side(fwhm):
+    size = max(5, int(np.ceil(3 * fwhm)))
     return size + 1 - size % 2
 
 

@@ -253,7 +253,11 @@ def image_read_noise(prepared):
     """Read noise of an image from its sky, e- rms: `sky_variance` less the sky's Poisson
     variance (its level), 0 when that is negative or there are too few sky pixels."""
     sky = sky_variance(prepared)
-    return 0.0 if sky is None else float(np.sqrt(max(sky[0] - sky[1], 0.0)))
+    return 0.0 if sky is None else _read_noise_of(*sky)
+
+
+def _read_noise_of(variance, level):
+    return float(np.sqrt(max(variance - level, 0.0)))
 
 
 def _check_read_noise(prepared, read_noise_e):
@@ -269,8 +273,9 @@ def _check_read_noise(prepared, read_noise_e):
     if not 1 / READ_NOISE_MISMATCH <= ratio <= READ_NOISE_MISMATCH:
         log.warning("read noise %.3g e- and a sky of %.4g e- make a background variance %.3g "
                     "times what the image's sky pixels show (%.4g e-^2, read noise %.3g e-): "
-                    "faint stars' flux errors are %s by up to %.0f %%; give the read noise (--read-noise)",
-                    read_noise_e, level, ratio, variance, image_read_noise(prepared),
+                    "faint stars' flux errors are %s by up to %.0f %%; give the read noise "
+                    "(--read-noise)", read_noise_e, level, ratio, variance,
+                    _read_noise_of(variance, level),
                     "too large" if ratio > 1 else "too small", 100 * abs(np.sqrt(ratio) - 1))
 
 
@@ -350,8 +355,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         (e-; the star's total flux: the flux P0 holds times ``psf.flux_correction``, the
         light beyond its support; ``flux_err`` leaves out ``psf.flux_correction_err``, a
         scale common to every star, as the gain's error is), ``sky_e`` (the sky subtracted
-        under each star, e- per pixel), ``flags`` (photutils bit flags, `photutils.psf.decode_psf_flags`) and photutils'
-        other columns; ``meta['flux_correction']`` and ``meta['flux_correction_err']`` the
+        under each star, e- per pixel), ``flags`` (photutils bit flags,
+        `photutils.psf.decode_psf_flags`) and photutils' other columns; ``meta['flux_correction']`` and ``meta['flux_correction_err']`` the
         total-flux correction applied and its error (None when unknown or given),
         ``meta['background_e']`` the subtracted sky and
         ``meta['weights']`` the variance model, ``meta['cross_term_refits']`` the refits made,
@@ -466,13 +471,11 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     result.meta["flux_correction"] = correction
     result.meta["flux_correction_err"] = correction_err
     result.meta["background_e"] = sky.level
-    # the coefficients are of the powers of (x - x_c) / s, (y - y_c) / s (`SkyModel`); the
-    # slope per pixel is what `bfpsf psf` reports (``sky_slope``): a new user compared the two
-    x_centre, y_centre, scale = sky._scale()
+    # the slope per pixel is what `bfpsf psf` reports (``sky_slope``), and the coefficients say
+    # what they multiply: a new user compared the two
     result.meta["sky"] = {"method": sky.method, "degree": sky.degree,
                           "coefficients": list(sky.coefficients),
-                          "coefficients_of": f"powers of (x - {x_centre:g}) / {scale:g} and "
-                                             f"(y - {y_centre:g}) / {scale:g}",
+                          "coefficients_of": sky.coefficients_of,
                           "slope": list(sky.slope), "rms_e": sky.rms}
     result.meta["cross_term_refits"] = n_cross
     result.meta["weights"] = weights

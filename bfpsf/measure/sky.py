@@ -107,6 +107,13 @@ class SkyModel:
         return float(self.coefficients[0])
 
     @property
+    def coefficients_of(self):
+        """What ``coefficients`` multiply, in words (u, v of the image's centre and scale)."""
+        x_centre, y_centre, scale = self._scale()
+        return (f"powers of (x - {x_centre:g}) / {scale:g} and (y - {y_centre:g}) / "
+                f"{scale:g}")
+
+    @property
     def slope(self):
         """(d sky / dx, d sky / dy) of the linear terms, e- per pixel per pixel."""
         if self.degree < 1:
@@ -183,12 +190,12 @@ def source_mask(image_e, *, threshold=2.0, peak=SOURCE_PEAK, reach=3.0, grow=2,
     mask = bad.copy()
     if n_sources:
         index = np.arange(1, n_sources + 1)
+        # the noise's own blobs are left alone: only what peaks above ``peak`` is measured
+        index = index[ndimage.maximum(smoothed - rough, labels, index) > peak * rms]
         areas = ndimage.sum_labels(np.ones(image.shape), labels, index)
-        peaks = ndimage.maximum(smoothed - rough, labels, index)
         centres = ndimage.center_of_mass(np.ones(image.shape), labels, index)
         ny, nx = image.shape
-        for area, (y_c, x_c) in zip(areas[peaks > peak * rms],
-                                    np.asarray(centres).reshape(-1, 2)[peaks > peak * rms]):
+        for area, (y_c, x_c) in zip(areas, centres):
             radius = reach * np.sqrt(area / np.pi) + grow
             low_y, high_y = max(int(y_c - radius), 0), min(int(y_c + radius) + 2, ny)
             low_x, high_x = max(int(x_c - radius), 0), min(int(x_c + radius) + 2, nx)
