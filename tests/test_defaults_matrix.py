@@ -271,6 +271,9 @@ def test_static_comparison_gives_total_fluxes_too(data, products):
     assert summary["images"][0]["flux_correction"] == pytest.approx(
         products["single"]["flux_correction"], rel=1e-12)
     assert summary["images"][0]["flux_correction"] > 1.0
+    # and its error, from the product as for P(F) (psf_photometry fills it: one place)
+    assert summary["images"][0]["flux_correction_err"] == pytest.approx(
+        products["single"]["flux_correction_err"], rel=1e-12)
     table = Table.read(output)
     matched, nearest = _matched(table, field.truth[0])
     ratio = np.asarray(table["flux_fit"])[matched] / field.truth[0]["flux_e"][nearest[matched]]

@@ -205,3 +205,35 @@ def test_a_term_that_makes_an_axis_worse_is_not_applied():
     assert term_validated({"heldout": diagonal})
     diagonal["after"]["cross"] = {"slope_per_1e5": 0.03, "slope_err": 5e-4}
     assert not term_validated({"heldout": diagonal})
+
+
+def test_what_a_validated_term_leaves_is_reported():
+    """`term_leaves`: a term that lowers the residual passes the gate, but where it leaves
+    it beyond 3 errors of zero, and where it overshoots, the report says so (a new user's
+    term without the row dependence of its effect: held-out X +45 -> -22.1 +- 6.3 % of raw,
+    validated, and nothing said it)."""
+    from types import SimpleNamespace
+
+    from bfpsf.cli.diagnose import _empirical_lines
+    from bfpsf.diagnosis.heldout import term_leaves, term_validated
+
+    def block(before, after, error):
+        values = {"photometry_bias_mmag": 0.0}
+        return {"before": dict(values, slope_x_percent=before[0], slope_y_percent=before[1]),
+                "after": dict(values, slope_x_percent=after[0], slope_y_percent=after[1],
+                              slope_x_percent_err=error, slope_y_percent_err=error)}
+
+    validation = {"heldout": block((45.0, 30.0), (-22.1, 2.0), 6.3),
+                  "late_block": block((50.0, 30.0), (19.0, 1.0), 6.0)}
+    assert term_validated(validation)
+    left = term_leaves(validation)
+    assert [(entry["block"], entry["axis"], entry["overshoot"]) for entry in left] == [
+        ("heldout", "x", True), ("late_block", "x", False)]
+    validation["left"] = left
+    lines = _empirical_lines(SimpleNamespace(empirical={"validation": validation}))
+    assert any("X -22.1 +- 6.3 % of raw on the held-out exposures (an overshoot" in line
+               for line in lines), lines
+    assert any("X +19.0 +- 6.0 % of raw on the late block (+50.0 before" in line
+               for line in lines), lines
+    # a term that leaves the residual within 3 errors of zero leaves nothing to say
+    assert term_leaves({"heldout": block((45.0, 30.0), (-18.0, 2.0), 6.3)}) == []

@@ -582,6 +582,8 @@ def test_user_path_reports_a_dependence_on_the_row(tmp_path):
         before, after = (validation["heldout"][label][f"slope_{axis}_percent"]
                          for label in ("before", "after"))
         assert abs(after) < 0.1 * abs(before), validation["heldout"]
+    # and within 3 errors of zero on every block it did not fit (`term_leaves`)
+    assert validation["left"] == [], validation["left"]
     # the refined calibration carries the row term; every consumer applies it at the star's
     # row (tests/test_empirical_consumers.py -k row)
     term = EmpiricalTerm.from_calibration(Calibration.read(refined))

@@ -369,4 +369,16 @@ def _empirical_lines(result):
                 f"EMPIRICAL term ({block}): BF slope residual {', '.join(axes)}; photometry "
                 f"bias implied {before['photometry_bias_mmag']:+.2f} -> "
                 f"{after['photometry_bias_mmag']:+.2f} mmag{cross}")
+    for entry in validation.get("left", []):
+        lines.append(
+            f"EMPIRICAL term leaves {entry['axis'].upper()} {entry['after']:+.1f} +- "
+            f"{entry['error']:.1f} % of raw on the {BLOCK_NAMES[entry['block']]} ("
+            + (f"an overshoot of the {entry['before']:+.1f} before it: "
+               if entry["overshoot"] else f"{entry['before']:+.1f} before it: ")
+            + "the effect depends on something the term does not hold, e.g. the position "
+            "or the exposure; see the unexplained residual's dependences)")
     return lines
+
+
+#: The EMPIRICAL term's validation blocks, for a person.
+BLOCK_NAMES = {"heldout": "held-out exposures", "late_block": "late block"}

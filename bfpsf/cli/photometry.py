@@ -179,10 +179,6 @@ def run(args):
                                        # its wings taken out of the sky as P(F)'s are
                                        flux_correction=bf_model.flux_correction,
                                        wings=bf_model)
-                # and that correction's error (a scale common to every star: not in flux_err)
-                table.meta["flux_correction_err"] = (
-                    float(bf_model.flux_correction_err)
-                    if np.isfinite(bf_model.flux_correction_err) else None)
             level = saturation_e(amplifier, amp_gain, args.saturation, one)
             table["saturated"] = saturated_stars(
                 amplifier.data * amp_gain, level, table["x_fit"], table["y_fit"],

@@ -456,12 +456,15 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     if source_flags is not None:
         result["source_flags"] = source_flags[np.asarray(result["id"], dtype=int) - 1]
     # the total flux: the light beyond P0's support (measured when the PSF was fitted)
-    correction_err = None  # its error, a scale common to every star (not in flux_err)
     if flux_correction is None:
         flux_correction = psf.flux_correction if bfpsf_model else 1.0
-        if bfpsf_model and np.isfinite(psf.flux_correction_err):
-            correction_err = float(psf.flux_correction_err)
     correction = float(flux_correction)
+    # its error, a scale common to every star (not in flux_err): the model's, when the
+    # correction is the model's own (or, for a static P0, the ``wings`` model's)
+    owner = psf if bfpsf_model else wings
+    correction_err = (float(owner.flux_correction_err)
+                      if isinstance(owner, BFPSFModel) and correction == owner.flux_correction
+                      and np.isfinite(owner.flux_correction_err) else None)
     if not (np.isfinite(correction) and correction > 0):
         msg = f"flux_correction must be a positive finite number, got {flux_correction!r}"
         raise BFPSFValueError(msg, flux_correction)
