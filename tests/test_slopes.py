@@ -91,6 +91,27 @@ def test_bf_slopes_on_table_uses_flags_and_errors():
         bf_slopes(Table({"peak_e": peak}))
 
 
+def test_stars_of_one_flux_give_a_slope_with_a_warning(caplog):
+    """A frame whose stars share one flux (peaks within 5 %): the slope is returned with its
+    (large) error, and a warning says the flux span cannot set it; stars of many fluxes
+    give no warning."""
+    import logging
+
+    rng = np.random.default_rng(4)
+    peak = 5e4 * (1 + 0.01 * rng.standard_normal(60))
+    size = 1.3 + 0.01 * rng.standard_normal(60)
+    table = Table({"peak_e": peak, "sigma_x": size, "sigma_y": size, "iq": size})
+    with caplog.at_level(logging.WARNING, logger="bfpsf"):
+        result = bf_slopes(table)
+    assert result["x"].slope_err > 0.1
+    assert "a factor 1.0" in caplog.text and "too short a lever arm" in caplog.text
+    caplog.clear()
+    peak, size = linear_data(rng)
+    with caplog.at_level(logging.WARNING, logger="bfpsf"):
+        bf_slopes(Table({"peak_e": peak, "sigma_x": size, "sigma_y": size, "iq": size}))
+    assert "lever arm" not in caplog.text
+
+
 def test_images_of_different_seeing_get_their_own_intercept():
     """Stars of three exposures whose seeing differs by 1 % and whose bright stars fall in
     the sharper one: one intercept turned the seeing into a slope (a new user's IQ slope

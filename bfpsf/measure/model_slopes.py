@@ -153,7 +153,7 @@ def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors
         for key, column, _ in axes:
             predicted[column] = values[key]
         fits = bf_slopes(predicted, min_peak_e=min_peak_e, max_peak_e=max_peak_e,
-                         use_errors=use_errors, rows=rows)
+                         use_errors=use_errors, rows=rows, warn_span=False)
         return np.array([fits[key].slope for key, _, _ in axes])
 
     if sizes is None:

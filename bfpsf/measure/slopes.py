@@ -16,6 +16,7 @@ Units of a `SlopeFit`:
   saturation" when the range starts near zero).
 """
 
+import logging
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
@@ -28,6 +29,13 @@ __all__ = ["SlopeFit", "fit_bf_slope", "bf_slopes", "PEAK_UNIT_E", "SIZE_AXES", 
 
 #: the flux unit of slopes: 100 ke- of peak
 PEAK_UNIT_E = 1e5
+
+#: `bf_slopes` warns when the fitted stars' brightest peak is less than this many times their
+#: faintest: the slope then rests on a span of flux too short to set it (a new user's frame
+#: of stars of one flux gave -5.69 +- 3.06 px per 100 ke- without a word).
+MIN_PEAK_SPAN = 2.0
+
+log = logging.getLogger(__name__)
 #: bfpsf.measure.sources.SourceFlag.STAMP_EDGE (kept here so slopes does not import photutils)
 _STAMP_EDGE = 256
 
@@ -235,7 +243,7 @@ SHAPE_AXES = (("e1", "e1", "e1_err"), ("e2", "e2", "e2_err"))
 
 
 def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_mask=None,
-              colour_fit=None, rows=None):
+              colour_fit=None, rows=None, warn_span=True):
     """Brighter-fatter slopes of sigma_x, sigma_y and IQ from a star table (G15 fig. mbf).
 
     Parameters
@@ -258,6 +266,10 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
     rows : dict, optional
         Key (``'x'``, ...) -> boolean mask over the table's rows: fit exactly those stars, not
         clipped (``SlopeFit.rows`` of another `bf_slopes` of the same table).
+    warn_span : bool, optional
+        Warn when the fitted stars' peaks span less than a factor `MIN_PEAK_SPAN` (default
+        True; not with ``rows``, whose fit has warned). The model's predicted slopes of the
+        same stars (`bfpsf.measure.model_slopes`) pass False.
 
     Stars of several images (an ``image`` column) get a free intercept per image and one
     common slope: the seeing changes between exposures, not within one (a new user's 12
@@ -304,6 +316,13 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
         _add_colour_errors(result, table, clean, colour_fit, min_peak_e, max_peak_e,
                            use_errors)
     result["n_stars"] = result["x"].n_points
+    span = result["x"].peak_max_e / result["x"].peak_min_e
+    if warn_span and rows is None and not span >= MIN_PEAK_SPAN:
+        log.warning("the stars' peaks span %.3g-%.3g e- (a factor %.2f): a brighter-fatter "
+                    "slope needs stars of many fluxes, and the slope of X %+.4f +- %.4f px "
+                    "per 100 ke- rests on too short a lever arm to mean much",
+                    result["x"].peak_min_e, result["x"].peak_max_e, span, result["x"].slope,
+                    result["x"].slope_err)
     return result
 
 
