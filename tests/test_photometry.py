@@ -338,6 +338,43 @@ def test_iterative_psf_photometry_finds_the_hidden_companions(psf):
     assert np.abs(ratio - 1).max() < 0.01
 
 
+def test_stars_above_the_flats_highest_level_are_counted(cli_files, tmp_path, capsys):
+    """psf and photometry say how many stars peak above the flats' highest level, where the
+    brighter-fatter is extrapolated (a new user's 6 % of stars above 1e5 e- flats, unsaid):
+    flats to 2.5e4 e- against peaks of 3e3-1e5 e- on a sky of 1000 e-."""
+    import dataclasses
+
+    from bfpsf.calibration.product import Calibration
+    from bfpsf.cli import main
+
+    directory, xy, fluxes = cli_files
+    calibration = Calibration.read(directory / "calib.fits")
+    top = 2.5e4
+    ptc = calibration.ptc.copy()
+    ptc["mean_e"] = ptc["mean_e"] * top / np.max(ptc["mean_e"][ptc["used"]])
+    calib = str(tmp_path / "low.fits")
+    dataclasses.replace(calibration, ptc=ptc).write(calib)
+    image = str(directory / "stars.fits")
+    truth = int(np.sum(fluxes * PEAK_PER_FLUX + SKY > top))
+    assert 10 < truth < len(fluxes) - 10, truth
+    assert main(["psf", image, "--calib", calib, "-o", str(tmp_path / "psf.fits"), "--size",
+                 "21", "--json", str(tmp_path / "psf.json")]) == 0
+    counted = json.loads((tmp_path / "psf.json").read_text())["n_beyond_flats"]
+    assert abs(counted - truth) <= 3, (counted, truth)
+    assert "stars peak above the flats' highest level (2.5e+04 e-" in capsys.readouterr().err
+    assert main(["photometry", image, "--psf", str(tmp_path / "psf.fits"), "--calib", calib,
+                 "-o", str(tmp_path / "phot.ecsv"), "--json", str(tmp_path / "phot.json")]) == 0
+    counted = json.loads((tmp_path / "phot.json").read_text())["images"][0]["n_beyond_flats"]
+    assert abs(counted - truth) <= 3, (counted, truth)
+    assert f"{counted} of " in capsys.readouterr().err
+    # the calibration of flats to 1.2e5 e-: none
+    assert main(["photometry", image, "--psf", str(tmp_path / "psf.fits"), "--calib",
+                 str(directory / "calib.fits"), "-o", str(tmp_path / "phot2.ecsv"), "--json",
+                 str(tmp_path / "phot2.json")]) == 0
+    assert json.loads((tmp_path / "phot2.json").read_text())["images"][0]["n_beyond_flats"] == 0
+    assert "flats' highest level" not in capsys.readouterr().err
+
+
 def test_cli_known_background(cli_files):
     """--background ADU replaces the clipped median of each image (which a dense field of
     bright stars biases high) in psf and photometry, converted with the gain."""

@@ -123,7 +123,8 @@ def run(args):
     from ..errors import BFPSFInputError, BFPSFValueError
     from ..interop.photutils import default_fit_shape
     from ..io.amplifiers import shared_sides
-    from ..io.saturation import saturated_stars, saturation_e
+    from ..io.saturation import (beyond_flats, describe_beyond_flats, saturated_stars,
+                                 saturation_e)
     from ..measure.photometry import psf_photometry
     from ..model.psf import FluxDependentPSF
 
@@ -144,7 +145,7 @@ def run(args):
                "each with its own gain, which the product does not keep: give --calib "
                "CALIB.fits (or --gain G)")
         raise BFPSFInputError(msg, args.psf)
-    tables, per_image = [], []
+    tables, per_image, beyond_tops = [], [], []
     for path in args.images:
         amplifiers, _ = read_image(path, args.amp)
         if len(amplifiers) > 1 and calibration is None:
@@ -186,6 +187,13 @@ def run(args):
             if "source_flags" in table.colnames:  # as `bfpsf measure` flags them
                 table["source_flags"] |= np.where(table["saturated"], SourceFlag.SATURATED, 0)
             _warn_beyond_field(psf, table, path, args.psf)
+            # the brightest pixel of each star: its flux inside P0's support times P0's peak,
+            # on its sky (`bfpsf.io.saturation.beyond_flats`)
+            beyond, top = beyond_flats(
+                np.asarray(table["flux_fit"], float) / table.meta["flux_correction"]
+                * float(np.max(bf_model.star_image(1.0))) + np.asarray(table["sky_e"], float),
+                one)
+            beyond_tops += [] if top is None else [top]
             margin = (args.fit_shape or 2 * psf.half_size + 1) / 2
             place_stars(table, amplifier, sides, margin, x="x_fit", y="y_fit")
             if "x_init" in table.colnames and amplifier.layout.detsec is not None:
@@ -211,6 +219,7 @@ def run(args):
                               "flux_correction": table.meta["flux_correction"],
                               "flux_correction_err": table.meta["flux_correction_err"],
                               "n_blended": int(np.sum(table["group_size"] > 1)),
+                              "n_beyond_flats": beyond,
                               "cross_term_refits": table.meta["cross_term_refits"]})
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     result.meta.update({"psf": str(args.psf), "gain": gain, "flux_unit": "electron",
@@ -228,6 +237,10 @@ def run(args):
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     n_blended = sum(entry["n_blended"] for entry in per_image)
+    warning = describe_beyond_flats(sum(entry["n_beyond_flats"] for entry in per_image),
+                                    len(result), min(beyond_tops, default=None))
+    if warning:
+        print(warning, file=sys.stderr)
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "
           f"({summary['n_flagged']} fits flagged, {summary['n_saturated']} of them saturated; "
           f"{n_blended} fitted in a group with their neighbours; detection's flags in "

@@ -69,7 +69,7 @@ def add_parser(subparsers):
 def run(args):
     from ..calibration.detector import calibration_of_amplifier, read_calibration
     from ..io.amplifiers import near_shared_side, shared_sides
-    from ..io.saturation import count_saturated_regions, saturation_e
+    from ..io.saturation import count_saturated_regions, describe_beyond_flats, saturation_e
     from ..measure.prepare import linearity_of, prepare_image
     from ..resources import check_psf_fit, resource_option
     from ..workflow import psf_from_images
@@ -173,8 +173,12 @@ def run(args):
                            "outlying_nodes": [{"x": x, "y": y, "fwhm_pixels": fwhm,
                                                "dip": dip}
                                               for x, y, fwhm, dip in outliers]}
+    beyond = _beyond_flats(psf, result.stars[used], per_image, calibrations)
+    summary["n_beyond_flats"] = beyond[0]
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
+    if describe_beyond_flats(*beyond):
+        print(describe_beyond_flats(*beyond), file=sys.stderr)
     if result.diverged:  # flagged in the product (CONVERGD) and the JSON too
         # more iterations do not help (a new user read "raise --max-iterations" after 11 of
         # 80, and "last change 15 of the peak")
@@ -223,8 +227,10 @@ def run(args):
                   "the field than the others' (an amplifier), the PSF varies over the field: "
                   "--grid", file=sys.stderr)
     n_detected = sum(entry["n_detected"] for entry in per_image)
+    others = ("; the others blended, near an edge or with bad pixels"
+              if n_detected > summary["n_stars"] else "")
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} isolated stars ({n_detected} "
-          f"sources detected; the others blended, near an edge or with bad pixels) in "
+          f"sources detected{others}) in "
           f"{len(args.images)} image(s), {result.iterations} iterations "
           f"({'converged' if result.converged else 'NOT converged'}); "
           f"{summary['n_saturated']} saturated stars left out; "
@@ -234,6 +240,23 @@ def run(args):
           f"{'EMPIRICAL term applied; ' if psf.empirical is not None else ''}"
           f"wrote {args.output}")
     return 0
+
+
+def _beyond_flats(psf, stars, per_image, calibrations):
+    """(stars above the flats' highest level, stars, the lowest such level) of the used
+    stars: their brightest pixel, flux times P0's peak plus the image's sky
+    (`bfpsf.io.saturation.beyond_flats`)."""
+    from ..io.saturation import beyond_flats
+
+    peak = float(np.max(psf.star_image(1.0)))
+    counts, tops = 0, []
+    for index, (entry, calibration) in enumerate(zip(per_image, calibrations)):
+        mine = np.asarray(stars["image"]) == index
+        pixels = np.asarray(stars["flux_fit"], float)[mine] * peak + entry["background_e"]
+        count, top = beyond_flats(pixels, calibration)
+        counts += count
+        tops += [] if top is None else [top]
+    return counts, len(stars), min(tops) if tops else None
 
 
 def node_star_weights(psf, stars):

@@ -20,7 +20,8 @@ import numpy as np
 from ..errors import BFPSFInputError
 
 __all__ = ["SATURATION_KEYWORDS", "header_saturation", "saturation_adu", "saturation_e",
-           "saturated_stars", "count_saturated_regions"]
+           "saturated_stars", "count_saturated_regions", "flats_top_e", "beyond_flats",
+           "describe_beyond_flats"]
 
 #: Header keywords holding the saturation level in ADU, in order of preference.
 SATURATION_KEYWORDS = ("SATURATE", "SATURATN", "SATLEVEL", "SAT_LEVL", "SATLEV", "SATUR",
@@ -142,3 +143,36 @@ def count_saturated_regions(image, level):
 
     _, count = ndimage.label(np.asarray(image) >= level)
     return int(count)
+
+
+def flats_top_e(calibration):
+    """The highest mean level of the flats a calibration's PTC used, e- per pixel (None
+    without a PTC table): above it the boundary shifts are extrapolated, not measured."""
+    table = getattr(calibration, "ptc", None)
+    if table is None or "mean_e" not in table.colnames or not len(table):
+        return None
+    used = (np.asarray(table["used"], dtype=bool) if "used" in table.colnames
+            else np.ones(len(table), dtype=bool))
+    means = np.asarray(table["mean_e"], dtype=float)[used]
+    means = means[np.isfinite(means)]
+    return float(means.max()) if means.size else None
+
+
+def beyond_flats(peak_pixel_e, calibration):
+    """How many of the stars whose brightest pixel holds ``peak_pixel_e`` (e-, sky included)
+    lie above the flats' highest level (`flats_top_e`), and that level (0 and None without
+    one). A new user's stars peaked up to 1.2e5 e- over flats to 1e5: no command said so."""
+    top = flats_top_e(calibration)
+    if top is None:
+        return 0, None
+    peaks = np.asarray(peak_pixel_e, dtype=float)
+    return int(np.sum(peaks[np.isfinite(peaks)] > top)), top
+
+
+def describe_beyond_flats(count, total, top):
+    """The warning line of `beyond_flats`, or None when no star is beyond."""
+    if not count:
+        return None
+    return (f"WARNING: {count} of {total} stars peak above the flats' highest level "
+            f"({top:.4g} e- per pixel, sky included): their brighter-fatter is extrapolated "
+            "beyond what the flats measured; add brighter flats to calibrate it")
