@@ -305,7 +305,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
 
     fluxes, peaks, sigma_x, sigma_y, exposure = [], [], [], [], []
     columns, rows, skews = [], [], []
-    pixels, tables, sky_noise, levels = [], [], [], []
+    pixels, tables, sky_noise, levels, skies = [], [], [], [], []
     for index, path in enumerate(images):
         amplifiers = read_amplifiers(path, amp, what="image")
         if len(amplifiers) > 1:
@@ -322,6 +322,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
         # the P0 fit below works on the sky-subtracted pixels: the level under the highest sky
         levels.append(None if level is None else level - float(prepared.sky.image().max()))
         pixels.append(prepared.sky_subtracted)
+        skies.append(max(prepared.sky.level, 0.0))
         sky_noise.append(prepared.sky.rms if background is None else sky_level(data)[1])
         tables.append(table)
         good = np.asarray(table["flags"]) == 0
@@ -376,7 +377,8 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
     def fit_p0(indices, progress=False):
         return fit_psf([pixels[index] for index in indices],
                        [found[index][0] for index in indices], cal.shifts,
-                       read_noise=float(cal.noise_e), flux_unit="electron", gain=float(gain),
+                       read_noise=float(cal.noise_e), sky_e=[skies[index] for index in indices],
+                       flux_unit="electron", gain=float(gain),
                        progress=progress, neighbours=[found[index][2] for index in indices])
 
     n_fitted = sum(len(found[index][0]) for index in fitted)
