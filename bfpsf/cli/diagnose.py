@@ -266,8 +266,8 @@ def run(args):
     for label, values in rows:
         if "slope_x_percent" in values:
             print(f"{label}: BF slope residual X {describe_slope(values, 'x')}, "
-                  f"Y {describe_slope(values, 'y')}; photometry bias "
-                  f"{values['photometry_bias_mmag']:+.2f} mmag; chi2 {values['chi2']:.1f} "
+                  f"Y {describe_slope(values, 'y')}; photometry bias of sky-limited stars, "
+                  f"faint - bright, {values['photometry_bias_mmag']:+.2f} mmag; chi2 {values['chi2']:.1f} "
                   f"/ {values['n']}")
         else:
             print(f"{label}: chi2 {values['chi2']:.1f} / {values['n']}")
@@ -367,8 +367,9 @@ def _empirical_lines(result):
                          f"{after['cross']['slope_err']:.4f} per 1e5 e-")
             lines.append(
                 f"EMPIRICAL term ({block}): BF slope residual {', '.join(axes)}; photometry "
-                f"bias implied {before['photometry_bias_mmag']:+.2f} -> "
-                f"{after['photometry_bias_mmag']:+.2f} mmag{cross}")
+                f"bias implied for sky-limited stars (faint - bright) "
+                f"{before['photometry_bias_mmag']:+.2f} -> {after['photometry_bias_mmag']:+.2f} "
+                f"mmag{cross}")
     for entry in validation.get("left", []):
         lines.append(
             f"EMPIRICAL term leaves {entry['axis'].upper()} {entry['after']:+.1f} +- "

@@ -68,7 +68,8 @@ def _save(figure, path):
 def _residual_rows(before, after, physical=None, heldout=None):
     keys = [("slope_x_percent", "BF slope residual X (% of raw)"),
             ("slope_y_percent", "BF slope residual Y (% of raw)"),
-            ("photometry_bias_mmag", "photometry bias implied (mmag, faint - bright)"),
+            ("photometry_bias_mmag", "photometry bias implied for sky-limited stars (mmag, "
+                                     "faint - bright; bright stars' fits are far less biased)"),
             ("chi2", "chi2"), ("n", "points"),
             ("sizes_chi2_per_point", "sizes chi2 / point"),
             ("linearity_chi2_per_point", "linearity chi2 / point"),
