@@ -112,6 +112,10 @@ def _check_outside(result, name):
         assert strongest["axis"] == axis
     assert strongest["parity"] == parity
     assert strongest["sign"] == "rising"
+    if parity == "odd":
+        # the skewness's change with flux, and no diagonal for a trail along one axis
+        assert abs(strongest["skew"]["slope_per_1e5"]) > 3 * strongest["skew"]["error"]
+        assert not any(entry.get("odd_direction") for entry in sizes), sizes
     for entry in sizes:
         assert entry["flats"] == "stars only"
     position = strongest["position_dependence"]["kind"]

@@ -155,3 +155,27 @@ def test_the_dropped_size_scale_is_named_on_the_axis_it_may_cover():
                for entry in entries()]
     assert all("scale_part" not in entry
                for entry in with_scale_parts(growing, nuisance(1.05, 2.0)))
+
+
+def test_odd_residuals_of_both_axes_are_said_to_lie_along_a_diagonal():
+    """`_odd_direction`: X and Y odd with skewness slopes of one sign and within a factor 3
+    lie along x = y (opposite signs: x = -y); a single odd axis, or slopes a factor 5 apart,
+    give no diagonal (a new user's trail toward (+1, +1) was read as two odd axes)."""
+    from bfpsf.diagnosis.signature import describe_entry
+    from bfpsf.diagnosis.unexplained import _odd_direction
+
+    def entries(x, y):
+        return [{"observable": "sizes", "axis": axis, "parity": "odd", "significance": 10.0,
+                 "skew": {"slope_per_1e5": value, "error": 3e-4}}
+                for axis, value in (("x", x), ("y", y)) if value is not None]
+
+    both = entries(-0.0040, -0.0037)
+    _odd_direction(both)
+    assert [entry["odd_direction"] for entry in both] == ["along the x = y diagonal"] * 2
+    assert "along the x = y diagonal" in describe_entry(both[0])
+    crossed = entries(0.004, -0.003)
+    _odd_direction(crossed)
+    assert crossed[1]["odd_direction"] == "along the x = -y diagonal"
+    for case in (entries(0.004, None), entries(0.005, 0.001)):
+        _odd_direction(case)
+        assert not any("odd_direction" in entry for entry in case)

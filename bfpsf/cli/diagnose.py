@@ -370,6 +370,14 @@ def _empirical_lines(result):
                 f"bias implied for sky-limited stars (faint - bright) "
                 f"{before['photometry_bias_mmag']:+.2f} -> {after['photometry_bias_mmag']:+.2f} "
                 f"mmag{cross}")
+    odd = [entry["axis"].upper() for entry in result.unexplained
+           if entry.get("observable") == "sizes" and entry.get("parity") == "odd"]
+    if result.empirical and odd:
+        # a new user's diagonal trail: sizes and e2 corrected, its centroid shift (0.025 px
+        # at the bright end) neither removed nor said to be
+        lines.append(f"EMPIRICAL term: its patterns are even (sizes, e2): the odd part of the "
+                     f"residual on {' and '.join(odd)} (a centroid shift or a trail with flux) "
+                     "is not in it")
     for entry in validation.get("left", []):
         lines.append(
             f"EMPIRICAL term leaves {entry['axis'].upper()} {entry['after']:+.1f} +- "

@@ -385,7 +385,12 @@ def describe_entry(entry):
         words.append(f"along {entry['axis']}")
     words.append(f"{entry['significance']:.1f} sigma")
     if entry.get("parity"):
-        words.append(f"{entry['parity']} parity" + (" (centroid- or skew-like)"
+        skew = entry.get("skew")
+        lean = (f": its skewness changes with flux, {skew['slope_per_1e5']:+.4f} +- "
+                f"{skew['error']:.4f} per 1e5 e-" if skew else "")
+        if entry.get("odd_direction"):
+            lean += f"; with the other axis's, {entry['odd_direction']}"
+        words.append(f"{entry['parity']} parity" + (f" (centroid- or skew-like{lean})"
                                                     if entry["parity"] == "odd" else ""))
     if entry.get("sign"):
         words.append(f"{entry['sign']} with flux")

@@ -192,12 +192,37 @@ def _dependence(sizes, values, errors, column, scale, labels):
 
 def _odd_parity(sizes, axis):
     """'odd' when the stars' skewness along ``axis`` changes with flux at more than
-    `UNEXPLAINED_NSIGMA`, else 'even'; None without skewness columns."""
+    `UNEXPLAINED_NSIGMA`, else 'even'; None without skewness columns. With it, the skewness's
+    slope per 1e5 e- of peak and its error, or None. (Its sign is not the way the light
+    moves: under the adaptive weight a trail toward +x can give a falling skewness.)"""
     values = getattr(sizes, f"skew_{axis}")
     if values is None:
-        return None
+        return None, None
     slope, error = sizes.peak_slope(values, getattr(sizes, f"skew_{axis}_err"))[:2]
-    return "odd" if abs(slope) > UNEXPLAINED_NSIGMA * error else "even"
+    if abs(slope) <= UNEXPLAINED_NSIGMA * error:
+        return "even", None
+    return "odd", {"slope_per_1e5": slope, "error": error}
+
+
+def _odd_direction(entries):
+    """The odd size residuals of X and Y together: when both skewness slopes have one sign
+    and are within a factor `DIAGONAL_RATIO` of each other, the odd part lies along the
+    x = y diagonal (opposite signs: x = -y), said on both entries (``odd_direction``): a new
+    user's trail toward (+1, +1) was read as two odd axes."""
+    skews = {entry["axis"]: entry["skew"] for entry in entries
+             if entry["observable"] == "sizes" and entry.get("skew")}
+    if set(skews) != {"x", "y"}:
+        return
+    x, y = skews["x"]["slope_per_1e5"], skews["y"]["slope_per_1e5"]
+    if 1 / DIAGONAL_RATIO <= abs(x / y) <= DIAGONAL_RATIO:
+        direction = "along the x = y diagonal" if x * y > 0 else "along the x = -y diagonal"
+        for entry in entries:
+            if entry["observable"] == "sizes" and entry.get("skew"):
+                entry["odd_direction"] = direction
+
+
+#: `_odd_direction`: the largest ratio of the X and Y skewness slopes of a diagonal odd part.
+DIAGONAL_RATIO = 3.0
 
 
 def _prediction_slope_variance(prediction, block, peak_e, errors, group, axis_tolerance):
@@ -251,7 +276,8 @@ def describe_unexplained(problem, observables, model, prediction=None):
     list of dict
         {observable, axis, parity, flux_dependence, significance (sigma)} and, for sizes,
         sign, slope, slope_err (the noise's and the prediction's), position_dependence,
-        row_dependence, exposure_dependence, flats.
+        row_dependence, exposure_dependence, flats and, where the parity is odd, skew (the
+        skewness's slope with flux and the way the light leans: `_odd_parity`).
     """
     residual = problem.residual - model
     out = []
@@ -271,10 +297,11 @@ def describe_unexplained(problem, observables, model, prediction=None):
                     TEMPLATE_TOLERANCE["axis"])))
                 significance = abs(fit.slope) / slope_err
                 if significance > UNEXPLAINED_NSIGMA:
-                    parity = _odd_parity(sizes, axis)
+                    parity, skew = _odd_parity(sizes, axis)
                     if parity is None:
                         parity = _parity(observables.meta.get("star_residual"), axis)
                     entry = {"observable": "sizes", "axis": axis, "parity": parity,
+                             "skew": skew,
                              "sign": "rising" if fit.slope > 0 else "falling",
                              "flux_dependence": _flux_dependence(sizes.peak_e, values, errors,
                                                                  sizes.intercepts),
@@ -328,4 +355,5 @@ def describe_unexplained(problem, observables, model, prediction=None):
             # trail the flats did not have)
             entry["flats"] = ("stars only" if not flats else
                               f"stars; the flats' {' and '.join(flats)} too")
+    _odd_direction(out)
     return out
