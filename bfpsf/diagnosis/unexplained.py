@@ -194,7 +194,10 @@ def _odd_parity(sizes, axis):
     """'odd' when the stars' skewness along ``axis`` changes with flux at more than
     `UNEXPLAINED_NSIGMA`, else 'even'; None without skewness columns. With it, the skewness's
     slope per 1e5 e- of peak and its error, or None. (Its sign is not the way the light
-    moves: under the adaptive weight a trail toward +x can give a falling skewness.)"""
+    moves: a trail toward +x of a fixed fraction gives a positive skewness under the adaptive
+    weight, one whose fraction grows with the pixel's charge, moving the core more than the
+    wings, a negative one: -0.0016 for a Kolmogorov star of 4.5e4 e- peak passing 0.05 Q /
+    1e5 e- to its (+1, +1) neighbour.)"""
     values = getattr(sizes, f"skew_{axis}")
     if values is None:
         return None, None
