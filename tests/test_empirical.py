@@ -230,7 +230,8 @@ def test_what_a_validated_term_leaves_is_reported():
     assert [(entry["block"], entry["axis"], entry["overshoot"]) for entry in left] == [
         ("heldout", "x", True), ("late_block", "x", False)]
     validation["left"] = left
-    lines = _empirical_lines(SimpleNamespace(empirical={"validation": validation}))
+    lines = _empirical_lines(SimpleNamespace(empirical={"validation": validation},
+                                             unexplained=[]))
     assert any("X -22.1 +- 6.3 % of raw on the held-out exposures (an overshoot" in line
                for line in lines), lines
     assert any("X +19.0 +- 6.0 % of raw on the late block (+50.0 before" in line
