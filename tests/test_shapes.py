@@ -116,3 +116,48 @@ def test_psf_diagnostics_figure_shows_the_static_trend(tmp_path):
     path = tmp_path / "diagnostics.png"
     figure.savefig(path, dpi=60)
     assert path.stat().st_size > 5_000
+
+
+def test_p0_carries_the_error_of_the_calibrations_bf_amplitude(tmp_path, capsys):
+    """``bfpsf psf`` with shifts 40 % too strong whose samples spread +- 30 % (a small flat
+    set's): P0 comes out small, as a new user's did (-0.55 % in sigma against a 34 %
+    amplitude error, unsaid), and the JSON's ``p0_calibration_error`` states an error of
+    that size: the truth (P0 of the true profile at F -> 0) within 3 of it, and more than a
+    third of it away (the shifts are off by about one of the samples' spread; measured: -1.08 %
+    against +- 1.26 %)."""
+    import dataclasses
+    import json
+
+    from bfpsf.cli import main
+    from bfpsf.validation.simulate_fields import simulate_field
+    from bfpsf.validation.simulate_spots import write_image_adu
+
+    from test_photometry import make_calibration
+
+    profile = galsim.Moffat(beta=3.5, fwhm=3.2)
+    field = simulate_field(profile, n_images=3, shape=(256, 256), n_stars=50,
+                           min_separation=28.0, sensor=None, shifts=SHIFTS, seed=4401,
+                           peak_range_e=(5e3, 1.5e5))
+    rng = np.random.default_rng(4402)
+    scales = 1.4 * (1 + 0.3 * rng.standard_normal(30))
+    calibration = dataclasses.replace(
+        make_calibration(SHIFTS, 1.5, 5.0), shifts=SHIFTS.scaled(1.4),
+        shift_samples_north=np.array([SHIFTS.north * scale for scale in scales]),
+        shift_samples_east=np.array([SHIFTS.east * scale for scale in scales]))
+    calibration.write(tmp_path / "calib.fits")
+    images = []
+    for index, image in enumerate(field.images):
+        images.append(str(tmp_path / f"image{index}.fits"))
+        write_image_adu(images[-1], image, gain=1.5)
+    assert main(["psf", *images, "--calib", str(tmp_path / "calib.fits"), "-o",
+                 str(tmp_path / "psf.fits"), "--json", str(tmp_path / "psf.json")]) == 0
+    assert "carries the calibration's error of the BF amplitude" in capsys.readouterr().out
+    error = json.loads((tmp_path / "psf.json").read_text())["p0_calibration_error"]
+    assert error["n_samples"] == 30
+    fitted = FluxDependentPSF.read(tmp_path / "psf.fits").shape(1.0).sigma
+    truth = FluxDependentPSF.from_galsim(profile, SHIFTS, oversampling=4, size=25).shape(
+        1.0).sigma
+    bias = 100 * (fitted / truth - 1)
+    print(f"P0 sigma {bias:+.3f} % against a stated +- {error['sigma_percent']:.3f} %")
+    assert bias < 0
+    assert error["sigma_percent"] / 3 < abs(bias) < 3 * error["sigma_percent"]

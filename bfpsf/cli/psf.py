@@ -144,6 +144,7 @@ def run(args):
                                  "BFTERM": bool(args.include_bf)},
               overwrite=args.overwrite)
     from ..interop.photutils import describe_outlying_nodes, outlying_nodes, psf_fwhm
+    from ..moments.shapes import calibration_shape_error
 
     used = result.stars["flags"] == 0
     summary = {"output": str(args.output), "calibration": str(args.calib), "gain": gain,
@@ -173,6 +174,15 @@ def run(args):
                            "outlying_nodes": [{"x": x, "y": y, "fwhm_pixels": fwhm,
                                                "dip": dip}
                                               for x, y, fwhm, dip in outliers]}
+    # P0, the PSF of faint sources, and the calibration's error of the BF amplitude: the stars
+    # weigh in near their weighted flux, and P0 carries the error of the BF change below it
+    weights = np.asarray(result.stars["weight"], float)[used]
+    reference = (float(np.sum(weights * np.asarray(result.stars["flux_fit"], float)[used])
+                 / np.sum(weights)) if np.sum(weights) > 0 else None)
+    p0_error = (calibration_shape_error(psf, reference)
+                if args.include_bf and reference is not None else None)
+    summary["p0_calibration_error"] = (None if p0_error is None
+                                       else dict(p0_error, reference_flux_e=reference))
     beyond = _beyond_flats(psf, result.stars[used], per_image, calibrations)
     summary["n_beyond_flats"] = beyond[0]
     if args.json:
@@ -226,6 +236,11 @@ def run(args):
                   "exposure's PSF on its own images, or, if its stars lie in another part of "
                   "the field than the others' (an amplifier), the PSF varies over the field: "
                   "--grid", file=sys.stderr)
+    if p0_error is not None:
+        print(f"P0 (the PSF of sources far fainter than the stars) carries the calibration's "
+              f"error of the BF amplitude: sigma +- {p0_error['sigma_percent']:.2f} %, e1 +- "
+              f"{p0_error['e1']:.4f}, e2 +- {p0_error['e2']:.4f} (the stars weigh in at "
+              f"{reference:.3g} e-; `shape(flux)` nearer that flux carries less)")
     n_detected = sum(entry["n_detected"] for entry in per_image)
     others = ("; the others blended, near an edge or with bad pixels"
               if n_detected > summary["n_stars"] else "")

@@ -20,6 +20,7 @@ from ..errors import BFPSFValueError
 from .adaptive import adaptive_moments_batch
 
 __all__ = ["PSFShape", "distortion", "fourth_moment", "psf_shape", "psf_shapes",
+           "calibration_shape_error",
            "model_shapes", "shape_residuals", "size_offset"]
 
 #: Magnitudes per relative size error of the template: a PSF fit with a template of width
@@ -171,6 +172,50 @@ def psf_shapes(psf, flux, x, y):
         result[name][good] = value
     result["flags"][good] = moments.flags
     return result
+
+
+def calibration_shape_error(psf, reference_flux, flux=1.0, *, x=None, y=None):
+    """The error of a fitted PSF's size and distortion at ``flux`` that its calibration's
+    boundary shifts carry.
+
+    P0 is fitted from stars of every flux: where the shifts predict too much BF it comes out
+    small, and the stars' fit keeps the model right where they weigh, near
+    ``reference_flux``. The model at ``flux`` is then off by the error of the BF change
+    between the two: the spread, over the calibration's shift samples (``psf.shift_samples``),
+    of [S(flux) - S(reference_flux)] for S the sigma, e1 and e2 of the model with those
+    shifts. At ``flux`` -> 0 it is the error of P0 itself, the PSF of faint galaxies (a new
+    user's flats, their BF amplitude known to 34 %, gave P0's sigma 0.55 % small, unsaid).
+
+    Parameters
+    ----------
+    psf : BFPSFModel
+        With ``shift_samples`` (every product of ``bfpsf psf``); a field-varying model is
+        taken at (x, y), by default its reference position.
+    reference_flux : float
+        The flux the fitted stars weigh in at (``bfpsf psf``: their fluxes weighted as the P0
+        fit weighs them), the model's ``flux_unit``.
+    flux : float, optional
+        Default 1 (P0: F -> 0).
+
+    Returns
+    -------
+    dict or None
+        ``sigma_percent`` (of the model's sigma at ``flux``), ``e1``, ``e2`` (distortion) and
+        ``n_samples``; None with fewer than 2 shift samples.
+    """
+    samples = list(getattr(psf, "shift_samples", ()) or ())
+    if len(samples) < 2:
+        return None
+    single = psf.at(*psf.position_or_reference(x, y))
+
+    def change(model):
+        low, high = psf_shape(model, flux), psf_shape(model, reference_flux)
+        return low.sigma - high.sigma, low.e1 - high.e1, low.e2 - high.e2
+
+    changes = np.array([change(single.with_shifts(shifts)) for shifts in samples])
+    spread = np.std(changes, axis=0, ddof=1)
+    return {"sigma_percent": float(100 * spread[0] / psf_shape(single, flux).sigma),
+            "e1": float(spread[1]), "e2": float(spread[2]), "n_samples": len(samples)}
 
 
 def model_shapes(psf, flux, *, n_grid=12):
