@@ -121,7 +121,8 @@ def shift_warnings(solution):
     if unconverged:
         warnings.append(f"{unconverged} of the {solution.method} fits (the best fit and its "
                         f"{len(samples_north)} Monte Carlo refits) stopped on their evaluation "
-                        "bound, not converged: the shifts or their errors are uncertain")
+                        "bound, not converged: the shifts or their errors are uncertain (more "
+                        "flat pairs narrow them; the samples that stopped are in the errors)")
     if solution.dof > 0 and solution.chi2 / solution.dof > CHI2_TOLERANCE:
         warnings.append(f"the {solution.method} model does not describe the measured a: "
                         f"chi2/dof = {solution.chi2:.1f}/{solution.dof}; shift errors are scaled "
@@ -130,7 +131,9 @@ def shift_warnings(solution):
                         f"chi2/dof = {solution.chi2:.1f}/{solution.dof}")
     for name in getattr(solution, "at_bound", ()):
         warnings.append(f"electrostatic parameter {name} ended on its physical bound: its "
-                        f"error (and the shifts' errors) may be underestimated")
+                        f"error (and the shifts' errors) may be underestimated (more flat pairs "
+                        f"or levels constrain it; --shift-method ei solves the shifts without "
+                        f"the sensor model, with its own errors)")
     sensitivity = getattr(solution, "sensitivity", None)
     if sensitivity and sensitivity.get("max_relative", 0.0) > EI_SENSITIVITY_TOLERANCE:
         warnings.append(f"the Ei solution depends on its smoothing model: shifts change by up to "
