@@ -214,8 +214,20 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     # the flux beyond the support, over the flux inside it
     psf.flux_correction = 1.0 + wings.fraction
     psf.flux_correction_err = wings.fraction_err
+    psf.star_flux_e = _star_flux(result) * psf.electrons_per_unit
     _size_offsets(per_image, images, result, psf)
     return PSFFromImages(psf, result, per_image)
+
+
+def _star_flux(result):
+    """The flux the used stars weigh in at in the P0 fit (their fluxes weighted by their
+    share of it, `bfpsf.model.psf_fit_stars.star_table`'s ``weight``), or NaN."""
+    used = np.asarray(result.stars["flags"]) == 0
+    weights = np.asarray(result.stars["weight"], float)[used]
+    if not np.sum(weights) > 0:
+        return float("nan")
+    return float(np.sum(weights * np.asarray(result.stars["flux_fit"], float)[used])
+                 / np.sum(weights))
 
 
 def _size_offsets(per_image, images, result, psf):

@@ -154,7 +154,15 @@ def test_p0_carries_the_error_of_the_calibrations_bf_amplitude(tmp_path, capsys)
     assert "carries the calibration's error of the BF amplitude" in capsys.readouterr().out
     error = json.loads((tmp_path / "psf.json").read_text())["p0_calibration_error"]
     assert error["n_samples"] == 30
-    fitted = FluxDependentPSF.read(tmp_path / "psf.fits").shape(1.0).sigma
+    product = FluxDependentPSF.read(tmp_path / "psf.fits")
+    # the product records the flux its stars weigh in at: Python gives the same error
+    assert product.shape_error(1.0) == pytest.approx(
+        {key: error[key] for key in ("sigma_percent", "e1", "e2", "n_samples")}, rel=1e-9)
+    assert product.star_flux_e == pytest.approx(error["reference_flux_e"], rel=1e-12)
+    # nearer that flux the model carries less of it
+    assert (product.shape_error(0.5 * error["reference_flux_e"])["sigma_percent"]
+            < 0.7 * error["sigma_percent"])
+    fitted = product.shape(1.0).sigma
     truth = FluxDependentPSF.from_galsim(profile, SHIFTS, oversampling=4, size=25).shape(
         1.0).sigma
     bias = 100 * (fitted / truth - 1)

@@ -144,7 +144,6 @@ def run(args):
                                  "BFTERM": bool(args.include_bf)},
               overwrite=args.overwrite)
     from ..interop.photutils import describe_outlying_nodes, outlying_nodes, psf_fwhm
-    from ..moments.shapes import calibration_shape_error
 
     used = result.stars["flags"] == 0
     summary = {"output": str(args.output), "calibration": str(args.calib), "gain": gain,
@@ -176,11 +175,8 @@ def run(args):
                                               for x, y, fwhm, dip in outliers]}
     # P0, the PSF of faint sources, and the calibration's error of the BF amplitude: the stars
     # weigh in near their weighted flux, and P0 carries the error of the BF change below it
-    weights = np.asarray(result.stars["weight"], float)[used]
-    reference = (float(np.sum(weights * np.asarray(result.stars["flux_fit"], float)[used])
-                 / np.sum(weights)) if np.sum(weights) > 0 else None)
-    p0_error = (calibration_shape_error(psf, reference)
-                if args.include_bf and reference is not None else None)
+    p0_error = psf.shape_error(1.0) if args.include_bf else None
+    reference = psf.star_flux_e
     summary["p0_calibration_error"] = (None if p0_error is None
                                        else dict(p0_error, reference_flux_e=reference))
     beyond = _beyond_flats(psf, result.stars[used], per_image, calibrations)

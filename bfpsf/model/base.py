@@ -44,7 +44,7 @@ import numpy as np
 from astropy.modeling import Fittable2DModel, Parameter
 
 from ..errors import BFPSFValueError
-from ..moments.shapes import psf_shape
+from ..moments.shapes import calibration_shape_error, psf_shape
 from .galsim_profile import to_galsim
 from .product import read_psf, register_kind, write_psf
 
@@ -105,6 +105,7 @@ def validate_data(data):
 #: Metadata every kind carries (name -> default factory), copied by the derived models.
 _METADATA = {"calibration": str, "linearity_c_per_1e5": float,
              "flux_correction": lambda: 1.0, "flux_correction_err": lambda: float("nan"),
+             "star_flux_e": lambda: float("nan"),
              "wing_coefficients": tuple, "wing_tail_power": lambda: 4.0, "wing_half_size": int,
              "empirical": lambda: None}
 
@@ -204,6 +205,23 @@ class BFPSFModel(Fittable2DModel):
         bfpsf.moments.shapes.PSFShape
         """
         return psf_shape(self, flux, x=x, y=y)
+
+    def shape_error(self, flux, x=None, y=None):
+        """The error of `shape` at ``flux`` that the calibration's boundary shifts carry
+        (`bfpsf.moments.shapes.calibration_shape_error`): the stars fix the model near the
+        flux they weigh in at (``star_flux_e``, e-, recorded by ``bfpsf psf``), and at other
+        fluxes, a galaxy's far below them, the BF change from there comes from the shifts.
+
+        Returns
+        -------
+        dict or None
+            ``sigma_percent``, ``e1``, ``e2``, ``n_samples``; None without shift samples or
+            without ``star_flux_e`` (a model not fitted from stars).
+        """
+        if not np.isfinite(self.star_flux_e):
+            return None
+        return calibration_shape_error(self, self.star_flux_e / self.electrons_per_unit, flux,
+                                       x=x, y=y)
 
     def to_galsim(self, flux, x=None, y=None, *, x_phase=None, y_phase=None, normalise=True):
         """The pixelised PSF of a star of flux F at (x, y) (at its sub-pixel phase unless the

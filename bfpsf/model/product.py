@@ -23,7 +23,8 @@ HDU and the option cards then describe the central node (readers of schema 3 see
 Schema 6 adds the metadata every PSF kind carries (`bfpsf.model.base`): ``LINC`` (a refined
 calibration's linearity correction c per 1e5 e-, applied to the images on input; 0 when none),
 ``FLUXCORR`` / ``FLUXCERR`` (total flux over the flux P0 holds in its support, and its error:
-the aperture correction photometry applies; 1 and no FLUXCERR when not measured), ``WINGAMP``
+the aperture correction photometry applies; 1 and no FLUXCERR when not measured; ``STARFLUX``,
+optional: the flux in e- the fitted stars weigh in at, `BFPSFModel.shape_error`), ``WINGAMP``
 / ``WINGPOW`` (the power law A r^-p of the wings beyond the support, per pixel per unit flux
 inside it; A = 0 when not measured). Files of
 schema <= 5 read with those defaults.
@@ -126,6 +127,8 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     header["WINGHALF"] = (int(psf.wing_half_size), "support half-width the wings lie beyond")
     if np.isfinite(psf.flux_correction_err):  # absent: unknown (too few isolated stars)
         header["FLUXCERR"] = (float(psf.flux_correction_err), "error of FLUXCORR")
+    if np.isfinite(psf.star_flux_e):  # absent: not fitted from stars
+        header["STARFLUX"] = (float(psf.star_flux_e), "e-: the flux the fitted stars weigh in at")
     for key, value in (meta or {}).items():
         header[key] = value
     north = fits.ImageHDU(np.asarray(psf.shifts.north), name="SHIFT_N")
@@ -262,6 +265,7 @@ def read_psf(path, *, cls=None, **kwargs):
                     "linearity_c_per_1e5": float(header.get("LINC", 0.0)),
                     "flux_correction": float(header.get("FLUXCORR", 1.0)),
                     "flux_correction_err": float(header.get("FLUXCERR", np.nan)),
+                    "star_flux_e": float(header.get("STARFLUX", np.nan)),
                     "empirical": _read_empirical(hdul)}
         wings = _read_wings(header)
         samples = ()
