@@ -36,17 +36,48 @@ def read_image(path, amps=None):
 def place_stars(table, amplifier, sides, margin, *, x="x", y="y"):
     """Stars measured on one amplifier, placed on the detector.
 
-    Adds ``amplifier`` (name) and ``amp_boundary`` (True when the star lies within ``margin``
+    Adds ``amplifier`` (name), ``amp_boundary`` (True when the star lies within ``margin``
     pixels of a side shared with another amplifier, so its light falls on two amplifiers
-    read with different gains) and moves ``x``, ``y`` to detector pixels (DETSEC offset).
+    read with different gains) and ``amp_depth`` (`shared_side_depth`: how far inside its
+    amplifier, from the nearest shared side, pixels) and moves ``x``, ``y`` to detector
+    pixels (DETSEC offset).
     """
-    from ..io.amplifiers import detector_offset, near_shared_side
+    from ..io.amplifiers import detector_offset, near_shared_side, shared_side_depth
 
     xs, ys = np.asarray(table[x], dtype=float), np.asarray(table[y], dtype=float)
     table["amplifier"] = np.full(len(table), amplifier.name, dtype=f"U{max(len(amplifier.name), 1)}")
     table["amp_boundary"] = near_shared_side(xs, ys, amplifier.data.shape,
                                              sides.get(amplifier.name, set()), margin)
+    table["amp_depth"] = shared_side_depth(xs, ys, amplifier.data.shape,
+                                           sides.get(amplifier.name, set()))
     x0, y0 = detector_offset(amplifier.layout)
     table[x] = xs + x0
     table[y] = ys + y0
     return table
+
+
+def one_fit_per_star(table, radius, *, x="x", y="y"):
+    """The table without the second fit of a star near a shared side: fitted on both
+    amplifiers (each sees its light), the fit from the amplifier that holds the star's centre
+    (the larger ``amp_depth``) is kept. Returns (table, number left out). A new user's
+    boundary stars came out twice, the copy from the other amplifier off by -45 mmag (rms
+    242)."""
+    if "amp_depth" not in table.colnames or len(table) < 2:
+        return table, 0
+    boundary = np.flatnonzero(np.asarray(table["amp_boundary"], dtype=bool))
+    drop = set()
+    images = (np.asarray(table["image"]) if "image" in table.colnames
+              else np.zeros(len(table), dtype=int))
+    xs, ys = np.asarray(table[x], dtype=float), np.asarray(table[y], dtype=float)
+    depth = np.asarray(table["amp_depth"], dtype=float)
+    amplifiers = np.asarray(table["amplifier"])
+    for i in boundary:
+        for j in boundary[boundary > i]:
+            if (images[i] == images[j] and amplifiers[i] != amplifiers[j]
+                    and np.hypot(xs[i] - xs[j], ys[i] - ys[j]) < radius):
+                drop.add(int(j if depth[i] >= depth[j] else i))
+    if not drop:
+        return table, 0
+    keep = np.ones(len(table), dtype=bool)
+    keep[sorted(drop)] = False
+    return table[keep], len(drop)

@@ -14,7 +14,7 @@ from ..outputs import write_json, write_table
 from ..measure.sources import SourceFlag
 from . import (image_arguments, non_negative_float, positive_float, positive_int,
                star_image_options)
-from ._files import place_stars, read_image
+from ._files import one_fit_per_star, place_stars, read_image
 
 
 def add_parser(subparsers):
@@ -121,7 +121,7 @@ def run(args):
 
     from ..calibration.detector import calibration_of_amplifier, read_calibration
     from ..errors import BFPSFInputError, BFPSFValueError
-    from ..interop.photutils import default_fit_shape
+    from ..interop.photutils import default_fit_shape, psf_fwhm
     from ..io.amplifiers import shared_sides
     from ..io.saturation import (beyond_flats, describe_beyond_flats, saturated_stars,
                                  saturation_e)
@@ -222,6 +222,8 @@ def run(args):
                               "n_beyond_flats": beyond,
                               "cross_term_refits": table.meta["cross_term_refits"]})
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
+    # a star near a shared side is fitted on both amplifiers: the fit from its own is kept
+    result, n_twice = one_fit_per_star(result, 2 * psf_fwhm(psf), x="x_fit", y="y_fit")
     result.meta.update({"psf": str(args.psf), "gain": gain, "flux_unit": "electron",
                         "static_psf": bool(args.static)})
     # the EMPIRICAL term the model applied (psf_photometry's meta; None for --static)
@@ -233,10 +235,15 @@ def run(args):
                "static_psf": bool(args.static), "n_stars": len(result),
                "n_flagged": int(np.sum((result["flags"] != 0) | result["saturated"])),
                "n_saturated": int(np.sum(result["saturated"])), "images": per_image,
+               "n_fitted_twice": n_twice,
                "empirical": result.meta["empirical"]}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     n_blended = sum(entry["n_blended"] for entry in per_image)
+    if n_twice:
+        print(f"{n_twice} stars near a side two amplifiers share were fitted on both: the fit "
+              "from the amplifier that holds the star's centre is kept, the other left out "
+              "(n_fitted_twice)", file=sys.stderr)
     warning = describe_beyond_flats(sum(entry["n_beyond_flats"] for entry in per_image),
                                     len(result), min(beyond_tops, default=None))
     if warning:

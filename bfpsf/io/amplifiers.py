@@ -470,6 +470,20 @@ def near_shared_side(x, y, shape, sides, margin):
     return near
 
 
+def shared_side_depth(x, y, shape, sides):
+    """How far (x, y) (pixels of the trimmed amplifier) lies inside the amplifier from its
+    nearest side in ``sides``, pixels (negative beyond it; inf with no shared side): of two
+    fits of one star from the two amplifiers of a shared side, the deeper holds its centre."""
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    ny, nx = shape
+    depth = np.full(np.broadcast(x, y).shape, np.inf)
+    for side, inside in (("left", x + 0.5), ("right", nx - 0.5 - x), ("bottom", y + 0.5),
+                         ("top", ny - 0.5 - y)):
+        if side in sides:
+            depth = np.minimum(depth, inside)
+    return depth
+
+
 def detector_offset(layout):
     """(x0, y0): add to the trimmed amplifier's pixel coordinates for detector coordinates
     (0 without DETSEC; the pixels of a reversed DETSEC are flipped into detector orientation
