@@ -65,7 +65,7 @@ class PSFFromImages:
 def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=None,
                     threshold=None, saturation_e=None, include_bf=True, max_iterations=40,
                     exclude=None, calibration_name="", shift_samples=None, exposure=None,
-                    amplifiers=None):
+                    amplifiers=None, frames=None):
     """Fit the flux-dependent PSF from prepared images (what ``bfpsf psf`` does).
 
     Parameters
@@ -97,6 +97,12 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         The amplifier of each image (``''`` for none). A PSF fitted on the images of one
         named amplifier records it (``amplifier_shifts``), so that photometry and ``slope``
         refuse it for another amplifier; default the calibrations' amplifiers.
+    frames : sequence of (key, x0, y0), optional
+        Per image, its exposure and its place on the detector (the DETSEC offset of an
+        amplifier, pixels): the images of one exposure share their stars' glow, so each
+        image's sky-and-wings fit sees the glow of the stars on the others (a new user's
+        four 128^2 amplifiers, each seeing its own stars' wings alone, gave a flux correction
+        of 1.0000 +- 0.0046 against 1.0083; the same pixels as one image 1.0050 +- 0.0015).
 
     Returns
     -------
@@ -175,7 +181,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         # (the wings' glow biases a sky between the stars; the sky, the wings), then P0
         # refitted on the images with that sky and glow; a known sky is subtracted and only
         # a constant left free (what the wings' glow adds to it is not sky)
-        stars = _stars_of_images(result, len(images))
+        stars = _with_the_exposure_s_stars(_stars_of_images(result, len(images)), frames)
         skies, wings = fit_sky_and_wings(
             [prepared.image_e - prepared.sky.image() if known else prepared.image_e
              for prepared in images], stars, half_size=size // 2,
@@ -285,6 +291,21 @@ def _stars_of_images(result, n_images):
     return [tuple(np.concatenate([np.asarray(part[name], float)[image == index]
                                   for part, image in zip(parts, images)])
                   for name in ("x_fit", "y_fit", "flux_fit")) for index in range(n_images)]
+
+
+def _with_the_exposure_s_stars(stars, frames):
+    """Per image, its own stars (first) and those of the other images of its exposure, in its
+    pixels (`psf_from_images`'s ``frames``); ``stars`` as they are without frames."""
+    if frames is None:
+        return stars
+    out = []
+    for index, (key, x0, y0) in enumerate(frames):
+        parts = [stars[index]] + [(x + x_other - x0, y + y_other - y0, flux)
+                                  for other, ((x, y, flux), (key_other, x_other, y_other))
+                                  in enumerate(zip(stars, frames))
+                                  if other != index and key_other == key]
+        out.append(tuple(np.concatenate(column) for column in zip(*parts)))
+    return out
 
 
 def _glow(wings, stars, shape):

@@ -68,7 +68,7 @@ def add_parser(subparsers):
 
 def run(args):
     from ..calibration.detector import calibration_of_amplifier, read_calibration
-    from ..io.amplifiers import near_shared_side, shared_sides
+    from ..io.amplifiers import detector_offset, near_shared_side, shared_sides
     from ..io.saturation import count_saturated_regions, describe_beyond_flats, saturation_e
     from ..measure.prepare import linearity_of, prepare_image
     from ..resources import check_psf_fit, resource_option
@@ -80,7 +80,7 @@ def run(args):
     check_psf_fit(0, args.size, args.oversampling, args.grid, args.max_iterations)
     calibration = read_calibration(args.calib)
     refinement = {}
-    prepared, calibrations, exclude, saturation, per_image = [], [], [], [], []
+    prepared, calibrations, exclude, saturation, per_image, frames = [], [], [], [], [], []
     for path in args.images:
         amplifiers, _ = read_image(path, args.amp)
         if args.grid is not None and len(amplifiers) > 1:
@@ -117,6 +117,8 @@ def run(args):
             # a star whose light falls on two amplifiers (two gains) is left out, and counted
             exclude.append(lambda xy, shape, side=sides[amplifier.name]: near_shared_side(
                 xy[:, 0], xy[:, 1], shape, side, args.size / 2))
+            # the amplifiers of one exposure share their stars' glow (the sky-and-wings fit)
+            frames.append((str(path), *detector_offset(amplifier.layout)))
             per_image.append({"image": str(path), "amplifier": amplifier.name, "gain": gain,
                               "n_saturated": count_saturated_regions(prepared[-1].image_e,
                                                                      level)})
@@ -129,7 +131,8 @@ def run(args):
                                  include_bf=args.include_bf, max_iterations=args.max_iterations,
                                  exclude=exclude, calibration_name=calibration_name,
                                  exposure=args.exposure_order,
-                                 amplifiers=[entry["amplifier"] for entry in per_image])
+                                 amplifiers=[entry["amplifier"] for entry in per_image],
+                                 frames=frames)
     for entry, found in zip(per_image, fitted.images):
         entry.update(n_detected=found["n_detected"], n_isolated=found["n_isolated"],
                      n_amp_boundary=found["n_excluded"], background_e=found["background_e"],
