@@ -375,6 +375,22 @@ def test_stars_above_the_flats_highest_level_are_counted(cli_files, tmp_path, ca
     assert "flats' highest level" not in capsys.readouterr().err
 
 
+def test_photometry_says_when_the_psf_fit_did_not_converge(cli_files, tmp_path, capsys):
+    """A product whose P0 fit did not converge (CONVERGD false, as `bfpsf psf` writes it)
+    is used with a warning: a new user's P0 of 7 stars was used without one."""
+    from bfpsf.cli import main
+
+    directory, _, _ = cli_files
+    psf = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=2, size=21)
+    image = str(directory / "stars.fits")
+    for converged in (False, True):
+        path = tmp_path / f"psf_{converged}.fits"
+        psf.write(path, meta={"CONVERGD": converged})
+        assert main(["photometry", image, "--psf", str(path), "--gain", "1.5", "-o",
+                     str(tmp_path / f"phot_{converged}.ecsv")]) == 0
+        assert ("its P0 fit did not converge" in capsys.readouterr().err) == (not converged)
+
+
 def test_cli_known_background(cli_files):
     """--background ADU replaces the clipped median of each image (which a dense field of
     bright stars biases high) in psf and photometry, converted with the gain."""
