@@ -14,7 +14,7 @@ from ..outputs import write_json, write_table
 from ..measure.sources import SourceFlag
 from . import (image_arguments, non_negative_float, positive_float, positive_int,
                star_image_options)
-from ._files import one_fit_per_star, place_stars, read_image
+from ._files import one_fit_per_star, place_stars, read_image, warn_unconverged
 
 
 def add_parser(subparsers):
@@ -54,19 +54,6 @@ def add_parser(subparsers):
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     return parser
-
-
-def _warn_unconverged(path):
-    """Say when the PSF product's P0 fit did not converge (its CONVERGD card, `bfpsf psf`):
-    a new user's P0 of 7 stars, "NOT converged", was then used by photometry without a word
-    (-16.6 mmag, scatter 38 mmag)."""
-    from astropy.io import fits
-
-    with fits.open(path) as hdul:
-        converged = hdul[0].header.get("CONVERGD", True)
-    if converged is False:
-        print(f"WARNING: {path}: its P0 fit did not converge (bfpsf psf said so): fluxes "
-              "measured with it may be biased; refit it from more stars", file=sys.stderr)
 
 
 def _amplifier_model(psf, gain, one, amplifier, gain_option, static):
@@ -144,7 +131,6 @@ def run(args):
     check_outputs([args.output, args.json], args.overwrite,
                   inputs=input_files(args.images, args.psf, args.calib))
     psf = FluxDependentPSF.read(args.psf)
-    _warn_unconverged(args.psf)
     if psf.flux_unit != "electron":
         psf = psf.with_flux_unit("electron")  # the images are converted to e- below
     gain = psf.gain if args.gain is None else float(args.gain)
@@ -245,6 +231,7 @@ def run(args):
     result["flux_fit"].unit = "electron"
     result["flux_err"].unit = "electron"
     write_table(result, args.output, overwrite=args.overwrite)
+    warn_unconverged(args.psf)
     summary = {"output": str(args.output), "psf": str(args.psf), "gain": gain,
                "static_psf": bool(args.static), "n_stars": len(result),
                "n_flagged": int(np.sum((result["flags"] != 0) | result["saturated"])),

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError
 from . import _real
+from ._files import warn_unconverged
 from ..files import about, check_outputs, input_files, read_table
 from ..outputs import save_figure, write_json
 
@@ -208,4 +209,6 @@ def run(args):
     print(f"{slopes['n_stars']} stars fitted"
           + (f", colour-corrected with {args.colour} ({colour_fit.n_stars} faint stars)"
              if colour_fit else ""))
+    if args.psf:
+        warn_unconverged(args.psf)
     return 0
