@@ -562,7 +562,7 @@ def test_psf_keeps_each_amplifiers_shifts(tmp_path, capsys):
         f"{tmp_path / 'psf.fits'} is a bfpsf PSF product (bfpsf psf), not an image")
 
 
-def test_amplifiers_share_their_stars_glow_in_the_wings_fit(tmp_path):
+def test_amplifiers_share_their_stars_glow_in_the_wings_fit(tmp_path, capsys, monkeypatch):
     """Kolmogorov x optics stars (2.9 % of their light beyond P0's support) on a detector of
     two 128^2 amplifiers: each amplifier's sky-and-wings fit sees the glow of the stars on
     the other too. Each amplifier alone had seen its own stars' wings only, and its sky plane
@@ -601,3 +601,12 @@ def test_amplifiers_share_their_stars_glow_in_the_wings_fit(tmp_path):
           f"{summary['flux_correction_err']:.4f} against {truth:.4f}")
     assert abs(summary["flux_correction"] - truth) < 3 * summary["flux_correction_err"]
     assert summary["flux_correction_err"] < 0.01
+    assert "poorly measured" not in capsys.readouterr().err
+    # an error beyond the tolerance is said (a new user's crowded amplifiers: +- 0.038)
+    import bfpsf.cli.psf as psf_command
+
+    monkeypatch.setattr(psf_command, "FLUX_CORRECTION_TOLERANCE",
+                        summary["flux_correction_err"] / 2)
+    assert main(["psf", *paths, "--calib", str(tmp_path / "cal.fits"), "-o",
+                 str(tmp_path / "psf2.fits")]) == 0
+    assert "the light beyond P0's support is poorly measured" in capsys.readouterr().err
