@@ -116,6 +116,10 @@ def test_cli_validate_json_and_report(tmp_path, capsys):
     # its spots' photometry adds a noiseless sky by design: no read-noise warning for each
     # spot (a new user's `validate --quick` printed 88 of them)
     assert "read noise" not in captured.err, captured.err[:300]
+    # and the loop's line says what "nothing" means here (a new user read it as a failure)
+    line = next(line for line in captured.out.splitlines() if "closed loop" in line)
+    assert line.startswith("closed loop (bfpsf diagnose) selected: ")
+    assert ("as it should" in line) == (summary["diagnose"]["selected"] == [])
     text = (tmp_path / "report" / "report.md").read_text()
     assert "Truth a vs recovered" in text and "Residual slope" in text
     assert (tmp_path / "report" / "sizes.png").stat().st_size > 1000

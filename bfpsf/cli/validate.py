@@ -97,7 +97,13 @@ def _print_table(result):
               f"{psf['photometry_bias_static_mmag']:+.2f} mmag, P(F) "
               f"{psf['photometry_bias_flux_dependent_mmag']:+.2f} mmag")
     print(f"P(F), inverse and loop used the shifts of: {result['model_shifts']}")
-    print(f"closed loop selected: {', '.join(result['diagnose']['selected']) or 'nothing'}")
+    # the simulation holds brighter-fatter alone: the loop should name no instrument effect
+    # (a new user read "selected: nothing" as a failure)
+    selected = ", ".join(result["diagnose"]["selected"])
+    print("closed loop (bfpsf diagnose) selected: "
+          + (f"{selected} (the simulation holds brighter-fatter alone: a false detection)"
+             if selected else "nothing, as it should: the simulation holds brighter-fatter "
+             "alone, no other instrument effect"))
 
 
 def _print_calibration_error(result):
