@@ -66,23 +66,21 @@ def one_fit_per_star(table, radius, *, x="x", y="y"):
     242)."""
     if "amp_depth" not in table.colnames or len(table) < 2:
         return table, 0
-    boundary = np.flatnonzero(np.asarray(table["amp_boundary"], dtype=bool))
-    drop = set()
-    images = (np.asarray(table["image"]) if "image" in table.colnames
-              else np.zeros(len(table), dtype=int))
-    xs, ys = np.asarray(table[x], dtype=float), np.asarray(table[y], dtype=float)
-    depth = np.asarray(table["amp_depth"], dtype=float)
-    amplifiers = np.asarray(table["amplifier"])
-    for i in boundary:
-        for j in boundary[boundary > i]:
-            if (images[i] == images[j] and amplifiers[i] != amplifiers[j]
-                    and np.hypot(xs[i] - xs[j], ys[i] - ys[j]) < radius):
-                drop.add(int(j if depth[i] >= depth[j] else i))
-    if not drop:
-        return table, 0
+    # the pairs of boundary rows of one image, from two amplifiers, within ``radius``
+    rows = np.flatnonzero(np.asarray(table["amp_boundary"], dtype=bool))
+    images = (np.asarray(table["image"])[rows] if "image" in table.colnames
+              else np.zeros(rows.size, dtype=int))
+    amplifiers = np.asarray(table["amplifier"])[rows]
+    xs, ys = (np.asarray(table[name], dtype=float)[rows] for name in (x, y))
+    depth = np.asarray(table["amp_depth"], dtype=float)[rows]
+    first, second = np.nonzero(np.triu((np.hypot(xs[:, None] - xs, ys[:, None] - ys) < radius)
+                                       & (images[:, None] == images)
+                                       & (amplifiers[:, None] != amplifiers), k=1))
+    # of each pair, the fit from the shallower side is left out
+    drop = np.unique(rows[np.where(depth[first] >= depth[second], second, first)])
     keep = np.ones(len(table), dtype=bool)
-    keep[sorted(drop)] = False
-    return table[keep], len(drop)
+    keep[drop] = False
+    return table[keep], int(drop.size)
 
 
 def warn_unconverged(path):

@@ -187,12 +187,10 @@ def run(args):
             if "source_flags" in table.colnames:  # as `bfpsf measure` flags them
                 table["source_flags"] |= np.where(table["saturated"], SourceFlag.SATURATED, 0)
             _warn_beyond_field(psf, table, path, args.psf)
-            # the brightest pixel of each star: its flux inside P0's support times P0's peak,
-            # on its sky (`bfpsf.io.saturation.beyond_flats`)
+            # the stars whose brightest pixel lies above the flats' highest level
             beyond, top = beyond_flats(
-                np.asarray(table["flux_fit"], float) / table.meta["flux_correction"]
-                * float(np.max(bf_model.star_image(1.0))) + np.asarray(table["sky_e"], float),
-                one)
+                bf_model, np.asarray(table["flux_fit"], float) / table.meta["flux_correction"],
+                table["sky_e"], one)
             beyond_tops += [] if top is None else [top]
             margin = (args.fit_shape or 2 * psf.half_size + 1) / 2
             place_stars(table, amplifier, sides, margin, x="x_fit", y="y_fit")

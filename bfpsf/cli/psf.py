@@ -191,8 +191,9 @@ def run(args):
     summary["n_beyond_flats"] = beyond[0]
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
-    if describe_beyond_flats(*beyond):
-        print(describe_beyond_flats(*beyond), file=sys.stderr)
+    warning = describe_beyond_flats(*beyond)
+    if warning:
+        print(warning, file=sys.stderr)
     if result.diverged:  # flagged in the product (CONVERGD) and the JSON too
         # more iterations do not help (a new user read "raise --max-iterations" after 11 of
         # 80, and "last change 15 of the peak")
@@ -270,16 +271,14 @@ def run(args):
 
 def _beyond_flats(psf, stars, per_image, calibrations):
     """(stars above the flats' highest level, stars, the lowest such level) of the used
-    stars: their brightest pixel, flux times P0's peak plus the image's sky
-    (`bfpsf.io.saturation.beyond_flats`)."""
+    stars, each on its image's sky (`bfpsf.io.saturation.beyond_flats`)."""
     from ..io.saturation import beyond_flats
 
-    peak = float(np.max(psf.star_image(1.0)))
     counts, tops = 0, []
     for index, (entry, calibration) in enumerate(zip(per_image, calibrations)):
         mine = np.asarray(stars["image"]) == index
-        pixels = np.asarray(stars["flux_fit"], float)[mine] * peak + entry["background_e"]
-        count, top = beyond_flats(pixels, calibration)
+        count, top = beyond_flats(psf, np.asarray(stars["flux_fit"], float)[mine],
+                                  entry["background_e"], calibration)
         counts += count
         tops += [] if top is None else [top]
     return counts, len(stars), min(tops) if tops else None

@@ -158,14 +158,16 @@ def flats_top_e(calibration):
     return float(means.max()) if means.size else None
 
 
-def beyond_flats(peak_pixel_e, calibration):
-    """How many of the stars whose brightest pixel holds ``peak_pixel_e`` (e-, sky included)
-    lie above the flats' highest level (`flats_top_e`), and that level (0 and None without
-    one). A new user's stars peaked up to 1.2e5 e- over flats to 1e5: no command said so."""
+def beyond_flats(psf, flux_e, sky_e, calibration):
+    """How many of the stars of fluxes ``flux_e`` inside P0's support (e-) on a sky ``sky_e``
+    (e- per pixel) have a brightest pixel, the flux times P0's peak plus the sky, above the
+    flats' highest level (`flats_top_e`), and that level (0 and None without one). A new
+    user's stars peaked up to 1.2e5 e- over flats to 1e5: no command said so."""
     top = flats_top_e(calibration)
     if top is None:
         return 0, None
-    peaks = np.asarray(peak_pixel_e, dtype=float)
+    peaks = (np.asarray(flux_e, dtype=float) * float(np.max(psf.star_image(1.0)))
+             + np.asarray(sky_e, dtype=float))
     return int(np.sum(peaks[np.isfinite(peaks)] > top)), top
 
 
