@@ -176,6 +176,9 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     result = fit()
 
     known = all(prepared.sky.method == "known" for prepared in images)
+    # the highest sky degree the wings fit may take (it may keep a lower one, which the
+    # images' skies then have)
+    degree = 0 if known else images[0].sky.degree
     for _ in range(1 if known else 2):
         # the sky of every image and the stars' wings beyond the support, fitted jointly
         # (the wings' glow biases a sky between the stars; the sky, the wings), then P0
@@ -185,7 +188,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         skies, wings = fit_sky_and_wings(
             [prepared.image_e - prepared.sky.image() if known else prepared.image_e
              for prepared in images], stars, half_size=size // 2,
-            degree=0 if known else images[0].sky.degree, oversampling=oversampling)
+            degree=degree, oversampling=oversampling)
         if known:
             break
         images = [prepared.with_sky(prepared.sky if prepared.sky.method == "known" else sky,
