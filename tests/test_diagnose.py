@@ -700,3 +700,22 @@ def test_the_verdict_says_how_much_the_flats_errors_could_hide():
     assert "the scale +0.62 +- 0.02, 1.0 of its prior and the X / Y split -0.14" in line
     (line,) = hiding_room(nuisance(0.64, 0.3, against="axis"))
     assert "isotropic" not in line and "on one axis up to 45 %" in line
+
+
+def test_signature_plot_of_candidates_rejected_by_their_range_alone(tmp_path):
+    """A loop whose only rejected candidate lay outside its physical range (a new user's
+    ``xy_anisotropy`` at 8.35) has no signature to draw: the plot names it, and matplotlib's
+    'No artists with labels' warning (an error in this suite) is not raised."""
+    from types import SimpleNamespace
+
+    from bfpsf.plotting.diagnose import plot_signatures
+
+    values = {"slope_x_percent": -27.0, "slope_x_percent_err": 7.6,
+              "slope_y_percent": 25.6, "slope_y_percent_err": 6.2}
+    result = SimpleNamespace(
+        empirical=None, residual_after_heldout=values, residual_after=values, verdict={},
+        rejected={"xy_anisotropy": {"reason": "its fit 8.35 is outside its physical range"}})
+    figure = plot_signatures(result)
+    texts = [text.get_text() for ax in figure.axes for text in ax.texts]
+    assert any("xy_anisotropy" in text for text in texts)
+    figure.savefig(tmp_path / "signatures.png")

@@ -279,7 +279,11 @@ def plot_signatures(result, *, axes=None):
     right.set_xticks(ticks, labels, rotation=30, fontsize=7)
     right.set_ylabel("part amplitude / mean (parity, cross: 1 + slope / error)")
     right.set_title("rejected: the observable that contradicts each", fontsize=9)
-    if result.rejected:
+    if ticks:  # rejected only outside their physical range have no signature to draw
         right.legend(fontsize=7)
+    elif result.rejected:
+        right.text(0.5, 0.5, "rejected outside their physical range:\n"
+                   + ", ".join(result.rejected), ha="center", va="center", fontsize=8,
+                   transform=right.transAxes)
     figure.tight_layout()
     return figure
