@@ -392,6 +392,9 @@ def test_user_path_null_with_the_seeing_of_each_exposure(tmp_path):
     assert [entry for entry in summary["unexplained"] if entry["observable"] == "sizes"] == []
     assert summary["verdict"]["success"], summary["verdict"]
     assert summary["verdict"]["star_residual_chi2_per_pixel"] < 3
+    # no position dependence of the stars' slopes where there is none
+    assert all(value["significance"] < 3 for entry in summary["position_split"].values()
+               for value in entry.values()), summary["position_split"]
 
 
 def test_user_path_null_in_a_crowded_field(tmp_path):
@@ -580,6 +583,12 @@ def test_user_path_reports_a_dependence_on_the_row(tmp_path):
     assert sizes and all(entry["row_dependence"]["kind"].startswith("rising with the row")
                          for entry in sizes), sizes
     assert all(entry["position_dependence"]["kind"] == "none" for entry in sizes), sizes
+    # each star's slope, split at the median row and column, says the same without a model
+    split = summary["position_split"]
+    print({along: {axis: round(value["significance"], 1) for axis, value in entry.items()}
+           for along, entry in split.items()})
+    assert max(value["significance"] for value in split["row"].values()) > 3
+    assert max(value["significance"] for value in split["column"].values()) < 3
     validation = summary["empirical"]["validation"]
     assert validation["row_term"] and not validation["position_term"]
     for axis in "xy":

@@ -28,6 +28,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..diagnosis.position_split import describe_split
 from ..diagnosis.problem import describe_slope
 from ..diagnosis.signature import describe_entry, describe_rejection
 from ..errors import BFPSFInputError, BFPSFValueError
@@ -227,6 +228,7 @@ def run(args):
             args, observables, refined, (result.holdout or {}).get("heldout_exposures"))
     summary["inputs"] = {key: value for key, value in observables.meta.items()
                          if isinstance(value, (str, float, int, bool)) or value is None}
+    summary["position_split"] = observables.meta.get("position_split", {})
     summary["inputs"]["star_residual_p0_not_converged"] = [
         str(observables.meta["image_paths"][index])
         for index in observables.meta.get("star_residual_p0_not_converged", [])]
@@ -250,6 +252,8 @@ def run(args):
         print(line)
     if observables.meta.get("position_bins"):
         print(f"position bins: {observables.meta['position_bins']}")
+    for line in _position_lines(observables):
+        print(line)
     verdict = result.verdict
     if verdict.get("star_residual_chi2_per_pixel") is not None:
         unsettled = summary["inputs"]["star_residual_p0_not_converged"]
@@ -281,7 +285,8 @@ def run(args):
                                       context=context,
                                       residual_images=observables.meta.get("residual_images"),
                                       star_residual=star, overwrite=args.overwrite)
-        _add_signature_report(result, Path(args.report), summary.get("star_residual_refined"))
+        _add_signature_report(result, Path(args.report), observables,
+                              summary.get("star_residual_refined"))
         print(f"report: {path}", file=sys.stderr)
     return 0
 
@@ -316,7 +321,15 @@ def _refined_star_lines(entry):
             "refined one"]
 
 
-def _add_signature_report(result, directory, refined_star=None):
+def _position_lines(observables):
+    """The stars' BF slope in the two halves of the columns and of the rows, where they
+    differ (`bfpsf.diagnosis.position_split`): a test of every star, with or without a
+    position grid."""
+    return [f"position (each star, no model): {line}"
+            for line in describe_split(observables.meta.get("position_split", {}))]
+
+
+def _add_signature_report(result, directory, observables, refined_star=None):
     """signatures.png and a section of report.md: what was rejected and why, what is left,
     the EMPIRICAL term, the verdict (issue 22) and the refined calibration's star residual."""
     from ..outputs import save_figure, write_text
@@ -334,6 +347,7 @@ def _add_signature_report(result, directory, refined_star=None):
     for entry in result.unexplained:
         lines.append(f"- unexplained: {describe_entry(entry)}")
     lines += [f"- {line}" for line in _empirical_lines(result)]
+    lines += [f"- {line}" for line in _position_lines(observables)]
     lines += ["", "![signatures](signatures.png)", ""]
     path = directory / "report.md"
     write_text(path, path.read_text() + "\n".join(lines), overwrite=True)

@@ -22,6 +22,7 @@ from ..measure.sources import aperture_fraction, measure_sources, sky_level
 from ..model.psf_fit import DEFAULT_SIZE, fit_psf
 from ..moments.result import moments_from_hsm
 from .binning import DEFAULT_BINS, auto_position_bins, binned_sizes, position_grid
+from .position_split import star_slope_split
 from .catalogue import split_shifts
 from .nuisances import SCALE, SPLIT
 from .odd_moments import star_skewness
@@ -397,7 +398,9 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
             "p0_exposures": [int(index) for index in fitted],
             "p0_stars": int(np.sum(fit.stars["flags"] == 0)),
             "p0_converged": bool(fit.converged), "aperture_fraction": fraction,
-            "position_bins": chosen or "x".join(map(str, position_grid(position_bins)))}
+            "position_bins": chosen or "x".join(map(str, position_grid(position_bins))),
+            "position_split": star_slope_split(peaks, sigma_x, sigma_y, exposure, columns,
+                                               rows)}
     try:
         ptc = ptc_observable(cal)
     except (BFPSFInputError, BFPSFValueError) as error:
