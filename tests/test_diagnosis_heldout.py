@@ -357,3 +357,23 @@ def test_default_position_grid_where_the_stars_fill_it(stars, n_bins, grid, bins
     chosen, n, words = auto_position_bins([stars + 10, stars], n_bins)
     assert (chosen, n) == (grid, bins)
     assert words.startswith("2x2 (auto" if grid != 1 else "not tested (auto")
+
+
+@pytest.mark.parametrize("significances, n_bins, grid, bins", [
+    ({"row": 8.6, "column": 0.2}, None, (1, 2), 9), ({"row": 1.0, "column": 4.0}, None, (2, 1), 9),
+    ({"row": 2.0, "column": 2.5}, None, 1, 10), ({"row": 8.6, "column": 0.2}, 6, (1, 2), 6),
+    ({"row": 8.6, "column": 0.2}, 12, 1, 12)])
+def test_too_few_stars_for_the_grid_split_the_direction_every_star_depends_on(
+        significances, n_bins, grid, bins):
+    """55 stars per exposure are too few for a 2 x 2 grid; where every star's BF slope
+    depends on the row (or the column) beyond 3 sigma (`position_split`), that direction is
+    split in two (a new user's row-growing smear: its EMPIRICAL term then has a row term),
+    with as many peak bins as each half fills with 3 stars (9), or the user's if they fit."""
+    from bfpsf.diagnosis.binning import auto_position_bins
+
+    split = {along: {"x": {"significance": 0.1}, "y": {"significance": value}}
+             for along, value in significances.items()}
+    chosen, n, words = auto_position_bins([60, 55], n_bins, split)
+    assert (chosen, n) == (grid, bins)
+    if grid != 1:
+        assert "depends on the " + ("row" if grid == (1, 2) else "column") in words

@@ -5,6 +5,7 @@ with errors pooled over the rows of each flux bin."""
 import numpy as np
 
 from ..errors import BFPSFInputError
+from .position_split import SPLIT_NSIGMA
 from .tables import SizeTable
 
 __all__ = ["AUTO_POSITION_GRID", "DEFAULT_BINS", "MIN_GRID_BINS", "auto_position_bins",
@@ -34,9 +35,13 @@ MIN_GRID_BINS = 6
 MIN_ONE_RANGE_BINS = 3
 
 
-def auto_position_bins(stars_per_exposure, n_bins=None):
+def auto_position_bins(stars_per_exposure, n_bins=None, split=None):
     """``position_bins='auto'``: `AUTO_POSITION_GRID` when the exposure with the fewest stars
-    fills each of its peak bins x 4 cells with 3 stars, else one range.
+    fills each of its peak bins x 4 cells with 3 stars; else two ranges of the row (1 x 2)
+    or of the column (2 x 1) where every star's BF slope shows a dependence on it
+    (``split``, `bfpsf.diagnosis.position_split.star_slope_split`, beyond its
+    `SPLIT_NSIGMA`) and each cell can hold 3 stars in `MIN_ONE_RANGE_BINS` peak bins or
+    more; else one range.
 
     With ``n_bins`` None (not chosen by the user) the peak bins are `DEFAULT_BINS`, or as
     many as the grid leaves (at least `MIN_GRID_BINS`, so 72 stars per exposure): a new
@@ -62,6 +67,17 @@ def auto_position_bins(stars_per_exposure, n_bins=None):
     if fits >= bins:
         return AUTO_POSITION_GRID, bins, (f"{grid} (auto: {fewest} or more stars per "
                                           f"exposure, {bins} peak bins)")
+    along = _dependent_direction(split)
+    if along is not None and (n_bins is None or fewest // (3 * 2) >= int(n_bins)):
+        # one axis of the position split in two: the direction every star's slope depends on
+        halves = fewest // (3 * 2)
+        bins = int(n_bins) if n_bins is not None else int(min(halves, DEFAULT_BINS))
+        if bins >= MIN_ONE_RANGE_BINS:
+            grid = (1, 2) if along == "row" else (2, 1)
+            return grid, bins, (f"{grid[0]}x{grid[1]} (auto: {fewest} stars in an exposure, "
+                                f"too few for a {'x'.join(map(str, AUTO_POSITION_GRID))} "
+                                f"grid; every star's BF slope depends on the {along}; "
+                                f"{bins} peak bins)")
     if n_bins is None:
         # one range: as many bins as a typical exposure fills with 3 stars each, at least 3
         # (helper-30's 9 stars per exposure in 10 bins left 5 binned points for 4 exposures
@@ -71,6 +87,17 @@ def auto_position_bins(stars_per_exposure, n_bins=None):
     return 1, bins, (f"not tested (auto: {fewest} stars in an exposure; a {grid} grid of "
                      f"{fewest_bins} peak bins needs {3 * cells * fewest_bins}: "
                      "give --bins and --position-bins)")
+
+
+def _dependent_direction(split):
+    """"row" or "column", whichever every star's BF slope depends on the more significantly
+    beyond `SPLIT_NSIGMA` (on either axis), or None."""
+    best, along = SPLIT_NSIGMA, None
+    for name, entry in (split or {}).items():
+        significance = max((value["significance"] for value in entry.values()), default=0.0)
+        if significance > best:
+            best, along = significance, name
+    return along
 
 
 def _quantile_cells(values, count):

@@ -13,6 +13,7 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
 from .empirical_fit import adaptive_response, early_late, evaluate_empirical, fit_empirical
 from .nuisances import HELDOUT_LABEL
+from .position_split import SPLIT_NSIGMA
 from .problem import build_problem, effect_design, summarise
 from .tables import CorrelationTable, LinearityTable, Observables, PTCTable
 from .tables import interleaved as _interleaved
@@ -210,6 +211,11 @@ def term_leaves(validation, nsigma=LEFT_NSIGMA):
     return left
 
 
+def _splits(entry):
+    """Whether a `position_split` entry (one direction) is beyond its `SPLIT_NSIGMA`."""
+    return any(value["significance"] > SPLIT_NSIGMA for value in (entry or {}).values())
+
+
 def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0):
     """The EMPIRICAL term (`bfpsf.diagnosis.empirical_fit`) when a size residual is left:
     fitted on the loop's fit part, judged on its held-out exposures and, with at least 4
@@ -227,6 +233,12 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
 
     position, row, exposure = (shows(key) for key in ("position_dependence", "row_dependence",
                                                       "exposure_dependence"))
+    # or where every star's BF slope depends on the column or row (`position_split`), which
+    # the binned residual may not resolve (a new user's smear growing with the row, 55 stars
+    # per exposure: unreported, and a term without it left -16 % of the raw slope held out)
+    split = observables.meta.get("position_split") or {}
+    position = position or _splits(split.get("column"))
+    row = row or _splits(split.get("row"))
     step = _kept_step(result, state, result.confirmed)
     model = observables.spot_model
 

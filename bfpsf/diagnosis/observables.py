@@ -345,13 +345,15 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
         msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean star(s), too few to "
                "diagnose (9 or more)")
         raise BFPSFInputError(msg, fluxes.size)
+    # every star's BF slope against its column and row: a test that needs no grid
+    split = star_slope_split(peaks, sigma_x, sigma_y, exposure, columns, rows)
     chosen = None
     if isinstance(position_bins, str):
         if position_bins != "auto":
             msg = f"position_bins must be an int, (columns, rows) or 'auto', got {position_bins!r}"
             raise BFPSFValueError(msg, position_bins)
         position_bins, n_bins, chosen = auto_position_bins(
-            np.bincount(exposure)[np.unique(exposure)], n_bins)
+            np.bincount(exposure)[np.unique(exposure)], n_bins, split)
     elif n_bins is None:
         n_bins = DEFAULT_BINS
     cells = int(np.prod(position_grid(position_bins)))
@@ -399,8 +401,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
             "p0_stars": int(np.sum(fit.stars["flags"] == 0)),
             "p0_converged": bool(fit.converged), "aperture_fraction": fraction,
             "position_bins": chosen or "x".join(map(str, position_grid(position_bins))),
-            "position_split": star_slope_split(peaks, sigma_x, sigma_y, exposure, columns,
-                                               rows)}
+            "position_split": split}
     try:
         ptc = ptc_observable(cal)
     except (BFPSFInputError, BFPSFValueError) as error:
