@@ -224,6 +224,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     psf.flux_correction = 1.0 + wings.fraction
     psf.flux_correction_err = wings.fraction_err
     psf.star_flux_e = _star_flux(result) * psf.electrons_per_unit
+    psf.p0_converged = bool(result.converged)
     _size_offsets(per_image, images, result, psf)
     return PSFFromImages(psf, result, per_image)
 

@@ -559,6 +559,10 @@ def test_unconverged_psf_fit_is_reported(workdir, capsys):
     assert err.startswith("WARNING: P0 did not converge in 1 iterations (last change ")
     with fits.open("p.fits") as hdul:
         assert hdul[0].header["CONVERGD"] is False
+    # and in the product's metadata, for the Python user and every command that reads it
+    from bfpsf import read_psf
+
+    assert read_psf("p.fits").p0_converged is False
 
 
 def test_non_finite_block_in_a_flat_is_reported(workdir, capsys):

@@ -376,19 +376,23 @@ def test_stars_above_the_flats_highest_level_are_counted(cli_files, tmp_path, ca
 
 
 def test_photometry_says_when_the_psf_fit_did_not_converge(cli_files, tmp_path, capsys):
-    """A product whose P0 fit did not converge (CONVERGD false, as `bfpsf psf` writes it)
-    is used with a warning: a new user's P0 of 7 stars was used without one."""
+    """A product whose P0 fit did not converge (``p0_converged`` false, its CONVERGD card,
+    as `bfpsf psf` writes it) is used with a warning: a new user's P0 of 7 stars was used
+    without one. A model not fitted from stars (``p0_converged`` None) is used without."""
     from bfpsf.cli import main
 
     directory, _, _ = cli_files
     psf = FluxDependentPSF.from_galsim(MOFFAT, SHIFTS, oversampling=2, size=21)
     image = str(directory / "stars.fits")
-    for converged in (False, True):
+    for converged in (False, True, None):
         path = tmp_path / f"psf_{converged}.fits"
-        psf.write(path, meta={"CONVERGD": converged})
+        psf.p0_converged = converged
+        psf.write(path)
+        assert FluxDependentPSF.read(path).p0_converged is converged
         assert main(["photometry", image, "--psf", str(path), "--gain", "1.5", "-o",
                      str(tmp_path / f"phot_{converged}.ecsv")]) == 0
-        assert ("its P0 fit did not converge" in capsys.readouterr().err) == (not converged)
+        assert ("its P0 fit did not converge" in capsys.readouterr().err) == (
+            converged is False)
 
 
 def test_cli_known_background(cli_files):

@@ -83,14 +83,11 @@ def one_fit_per_star(table, radius, *, x="x", y="y"):
     return table[keep], int(drop.size)
 
 
-def warn_unconverged(path):
-    """Say when the PSF product's P0 fit did not converge (its CONVERGD card, `bfpsf psf`):
-    a new user's P0 of 7 stars, "NOT converged", was then used by photometry without a word
-    (-16.6 mmag, scatter 38 mmag). `photometry` and `slope --psf` call it."""
-    from astropy.io import fits
-
-    with fits.open(path) as hdul:
-        converged = hdul[0].header.get("CONVERGD", True)
-    if converged is False:
+def warn_unconverged(psf, path):
+    """Say when the PSF product's P0 fit did not converge (``psf.p0_converged``, its CONVERGD
+    card, `bfpsf psf`): a new user's P0 of 7 stars, "NOT converged", was then used by
+    photometry without a word (-16.6 mmag, scatter 38 mmag). `photometry` and `slope --psf`
+    call it."""
+    if psf.p0_converged is False:
         print(f"WARNING: {path}: its P0 fit did not converge (bfpsf psf said so): what is "
               "measured with it may be biased; refit it from more stars", file=sys.stderr)

@@ -229,7 +229,7 @@ def run(args):
     result["flux_fit"].unit = "electron"
     result["flux_err"].unit = "electron"
     write_table(result, args.output, overwrite=args.overwrite)
-    warn_unconverged(args.psf)
+    warn_unconverged(psf, args.psf)
     summary = {"output": str(args.output), "psf": str(args.psf), "gain": gain,
                "static_psf": bool(args.static), "n_stars": len(result),
                "n_flagged": int(np.sum((result["flags"] != 0) | result["saturated"])),

@@ -149,7 +149,6 @@ def run(args):
     psf = fitted.psf
     gain = float(psf.gain)  # of the images the stars came from, weighted by their stars
     psf.write(args.output, meta={"NSTARS": int(np.sum(result.stars["flags"] == 0)),
-                                 "CONVERGD": bool(result.converged),
                                  "BFTERM": bool(args.include_bf)},
               overwrite=args.overwrite)
     from ..interop.photutils import describe_outlying_nodes, outlying_nodes, psf_fwhm

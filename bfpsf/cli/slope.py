@@ -210,5 +210,5 @@ def run(args):
           + (f", colour-corrected with {args.colour} ({colour_fit.n_stars} faint stars)"
              if colour_fit else ""))
     if args.psf:
-        warn_unconverged(args.psf)
+        warn_unconverged(psf, args.psf)
     return 0

@@ -105,7 +105,7 @@ def validate_data(data):
 #: Metadata every kind carries (name -> default factory), copied by the derived models.
 _METADATA = {"calibration": str, "linearity_c_per_1e5": float,
              "flux_correction": lambda: 1.0, "flux_correction_err": lambda: float("nan"),
-             "star_flux_e": lambda: float("nan"),
+             "star_flux_e": lambda: float("nan"), "p0_converged": lambda: None,
              "wing_coefficients": tuple, "wing_tail_power": lambda: 4.0, "wing_half_size": int,
              "empirical": lambda: None}
 

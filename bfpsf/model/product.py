@@ -24,7 +24,8 @@ Schema 6 adds the metadata every PSF kind carries (`bfpsf.model.base`): ``LINC``
 calibration's linearity correction c per 1e5 e-, applied to the images on input; 0 when none),
 ``FLUXCORR`` / ``FLUXCERR`` (total flux over the flux P0 holds in its support, and its error:
 the aperture correction photometry applies; 1 and no FLUXCERR when not measured; ``STARFLUX``,
-optional: the flux in e- the fitted stars weigh in at, `BFPSFModel.shape_error`), ``WINGAMP``
+optional: the flux in e- the fitted stars weigh in at, `BFPSFModel.shape_error`; ``CONVERGD``,
+optional: whether the P0 fit converged, ``psf.p0_converged``, None without it), ``WINGAMP``
 / ``WINGPOW`` (the power law A r^-p of the wings beyond the support, per pixel per unit flux
 inside it; A = 0 when not measured). Files of
 schema <= 5 read with those defaults.
@@ -129,6 +130,8 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
         header["FLUXCERR"] = (float(psf.flux_correction_err), "error of FLUXCORR")
     if np.isfinite(psf.star_flux_e):  # absent: not fitted from stars
         header["STARFLUX"] = (float(psf.star_flux_e), "e-: the flux the fitted stars weigh in at")
+    if psf.p0_converged is not None:  # absent: not fitted from stars
+        header["CONVERGD"] = (bool(psf.p0_converged), "the P0 fit converged")
     for key, value in (meta or {}).items():
         header[key] = value
     north = fits.ImageHDU(np.asarray(psf.shifts.north), name="SHIFT_N")
@@ -266,6 +269,8 @@ def read_psf(path, *, cls=None, **kwargs):
                     "flux_correction": float(header.get("FLUXCORR", 1.0)),
                     "flux_correction_err": float(header.get("FLUXCERR", np.nan)),
                     "star_flux_e": float(header.get("STARFLUX", np.nan)),
+                    "p0_converged": (bool(header["CONVERGD"]) if "CONVERGD" in header
+                                     else None),
                     "empirical": _read_empirical(hdul)}
         wings = _read_wings(header)
         samples = ()
