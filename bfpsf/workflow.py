@@ -134,7 +134,8 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                           "n_excluded": int(np.sum(excluded)),
                           "background_e": prepared.sky.level,
                           "sky_slope": list(prepared.sky.slope),
-                          "sky_method": prepared.sky.method})
+                          "sky_method": prepared.sky.method,
+                          "sky_degree": prepared.sky.degree})
     buildups = {calibration.refinement.get("buildup_steps")
                 for calibration in calibrations if getattr(calibration, "refinement", None)}
     buildups.discard(None)
@@ -197,7 +198,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         result = fit()
     for entry, prepared in zip(per_image, images):
         entry.update(background_e=prepared.sky.level, sky_slope=list(prepared.sky.slope),
-                     sky_method=prepared.sky.method)
+                     sky_method=prepared.sky.method, sky_degree=prepared.sky.degree)
     psf = result.psf
     psf.empirical = empirical
     psf.calibration = str(calibration_name)

@@ -652,4 +652,5 @@ def test_crowded_small_amplifiers_keep_a_constant_sky_in_the_wings_fit(tmp_path)
     DetectorCalibration({name: replace(make_calibration(shifts, gain, 5.0), amplifier=name)
                          for name, gain in zip(names, gains)}).write(tmp_path / "cal.fits")
     _, summary, truth = _amplifier_fields_psf(tmp_path, field, profile, names, gains, 4602)
+    assert [entry["sky_degree"] for entry in summary["images"]] == [0] * 8
     assert abs(summary["flux_correction"] - truth) < 0.01
