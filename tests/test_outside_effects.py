@@ -610,10 +610,19 @@ def test_user_path_finds_the_row_with_too_few_stars_for_the_grid(tmp_path):
     slope shows the row (`position_split`), so the rows are split in two and the EMPIRICAL
     term learns its row term (a new user's 55 stars per exposure had no grid and no row term:
     -16 % of the raw Y slope left held out)."""
-    summary, _ = _row_smear_diagnosis(tmp_path, 6)
+    from bfpsf.calibration.product import Calibration
+    from bfpsf.model.empirical import EmpiricalTerm
+
+    summary, refined = _row_smear_diagnosis(tmp_path, 6)
     print(summary["inputs"]["position_bins"], summary["empirical"]["validation"]["heldout"])
     assert summary["inputs"]["position_bins"].startswith("1x2 (auto")
     _row_term_learned(summary, 0.3)
+    # the term's field is the rows and columns the stars span, not the bins' mean positions
+    # (a new user's photometry said a quarter of the stars of the fitted images lay beyond it)
+    term = EmpiricalTerm.from_calibration(Calibration.read(refined))
+    columns, rows = summary["star_extent"]
+    assert term.y_range == tuple(rows) and term.x_range == tuple(columns)
+    assert term.row_dependent
 
 
 def _row_term_learned(summary, fraction):

@@ -2,6 +2,7 @@
 on sizes drawn from an analytic model: sigma = s0 + b p + c p^2 (+ d p y / H) + noise."""
 
 import numpy as np
+import pytest
 
 from bfpsf.diagnosis.position_split import describe_split, star_slope_split
 
@@ -46,3 +47,31 @@ def test_no_dependence_is_found_where_there_is_none():
     values = np.array(values)
     assert values.max() < 4, values.max()
     assert 0.5 < np.sqrt(np.mean(values ** 2)) < 1.5, np.sqrt(np.mean(values ** 2))
+
+
+def test_a_binned_none_gives_way_to_the_test_of_every_star():
+    """The unexplained report's position dependence: where the bins' mean positions read
+    none (a new user's 2 x 1 cells: 2.9 sigma) but every star's slope shows it (10.8 sigma),
+    the report says the stars' (per 1000 pixels, as the binned one); a binned finding, or a
+    per-star one below 3 sigma, is kept as it is."""
+    from types import SimpleNamespace
+
+    from bfpsf.diagnosis.unexplained import _each_star
+
+    split = {"column": {"x": {"slope": 0.0437, "change": 0.0284, "change_err": 0.0026,
+                              "significance": 10.9, "span": 245.0},
+                        "y": {"slope": 0.04, "change": 0.001, "change_err": 0.002,
+                              "significance": 0.5, "span": 245.0}}}
+    observables = SimpleNamespace(meta={"position_split": split})
+    labels = ("rising with distance from the amplifier", "falling with distance from the "
+              "amplifier")
+    none = {"kind": "none", "per_1e5_per_unit": 0.05, "error": 0.017, "significance": 2.9}
+    found = _each_star(none, observables, "column", "x", labels)
+    assert found["kind"] == labels[0] and found["source"] == "each star"
+    assert found["per_1e5_per_unit"] == pytest.approx(0.0284 * 1000 / 245.0, rel=1e-12)
+    assert found["significance"] == 10.9
+    assert _each_star(none, observables, "column", "y", labels) is none
+    assert _each_star(none, observables, "row", "x", labels) is none
+    binned = dict(none, kind=labels[1], significance=4.0)
+    assert _each_star(binned, observables, "column", "x", labels) is binned
+    assert _each_star(None, observables, "column", "x", labels)["kind"] == labels[0]

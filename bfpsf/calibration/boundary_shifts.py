@@ -132,8 +132,8 @@ def shift_warnings(solution):
     for name in getattr(solution, "at_bound", ()):
         warnings.append(f"electrostatic parameter {name} ended on its physical bound: its "
                         f"error (and the shifts' errors) may be underestimated (more flat pairs "
-                        f"or levels constrain it; --shift-method ei solves the shifts without "
-                        f"the sensor model, with its own errors)")
+                        f"or levels constrain it; `bfpsf calibrate --shift-method ei` solves "
+                        f"the shifts without the sensor model, with its own errors)")
     sensitivity = getattr(solution, "sensitivity", None)
     if sensitivity and sensitivity.get("max_relative", 0.0) > EI_SENSITIVITY_TOLERANCE:
         warnings.append(f"the Ei solution depends on its smoothing model: shifts change by up to "

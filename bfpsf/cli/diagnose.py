@@ -229,6 +229,7 @@ def run(args):
     summary["inputs"] = {key: value for key, value in observables.meta.items()
                          if isinstance(value, (str, float, int, bool)) or value is None}
     summary["position_split"] = observables.meta.get("position_split", {})
+    summary["star_extent"] = observables.meta.get("star_extent")
     summary["inputs"]["star_residual_p0_not_converged"] = [
         str(observables.meta["image_paths"][index])
         for index in observables.meta.get("star_residual_p0_not_converged", [])]

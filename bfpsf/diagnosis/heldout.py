@@ -7,6 +7,8 @@ them, and `with_heldout` measures the selected model's residual on the held-out 
 on the held-out exposures and on a contiguous block of late ones.
 """
 
+import dataclasses
+
 import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
@@ -211,6 +213,17 @@ def term_leaves(validation, nsigma=LEFT_NSIGMA):
     return left
 
 
+def _with_star_extent(term, observables):
+    """``term`` with the columns and rows the stars span as its field (``x_range``,
+    ``y_range``) instead of the size bins' mean positions: a new user's photometry said 13 of
+    45 stars lay beyond the field of a PSF fitted on those very images (x 45 to 249 against
+    the stars' 26 to 273)."""
+    extent = observables.meta.get("star_extent")
+    if extent is None:
+        return term
+    return dataclasses.replace(term, x_range=tuple(extent[0]), y_range=tuple(extent[1]))
+
+
 def _splits(entry):
     """Whether a `position_split` entry (one direction) is beyond its `SPLIT_NSIGMA`."""
     return any(value["significance"] > SPLIT_NSIGMA for value in (entry or {}).values())
@@ -222,8 +235,6 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
     exposures, fitted on the early exposures and judged on a contiguous late block. Its
     diagonal pattern is fitted where the stars' e2 change is unexplained too (the model's e2,
     `SpotForwardModel.cross`, subtracted)."""
-    import dataclasses
-
     left = [entry for entry in result.unexplained if entry["observable"] == "sizes"]
     diagonal = any(entry["observable"] == "cross moment e2" for entry in result.unexplained)
     if not (left or diagonal) or observables.sizes is None:
@@ -253,8 +264,8 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
 
     response = adaptive_response(model, float(np.median(observables.sizes.peak_e)))
     options = {"position": position, "row": row, "exposure": exposure, "response": response}
-    term = fit_empirical(*inputs(state["observables"]), **options,
-                         **cross(state["observables"]))
+    term = _with_star_extent(fit_empirical(*inputs(state["observables"]), **options,
+                                           **cross(state["observables"])), observables)
     validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
                   "position_term": position, "row_term": row, "exposure_term": exposure,
                   "diagonal_term": diagonal}
@@ -282,8 +293,6 @@ def with_heldout(result, state, heldout, fraction):
     """The result with the held-out residuals (after: the confirmed effects alone), the
     confirmation of each selected effect and the unexplained residuals (judged on the
     held-out data)."""
-    import dataclasses
-
     chi2 = []
     evaluations = []
     for step in state["steps"]:

@@ -401,7 +401,11 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
             "p0_stars": int(np.sum(fit.stars["flags"] == 0)),
             "p0_converged": bool(fit.converged), "aperture_fraction": fraction,
             "position_bins": chosen or "x".join(map(str, position_grid(position_bins))),
-            "position_split": split}
+            "position_split": split,
+            # the columns and rows the stars span (an EMPIRICAL term's field; the size bins'
+            # mean positions span a fraction of it)
+            "star_extent": ((float(columns.min()), float(columns.max())),
+                            (float(rows.min()), float(rows.max())))}
     try:
         ptc = ptc_observable(cal)
     except (BFPSFInputError, BFPSFValueError) as error:
