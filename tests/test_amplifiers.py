@@ -631,7 +631,8 @@ def test_crowded_small_amplifiers_keep_a_constant_sky_in_the_wings_fit(tmp_path)
     plane per amplifier trades its tilts with the glow's run across so small an image (a new
     user's: flux correction 1.080 +- 0.038 against 1.008, every flux 75 mmag bright). The
     images prefer a constant, whose fraction is kept: within 3 errors and 1 % of the truth
-    (measured 1.0078 +- 0.0098 against 1.0080; with a plane per amplifier 1.0252 +- 0.0073).
+    (one exposure, measured 1.0089 +- 0.0247 against 1.0080; with a plane per amplifier
+    1.0553 +- 0.0497; two exposures: 1.0078 +- 0.0098, 1.0252 +- 0.0073).
     Four amplifiers side by side: each one's neighbours are one or two amplifiers, as on a
     2 x 2 detector."""
     from dataclasses import replace
@@ -645,12 +646,12 @@ def test_crowded_small_amplifiers_keep_a_constant_sky_in_the_wings_fit(tmp_path)
 
     shifts = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
     profile = galsim.Kolmogorov(fwhm=3.2)
-    field = simulate_field(profile, n_images=2, shape=(128, 512), n_stars=240,
+    field = simulate_field(profile, n_images=1, shape=(128, 512), n_stars=240,
                            min_separation=10.0, sensor=None, shifts=shifts, seed=4601,
                            stamp=101, sky_range_e=(300.0, 300.0))
     names, gains = ("C00", "C01", "C02", "C03"), (1.4, 1.7, 1.5, 1.6)
     DetectorCalibration({name: replace(make_calibration(shifts, gain, 5.0), amplifier=name)
                          for name, gain in zip(names, gains)}).write(tmp_path / "cal.fits")
     _, summary, truth = _amplifier_fields_psf(tmp_path, field, profile, names, gains, 4602)
-    assert [entry["sky_degree"] for entry in summary["images"]] == [0] * 8
+    assert [entry["sky_degree"] for entry in summary["images"]] == [0] * 4
     assert abs(summary["flux_correction"] - truth) < 0.01
