@@ -102,7 +102,7 @@ def test_cli_validate_json_and_report(tmp_path, capsys):
             "--flat-size", "128",
             "--flat-levels", "2e4", "5e4", "8e4", "1.1e5", "--no-progress",
             "--json", str(tmp_path / "v.json"), "--report", str(tmp_path / "report")]
-    assert main(args) == 0
+    code = main(args)
     summary = json.loads((tmp_path / "v.json").read_text())
     assert {"slopes", "prediction", "psf", "inverse", "diagnose", "area"} <= set(summary)
     # the residual after P(F) is printed with the flats' own calibration error beside it (a
@@ -120,11 +120,23 @@ def test_cli_validate_json_and_report(tmp_path, capsys):
     line = next(line for line in captured.out.splitlines() if "closed loop" in line)
     assert line.startswith("closed loop (bfpsf diagnose) selected: ")
     assert ("as it should" in line) == (summary["diagnose"]["selected"] == [])
+    # and the run ends on a verdict (a new user saw no pass or fail), its exit code with it:
+    # four flat pairs of 128^2 are too few (3 seeds of 4 predict a BF of the wrong sign, 3.3
+    # to 5.7 sigma off, and P(F) makes the photometry worse than a static PSF), and whichever
+    # way this seed goes, the verdict says what it found
+    from bfpsf.cli.validate import verdict_failures
+
+    assert summary["verdict"]["failures"] == verdict_failures(summary)
+    assert code == (0 if summary["verdict"]["passed"] else 1)
+    last = captured.out.splitlines()[-1]
+    assert last.startswith("verdict: PASS: " if summary["verdict"]["passed"] else
+                           "verdict: FAIL: " + summary["verdict"]["failures"][0])
     text = (tmp_path / "report" / "report.md").read_text()
     assert "Truth a vs recovered" in text and "Residual slope" in text
     assert (tmp_path / "report" / "sizes.png").stat().st_size > 1000
     # outputs are never overwritten without --overwrite
     assert main(args) == 1
+    assert "pass --overwrite to replace it" in capsys.readouterr().err
 
 
 def test_cli_diagnose_measured(tmp_path, capsys):
@@ -192,3 +204,26 @@ def test_cli_diagnose_images_mode(tmp_path, capsys):
     # loop's P0 (`p0_converged`); the one exposure's converged here
     assert summary["inputs"]["star_residual_p0"] == "per exposure"
     assert summary["inputs"]["star_residual_p0_not_converged"] == []
+
+
+def test_the_verdict_names_what_fails(tiny_run):
+    """`verdict_failures` on a run doctored one way at a time: a false detection, a
+    prediction 4 sigma off, a residual beyond its errors, P(F) no better than a static PSF."""
+    import copy
+
+    from bfpsf.cli.validate import verdict_failures
+
+    assert verdict_failures(tiny_run) == []
+    run = copy.deepcopy(tiny_run)
+    run["diagnose"]["selected"] = ["gain_nonlinearity"]
+    assert verdict_failures(run) == ["the loop named gain_nonlinearity (a false detection)"]
+    run = copy.deepcopy(tiny_run)
+    row = next(row for row in run["prediction"]["rows"] if row["shifts"] == run["model_shifts"])
+    row["pull_y"] = 4.0
+    assert [text.split(" slope")[0] for text in verdict_failures(run)] == ["Y"]
+    run = copy.deepcopy(tiny_run)
+    run["psf"]["residual_slope_x_percent"] = 1e3
+    assert verdict_failures(run)[0].startswith("P(F) leaves +1000.0 % of the raw X slope")
+    run = copy.deepcopy(tiny_run)
+    run["psf"]["photometry_bias_flux_dependent_mmag"] = run["psf"]["photometry_bias_static_mmag"]
+    assert "is not below the static PSF's" in verdict_failures(run)[0]
