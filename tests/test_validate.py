@@ -128,9 +128,15 @@ def test_cli_validate_json_and_report(tmp_path, capsys):
 
     assert summary["verdict"]["failures"] == verdict_failures(summary)
     assert code == (0 if summary["verdict"]["passed"] else 1)
-    last = captured.out.splitlines()[-1]
-    assert last.startswith("verdict: PASS: " if summary["verdict"]["passed"] else
-                           "verdict: FAIL: " + summary["verdict"]["failures"][0])
+    lines = captured.out.splitlines()
+    index = next(index for index, line in enumerate(lines) if line.startswith("verdict: "))
+    assert lines[index].startswith("verdict: PASS: " if summary["verdict"]["passed"] else
+                                   "verdict: FAIL: " + summary["verdict"]["failures"][0])
+    # a failed run is followed by what the flats' calibration said of itself (this set: its
+    # shifts' sign unphysical, their amplitude poorly determined)
+    said = [line.split("warned: ", 1)[1] for line in lines[index + 1:]]
+    assert said == (summary["calibration"]["warnings"] if not summary["verdict"]["passed"]
+                    else [])
     text = (tmp_path / "report" / "report.md").read_text()
     assert "Truth a vs recovered" in text and "Residual slope" in text
     assert (tmp_path / "report" / "sizes.png").stat().st_size > 1000

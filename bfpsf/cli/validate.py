@@ -147,6 +147,9 @@ def run(args):
     failures = verdict_failures(result)
     print("verdict: " + ("PASS: " + VERDICT_CHECKS if not failures
                          else "FAIL: " + "; ".join(failures)))
+    if failures:  # what the flats' calibration said of itself, as `bfpsf calibrate` says it
+        for warning in result["calibration"].get("warnings", []):
+            print(f"  the flats calibration warned: {warning}")
     if args.json:
         summary = {key: value for key, value in result.items()
                    if key not in ("diagnosis", "truth_area", "residual_images")}

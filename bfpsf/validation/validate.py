@@ -165,7 +165,8 @@ def _stage_flats(config):
         # reported in the table; the spot stages still run with the truth shifts
         return _unavailable(f"calibration failed: {error}"), None
     return {"available": True, "gain": cal.gain, "gain_err": cal.gain_err,
-            "gain_true": config.gain, "n_flats": len(flats)}, cal
+            "gain_true": config.gain, "n_flats": len(flats),
+            "warnings": list(getattr(cal, "warnings", ()))}, cal
 
 
 def _stage_truth(config, cal):
