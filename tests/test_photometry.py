@@ -551,3 +551,26 @@ def test_read_noise_from_the_image_when_the_calibration_left_it_undetermined(cli
         with caplog.at_level(logging.WARNING, logger="bfpsf"):
             psf_photometry(prepared, model, read_noise_e=noise)
         assert ("times what the image's sky pixels show" in caplog.text) == said, noise
+
+
+def test_psf_says_when_its_calibration_makes_stars_shrink(cli_files, tmp_path, capsys):
+    """Boundary shifts of the unphysical sign (a charged pixel's boundaries moving outward, as
+    four 128^2 flat pairs gave through the electrostatic solver) make P(F)'s stars shrink
+    with flux: `psf` says so and records the size change (the physical calibration's stars
+    grow: no warning)."""
+    from bfpsf.cli import main
+    from bfpsf.shifts import BoundaryShifts
+
+    directory, _, _ = cli_files
+    image = str(directory / "stars.fits")
+    outward = BoundaryShifts(-np.asarray(SHIFTS.north), -np.asarray(SHIFTS.east))
+    make_calibration(outward, 1.5, 5.0).write(tmp_path / "outward_calib.fits")
+    for name, calib in (("physical", str(directory / "calib.fits")),
+                        ("outward", str(tmp_path / "outward_calib.fits"))):
+        assert main(["psf", image, "--calib", calib, "-o", str(tmp_path / f"{name}.fits"),
+                     "--size", "21", "--json", str(tmp_path / f"{name}.json")]) == 0
+        change = json.loads((tmp_path / f"{name}.json").read_text())["bf_size_change_px"]
+        err = capsys.readouterr().err
+        shrinks = name == "outward"
+        assert (change["x"] < 0 and change["y"] < 0) == shrinks, change
+        assert ("WARNING: P(F) makes stars shrink with flux along X and Y" in err) == shrinks

@@ -20,6 +20,7 @@ from ..files import about, check_outputs, input_files, refuse_duplicates
 from ..outputs import write_json
 from . import (finite_float, image_arguments, positive_int, stamp_size_option,
                star_image_options)
+from ..measure.model_slopes import model_size_increments
 from ..model.psf_fit import DEFAULT_SIZE
 from ..moments.shapes import MAG_PER_SIZE_ERROR
 from ._files import read_image
@@ -190,8 +191,15 @@ def run(args):
                                        else dict(p0_error, reference_flux_e=reference))
     beyond = _beyond_flats(psf, result.stars[used], per_image, calibrations)
     summary["n_beyond_flats"] = beyond[0]
+    shrinking = _shrinking_axes(psf, summary) if args.include_bf else []
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
+    if shrinking:
+        print(f"WARNING: P(F) makes stars shrink with flux along {' and '.join(shrinking)} "
+              f"({_size_change_words(summary)}, the stars' flux): brighter-fatter broadens "
+              f"them; the calibration's boundary shifts have the unphysical sign (too few "
+              f"flats: `bfpsf calibrate` says why; calibrate with more flat pairs and levels)",
+              file=sys.stderr)
     warning = describe_beyond_flats(*beyond)
     if warning:
         print(warning, file=sys.stderr)
@@ -268,6 +276,27 @@ def run(args):
           f"{'EMPIRICAL term applied; ' if psf.empirical is not None else ''}"
           f"wrote {args.output}")
     return 0
+
+
+def _shrinking_axes(psf, summary):
+    """The axes along which P(F) makes a star of the stars' flux smaller than P0 (a BF of the
+    unphysical sign: a new user's four 128^2 flat pairs gave shifts whose charged pixels
+    grow, and P(F) then biased the photometry more than a static PSF, 19 against 7 mmag);
+    the change is recorded in ``summary['bf_size_change_px']``."""
+    flux = float(psf.star_flux_e)
+    if not np.isfinite(flux) or flux <= 0:
+        return []
+    model = psf if psf.flux_unit == "electron" else psf.with_flux_unit("electron")
+    change = model_size_increments(model, [flux], n_grid=4)
+    summary["bf_size_change_px"] = {"x": float(change["x"][0]), "y": float(change["y"][0]),
+                                    "flux_e": flux}
+    return [axis.upper() for axis in "xy" if change[axis][0] < 0]
+
+
+def _size_change_words(summary):
+    change = summary["bf_size_change_px"]
+    return (f"sigma_x {change['x']:+.4f}, sigma_y {change['y']:+.4f} px at "
+            f"{change['flux_e']:.3g} e-")
 
 
 def _beyond_flats(psf, stars, per_image, calibrations):
