@@ -124,7 +124,7 @@ def test_cli_validate_json_and_report(tmp_path, capsys):
     # four flat pairs of 128^2 are too few (3 seeds of 4 predict a BF of the wrong sign, 3.3
     # to 5.7 sigma off, and P(F) makes the photometry worse than a static PSF), and whichever
     # way this seed goes, the verdict says what it found
-    from bfpsf.cli.validate import verdict_failures
+    from bfpsf.validation.verdict import verdict_failures
 
     assert summary["verdict"]["failures"] == verdict_failures(summary)
     assert code == (0 if summary["verdict"]["passed"] else 1)
@@ -217,7 +217,7 @@ def test_the_verdict_names_what_fails(tiny_run):
     prediction 4 sigma off, a residual beyond its errors, P(F) no better than a static PSF."""
     import copy
 
-    from bfpsf.cli.validate import verdict_failures
+    from bfpsf.validation.verdict import verdict_failures
 
     assert verdict_failures(tiny_run) == []
     run = copy.deepcopy(tiny_run)

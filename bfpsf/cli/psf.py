@@ -191,14 +191,18 @@ def run(args):
                                        else dict(p0_error, reference_flux_e=reference))
     beyond = _beyond_flats(psf, result.stars[used], per_image, calibrations)
     summary["n_beyond_flats"] = beyond[0]
-    shrinking = _shrinking_axes(psf, summary) if args.include_bf else []
+    change = _bf_size_change(psf) if args.include_bf else None
+    if change is not None:
+        summary["bf_size_change_px"] = change
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
+    shrinking = [axis.upper() for axis in "xy" if change is not None and change[axis] < 0]
     if shrinking:
         print(f"WARNING: P(F) makes stars shrink with flux along {' and '.join(shrinking)} "
-              f"({_size_change_words(summary)}, the stars' flux): brighter-fatter broadens "
-              f"them; the calibration's boundary shifts have the unphysical sign (too few "
-              f"flats: `bfpsf calibrate` says why; calibrate with more flat pairs and levels)",
+              f"(sigma_x {change['x']:+.4f}, sigma_y {change['y']:+.4f} px at "
+              f"{change['flux_e']:.3g} e-, the stars' flux): brighter-fatter broadens them; "
+              f"the calibration's boundary shifts have the unphysical sign (too few flats: "
+              f"`bfpsf calibrate` says why; calibrate with more flat pairs and levels)",
               file=sys.stderr)
     warning = describe_beyond_flats(*beyond)
     if warning:
@@ -278,25 +282,17 @@ def run(args):
     return 0
 
 
-def _shrinking_axes(psf, summary):
-    """The axes along which P(F) makes a star of the stars' flux smaller than P0 (a BF of the
-    unphysical sign: a new user's four 128^2 flat pairs gave shifts whose charged pixels
-    grow, and P(F) then biased the photometry more than a static PSF, 19 against 7 mmag);
-    the change is recorded in ``summary['bf_size_change_px']``."""
+def _bf_size_change(psf):
+    """The change of sigma_x and sigma_y (pixels) from P0 to a star of the stars' flux that
+    P(F) predicts, with that flux (e-), or None without it. Negative: a BF of the unphysical
+    sign (a new user's four 128^2 flat pairs gave shifts whose charged pixels grow, and P(F)
+    then biased the photometry more than a static PSF, 19 against 7 mmag)."""
     flux = float(psf.star_flux_e)
     if not np.isfinite(flux) or flux <= 0:
-        return []
+        return None
     model = psf if psf.flux_unit == "electron" else psf.with_flux_unit("electron")
     change = model_size_increments(model, [flux], n_grid=4)
-    summary["bf_size_change_px"] = {"x": float(change["x"][0]), "y": float(change["y"][0]),
-                                    "flux_e": flux}
-    return [axis.upper() for axis in "xy" if change[axis][0] < 0]
-
-
-def _size_change_words(summary):
-    change = summary["bf_size_change_px"]
-    return (f"sigma_x {change['x']:+.4f}, sigma_y {change['y']:+.4f} px at "
-            f"{change['flux_e']:.3g} e-")
+    return {"x": float(change["x"][0]), "y": float(change["y"][0]), "flux_e": flux}
 
 
 def _beyond_flats(psf, stars, per_image, calibrations):

@@ -5,7 +5,7 @@ with errors pooled over the rows of each flux bin."""
 import numpy as np
 
 from ..errors import BFPSFInputError
-from .position_split import SPLIT_NSIGMA
+from .position_split import dependent_directions
 from .tables import SizeTable
 
 __all__ = ["AUTO_POSITION_GRID", "DEFAULT_BINS", "MIN_GRID_BINS", "auto_position_bins",
@@ -67,7 +67,8 @@ def auto_position_bins(stars_per_exposure, n_bins=None, split=None):
     if fits >= bins:
         return AUTO_POSITION_GRID, bins, (f"{grid} (auto: {fewest} or more stars per "
                                           f"exposure, {bins} peak bins)")
-    along = _dependent_direction(split)
+    dependent = dependent_directions(split)
+    along = max(dependent, key=dependent.get) if dependent else None
     if along is not None and (n_bins is None or fewest // (3 * 2) >= int(n_bins)):
         # one axis of the position split in two: the direction every star's slope depends on
         halves = fewest // (3 * 2)
@@ -87,17 +88,6 @@ def auto_position_bins(stars_per_exposure, n_bins=None, split=None):
     return 1, bins, (f"not tested (auto: {fewest} stars in an exposure; a {grid} grid of "
                      f"{fewest_bins} peak bins needs {3 * cells * fewest_bins}: "
                      "give --bins and --position-bins)")
-
-
-def _dependent_direction(split):
-    """"row" or "column", whichever every star's BF slope depends on the more significantly
-    beyond `SPLIT_NSIGMA` (on either axis), or None."""
-    best, along = SPLIT_NSIGMA, None
-    for name, entry in (split or {}).items():
-        significance = max((value["significance"] for value in entry.values()), default=0.0)
-        if significance > best:
-            best, along = significance, name
-    return along
 
 
 def _quantile_cells(values, count):

@@ -93,7 +93,7 @@ def _mxy_rows(sizes, model_sigma, residual, cross_residual):
 
 
 def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, exposure=False,
-                  response=None, cross_residual=None, row=False):
+                  response=None, cross_residual=None, row=False, extent=None):
     """Fit the empirical term to a size residual (and a cross-moment one).
 
     Parameters
@@ -108,6 +108,12 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
         Measured minus model sigma_x, sigma_y, pixels (errors from ``sizes``).
     position, exposure, row : bool
         Fit a dependence of the coefficients on the column / the exposure / the row.
+    extent : ((float, float), (float, float)), optional
+        The columns and rows the stars span, pixels: the term's field (``x_range``,
+        ``y_range``); default the entries' positions, which for size bins are their mean
+        positions and span a fraction of the stars' (a new user's photometry said 13 of 45
+        stars lay beyond the field of a PSF fitted on those very images: x 45 to 249 against
+        the stars' 26 to 273).
     response : dict, optional
         `adaptive_response` of the measured sizes (default: the plain moments' identity):
         the coefficients are those of the patterns; both axes are fitted jointly.
@@ -152,9 +158,12 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
             coefficients.setdefault(pattern, {})[name] = float(params[column])
             errors.setdefault(pattern, {})[name] = float(np.sqrt(abs(covariance[column,
                                                                                 column])))
-    x_range, y_range = (None if values is None else (float(np.min(values)),
-                                                     float(np.max(values)))
-                        for values in (sizes.x_detector, sizes.y_detector))
+    if extent is not None:
+        x_range, y_range = (tuple(float(value) for value in span) for span in extent)
+    else:
+        x_range, y_range = (None if values is None else (float(np.min(values)),
+                                                         float(np.max(values)))
+                            for values in (sizes.x_detector, sizes.y_detector))
     exposure_range = (None if sizes.exposure is None else
                       (float(np.min(sizes.exposure)), float(np.max(sizes.exposure))))
     return EmpiricalTerm(coefficients, errors=errors, x_reference=references[0],

@@ -15,7 +15,7 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
 from .empirical_fit import adaptive_response, early_late, evaluate_empirical, fit_empirical
 from .nuisances import HELDOUT_LABEL
-from .position_split import SPLIT_NSIGMA
+from .position_split import dependent_directions
 from .problem import build_problem, effect_design, summarise
 from .tables import CorrelationTable, LinearityTable, Observables, PTCTable
 from .tables import interleaved as _interleaved
@@ -213,22 +213,6 @@ def term_leaves(validation, nsigma=LEFT_NSIGMA):
     return left
 
 
-def _with_star_extent(term, observables):
-    """``term`` with the columns and rows the stars span as its field (``x_range``,
-    ``y_range``) instead of the size bins' mean positions: a new user's photometry said 13 of
-    45 stars lay beyond the field of a PSF fitted on those very images (x 45 to 249 against
-    the stars' 26 to 273)."""
-    extent = observables.meta.get("star_extent")
-    if extent is None:
-        return term
-    return dataclasses.replace(term, x_range=tuple(extent[0]), y_range=tuple(extent[1]))
-
-
-def _splits(entry):
-    """Whether a `position_split` entry (one direction) is beyond its `SPLIT_NSIGMA`."""
-    return any(value["significance"] > SPLIT_NSIGMA for value in (entry or {}).values())
-
-
 def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0):
     """The EMPIRICAL term (`bfpsf.diagnosis.empirical_fit`) when a size residual is left:
     fitted on the loop's fit part, judged on its held-out exposures and, with at least 4
@@ -247,9 +231,8 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
     # or where every star's BF slope depends on the column or row (`position_split`), which
     # the binned residual may not resolve (a new user's smear growing with the row, 55 stars
     # per exposure: unreported, and a term without it left -16 % of the raw slope held out)
-    split = observables.meta.get("position_split") or {}
-    position = position or _splits(split.get("column"))
-    row = row or _splits(split.get("row"))
+    dependent = dependent_directions(observables.meta.get("position_split"))
+    position, row = position or "column" in dependent, row or "row" in dependent
     step = _kept_step(result, state, result.confirmed)
     model = observables.spot_model
 
@@ -263,9 +246,11 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
                 if diagonal else {})
 
     response = adaptive_response(model, float(np.median(observables.sizes.peak_e)))
-    options = {"position": position, "row": row, "exposure": exposure, "response": response}
-    term = _with_star_extent(fit_empirical(*inputs(state["observables"]), **options,
-                                           **cross(state["observables"])), observables)
+    # the term's field: the columns and rows the stars span, not the size bins' mean positions
+    options = {"position": position, "row": row, "exposure": exposure, "response": response,
+               "extent": observables.meta.get("star_extent")}
+    term = fit_empirical(*inputs(state["observables"]), **options,
+                         **cross(state["observables"]))
     validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
                   "position_term": position, "row_term": row, "exposure_term": exposure,
                   "diagonal_term": diagonal}

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..least_squares import weighted_least_squares
 
-__all__ = ["star_slope_split", "describe_split", "SPLIT_NSIGMA"]
+__all__ = ["star_slope_split", "describe_split", "dependent_directions", "SPLIT_NSIGMA"]
 
 #: A change of the slope beyond this many errors is reported as a dependence.
 SPLIT_NSIGMA = 3.0
@@ -81,6 +81,17 @@ def _robust_fit(values, design):
             break
         keep = new_keep
     return params, covariance * chi2 / max(dof, 1)
+
+
+def dependent_directions(split):
+    """{along: the largest significance of its axes} for the directions ("column", "row")
+    along which every star's BF slope changes beyond `SPLIT_NSIGMA`."""
+    out = {}
+    for along, entry in (split or {}).items():
+        significance = max((value["significance"] for value in entry.values()), default=0.0)
+        if significance > SPLIT_NSIGMA:
+            out[along] = significance
+    return out
 
 
 def describe_split(split):
