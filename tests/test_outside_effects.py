@@ -179,7 +179,16 @@ def diagnosed(bench):
 
 @pytest.mark.parametrize("name", OUTSIDE_EFFECTS)
 def test_outside_effect_is_not_absorbed(diagnosed, name):
-    _check_outside(diagnosed(name)[1], name)
+    observables, result = diagnosed(name)
+    _check_outside(result, name)
+    if name == "night":
+        # the term is valid over the night: its held-out exposures interleave with those it
+        # fitted, and its consumers warn beyond the range (a new user's diagnose warned that
+        # its own term was extrapolated to its last held-out exposure)
+        exposures = observables.sizes.exposure
+        assert result.empirical["exposure_range"] == [exposures.min(), exposures.max()]
+        assert (result.empirical["validation"]["late_block"]["term"]["exposure_range"][1]
+                < exposures.max())
 
 
 def test_null_and_catalogue_effects_are_named_alone(bench):
@@ -297,7 +306,7 @@ def _write_mosaics(tmp_path, stamps, exposure, gain, sky_e=50.0, seed=7, cells=N
     return images
 
 
-def test_user_path_on_an_outside_effect(tmp_path):
+def test_user_path_on_an_outside_effect(tmp_path, capsys):
     """``bfpsf diagnose`` on FITS flats and spot mosaics with the one_axis smear: nothing
     named, the rejections and the verdict in the JSON, the EMPIRICAL term in the refined
     calibration (read back by `EmpiricalTerm.from_calibration`), signatures.png in the
@@ -331,6 +340,10 @@ def test_user_path_on_an_outside_effect(tmp_path):
     assert term.coefficients["xx"]["constant"] > 3 * term.errors["xx"]["constant"]
     assert (report / "signatures.png").stat().st_size > 0
     assert "Attribution by signature" in (report / "report.md").read_text()
+    # "after" is the selected effects' (none here): said, beside the term's own lines
+    printed = capsys.readouterr().out
+    assert "\nheld-out after (the selected effects; the EMPIRICAL term's" in printed
+    assert "EMPIRICAL term (heldout): BF slope residual" in printed
 
 
 def test_user_path_stars_without_bf_are_not_a_calibration_scale(tmp_path, capsys):

@@ -239,10 +239,14 @@ def run(args):
             "rms_over_peak", "chi2_per_pixel", "n_stars", "model_peak", "radius", "profile")}
     before, after = result.residual_before, result.residual_after
     print(f"selected: {', '.join(result.selected) or 'nothing'}")
-    rows = [("before", before), ("after", after)]
+    # "after" is the selected effects': with an EMPIRICAL term, say so (a new user read the
+    # equal before and after of a run that selected nothing as "nothing improved")
+    alone = (" (the selected effects; the EMPIRICAL term's figures are its own lines)"
+             if result.empirical else "")
+    rows = [("before", before), (f"after{alone}", after)]
     if result.residual_after_heldout:
         rows += [("held-out before", result.residual_before_heldout),
-                 ("held-out after", result.residual_after_heldout)]
+                 (f"held-out after{alone}", result.residual_after_heldout)]
         for name, confirmed in result.confirmed.items():
             print(f"{name}: {'confirmed' if confirmed else 'NOT CONFIRMED'} on held-out data")
     for name, entry in result.rejected.items():
@@ -382,7 +386,8 @@ def _empirical_lines(result):
                          f"{after['cross']['slope_err']:.4f} per 1e5 e-")
             lines.append(
                 f"EMPIRICAL term ({block}): BF slope residual {', '.join(axes)}; photometry "
-                f"bias implied for sky-limited stars (faint - bright) "
+                f"bias the sizes imply for sky-limited stars (faint - bright; PSF "
+                f"photometry measures the pattern's shape too: docs/undeclared_effects.md) "
                 f"{before['photometry_bias_mmag']:+.2f} -> {after['photometry_bias_mmag']:+.2f} "
                 f"mmag{cross}")
     odd = [entry["axis"].upper() for entry in result.unexplained

@@ -87,7 +87,8 @@ def auto_position_bins(stars_per_exposure, n_bins=None, split=None):
         bins = int(np.clip(typical // 3, MIN_ONE_RANGE_BINS, DEFAULT_BINS))
     return 1, bins, (f"not tested (auto: {fewest} stars in an exposure; a {grid} grid of "
                      f"{fewest_bins} peak bins needs {3 * cells * fewest_bins}: "
-                     "give --bins and --position-bins)")
+                     "give --bins and --position-bins; every star's slope is tested for the "
+                     "column and the row without a grid)")
 
 
 def _quantile_cells(values, count):

@@ -93,7 +93,7 @@ def _mxy_rows(sizes, model_sigma, residual, cross_residual):
 
 
 def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, exposure=False,
-                  response=None, cross_residual=None, row=False, extent=None):
+                  response=None, cross_residual=None, row=False, extent=None, night=None):
     """Fit the empirical term to a size residual (and a cross-moment one).
 
     Parameters
@@ -114,6 +114,11 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
         positions and span a fraction of the stars' (a new user's photometry said 13 of 45
         stars lay beyond the field of a PSF fitted on those very images: x 45 to 249 against
         the stars' 26 to 273).
+    night : (float, float), optional
+        The first and last exposure order the term is valid over (``exposure_range``):
+        default the entries'. The loop gives the night's, as its held-out exposures
+        interleave with those it fitted (a new user's diagnose warned that its own term was
+        extrapolated to its last held-out exposure, one beyond the last it fitted).
     response : dict, optional
         `adaptive_response` of the measured sizes (default: the plain moments' identity):
         the coefficients are those of the patterns; both axes are fitted jointly.
@@ -165,6 +170,7 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
                                                          float(np.max(values)))
                             for values in (sizes.x_detector, sizes.y_detector))
     exposure_range = (None if sizes.exposure is None else
+                      tuple(float(value) for value in night) if night is not None else
                       (float(np.min(sizes.exposure)), float(np.max(sizes.exposure))))
     return EmpiricalTerm(coefficients, errors=errors, x_reference=references[0],
                          y_reference=references[1], exposure_reference=references[2],

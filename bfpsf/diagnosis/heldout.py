@@ -249,7 +249,10 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
     # the term's field: the columns and rows the stars span, not the size bins' mean positions
     options = {"position": position, "row": row, "exposure": exposure, "response": response,
                "extent": observables.meta.get("star_extent")}
-    term = fit_empirical(*inputs(state["observables"]), **options,
+    # valid over the night: the held-out exposures interleave with the fitted ones
+    orders = observables.sizes.exposure
+    night = None if orders is None else (float(np.min(orders)), float(np.max(orders)))
+    term = fit_empirical(*inputs(state["observables"]), **options, night=night,
                          **cross(state["observables"]))
     validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
                   "position_term": position, "row_term": row, "exposure_term": exposure,

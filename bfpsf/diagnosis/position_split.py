@@ -95,7 +95,9 @@ def dependent_directions(split):
 
 
 def describe_split(split):
-    """One line per significant dependence (beyond `SPLIT_NSIGMA`), in words."""
+    """One line per significant dependence (beyond `SPLIT_NSIGMA`), in words; where every
+    star was tested and none is, one line saying so (a new user's "position bins: not
+    tested" stood alone, as if position had not been looked at)."""
     lines = []
     for along, entry in split.items():
         for axis, values in entry.items():
@@ -107,4 +109,8 @@ def describe_split(split):
                     f"{values['change']:+.4f} +- {values['change_err']:.4f} over the "
                     f"{values['span']:.0f} px the stars span ({values['significance']:.1f} "
                     "sigma; brighter-fatter predicts none)")
+    tested = [values["significance"] for entry in split.values() for values in entry.values()]
+    if tested and not lines:
+        lines.append(f"the stars' BF slope depends on neither the column nor the row (largest "
+                     f"{max(tested):.1f} sigma, every star tested)")
     return lines
