@@ -249,6 +249,10 @@ def run(args):
                  (f"held-out after{alone}", result.residual_after_heldout)]
         for name, confirmed in result.confirmed.items():
             print(f"{name}: {'confirmed' if confirmed else 'NOT CONFIRMED'} on held-out data")
+    for name, entry in result.nuisance.items():
+        if entry.get("fitted_on"):  # `bfpsf.diagnosis.quiet_axis`
+            print(f"{name} (nuisance): {entry['value']:+.3f} +- {entry['error']:.3f}, fitted on "
+                  f"{entry['fitted_on']} ({entry['why']})")
     for name, entry in result.rejected.items():
         print(f"rejected: {describe_rejection(name, entry)}")
     for entry in result.unexplained:

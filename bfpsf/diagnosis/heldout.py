@@ -277,10 +277,11 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
     return dataclasses.replace(result, empirical=term.to_dict())
 
 
-def with_heldout(result, state, heldout, fraction):
+def with_heldout(result, state, heldout, fraction, confirmed=None):
     """The result with the held-out residuals (after: the confirmed effects alone), the
     confirmation of each selected effect and the unexplained residuals (judged on the
-    held-out data)."""
+    held-out data); ``confirmed``, where given, is the confirmation judged on another view
+    of the held-out data (`bfpsf.diagnosis.quiet_axis`: on one axis)."""
     chi2 = []
     evaluations = []
     for step in state["steps"]:
@@ -291,7 +292,8 @@ def with_heldout(result, state, heldout, fraction):
     # give its prior, the X / Y split): one confirmation, under the scale's name
     names = [HELDOUT_LABEL] * (len(state["steps"]) - 1 - len(result.selected))
     names += result.selected
-    confirmed = {name: chi2[k + 1] < chi2[k] for k, name in enumerate(names)}
+    if confirmed is None:
+        confirmed = {name: chi2[k + 1] < chi2[k] for k, name in enumerate(names)}
     before = summarise(evaluations[0][0], heldout, evaluations[0][1])
     physical = None
     if result.residual_physical:

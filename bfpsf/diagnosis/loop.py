@@ -53,6 +53,7 @@ from .heldout import split_observables, with_empirical, with_heldout
 from .nuisances import GLOBAL_NUISANCES, SCALE, SPLIT
 from .problem import (build_problem, effect_columns, effect_design, effect_values,
                       global_priors, slope_residuals, summarise)
+from .quiet_axis import scale_beside_the_effect
 from .result import DiagnosisResult
 from .signature import (SIGNATURE_ALPHA, contradiction, cross_test, flux_shape_test,
                         TEMPLATE_TOLERANCE, parity_test, signature_parts, signature_test)
@@ -110,7 +111,7 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
     fit_part, heldout = (split_observables(observables, holdout_fraction) if holdout_fraction
                          else (observables, None))
     result, state = _run_loop(fit_part, *options)
-    contradicted = {}
+    contradicted, given = {}, (observables, fit_part, heldout)
     while True:
         against = {name: entry for name, entry in result.nuisance.items()
                    if entry.get("contradicted_by") and name not in contradicted}
@@ -133,6 +134,12 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
         result = dataclasses.replace(result, nuisance=dict(result.nuisance, **contradicted))
     if heldout is not None:
         result = with_heldout(result, state, heldout, holdout_fraction)
+        # a scale contradicted by an effect's dependence on one axis: fitted on the other
+        beside = contradicted and scale_beside_the_effect(
+            result, state, contradicted, given, lambda part: _run_loop(part, *options),
+            holdout_fraction)
+        if beside:
+            result, state, observables, heldout = beside
     else:
         result = _with_unexplained(result, state, observables)
     return _with_verdict(with_empirical(result, state, heldout, observables), observables)
@@ -480,16 +487,12 @@ def _step_covariance(covariance, problem, names, fixed, by_name, family):
 
 
 def _with_unexplained(result, state, observables):
-    import dataclasses
-
     model = state["steps"][-1]["model"]
     return dataclasses.replace(result, unexplained=describe_unexplained(
         state["problem"], observables, model))
 
 
 def _with_verdict(result, observables):
-    import dataclasses
-
     meta = observables.meta
     unexplained = with_scale_parts(result.unexplained, result.nuisance)
     return dataclasses.replace(result, unexplained=unexplained, verdict=verdict(
