@@ -8,7 +8,8 @@ from scipy.special import exp1
 
 from bfpsf.errors import BFPSFValueError
 from bfpsf.moments.adaptive import adaptive_moments_batch
-from bfpsf.model.empirical import FLUX_REFERENCE, EmpiricalTerm, apply_pattern
+from bfpsf.model.empirical import (CHARGE_KIND, FLUX_REFERENCE, PATTERN_KINDS, EmpiricalTerm,
+                                   apply_pattern)
 from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.shifts import BoundaryShifts
 
@@ -28,16 +29,30 @@ def _plain_moments(image):
             (image * (y - cy) ** 2).sum() / total, (image * (x - cx) * (y - cy)).sum() / total)
 
 
-def test_patterns_add_variance_along_one_axis():
+@pytest.mark.parametrize("kind", PATTERN_KINDS)
+def test_patterns_add_variance_along_one_axis(kind):
     """B_xx adds the star's flux to sum (x - x0)^2 I (so c to Mxx per unit c) and nothing
     to its flux, centroid, Myy or Mxy; B_yy the same along y; B_xy (half the difference of
     the two diagonals) adds c to Mxy alone. The flux exactly (also of a star cut by the
     stamp's edge); the rest to the Moffat wing at the edge of the 31 px stamp (1e-5 of the
-    flux per edge pixel row)."""
+    flux per edge pixel row). Both pattern kinds; B[l I] = l B[I]; the charge's pattern
+    of a star is its three-tap smear's: I + c B_yy[I] is I convolved with (c/2, 1 - c, c/2)
+    along y."""
     star = _star()
     total, cx, cy, mxx, myy, mxy = _plain_moments(star)
+    np.testing.assert_allclose(apply_pattern(3.0 * star, "yy", kind=kind),
+                               3.0 * apply_pattern(star, "yy", kind=kind), rtol=1e-12,
+                               atol=1e-15)
+    if kind == CHARGE_KIND:
+        smear = (1 - 0.1) * star
+        smear[1:] += 0.05 * star[:-1]
+        smear[:-1] += 0.05 * star[1:]
+        smear[0] += 0.05 * star[0]
+        smear[-1] += 0.05 * star[-1]  # nothing crosses the stamp's edge
+        np.testing.assert_allclose(star + 0.1 * apply_pattern(star, "yy", kind=kind), smear,
+                                   rtol=0, atol=1e-15)
     for pattern, grows in (("xx", 3), ("yy", 4), ("xy", 5)):
-        changed = star + 0.1 * apply_pattern(star, pattern)
+        changed = star + 0.1 * apply_pattern(star, pattern, kind=kind)
         after = _plain_moments(changed)
         assert after[0] == pytest.approx(total, rel=1e-12)
         np.testing.assert_allclose(after[1:3], (cx, cy), rtol=0, atol=1e-5)
@@ -45,10 +60,12 @@ def test_patterns_add_variance_along_one_axis():
         expected[grows - 3] += 0.1
         np.testing.assert_allclose(after[3:], expected, rtol=0, atol=2e-3)
         cut = _star(offset=(13.0, -12.5))
-        assert (cut + apply_pattern(cut, pattern)).sum() == pytest.approx(cut.sum(),
-                                                                           rel=1e-12)
+        assert (cut + apply_pattern(cut, pattern, kind=kind)).sum() == pytest.approx(
+            cut.sum(), rel=1e-12)
     with pytest.raises(BFPSFValueError, match="pattern must be one of"):
         apply_pattern(star, "xz")
+    with pytest.raises(BFPSFValueError, match="pattern kind must be one of"):
+        apply_pattern(star, "xx", kind="the image")
 
 
 def test_term_changes_adaptive_moments_as_stated():
@@ -100,6 +117,13 @@ def test_round_trip_and_errors(tmp_path):
     record = term.to_dict()
     assert record["label"] == "empirical"
     assert EmpiricalTerm.from_dict(record) == term
+    # the pattern kind travels with the coefficients; an unknown one is refused
+    charge = EmpiricalTerm(term.coefficients, kind=CHARGE_KIND)
+    assert charge.to_dict()["pattern"] == CHARGE_KIND
+    assert EmpiricalTerm.from_dict(charge.to_dict()) == charge
+    assert charge.at_position(10.0).kind == CHARGE_KIND
+    with pytest.raises(BFPSFValueError, match="fitted with another pattern"):
+        EmpiricalTerm.from_dict(dict(record, pattern="half second difference of the image"))
     with pytest.raises(BFPSFValueError, match="not an empirical term record"):
         EmpiricalTerm.from_dict(dict(record, label="physics"))
     with pytest.raises(BFPSFValueError, match="empirical coefficients must map"):

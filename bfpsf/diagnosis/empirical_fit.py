@@ -18,7 +18,8 @@ after the term.
 import numpy as np
 
 from ..least_squares import weighted_least_squares
-from ..model.empirical import FLUX_REFERENCE, PATTERNS, EmpiricalTerm, apply_pattern
+from ..model.empirical import (FLUX_REFERENCE, PATTERN_KIND, PATTERNS, EmpiricalTerm,
+                               apply_pattern)
 from ..moments.adaptive import adaptive_moments_batch
 from .problem import slope_residuals
 from .tables import Observables
@@ -49,7 +50,7 @@ def _terms(sizes, fluxes, references, position, exposure, row=False):
     return columns
 
 
-def adaptive_response(spot_model, peak_e, *, step=0.05):
+def adaptive_response(spot_model, peak_e, *, step=0.05, kind=PATTERN_KIND):
     """How the measured (adaptive) second moments respond to each pattern, per unit pattern
     variance: {pattern: {'mxx': d Mxx, 'myy': d Myy, 'mxy': d Mxy}}.
 
@@ -58,13 +59,14 @@ def adaptive_response(spot_model, peak_e, *, step=0.05):
     they see about 3.4 times the change along the pattern's axis (the pattern, like the
     charge-driven effects it stands for, acts on the core, where their weight is) and a
     fraction of it along the other (0.58 for a Moffat of beta 3). Measured on the model spot at
-    ``peak_e``, averaged over its phases.
+    ``peak_e``, averaged over its phases; ``kind``: the patterns' (`PATTERN_KINDS`).
     """
     stamps = spot_model.stamps([peak_e])[0]
     base = adaptive_moments_batch(stamps)
     out = {}
     for pattern in PATTERNS:
-        changed = np.array([stamp + step * apply_pattern(stamp, pattern) for stamp in stamps])
+        changed = np.array([stamp + step * apply_pattern(stamp, pattern, kind=kind)
+                            for stamp in stamps])
         after = adaptive_moments_batch(changed)
         out[pattern] = {moment: float(np.mean((np.asarray(getattr(after, moment))
                                                - np.asarray(getattr(base, moment))) / step))
@@ -93,7 +95,8 @@ def _mxy_rows(sizes, model_sigma, residual, cross_residual):
 
 
 def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, exposure=False,
-                  response=None, cross_residual=None, row=False, extent=None, night=None):
+                  response=None, cross_residual=None, row=False, extent=None, night=None,
+                  kind=PATTERN_KIND):
     """Fit the empirical term to a size residual (and a cross-moment one).
 
     Parameters
@@ -122,6 +125,9 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
     response : dict, optional
         `adaptive_response` of the measured sizes (default: the plain moments' identity):
         the coefficients are those of the patterns; both axes are fitted jointly.
+    kind : str, optional
+        The patterns' kind (`bfpsf.model.empirical.PATTERN_KINDS`; ``response`` must be
+        that kind's).
     cross_residual : ndarray (n,), optional
         Measured minus model cross moment e2 (errors ``sizes.cross_err``): the diagonal
         pattern is fitted to it jointly (as Mxy, with an intercept per group); without it the
@@ -174,7 +180,8 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
                       (float(np.min(sizes.exposure)), float(np.max(sizes.exposure))))
     return EmpiricalTerm(coefficients, errors=errors, x_reference=references[0],
                          y_reference=references[1], exposure_reference=references[2],
-                         x_range=x_range, y_range=y_range, exposure_range=exposure_range)
+                         x_range=x_range, y_range=y_range, exposure_range=exposure_range,
+                         kind=kind)
 
 
 def _moment_changes(term, sizes, fluxes, response):

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
+from ..model.empirical import PATTERN_KIND, PATTERN_KINDS
 from .empirical_fit import adaptive_response, early_late, evaluate_empirical, fit_empirical
 from .nuisances import HELDOUT_LABEL
 from .position_split import dependent_directions
@@ -245,36 +246,45 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
         return ({"cross_residual": part.sizes.cross - model.cross(part.sizes.peak_e)}
                 if diagonal else {})
 
-    response = adaptive_response(model, float(np.median(observables.sizes.peak_e)))
-    # the term's field: the columns and rows the stars span, not the size bins' mean positions
-    options = {"position": position, "row": row, "exposure": exposure, "response": response,
-               "extent": observables.meta.get("star_extent")}
     # valid over the night: the held-out exposures interleave with the fitted ones
     orders = observables.sizes.exposure
     night = None if orders is None else (float(np.min(orders)), float(np.max(orders)))
-    term = fit_empirical(*inputs(state["observables"]), **options, night=night,
-                         **cross(state["observables"]))
-    validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
-                  "position_term": position, "row_term": row, "exposure_term": exposure,
-                  "diagonal_term": diagonal}
-    if heldout is not None:
-        validation["heldout"] = evaluate_empirical(term, *inputs(heldout), response,
-                                                   **cross(heldout))
-    split = early_late(observables, late_fraction)
-    if split is not None:
-        early, late = split
-        early_term = fit_empirical(*inputs(early), **options, **cross(early))
-        # with the term fitted on the early exposures, so that its pixel-level use (PSF
-        # photometry of the late block) can be checked as well
-        validation["late_block"] = dict(evaluate_empirical(early_term, *inputs(late),
-                                                           response, **cross(late)),
-                                        exposures=sorted(np.unique(late.sizes.exposure)
-                                                         .tolist()),
-                                        term=early_term.to_dict())
-    validation["validated"] = term_validated(validation)
-    validation["left"] = term_leaves(validation)
-    term = dataclasses.replace(term, validation=validation)
-    return dataclasses.replace(result, empirical=term.to_dict())
+
+    def learn(kind):
+        """The term of one pattern kind, with its validation (a record)."""
+        response = adaptive_response(model, float(np.median(observables.sizes.peak_e)),
+                                     kind=kind)
+        # the term's field: the columns and rows the stars span, not the size bins' mean
+        # positions
+        options = {"position": position, "row": row, "exposure": exposure,
+                   "response": response, "extent": observables.meta.get("star_extent"),
+                   "kind": kind}
+        term = fit_empirical(*inputs(state["observables"]), **options, night=night,
+                             **cross(state["observables"]))
+        validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
+                      "position_term": position, "row_term": row, "exposure_term": exposure,
+                      "diagonal_term": diagonal}
+        if heldout is not None:
+            validation["heldout"] = evaluate_empirical(term, *inputs(heldout), response,
+                                                       **cross(heldout))
+        split = early_late(observables, late_fraction)
+        if split is not None:
+            early, late = split
+            early_term = fit_empirical(*inputs(early), **options, **cross(early))
+            # with the term fitted on the early exposures, so that its pixel-level use (PSF
+            # photometry of the late block) can be checked as well
+            validation["late_block"] = dict(
+                evaluate_empirical(early_term, *inputs(late), response, **cross(late)),
+                exposures=sorted(np.unique(late.sizes.exposure).tolist()),
+                term=early_term.to_dict())
+        validation["validated"] = term_validated(validation)
+        validation["left"] = term_leaves(validation)
+        return dataclasses.replace(term, validation=validation).to_dict()
+
+    # every pattern kind: the sizes cannot tell them apart, the stars' pixels can (`bfpsf
+    # diagnose` keeps the kind whose held-out star residual is the lower)
+    return dataclasses.replace(result, empirical=learn(PATTERN_KIND), empirical_alternatives={
+        kind: learn(kind) for kind in PATTERN_KINDS if kind != PATTERN_KIND})
 
 
 def with_heldout(result, state, heldout, fraction, confirmed=None):

@@ -67,7 +67,10 @@ class DiagnosisResult:
         out-of-sample ``validation`` (``heldout`` and, with 4 or more exposures,
         ``late_block``: slope residual and photometry bias before and after it, the late
         block's ``exposures`` and the ``term`` fitted on the early ones; ``validated``: it lowered the slope residual on every block, else `refine` leaves it
-        out).
+        out), with the patterns of `bfpsf.model.empirical.PATTERN_KIND`.
+    empirical_alternatives : dict
+        The same learned with each other pattern kind, by kind (``bfpsf diagnose`` keeps
+        the one whose held-out star residual is the lower).
     folded : dict
         The joint fit of the selected effects a calibration can hold (``names``, ``effects``:
         name -> values, ``scale_nuisance``, ``split_nuisance``), for
@@ -100,6 +103,7 @@ class DiagnosisResult:
     rejected: dict = field(default_factory=dict)
     verdict: dict = field(default_factory=dict)
     empirical: dict = None
+    empirical_alternatives: dict = field(default_factory=dict)
 
     def to_json_dict(self):
         """The ``--json`` summary: residual_before, candidates, selected, residual_after (+)."""
@@ -114,4 +118,5 @@ class DiagnosisResult:
                       "confirmed": self.confirmed, "holdout": self.holdout,
                       "unexplained": self.unexplained, "folded": self.folded,
                       "rejected": self.rejected, "verdict": self.verdict,
-                      "empirical": self.empirical})
+                      "empirical": self.empirical,
+                      "empirical_alternatives": self.empirical_alternatives})

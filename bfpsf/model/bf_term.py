@@ -197,13 +197,14 @@ class BFTerm:
         (`bfpsf.model.empirical.pattern_tables`), as ``star_image`` applies it to the star's
         image."""
         # in a dict made by the constructor, so the copies (which share P0 and R) share it
-        splines = self._tables.get("pattern_splines")
+        kind = self.empirical.kind
+        splines = self._tables.get(("pattern_splines", kind))
         if splines is None:
             grid = (np.arange(self.data.shape[1]), np.arange(self.data.shape[0]))
-            tables = pattern_tables(self.data, self.bf_table, self.oversampling)
+            tables = pattern_tables(self.data, self.bf_table, self.oversampling, kind)
             splines = {pattern: [RectBivariateSpline(*grid, table.T, kx=3, ky=3, s=0)
                                  for table in tables[pattern]] for pattern in PATTERNS}
-            self._tables["pattern_splines"] = splines
+            self._tables[("pattern_splines", kind)] = splines
         g = self.electrons_per_unit
         term = np.zeros(np.shape(xi))
         changes = self.empirical.variance_change(g * abs(flux), x=position[0], y=position[1])

@@ -49,151 +49,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import BFPSFValueError
+from .empirical_patterns import (CHARGE_KIND, FLUX_REFERENCE, PATTERN_KIND, PATTERN_KINDS,
+                                 PATTERNS, apply_pattern, pattern_series, pattern_tables)
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EmpiricalTerm", "PATTERNS", "PATTERN_KIND", "FLUX_REFERENCE", "apply_pattern",
+__all__ = ["EmpiricalTerm", "PATTERNS", "PATTERN_KIND", "CHARGE_KIND", "PATTERN_KINDS",
+           "FLUX_REFERENCE", "apply_pattern",
            "pattern_series", "empirical_of", "with_empirical", "pattern_tables"]
 
-#: The pixel-space patterns, in the order of `EmpiricalTerm.variance_change`.
-PATTERNS = ("xx", "yy", "xy")
-#: Reference total flux of the coefficients, e-.
-FLUX_REFERENCE = 1e6
 _TERMS = ("constant", "position", "row", "exposure", "flux2", "flux2_position", "flux2_row",
           "flux2_exposure")
 #: The terms that change over the detector: along the columns and along the rows.
 _FIELD_TERMS = ("position", "flux2_position", "row", "flux2_row")
-
-
-#: The pattern's name in a term's record (`EmpiricalTerm.to_dict`): a record without it, or
-#: with another, was fitted with another pattern and its coefficients do not apply.
-PATTERN_KIND = "half second difference of the squared charge"
-
-
-#: The transfers of each pattern: (step (dy, dx), weight). Along X, along Y, and half the
-#: difference of the two diagonals, which changes Mxy alone.
-_STEPS = {"xx": (((0, 1), 1.0),), "yy": (((1, 0), 1.0),),
-          "xy": (((1, 1), 0.5), ((1, -1), -0.5))}
-
-
-def _ranges(shift, n):
-    """Slices of the pixels p and of their neighbours p + shift that are both inside."""
-    if shift >= 0:
-        return slice(0, n - shift), slice(shift, n)
-    return slice(-shift, n), slice(0, n + shift)
-
-
-def _half_second_difference(image, step):
-    """1/2 sum over s = +-1 of (I[p + s step] - I[p]), over the neighbours inside the image:
-    each pixel passes half of its value to each neighbour along ``step`` (dy, dx) and none
-    across the stamp's edge, so the sum is conserved exactly. Along X this is
-    1/2 (I[i+1] - 2 I[i] + I[i-1]) with the image extended by its edge pixels."""
-    out = np.zeros_like(image)
-    ny, nx = image.shape[-2:]
-    for sign in (1, -1):
-        (rows, neighbour_rows), (columns, neighbour_columns) = (
-            _ranges(sign * step[0], ny), _ranges(sign * step[1], nx))
-        out[..., rows, columns] += 0.5 * (image[..., neighbour_rows, neighbour_columns]
-                                          - image[..., rows, columns])
-    return out
-
-
-def _steps(pattern):
-    """The transfers of ``pattern`` (`_STEPS`); an unknown pattern is refused."""
-    steps = _STEPS.get(pattern)
-    if steps is None:
-        msg = f"pattern must be one of {PATTERNS}, got {pattern!r}"
-        raise BFPSFValueError(msg, pattern)
-    return steps
-
-
-def _difference(image, pattern):
-    """The pattern's transfer operator on ``image`` (`_STEPS`)."""
-    return sum(weight * _half_second_difference(image, step)
-               for step, weight in _steps(pattern))
-
-
-def _star_total(image, total):
-    """The star's total flux, shaped to divide a stack [..., y, x]: ``total`` (scalar or one
-    per image) or, without it, the image's sum."""
-    if total is None:
-        return image.sum(axis=(-2, -1), keepdims=True)
-    return np.reshape(np.asarray(total, float), np.shape(total) + (1, 1))
-
-
-def apply_pattern(image, pattern, total=None):
-    """B_k[image] (module docstring): the half three-point second difference of the squared
-    charge (negative pixels taken as 0) along x ('xx'), y ('yy') or half the difference of
-    the two diagonals ('xy'), times F / sum(I^2).
-
-    It conserves the flux exactly, and for a star that fits in the stamp it leaves the
-    centroid unchanged and adds F to sum (x - x0)^2 I ('xx'; 'yy' along y; 'xy' to
-    sum (x - x0)(y - y0) I alone): B_k[lambda I] = lambda B_k[I].
-    ``total`` is the star's flux F in the image's unit (one per image of a stack [..., y, x];
-    default the image's sum): a stamp that cuts the star's wings keeps the same pattern,
-    since sum(I^2) is all in the core. ``image`` may be a stack [..., y, x] (each image on its
-    own).
-    """
-    return pattern_series(image, 0.0, pattern, total, order=0)[0]
-
-
-def pattern_series(image, change, pattern, total=None, total_change=0.0, order=2):
-    """B_k[I + e dI] = B0 + e B1 + e^2 B2 + O(e^3): (B0, B1, B2) at ``image`` along
-    ``change``, the star's flux F + e dF (``total``, default the image's sum, and
-    ``total_change``, default the change's sum when ``total`` is None, else 0); the terms
-    up to ``order`` only (0, 1 or 2).
-
-    With (I + e dI)^2 = q0 + 2 e q1 + e^2 q2 (q0 = I^2, q1 = I dI, q2 = dI^2, where I > 0)
-    and D the half second difference, the pattern is D[(I + e dI)^2] s(e), s = (F + e dF) /
-    sum((I + e dI)^2), so each B_n collects the D[q_m] with the coefficients of s's series.
-    The table mode of P(F) tabulates them for dI = R, the BF term (`pattern_tables`); the
-    PSF fit's flux derivative is B1 along d model / d F."""
-    image = np.asarray(image, float)
-    _steps(pattern)
-    positive = np.clip(image, 0.0, None)
-    change = np.where(image > 0, np.asarray(change, float), 0.0)
-    if total is None:
-        s1, d1 = _star_total(image, None), _star_total(change, None)
-    else:
-        s1, d1 = _star_total(image, total), _star_total(image, total_change)
-    s2, d12, d22 = (value.sum(axis=(-2, -1), keepdims=True)
-                    for value in (positive ** 2, positive * change, change ** 2))
-    s2 = np.where(s2 > 0, s2, np.inf)  # an image with no positive pixel: no pattern
-    # s(e) = (s1 + e d1) / (s2 + 2 e d12 + e^2 d22), to second order in e
-    scale = (s1 / s2, d1 / s2 - 2 * s1 * d12 / s2 ** 2,
-             (4 * s1 * d12 ** 2 / s2 - s1 * d22 - 2 * d1 * d12) / s2 ** 2)
-    d0 = _difference(positive ** 2, pattern)
-    series = [d0 * scale[0]]
-    if order >= 1:
-        d_mixed = _difference(positive * change, pattern)
-        series.append(2 * d_mixed * scale[0] + d0 * scale[1])
-    if order >= 2:
-        d2 = _difference(change ** 2, pattern)
-        series.append(d2 * scale[0] + 2 * d_mixed * scale[1] + d0 * scale[2])
-    return tuple(series)
-
-
-def pattern_tables(data, bf_data, oversampling):
-    """B_k at every sub-pixel phase of an oversampled P0 and its series along R:
-    {pattern: (B0, B1, B2) tables} (`pattern_series`), each phase ``data[a::oy, b::ox]`` (the
-    pixelised unit star p at that phase, r its BF term) as a star image gets it. The table
-    mode of `bfpsf.model.psf.FluxDependentPSF` interpolates F (B0 + e B1 + e^2 B2), e = g |F|,
-    which is B_k[F p + g F |F| r] to second order in the BF term, as its exact mode and
-    ``star_image`` compute it (they agree to 1e-6 of the peak at 6e5 e-, 2e-5 at 1.2e6 e-)."""
-    oy, ox = (int(value) for value in oversampling)
-    data, bf_data = np.asarray(data, float), np.asarray(bf_data, float)
-    tables = {}
-    for pattern in PATTERNS:
-        series = tuple(np.zeros_like(data) for _ in range(3))
-        for a in range(oy):
-            for b in range(ox):
-                # a unit star (R moves charge, it adds none)
-                phase = pattern_series(data[a::oy, b::ox], bf_data[a::oy, b::ox], pattern,
-                                       total=1.0)
-                for table, part in zip(series, phase):
-                    table[a::oy, b::ox] = part
-        tables[pattern] = series
-    return tables
 
 
 @dataclass(frozen=True)
@@ -226,6 +94,8 @@ class EmpiricalTerm:
     exposure_range : (float, float) or None
         Exposure orders it was learned on (0-based, in the order of the images given to
         ``bfpsf diagnose``).
+    kind : str
+        Its patterns' kind, one of `PATTERN_KINDS` (default the squared charge's).
     """
 
     coefficients: dict
@@ -238,8 +108,12 @@ class EmpiricalTerm:
     y_reference: float = 0.0
     y_range: tuple = None
     exposure_range: tuple = None
+    kind: str = PATTERN_KIND
 
     def __post_init__(self):
+        if self.kind not in PATTERN_KINDS:
+            msg = f"empirical pattern kind must be one of {PATTERN_KINDS}, got {self.kind!r}"
+            raise BFPSFValueError(msg, self.kind)
         for pattern, terms in self.coefficients.items():
             if pattern not in PATTERNS or set(terms) - set(_TERMS):
                 msg = (f"empirical coefficients must map {PATTERNS} to {_TERMS}, got "
@@ -282,7 +156,7 @@ class EmpiricalTerm:
         out = np.zeros_like(np.asarray(image, float))
         for pattern, change in zip(PATTERNS, changes):
             if change:
-                out = out + float(change) * apply_pattern(image, pattern, total)
+                out = out + float(change) * apply_pattern(image, pattern, total, self.kind)
         return out
 
     def _depends_on(self, names):
@@ -331,7 +205,8 @@ class EmpiricalTerm:
                    "y_reference": self.y_reference,
                    "exposure_reference": self.exposure_reference,
                    "validation": self.validation, "x_range": self.x_range,
-                   "y_range": self.y_range}
+                   "y_range": self.y_range, "exposure_range": self.exposure_range,
+                   "kind": self.kind}
         options.update(references)
         return EmpiricalTerm(coefficients, **options)
 
@@ -363,7 +238,7 @@ class EmpiricalTerm:
                   "errors": self.errors, "x_reference": float(self.x_reference),
                   "exposure_reference": float(self.exposure_reference),
                   "flux_reference_e": FLUX_REFERENCE, "patterns": list(PATTERNS),
-                  "pattern": PATTERN_KIND,
+                  "pattern": self.kind,
                   "validation": self.validation}
         if self.x_range is not None:
             record["x_range"] = [float(value) for value in self.x_range]
@@ -381,11 +256,11 @@ class EmpiricalTerm:
         if record.get("label") != "empirical":
             msg = f"not an empirical term record (label {record.get('label')!r})"
             raise BFPSFValueError(msg, record.get("label"))
-        if record.get("pattern") != PATTERN_KIND:
+        if record.get("pattern") not in PATTERN_KINDS:
             msg = (f"empirical term fitted with another pattern "
                    f"({record.get('pattern') or 'the half second difference of the image'}; "
-                   f"this bfpsf uses the {PATTERN_KIND}): its coefficients do not apply; "
-                   f"run bfpsf diagnose --output-calib again")
+                   f"this bfpsf uses the {' or the '.join(PATTERN_KINDS)}): its coefficients "
+                   f"do not apply; run bfpsf diagnose --output-calib again")
             raise BFPSFValueError(msg, record.get("pattern"))
         if float(record.get("flux_reference_e", FLUX_REFERENCE)) != FLUX_REFERENCE:
             msg = (f"empirical term with flux reference {record['flux_reference_e']} e-; this "
@@ -403,7 +278,8 @@ class EmpiricalTerm:
                    y_range=None if record.get("y_range") is None else tuple(
                        float(value) for value in record["y_range"]),
                    exposure_range=None if record.get("exposure_range") is None else tuple(
-                       float(value) for value in record["exposure_range"]))
+                       float(value) for value in record["exposure_range"]),
+                   kind=record["pattern"])
 
     @classmethod
     def from_calibration(cls, calibration):

@@ -162,7 +162,7 @@ def _with_empirical(term, model, d_flux, stars):
         slope = np.broadcast_to(slope, flux.shape)[:, None, None]
         # the star's flux normalises the pattern (its cutout may cut the wings)
         pattern_model, along_flux = pattern_series(model, d_flux, pattern, total=stars.flux,
-                                                   total_change=1.0, order=1)
+                                                   total_change=1.0, order=1, kind=term.kind)
         out += change * pattern_model
         derivative += change * along_flux + signs * slope * pattern_model
     return out, derivative
