@@ -29,15 +29,18 @@ exposure's order in the night. F_ref
 is 1e6 e- of total flux. It is labelled empirical everywhere: it describes, it does not
 explain, and it is valid only over the fluxes, positions and exposures it was learned on.
 
-Why the square: the term is fitted to the stars' adaptive (Gaussian-weighted) sizes and used
+Two pattern kinds (`bfpsf.model.empirical_patterns`; ``kind``): the squared charge's above
+(`PATTERN_KIND`, a transfer of each pixel's charge in proportion to it) and the charge's,
+B_k[I] = 1/2 d^2 I / dx^2 F / sum(I) (`CHARGE_KIND`, a smear whose variance grows with the
+star's flux). The term is fitted to the stars' adaptive (Gaussian-weighted) sizes and used
 by PSF photometry, which weights the pixels by their variance; the two agree only when the
-pattern has the shape of the effect. The half second difference of the image itself (the
-first pattern, before 2026-11) spreads its change over the wings, where the adaptive weight
-sees little of it: to match the sizes it took about 2.7 times the plain second moment of a
-charge-dependent smear, and held-out PSF photometry of the effects bench drifted by up to
-1.1 mmag from faint to bright (0.37 without any term); with the square it is 0.14 mmag (a
-model holding the smear's own operator: 0.10; docs/undeclared_effects.md). Records of the
-first pattern are refused (`from_dict`).
+pattern has the shape of the effect, and the sizes cannot tell the kinds apart: ``bfpsf
+diagnose`` learns both and keeps the one whose held-out star residual is the lower. On the
+bench's transfer the square's held-out photometry drift is 0.14 mmag (0.37 without a term,
+1.1 with the charge's); on a new user's smear growing over the night, P0 took what the
+square left in the bright stars and the faint ones came out +0.63 mmag bright against the
+same stars without the smear, +0.14 with the charge's (docs/undeclared_effects.md). A
+record without its kind (written before 2026-11) is refused (`from_dict`).
 
 Odd (centroid- and skew-like) residuals are reported by the loop but not corrected: a PSF fit
 takes a flux-dependent centroid shift into its position.
