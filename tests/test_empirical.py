@@ -117,6 +117,9 @@ def test_round_trip_and_errors(tmp_path):
     record = term.to_dict()
     assert record["label"] == "empirical"
     assert EmpiricalTerm.from_dict(record) == term
+    # the record lists the patterns it holds (a new user read ['xx', 'yy', 'xy'] on a term
+    # without a diagonal one)
+    assert record["patterns"] == ["xx", "yy"]
     # the pattern kind travels with the coefficients; an unknown one is refused
     charge = EmpiricalTerm(term.coefficients, kind=CHARGE_KIND)
     assert charge.to_dict()["pattern"] == CHARGE_KIND

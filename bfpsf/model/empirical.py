@@ -240,7 +240,8 @@ class EmpiricalTerm:
         record = {"label": self.label, "coefficients": self.coefficients,
                   "errors": self.errors, "x_reference": float(self.x_reference),
                   "exposure_reference": float(self.exposure_reference),
-                  "flux_reference_e": FLUX_REFERENCE, "patterns": list(PATTERNS),
+                  "flux_reference_e": FLUX_REFERENCE,
+                  "patterns": [pattern for pattern in PATTERNS if pattern in self.coefficients],
                   "pattern": self.kind,
                   "validation": self.validation}
         if self.x_range is not None:
