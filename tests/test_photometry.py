@@ -534,6 +534,11 @@ def test_read_noise_from_the_image_when_the_calibration_left_it_undetermined(cli
     given = types.SimpleNamespace(read_noise=None)
     assert _read_noise(given, determined) == 5.0
     assert _read_noise(given, undetermined) is None
+    # a 1.5 sigma read noise is not a measurement (a new user's 10.5 +- 6.8 e-, true 4.5,
+    # was used and the image's 4.49 ignored); calibrate warns of it with the same rule
+    loose = dataclasses.replace(determined, noise_e=10.47, noise_e_err=6.83)
+    assert _read_noise(given, loose) is None and not loose.read_noise_determined
+    assert _read_noise(given, dataclasses.replace(loose, noise_e_err=5.0)) == 10.47
     assert _read_noise(types.SimpleNamespace(read_noise=3.0), undetermined) == 3.0
     prepared = prepare_image(fits.getdata(directory / "stars.fits") * 1.5)
     assert image_read_noise(prepared) == pytest.approx(5.0, rel=0.1)

@@ -136,7 +136,7 @@ def _print(detector, calibration):
               f"read noise {one.noise_e:.3f} +- {one.noise_e_err:.3f} e-, {one.n_pairs} pairs, "
               f"turnoff {one.turnoff_e:.4g} e-"
               + (" (detected)" if one.turnoff_detected else " (not reached)"))
-        if not one.noise_e > 2 * one.noise_e_err:
+        if not one.read_noise_determined:
             # the PTC's intercept: flats far above the read noise do not measure it
             print(f"{prefix}WARNING: these flats do not determine the read noise "
                   f"({one.noise_e:.3f} +- {one.noise_e_err:.3f} e-); `bfpsf photometry` "
