@@ -812,7 +812,7 @@ def test_user_path_keeps_the_pattern_the_pixels_prefer(tmp_path):
 
     gain = 1.5
     flat_paths, cal = _user_flats(tmp_path, gain)
-    spots = draw_bench_spots(n_exposures=6, shifts=cal.shifts)
+    spots = draw_bench_spots(n_exposures=4, shifts=cal.shifts)
     images = _write_mosaics(tmp_path, _flux_smear(spots.stamps, 0.15, axis=2),
                             spots.exposure, gain)
     out, refined = tmp_path / "d.json", tmp_path / "refined.fits"
