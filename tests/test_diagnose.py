@@ -478,6 +478,7 @@ def test_cli_images_mode_ptc_and_star_residual(tmp_path, star_field):
     # the calibration from 192^2 flats misses the BF amplitude of the stars' shifts by tens
     # of percent: the stack shows it at a fraction of a percent of the peak, not more
     assert 0 < star["rms_over_peak"] < 0.01
+    assert star["units"]["profile"].startswith("mean residual per unit star flux")
     for name in ("ptc_residuals.png", "residual_images.png", "radial_profile.png"):
         assert (tmp_path / "report" / name).stat().st_size > 0
     assert "Stacked residual of the stars" in (tmp_path / "report" / "report.md").read_text()

@@ -248,6 +248,11 @@ def run(args):
     if star is not None:
         summary["star_residual"] = {key: star[key] for key in (
             "rms_over_peak", "chi2_per_pixel", "n_stars", "model_peak", "radius", "profile")}
+        # what the numbers are (a new user read the profile against report.md's, which is
+        # divided by the model peak)
+        summary["star_residual"]["units"] = {
+            "profile": "mean residual per unit star flux (report.md: over model_peak)",
+            "model_peak": "peak of the unit-flux model", "radius": "pixels"}
     before, after = result.residual_before, result.residual_after
     print(f"selected: {', '.join(result.selected) or 'nothing'}")
     # "after" is the selected effects': with an EMPIRICAL term, say so (a new user read the
