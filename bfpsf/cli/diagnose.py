@@ -25,10 +25,10 @@ what the refinement absorbed is not evidence that it was the calibration's).
 """
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
+from ..diagnosis.pattern_choice import keep_the_pattern_the_pixels_prefer, refined_star_residual
 from ..diagnosis.position_split import describe_split
 from ..diagnosis.problem import describe_slope
 from ..diagnosis.signature import describe_entry, describe_rejection
@@ -207,7 +207,9 @@ def run(args):
     chosen = None
     if args.output_calib:
         # the EMPIRICAL term's pattern kind its held-out stars' pixels prefer
-        result, chosen = _choose_pattern(args, observables, result)
+        result, chosen = keep_the_pattern_the_pixels_prefer(
+            result, observables, amp=args.amp, background=args.background,
+            saturation=args.saturation)
     summary = result.to_json_dict()
     if result.holdout and images and observables.sizes.exposure is not None:
         held = result.holdout.get("heldout_exposures") or []
@@ -235,8 +237,10 @@ def run(args):
         for name, why in refined.refinement.get("not_applied", {}).items():
             print(f"  not applied: {name}: {why}")
         summary["star_residual_refined"] = (chosen or {}).get("star_residual") or (
-            _refined_star_residual(args, observables, refined,
-                                   (result.holdout or {}).get("heldout_exposures")))
+            refined_star_residual(observables, refined,
+                                  (result.holdout or {}).get("heldout_exposures"),
+                                  amp=args.amp, background=args.background,
+                                  saturation=args.saturation))
     summary["inputs"] = {key: value for key, value in observables.meta.items()
                          if isinstance(value, (str, float, int, bool)) or value is None}
     summary["position_split"] = observables.meta.get("position_split", {})
@@ -314,62 +318,6 @@ def run(args):
                               summary.get("star_residual_refined"))
         print(f"report: {path}", file=sys.stderr)
     return 0
-
-
-def _choose_pattern(args, observables, result):
-    """The result with the EMPIRICAL term of the pattern kind whose refined calibration
-    leaves the lower star residual chi2 per pixel on the held-out exposures (their pixels
-    tell a transfer of each pixel's charge from a smear, which the sizes cannot; a new
-    user's smear: 2.4 with the squared charge's pattern, 1.4 with the charge's, and its PSF
-    photometry drift +0.98 -> +0.21 mmag), and what was compared; (result, None) without an
-    alternative."""
-    from ..diagnosis.refine import refine_calibration
-
-    if not result.empirical or not result.empirical_alternatives:
-        return result, None
-    heldout = (result.holdout or {}).get("heldout_exposures")
-    tried = {}
-    for record in (result.empirical, *result.empirical_alternatives.values()):
-        candidate = dataclasses.replace(result, empirical=record)
-        refined = refine_calibration(observables.meta["calibration"], candidate)
-        if "empirical" not in refined.refinement["applied"]:
-            continue  # not validated out of sample: not applied whatever its pixels say
-        star = _refined_star_residual(args, observables, refined, heldout,
-                                      flats=next(iter(tried.values()), (0, 0, {}))[2]
-                                      .get("flats"))
-        if star.get("refined"):
-            tried[record["pattern"]] = (star["refined"]["chi2_per_pixel"], candidate, star)
-    if len(tried) < 2:
-        return result, None
-    kind = min(tried, key=lambda name: tried[name][0])
-    others = {name: tried[name][1].empirical for name in tried if name != kind}
-    chosen = dataclasses.replace(tried[kind][1], empirical_alternatives=others)
-    return chosen, {"kind": kind, "star_residual": tried[kind][2],
-                    "chi2_per_pixel": {name: value[0] for name, value in tried.items()}}
-
-
-def _refined_star_residual(args, observables, refined, heldout, flats=None):
-    """The stacked star residual of the held-out exposures (every exposure without a split)
-    against P(F) from the flats' calibration (``flats``: one computed before) and from the
-    refined one, each through the user's path
-    (`bfpsf.diagnosis.star_residual.star_residual_with`): what the refinement did to the
-    stars' pixels, which the loop never fits."""
-    from ..diagnosis.star_residual import star_residual_with
-
-    paths = observables.meta["image_paths"]
-    exposures = list(heldout or range(len(paths)))
-    out = {"exposures": exposures, "heldout": bool(heldout)}
-    if flats is not None:
-        out["flats"] = flats
-    for label, calibration in (("flats", observables.meta["calibration"]),
-                               ("refined", refined)):
-        if label in out:
-            continue
-        star = star_residual_with(calibration, paths, exposures, amp=args.amp,
-                                  background=args.background, saturation=args.saturation)
-        out[label] = None if star is None else {key: star[key] for key in (
-            "chi2_per_pixel", "rms_over_peak", "n_stars")}
-    return out
 
 
 def _refined_star_lines(entry):

@@ -16,6 +16,10 @@ One module per job:
 - `bfpsf.diagnosis.odd_moments`: the stars' skewness (the odd part of the residual);
 - `bfpsf.diagnosis.empirical_fit`: the EMPIRICAL term learned from what is left, validated
   out of sample (its model: `bfpsf.model.empirical`);
+- `bfpsf.diagnosis.pattern_choice`: the held-out stars' pixels against a refined
+  calibration, and the EMPIRICAL pattern kind they prefer;
+- `bfpsf.diagnosis.quiet_axis`: the flats' BF scale fitted on the axis an undeclared effect
+  leaves alone;
 - `bfpsf.validation.effects_bench`: a bench of effects outside the catalogue (and the null and
   catalogue effects) applied to the same simulated spots.
 """
