@@ -238,14 +238,18 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
     model = observables.spot_model
 
     def inputs(part):
+        """The term's inputs of one part (sizes, fluxes, model sizes, residual, and the e2
+        residual where the diagonal is fitted), computed once for every pattern kind."""
         sizes = part.sizes
+        cross = ({"cross_residual": sizes.cross - model.cross(sizes.peak_e)}
+                 if diagonal else {})
         return (sizes, model.fluxes(sizes.peak_e), model.sizes(sizes.peak_e),
-                _size_residual(state, part, step))
+                _size_residual(state, part, step)), cross
 
-    def cross(part):
-        return ({"cross_residual": part.sizes.cross - model.cross(part.sizes.peak_e)}
-                if diagonal else {})
-
+    fitted = inputs(state["observables"])
+    held = None if heldout is None else inputs(heldout)
+    split = early_late(observables, late_fraction)
+    early, late = (None, None) if split is None else (inputs(part) for part in split)
     # valid over the night: the held-out exposures interleave with the fitted ones
     orders = observables.sizes.exposure
     night = None if orders is None else (float(np.min(orders)), float(np.max(orders)))
@@ -259,23 +263,19 @@ def with_empirical(result, state, heldout, observables, late_fraction=1.0 / 3.0)
         options = {"position": position, "row": row, "exposure": exposure,
                    "response": response, "extent": observables.meta.get("star_extent"),
                    "kind": kind}
-        term = fit_empirical(*inputs(state["observables"]), **options, night=night,
-                             **cross(state["observables"]))
+        term = fit_empirical(*fitted[0], **options, night=night, **fitted[1])
         validation = {"fitted_on": "the loop's fit part", "adaptive_response": response,
                       "position_term": position, "row_term": row, "exposure_term": exposure,
                       "diagonal_term": diagonal}
-        if heldout is not None:
-            validation["heldout"] = evaluate_empirical(term, *inputs(heldout), response,
-                                                       **cross(heldout))
-        split = early_late(observables, late_fraction)
+        if held is not None:
+            validation["heldout"] = evaluate_empirical(term, *held[0], response, **held[1])
         if split is not None:
-            early, late = split
-            early_term = fit_empirical(*inputs(early), **options, **cross(early))
+            early_term = fit_empirical(*early[0], **options, **early[1])
             # with the term fitted on the early exposures, so that its pixel-level use (PSF
             # photometry of the late block) can be checked as well
             validation["late_block"] = dict(
-                evaluate_empirical(early_term, *inputs(late), response, **cross(late)),
-                exposures=sorted(np.unique(late.sizes.exposure).tolist()),
+                evaluate_empirical(early_term, *late[0], response, **late[1]),
+                exposures=sorted(np.unique(split[1].sizes.exposure).tolist()),
                 term=early_term.to_dict())
         validation["validated"] = term_validated(validation)
         validation["left"] = term_leaves(validation)

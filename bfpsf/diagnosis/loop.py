@@ -50,7 +50,7 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
 from .catalogue import CATALOGUE, get_effect
 from .heldout import split_observables, with_empirical, with_heldout
-from .nuisances import GLOBAL_NUISANCES, SCALE, SPLIT
+from .nuisances import GLOBAL_NUISANCES, SCALE, SPLIT, without_priors
 from .problem import (build_problem, effect_columns, effect_design, effect_values,
                       global_priors, slope_residuals, summarise)
 from .quiet_axis import scale_beside_the_effect
@@ -124,11 +124,8 @@ def diagnose(observables, *, catalogue=CATALOGUE, threshold=DEFAULT_THRESHOLD, m
         contradicted.update(against)
         dropped = ((SCALE.error_key, SPLIT.error_key) if SCALE.name in contradicted
                    else (SPLIT.error_key,))
-        observables, fit_part, heldout = (
-            None if part is None else dataclasses.replace(
-                part, meta={key: value for key, value in part.meta.items()
-                            if key not in dropped})
-            for part in (observables, fit_part, heldout))
+        observables, fit_part, heldout = (without_priors(part, dropped)
+                                          for part in (observables, fit_part, heldout))
         result, state = _run_loop(fit_part, *options)
     if contradicted:
         result = dataclasses.replace(result, nuisance=dict(result.nuisance, **contradicted))

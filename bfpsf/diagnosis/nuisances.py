@@ -11,9 +11,11 @@ consumer iterates over `GLOBAL_NUISANCES`, in this order (the scale first: the s
 only beside it).
 """
 
+import dataclasses
 from dataclasses import dataclass
 
-__all__ = ["GlobalNuisance", "GLOBAL_NUISANCES", "SCALE", "SPLIT", "HELDOUT_LABEL"]
+__all__ = ["GlobalNuisance", "GLOBAL_NUISANCES", "SCALE", "SPLIT", "HELDOUT_LABEL",
+           "without_priors"]
 
 
 @dataclass(frozen=True)
@@ -61,3 +63,10 @@ GLOBAL_NUISANCES = (SCALE, SPLIT)
 #: The held-out step of the global nuisances (`bfpsf.diagnosis.heldout`): it confirms the
 #: scale and the split together, under the scale's name.
 HELDOUT_LABEL = f"{SCALE.name} (nuisance)"
+
+
+def without_priors(part, keys):
+    """Observables ``part`` (or None) without the priors of some global nuisances (their
+    ``error_key`` in its ``meta``, ``keys``): the loop then has no column for them."""
+    return None if part is None else dataclasses.replace(
+        part, meta={key: value for key, value in part.meta.items() if key not in keys})

@@ -25,15 +25,17 @@ import numpy as np
 
 from .empirical_fit import adaptive_response, fit_empirical, predicted_size_change
 from .heldout import _evaluate, _kept_step, _size_residual, with_heldout
-from .nuisances import SCALE, SPLIT
+from .nuisances import SCALE, SPLIT, without_priors
 from .problem import summarise
 
-__all__ = ["quiet_axis", "scale_beside_the_effect", "without_split", "DEPENDENCE_KEYS"]
+__all__ = ["quiet_axis", "scale_beside_the_effect", "DEPENDENCES"]
 
-#: The signature dimensions of a dependence on where or when a star was taken, and the
-#: unexplained report's key for each.
-DEPENDENCE_KEYS = {"exposure_order": "exposure_dependence", "position": "position_dependence",
-                   "row": "row_dependence"}
+#: The signature dimensions of a dependence on where or when a star was taken: the
+#: unexplained report's key for each, and the EMPIRICAL term's (`bfpsf.model.empirical`:
+#: its coefficients ``name`` and ``flux2_name``).
+DEPENDENCES = {"exposure_order": ("exposure_dependence", "exposure"),
+               "position": ("position_dependence", "position"),
+               "row": ("row_dependence", "row")}
 
 #: How much the dependent axis's size errors are inflated: no weight in the fit.
 _NO_WEIGHT = 1e6
@@ -41,11 +43,11 @@ _NO_WEIGHT = 1e6
 
 def quiet_axis(unexplained, dimension):
     """The axis ('x' or 'y') whose size residual shows no dependence of the kind
-    ``dimension`` names (a key of `DEPENDENCE_KEYS`) where the other axis's does; None
+    ``dimension`` names (a key of `DEPENDENCES`) where the other axis's does; None
     otherwise (both axes or neither, or a contradiction of another kind)."""
-    key = DEPENDENCE_KEYS.get(dimension)
-    if key is None:
+    if dimension not in DEPENDENCES:
         return None
+    key = DEPENDENCES[dimension][0]
     dependent = [entry["axis"] for entry in unexplained if entry["observable"] == "sizes"
                  and (entry.get(key) or {}).get("kind", "none") != "none"]
     if len(dependent) != 1:
@@ -65,7 +67,7 @@ def _one_axis(observables, axis, leak=None):
     return dataclasses.replace(observables, sizes=dataclasses.replace(sizes, **changes))
 
 
-def _leak(result, state, axis, dependence):
+def _leak(result, state, axis, dimension):
     """What the effect on the other axis does to the quiet axis's measured sizes: a function
     of a part of the observables, giving pixels.
 
@@ -87,18 +89,17 @@ def _leak(result, state, axis, dependence):
     part = state["observables"]
     model = part.spot_model
     response = adaptive_response(model, float(np.median(part.sizes.peak_e)))
-    key = {"exposure_dependence": "exposure", "position_dependence": "position",
-           "row_dependence": "row"}[dependence]
+    name = DEPENDENCES[dimension][1]
     term = fit_empirical(part.sizes, model.fluxes(part.sizes.peak_e),
                          model.sizes(part.sizes.peak_e),
                          _size_residual(state, part, _kept_step(result, state,
                                                                 result.confirmed)),
-                         response=response, **{key: True})
+                         response=response, **{name: True})
     other = "yy" if axis == "x" else "xx"
-    dependent = _DEPENDENT_TERMS[key]
+    dependent = (name, f"flux2_{name}")
     term = dataclasses.replace(term, coefficients={
-        pattern: {name: (value if pattern == other and name in dependent else 0.0)
-                  for name, value in terms.items()}
+        pattern: {key: (value if pattern == other and key in dependent else 0.0)
+                  for key, value in terms.items()}
         for pattern, terms in term.coefficients.items()})
 
     def leak(observables):
@@ -107,11 +108,6 @@ def _leak(result, state, axis, dependence):
                                      model.sizes(sizes.peak_e), response)["xy".index(axis)]
 
     return leak
-
-
-#: The EMPIRICAL term's coefficients of each dependence (`bfpsf.model.empirical`).
-_DEPENDENT_TERMS = {"exposure": ("exposure", "flux2_exposure"),
-                    "position": ("position", "flux2_position"), "row": ("row", "flux2_row")}
 
 
 def scale_beside_the_effect(result, state, contradicted, given, run_loop, fraction):
@@ -149,8 +145,8 @@ def scale_beside_the_effect(result, state, contradicted, given, run_loop, fracti
     if axis is None or given[1].sizes is None:
         return None
     # the split moves one axis against the other: from one axis it is the scale's twin
-    observables, both, heldout = (without_split(part) for part in given)
-    leak = _leak(result, state, axis, DEPENDENCE_KEYS[against])
+    observables, both, heldout = (without_priors(part, (SPLIT.error_key,)) for part in given)
+    leak = _leak(result, state, axis, against)
     quiet, state = run_loop(_one_axis(both, axis, leak(both)))
     entry = quiet.nuisance.get(SCALE.name)
     if entry is None or entry.get("contradicted_by"):
@@ -171,13 +167,6 @@ def scale_beside_the_effect(result, state, contradicted, given, run_loop, fracti
     judged = with_heldout(quiet, state, _one_axis(heldout, axis, leak(heldout)), fraction)
     quiet = with_heldout(quiet, state, heldout, fraction, confirmed=judged.confirmed)
     return quiet, state, observables, heldout
-
-
-def without_split(part):
-    """``part`` without the split's prior (`scale_beside_the_effect` holds it at the
-    flats')."""
-    return None if part is None else dataclasses.replace(
-        part, meta={key: value for key, value in part.meta.items() if key != SPLIT.error_key})
 
 
 def _in_sample(result, state, fit_part):
