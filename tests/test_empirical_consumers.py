@@ -165,12 +165,14 @@ def test_a_row_term_is_applied_at_the_star_row(truth, tmp_path):
     assert back.empirical.y_reference == 500.0
 
 
-def test_product_round_trip_keeps_the_term(truth, tmp_path):
-    """save / load (single and grid), value equality and pickling with the term; a product
-    without one reads back without one."""
+@pytest.mark.parametrize("kind", PATTERN_KINDS)
+def test_product_round_trip_keeps_the_term(truth, tmp_path, kind):
+    """save / load (single and grid), value equality and pickling with the term (each
+    pattern kind, which the product keeps); a product without one reads back without
+    one."""
     term = EmpiricalTerm({"xx": {"constant": 0.1, "position": 0.05}, "yy": {"flux2": 0.04}},
                          errors={"xx": {"constant": 0.01}}, x_reference=500.0,
-                         x_range=(0.0, 1000.0), validation={"heldout": {"n": 3}})
+                         x_range=(0.0, 1000.0), validation={"heldout": {"n": 3}}, kind=kind)
     grid = GriddedFluxDependentPSF([truth, truth], [0.0, 1000.0], [0.0])
     for model in (truth, grid):
         with_term = model.with_empirical_term(term)
@@ -182,6 +184,7 @@ def test_product_round_trip_keeps_the_term(truth, tmp_path):
             back = type(model).read(path)
             assert back == one
             assert (back.empirical is None) == (name == "without")
+            assert name == "without" or back.empirical.kind == kind
         np.testing.assert_array_equal(
             type(model).read(tmp_path / f"{type(model).__name__}_with.fits").star_image(
                 1e6, 700.0, 3.0), with_term.star_image(1e6, 700.0, 3.0))
