@@ -14,6 +14,10 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+from astropy.io import fits
+from astropy.io.registry import IORegistryError
+from astropy.table import Table
+from astropy.utils.exceptions import AstropyUserWarning
 
 from . import __version__
 from .errors import BFPSFError, BFPSFFileExistsError, BFPSFInputError
@@ -208,9 +212,6 @@ def reading(path, what):
     KeyError; inside this block each becomes a message naming the file. bfpsf's own errors
     pass through, and other warnings are passed on.
     """
-    from astropy.io.registry import IORegistryError  # Table.read: no format fits the file
-    from astropy.utils.exceptions import AstropyUserWarning
-
     unreadable = f"{path} is not a readable {what} (truncated, damaged or another format)"
     caught = []
     try:
@@ -263,8 +264,6 @@ def read_table(path, what, *, format=None, numeric=()):  # noqa: A002
 
     ``numeric``: columns that must hold numbers where present (a column of text is refused
     naming the file, the column and a value, not found later as a failed conversion)."""
-    from astropy.table import Table
-
     path = check_input(path, what)
     with reading(path, what):
         table = Table.read(path, format=format)
@@ -325,8 +324,6 @@ def open_product(path, *, keyword, version, kind):
     BFPSFInputError
         The file is missing, lacks ``keyword``, or has a newer schema.
     """
-    from astropy.io import fits
-
     path = check_input(path, f"{kind} file")
     try:
         hdul = fits.open(path, memmap=False)

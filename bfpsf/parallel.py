@@ -29,6 +29,9 @@ import contextlib
 import logging
 import os
 import signal
+from multiprocessing import resource_tracker
+
+from tqdm import tqdm
 
 from .errors import BFPSFValueError
 
@@ -58,8 +61,6 @@ def dask_available():
 def _progress_bar(total, description, enabled):
     if not enabled:
         return None
-    from tqdm import tqdm
-
     return tqdm(total=total, desc=description, unit="task")
 
 
@@ -151,8 +152,6 @@ def _interrupts_held():
         return
     # multiprocessing starts its resource tracker on first use and unblocks SIGINT in the
     # calling thread when it has: started first, it leaves the mask alone
-    from multiprocessing import resource_tracker
-
     resource_tracker.ensure_running()
     previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:

@@ -153,3 +153,42 @@ def test_house_rules_files_and_imports():
                                           for name in ends):
                 packages.setdefault(ends[0], set()).add(ends[1])
     assert not _cycles(packages), _cycles(packages)
+
+
+#: Modules a bfpsf module may import inside a function (docs/DESIGN.md, "Data flow").
+LATE_IMPORTS = {"galsim", "photutils", "matplotlib", "piff", "dask", "distributed", "resource"}
+
+
+def test_imports_at_the_top():
+    """Issue 24: a module of bfpsf imports at its top, except what docs/DESIGN.md names: GalSim,
+    photutils, matplotlib, the optional extras and ``resource``; the package's modules that
+    import GalSim, marked "only when used"; a private module behind a ``try``; the commands
+    of ``bfpsf.cli``. Before: 85 imports of astropy, scipy, tqdm and the standard library
+    inside functions."""
+    import ast
+
+    late = []
+    for path in sorted((ROOT / "bfpsf").rglob("*.py")):
+        if "cli" in path.relative_to(ROOT / "bfpsf").parts[:1]:
+            continue
+        source = path.read_text()
+        lines = source.splitlines()
+        tree = ast.parse(source)
+        for function in ast.walk(tree):
+            if not isinstance(function, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            guarded = {id(node) for block in ast.walk(function) if isinstance(block, ast.Try)
+                       for node in ast.walk(block)}
+            for node in ast.walk(function):
+                if not isinstance(node, (ast.Import, ast.ImportFrom)) or id(node) in guarded:
+                    continue
+                if isinstance(node, ast.ImportFrom):
+                    name = "bfpsf" if node.level else node.module
+                else:
+                    name = node.names[0].name
+                top = name.split(".")[0]
+                if top in LATE_IMPORTS or (top == "bfpsf"
+                                           and "only when used" in lines[node.lineno - 1]):
+                    continue
+                late.append(f"{path.relative_to(ROOT)}:{node.lineno} {name}")
+    assert not late, late

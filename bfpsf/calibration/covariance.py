@@ -19,6 +19,8 @@ forward FFT of the masked difference suffices.
 import logging
 
 import numpy as np
+from scipy import fft
+from scipy.fft import next_fast_len
 
 from ..errors import BFPSFInputError, BFPSFValueError, integer_at_least
 from .flats import Flat, FlatPair
@@ -39,8 +41,6 @@ _PRECISIONS = {"single": np.float32, "double": np.float64}
 
 
 def _fast_length(n):
-    from scipy.fft import next_fast_len
-
     return next_fast_len(int(n), real=True)
 
 
@@ -168,8 +168,6 @@ def _bad_pair_sums_direct(values, bad_y, bad_x, lags):
 
 def _bad_pair_sums_fft(spectrum, bad_index, image_shape, shape, lags):
     """As `_bad_pair_sums_direct`, by FFT of the bad-pixel image: many bad pixels."""
-    from scipy import fft
-
     # Counts up to n_bad must round exactly: single precision does below ~2e5 bad pixels.
     single = spectrum.dtype == np.complex64 and bad_index.size < 200_000
     dtype = np.float32 if single else np.float64
@@ -256,8 +254,6 @@ def _fft_buffer(image_shape, maxlag, precision):
 def _masked_covariances(padded, image_shape, bad_index, maxlag, sparse=None):
     """`covariance_map` of an image written in the corner of ``padded`` (`_fft_buffer`), zero
     at the bad pixels (flat ``bad_index``) and close to zero mean over the good ones."""
-    from scipy import fft
-
     real_dtype = padded.dtype.type
     m = maxlag
     ny, nx = image_shape

@@ -19,6 +19,8 @@ the transpose of bfpsf's ``[dy, dx]``; `read_ptc_dataset` and `write_ptc_dataset
 from dataclasses import dataclass
 
 import numpy as np
+from astropy.io import fits
+from astropy.table import Table
 
 from ..errors import BFPSFInputError
 from ..files import check_input, reading
@@ -147,8 +149,6 @@ def read_ptc_dataset(path):
     BFPSFInputError
         The file is missing, is not a PTC dataset (OBSTYPE), or lacks a needed column.
     """
-    from astropy.table import Table
-
     path = check_input(path, "PTC dataset")
     try:
         with reading(path, "cp_pipe PTC dataset (FITS)"):
@@ -220,8 +220,6 @@ def ptc_dataset_table(calibration):
         Must hold the per-pair covariances (``covariances_adu``, ``npix``), as `calibrate`
         stores them.
     """
-    from astropy.table import Table
-
     amplifiers = amplifiers_of(calibration)
     for name, one in amplifiers.items():
         if one.covariances_adu is None or one.npix is None:
@@ -239,9 +237,6 @@ def ptc_dataset_table(calibration):
 def ptc_table_hdu(table):
     """A PTC table as the binary-table HDU cp_pipe writes: its metadata in the header, long
     keywords (PTC_VERSION, ...) as HIERARCH cards."""
-    from astropy.io import fits
-    from astropy.table import Table
-
     bare = Table(table, copy=False)
     bare.meta = {}
     hdu = fits.table_to_hdu(bare)
@@ -252,7 +247,5 @@ def ptc_table_hdu(table):
 
 def write_ptc_dataset(path, calibration, *, overwrite=False):
     """Write `ptc_dataset_table` as cp_pipe does: the table in HDU 1, metadata in its header."""
-    from astropy.io import fits
-
     hdus = fits.HDUList([fits.PrimaryHDU(), ptc_table_hdu(ptc_dataset_table(calibration))])
     write_fits(hdus, path, overwrite=overwrite)  # atomic

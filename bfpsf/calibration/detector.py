@@ -9,6 +9,8 @@ give the calibration that applies to each amplifier of an image.
 import logging
 from dataclasses import dataclass
 
+from astropy.io import fits
+
 from .. import __version__
 from ..errors import BFPSFInputError
 from ..files import open_product, refuse_overwrite
@@ -76,8 +78,6 @@ class DetectorCalibration:
     def write(self, path, *, overwrite=False):
         """Write one file: the primary header, then the HDU group of each amplifier
         (`Calibration.group_hdus`, EXTVER 1, 2, ...)."""
-        from astropy.io import fits
-
         refuse_overwrite(path, overwrite)
         primary = fits.PrimaryHDU()
         primary.header["BFSCHEMA"] = (SCHEMA_VERSION, "bfpsf calibration schema version")

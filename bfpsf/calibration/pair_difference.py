@@ -10,6 +10,7 @@ import logging
 
 import numba
 import numpy as np
+from scipy.special import erf
 
 from .kernels import FASTMATH, flag_row, flagged_positions
 
@@ -25,8 +26,6 @@ def clip_variance_factor(threshold):
     ``v(t) = 1 - 2 t phi(t) / (2 Phi(t) - 1)``; cp_pipe's ``sigmaClipCorrection`` returns
     ``1 / sqrt(v)``.
     """
-    from scipy.special import erf
-
     t = float(threshold)
     if not np.isfinite(t):
         return 1.0

@@ -37,6 +37,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from astropy.io import fits
+from astropy.table import Table
 
 from .. import __version__
 from ..errors import BFPSFInputError
@@ -263,8 +265,6 @@ class Calibration:
         overwrite : bool, optional
             Replace an existing file. Default False: raise `BFPSFFileExistsError`.
         """
-        from astropy.io import fits
-
         path = Path(path)
         refuse_overwrite(path, overwrite)
         primary = fits.PrimaryHDU()
@@ -284,9 +284,6 @@ class Calibration:
 
         Every HDU carries EXTVER = ``extver`` (the group) and AMPNAME = `amplifier`.
         """
-        from astropy.io import fits
-        from astropy.table import Table
-
         hdus = []
 
         summary = Table()
@@ -399,8 +396,6 @@ class Calibration:
     @classmethod
     def from_group(cls, hdul, extver=1):
         """The calibration held by HDU group ``extver`` of an open calibration file."""
-        from astropy.table import Table
-
         header = hdul[0].header
         names = {hdu.name for hdu in hdul if hdu.ver == extver}
 
@@ -475,8 +470,6 @@ def group_names(hdul):
 def _table_hdu(table, name):
     """A binary-table HDU; text columns as UTF-8 bytes (FITS text is ASCII only; astropy
     reads the bytes back as the same text), so non-ASCII file names survive."""
-    from astropy.io import fits
-
     table = table.copy(copy_data=False)
     for column in table.colnames:
         if table[column].dtype.kind == "U":

@@ -31,6 +31,7 @@ Covariances are single-image covariances in ADU^2 indexed [dy, dx] (quadrant ave
 from dataclasses import dataclass, field
 
 import numpy as np
+from astropy.table import Table
 
 from ..errors import BFPSFValueError
 from ..least_squares import polynomial_fit
@@ -261,8 +262,6 @@ def ptc_table(data, gain, used=None):
     covariances over the full plane of lags up to maxlag, C00 excluded), ``npix`` (pixel
     products at lag 0), ``used`` (in the PTC fit).
     """
-    from astropy.table import Table
-
     if not isinstance(data, PTCData):
         data = stack_pairs(data)
     n = data.mean_adu.size

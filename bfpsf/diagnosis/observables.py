@@ -8,6 +8,7 @@ of a `Calibration`). The measured-table readers are in `bfpsf.diagnosis.readers`
 """
 
 import numpy as np
+from scipy.optimize import brentq
 
 from ..calibration import calibrate
 from ..calibration.product import Calibration
@@ -160,8 +161,6 @@ def lamp_error_floor(exptime, mean_e, shot_e):
     0 when the shot noise already explains it. A quadratic, so that a smooth non-linearity
     (which the loop tests) does not enter the floor.
     """
-    from scipy.optimize import brentq
-
     exptime, mean_e, shot_e = (np.asarray(v, float) for v in (exptime, mean_e, shot_e))
     dof = exptime.size - 3
     if dof < 2:

@@ -5,6 +5,8 @@ skewness that changes with flux is the signature of something else (a charge tra
 flux-dependent centroid shift); `bfpsf.diagnosis.signature.parity_test` tests it.
 """
 
+from types import SimpleNamespace
+
 import numpy as np
 
 __all__ = ["skewness", "star_skewness"]
@@ -48,8 +50,6 @@ def star_skewness(image, table, *, half_size=7):
     (ndarray, ndarray)
         skew_x, skew_y per row; NaN for stars too close to the edge or without moments.
     """
-    from types import SimpleNamespace
-
     image = np.asarray(image, float)
     ny, nx = image.shape
     n = len(table)

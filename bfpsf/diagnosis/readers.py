@@ -5,7 +5,11 @@ E2V spot moments), `observables_from_tables` (a correlation table and a size tab
 `observables_from_measured` (a data-set folder named in `MEASURED_SETS`).
 """
 
+import os
+
 import numpy as np
+from astropy.table import Table
+from scipy.special import erf
 
 from ..calibration.measured import read_measured_area
 from ..calibration.shifts_ei import solve_ei_shifts
@@ -44,8 +48,6 @@ def read_lage_spot_table(path, *, corrected=False):
     per segment and axis (`_scatter_errors`). ``corrected=True`` reads the sizes after Lage's
     kernel correction.
     """
-    from astropy.table import Table
-
     table = Table.read(path, format="ascii.csv")
     prefix = "corr_" if corrected else ""
     try:
@@ -69,8 +71,6 @@ def read_bot_spot_table(path, *, gain, peak_fraction=None, corrected=False):
     (SOURCE.md). The peak is flux * gain * ``peak_fraction``; default the central-pixel
     fraction of a Gaussian of the mean size.
     """
-    from astropy.table import Table
-
     table = Table.read(path, format="ascii.csv", comment="#")
     prefix = "corr_" if corrected else ""
     flux_e = np.asarray(table[f"{prefix}mean_flux_adu"], float) * gain
@@ -79,8 +79,6 @@ def read_bot_spot_table(path, *, gain, peak_fraction=None, corrected=False):
     n = np.asarray(table[f"{prefix}n_spots"], float)
     sigma_x, sigma_y = np.sqrt(xx), np.sqrt(yy)
     if peak_fraction is None:
-        from scipy.special import erf
-
         edge_x = 0.5 / (np.sqrt(2) * np.sqrt(np.mean(xx) - 1 / 12))
         edge_y = 0.5 / (np.sqrt(2) * np.sqrt(np.mean(yy) - 1 / 12))
         peak_fraction = erf(edge_x) * erf(edge_y)
@@ -176,8 +174,6 @@ def _area_shift_draws(area, area_err, n_draws=8, seed=0):
 
 def observables_from_measured(directory, *, phases=3, corrected=False):
     """Observables of one of the measured data sets (`MEASURED_SETS`) by its folder."""
-    import os
-
     directory = os.fspath(directory).rstrip("/")
     name = os.path.basename(directory)
     if name not in MEASURED_SETS:
@@ -186,8 +182,6 @@ def observables_from_measured(directory, *, phases=3, corrected=False):
     spec = MEASURED_SETS[name]
     gain = None
     if "ptc" in spec:
-        from astropy.table import Table
-
         ptc = Table.read(os.path.join(directory, spec["ptc"]), format="ascii.csv", comment="#")
         gain = float(np.mean(ptc["gain_e_per_adu"]))
     return observables_from_tables(os.path.join(directory, spec["correlations"]),

@@ -9,6 +9,8 @@ and `bfpsf.redistribute` use.
 """
 
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.special import erf
 
 from ..errors import BFPSFValueError
 from ..model.bf_term import pixelised_stamp
@@ -28,9 +30,6 @@ def _gaussian_fit_sigmas(stamps):
 
     The measurement of Lage's spot tables (forward-modelled 2-D Gaussian, uniform weights).
     """
-    from scipy.optimize import least_squares
-    from scipy.special import erf
-
     n, ny, nx = stamps.shape
     edges_x = np.arange(nx + 1) - 0.5
     edges_y = np.arange(ny + 1) - 0.5

@@ -8,6 +8,7 @@ choose sensible defaults from the PSF (fit box, grouping distance) and build the
 """
 
 import numpy as np
+from astropy.nddata import NDData
 
 from ..errors import BFPSFValueError
 from ..model.base import BFPSFModel
@@ -227,7 +228,6 @@ def static_image_psf(psf, flux=None):
 
 def _static_gridded_psf(psf, flux):
     """photutils GriddedPSFModel of the static models at a field-varying model's nodes."""
-    from astropy.nddata import NDData
     from photutils.psf import GriddedPSFModel
 
     x_nodes, y_nodes = psf.field_nodes

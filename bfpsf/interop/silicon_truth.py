@@ -21,10 +21,13 @@ landing shifts leaves 14 % of a star's BF change of e1; scaled to the landing un
 know) 17 %.
 """
 
+import glob
+import os
 from typing import NamedTuple
 
-import numpy as np
 import galsim
+import numpy as np
+from scipy.signal import correlate
 
 from ..errors import BFPSFValueError, integer_at_least
 from ..shifts import BoundaryShifts
@@ -42,9 +45,6 @@ __all__ = [
 
 def silicon_sensor_names():
     """Names of the SiliconSensor models GalSim ships (its ``share/sensors/*.cfg``)."""
-    import glob
-    import os
-
     pattern = os.path.join(galsim.meta_data.share_dir, "sensors", "*.cfg")
     return sorted(os.path.basename(path)[:-len(".cfg")] for path in glob.glob(pattern))
 
@@ -377,8 +377,6 @@ def landing_under(sensor, image, shifts, *, radius=4, photons_per_boundary=40000
     change of the photon count in the rows above the boundary within its strip's three columns,
     so that a photon leaving sideways through a moving east boundary is not taken for one.
     """
-    from scipy.signal import correlate
-
     image = np.asarray(image, dtype=float)
     if image.ndim != 2 or not np.all(np.isfinite(image)) or np.any(image < 0) or image.max() <= 0:
         msg = f"image must be a 2-D charge image >= 0 with some charge, got shape {image.shape}"

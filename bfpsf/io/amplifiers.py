@@ -34,6 +34,7 @@ import re
 from dataclasses import dataclass
 
 import numpy as np
+from astropy.io import fits
 
 from ..errors import BFPSFInputError
 from ..files import check_input, reading
@@ -303,8 +304,6 @@ def amplifier_layout(path, amps=None, *, what="FITS file"):
         Missing or unreadable file, a cube, a table HDU other than CATALOG, several images not
         all named, a duplicate EXTNAME, a bad section, or an unknown amplifier in ``amps``.
     """
-    from astropy.io import fits
-
     check_input(path, what)
     with reading(path, _readable(what)), fits.open(path, memmap=False,
                                                   lazy_load_hdus=True) as hdus:
@@ -389,8 +388,6 @@ def read_amplifiers(path, amps=None, *, overscan="median", what="FITS file"):
     BFPSFInputError
         As `amplifier_layout`.
     """
-    from astropy.io import fits
-
     layouts = amplifier_layout(path, amps, what=what)
     amplifiers = []
     with reading(path, _readable(what)), fits.open(path, memmap=False) as hdus:
@@ -416,8 +413,6 @@ def _amplifier(layout, hdus, overscan):
 
 def read_amplifier(layout, *, overscan="median"):
     """One amplifier given its layout (as a worker of `bfpsf.parallel` reads one flat)."""
-    from astropy.io import fits
-
     with reading(layout.path, "FITS file"), fits.open(layout.path, memmap=False) as hdus:
         return _amplifier(layout, hdus, overscan)
 

@@ -16,6 +16,7 @@ two (in electrons) applies.
 """
 
 import numpy as np
+from scipy import ndimage
 
 from ..errors import BFPSFInputError
 
@@ -139,8 +140,6 @@ def count_saturated_regions(image, level):
     None."""
     if level is None:
         return 0
-    from scipy import ndimage
-
     _, count = ndimage.label(np.asarray(image) >= level)
     return int(count)
 

@@ -8,6 +8,11 @@ with no detected neighbour within a stamp, for the P0 fit.
 """
 
 import numpy as np
+from astropy.convolution import convolve
+from astropy.stats import sigma_clipped_stats
+from astropy.table import Table
+from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from .sources import DETECTION_THRESHOLD, SourceFlag, measure_sources
 
@@ -33,10 +38,7 @@ def smoothed_peaks(image_e, *, threshold=DETECTION_THRESHOLD, detection_fwhm=3.0
     -------
     ndarray (N, 2)
     """
-    from astropy.convolution import convolve
-    from astropy.stats import sigma_clipped_stats
     from photutils.segmentation import make_2dgaussian_kernel
-    from scipy import ndimage
 
     image = np.where(np.isfinite(image_e), image_e, 0.0)
     kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
@@ -80,9 +82,6 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, **kwargs)
         ``x``, ``y``, ``flux_e``, ``flags`` (`SourceFlag`); the detections first, then the
         companions; ``meta['n_detected']`` the detections.
     """
-    from astropy.table import Table
-    from scipy.spatial import cKDTree
-
     image = np.where(np.isfinite(image_e), image_e, 0.0)
     sources = measure_sources(image, threshold=threshold, **kwargs)
     x = np.asarray(sources["x"], dtype=float)

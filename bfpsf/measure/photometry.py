@@ -13,6 +13,10 @@ import logging
 
 import numpy as np
 from astropy.table import Table
+from astropy.table import vstack
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import (default_fit_shape, describe_outlying_nodes,
@@ -88,8 +92,6 @@ def _fit_without_neighbours(photometry, psf, data, mask, error, init, previous, 
     fit boxes of another are fitted in one photutils call (a greedy colouring of the groups);
     the others in further calls, each on its own neighbour-subtracted image.
     """
-    from scipy.spatial import cKDTree
-
     n_stars = len(previous)
     rows = np.ones(n_stars, dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
     start = _refit_init(init, previous)
@@ -124,8 +126,6 @@ def _fit_without_neighbours(photometry, psf, data, mask, error, init, previous, 
         fit["group_id"] = np.asarray(fit["group_id"]) + offset
         offset = int(np.max(fit["group_id"]))
         fits.append(fit)
-    from astropy.table import vstack
-
     result = vstack(fits, metadata_conflicts="silent")
     result.sort("id")
     return result
@@ -198,10 +198,6 @@ MAX_GROUP_SIZE = 25
 def _check_groups(psf, fit_shape, group_separation, init):
     """Refuse a fit box (or group separation) so wide against the star spacing that many stars
     would be fitted as one group: slow, and biased with flags 0."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
     if len(init) <= MAX_GROUP_SIZE:
         return
     side = float(np.max(np.atleast_1d(default_fit_shape(psf) if fit_shape is None

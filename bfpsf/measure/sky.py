@@ -38,6 +38,8 @@ on the scale of the stars is beyond either; give it with ``--background`` (a kno
 from dataclasses import dataclass
 
 import numpy as np
+from astropy.stats import sigma_clipped_stats
+from scipy import ndimage
 
 from ..errors import BFPSFInputError, BFPSFValueError
 
@@ -164,9 +166,6 @@ def source_mask(image_e, *, threshold=2.0, peak=SOURCE_PEAK, reach=3.0, grow=2,
     -------
     ndarray of bool [y, x]
     """
-    from astropy.stats import sigma_clipped_stats
-    from scipy import ndimage
-
     image = np.asarray(image_e, dtype=float)
     bad = ~np.isfinite(image)
     if bad.all():

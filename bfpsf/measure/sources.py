@@ -11,6 +11,11 @@ sources are flagged, never dropped.
 import warnings
 
 import numpy as np
+from astropy.convolution import convolve
+from astropy.stats import sigma_clipped_stats
+from astropy.table import Table
+from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from ..errors import BFPSFInputError, BFPSFValueError, integer_at_least
 from ..moments.adaptive import adaptive_moments_batch
@@ -89,8 +94,6 @@ def sky_level(image, *, maxiters=10):
     BFPSFInputError
         If the image has no finite pixel.
     """
-    from astropy.stats import sigma_clipped_stats
-
     pixels = np.asarray(image)
     pixels = pixels[np.isfinite(pixels)]
     if pixels.size == 0:
@@ -128,8 +131,6 @@ def _deblended(smoothed, segments, labels, n_pixels):
 
 def _segments_with_several_peaks(smoothed, segment_map, min_level, fwhm):
     """Labels of segments holding more than one local maximum of the smoothed image."""
-    from scipy import ndimage
-
     size = 2 * int(np.ceil(fwhm)) + 1
     local_max = (smoothed == ndimage.maximum_filter(smoothed, size=size)) & (
         smoothed >= min_level) & (segment_map > 0)
@@ -143,8 +144,6 @@ def _segments_with_several_peaks(smoothed, segment_map, min_level, fwhm):
 
 
 def _empty_table(colour_columns):
-    from astropy.table import Table
-
     names = ["id", *STAR_COLUMNS[:-1], "gauss_flux_e", "background_e", "background_rms_e",
              "mxx_err", "myy_err", "mxy_err", "sigma_x_err", "sigma_y_err", "iq_err",
              "e1_err", "e2_err", "neighbour_size_bias", "n_iter", "flags", "flag_string",
@@ -281,8 +280,6 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
         (`bfpsf.measure.neighbour_light`), ``n_iter``, ``flags``
         (`SourceFlag`), ``flag_string`` and the colour columns.
     """
-    from astropy.convolution import convolve
-    from astropy.stats import sigma_clipped_stats
     from photutils.segmentation import SourceCatalog, detect_sources, make_2dgaussian_kernel
     from photutils.utils.exceptions import NoDetectionsWarning
 
@@ -387,8 +384,6 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     flags |= np.where(lit, SourceFlag.NEIGHBOUR_LIGHT, 0)
     aperture_flux = _aperture_flux(stamps, radius2, moments.sigma, aperture_nsigma)
 
-    from astropy.table import Table
-
     table = Table()
     table["id"] = np.asarray(catalog.label, dtype=int)
     table["x"] = x_stamp + x_origin
@@ -432,8 +427,6 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
 
 def _match_colours(table, colour, colour_columns, match_radius):
     """Add the colour columns by nearest match; returns NO_COLOUR flags."""
-    from scipy.spatial import cKDTree
-
     positions = np.stack([np.asarray(colour["x"], float), np.asarray(colour["y"], float)], 1)
     distance, nearest = cKDTree(positions).query(
         np.stack([np.asarray(table["x"], float), np.asarray(table["y"], float)], 1))

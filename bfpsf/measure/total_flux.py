@@ -26,6 +26,7 @@ import functools
 
 import numpy as np
 from scipy.interpolate import CubicSpline
+from scipy.spatial import cKDTree
 
 from ..errors import BFPSFInputError
 from ..model.wings import (BASE_POWER, GLOW, WING_NODES, WingModel, node_basis,
@@ -92,8 +93,6 @@ def _templates(x, y, flux, rows, columns, half_size):
     faintest of six stars had no tail).
 
     Returns (templates [pixel, node], tails [pixel, power], inside [pixel])."""
-    from scipy.spatial import cKDTree
-
     outer = node_radii(half_size)[-1]
     inside = np.zeros(rows.size, dtype=bool)
     templates = np.zeros((rows.size, WING_NODES))

@@ -5,6 +5,9 @@ this, redistributes the filled image and sets them back to NaN.
 """
 
 import numpy as np
+import scipy.ndimage
+import scipy.sparse
+import scipy.sparse.linalg
 
 from ..errors import BFPSFInputError
 
@@ -14,10 +17,6 @@ __all__ = ["harmonic_fill"]
 def harmonic_fill(image, bad):
     """Replace ``image[bad]`` by the solution of Laplace's equation with the finite pixels as
     boundary values (each filled pixel is the mean of its in-image neighbours)."""
-    import scipy.ndimage
-    import scipy.sparse
-    import scipy.sparse.linalg
-
     ny, nx = image.shape
     ys, xs = np.nonzero(bad)
     index = -np.ones(image.shape, dtype=np.int64)

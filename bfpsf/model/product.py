@@ -36,7 +36,11 @@ EMPIRICAL term of a calibration refined by ``bfpsf diagnose --output-calib``
 Readers of schema 6 refuse these files rather than drop the term.
 """
 
+import json
+
 import numpy as np
+from astropy.io import fits
+from astropy.table import Table
 
 from ..errors import BFPSFValueError
 from ..files import open_product, refuse_overwrite
@@ -88,8 +92,6 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
     overwrite : bool, optional
         Replace an existing file. Default False (`~bfpsf.errors.BFPSFFileExistsError`).
     """
-    from astropy.io import fits
-
     refuse_overwrite(path, overwrite)
     nodes = psf.nodes if psf.product_kind == "grid" else None
     if psf.mode == "exact" and any(node.density_profile is not None
@@ -162,9 +164,6 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
 
 def _amplifier_hdu(amplifier_shifts):
     """Table HDU ``AMPSHIFT`` of the shifts of each amplifier (one radius: the largest)."""
-    from astropy.io import fits
-    from astropy.table import Table
-
     radius = max(shifts.radius for shifts in amplifier_shifts.values())
     padded = [shifts.padded(radius) for shifts in amplifier_shifts.values()]
     table = Table({"AMP": list(amplifier_shifts),
@@ -179,11 +178,6 @@ def _amplifier_hdu(amplifier_shifts):
 
 def _empirical_hdu(term):
     """Table HDU ``EMPIRIC``: the EMPIRICAL term's record as JSON (one row)."""
-    import json
-
-    from astropy.io import fits
-    from astropy.table import Table
-
     hdu = fits.table_to_hdu(Table({"json": [json.dumps(term.to_dict())]}))
     hdu.name = "EMPIRIC"
     hdu.header["LABEL"] = ("empirical", "describes the stars, explains nothing")
@@ -192,8 +186,6 @@ def _empirical_hdu(term):
 
 def _read_empirical(hdul):
     """The EMPIRICAL term of the ``EMPIRIC`` HDU, or None without it."""
-    import json
-
     if "EMPIRIC" not in hdul:
         return None
     return EmpiricalTerm.from_dict(json.loads(str(hdul["EMPIRIC"].data["json"][0])))
@@ -211,8 +203,6 @@ def _read_amplifier_shifts(hdul):
 
 def _grid_hdus(psf):
     """HDUs of the grid of a `GriddedFluxDependentPSF` (schema 3)."""
-    from astropy.io import fits
-
     grid = fits.ImageHDU(np.asarray(psf.data, dtype=np.float64), name="GRID")
     grid.header["NODESX"] = (int(psf.grid_shape[1]), "grid nodes along x")
     grid.header["NODESY"] = (int(psf.grid_shape[0]), "grid nodes along y")

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from astropy.table import Table
+from tqdm import tqdm
 
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError, integer_at_least
 from ..resources import check_psf_fit
@@ -293,8 +294,6 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     guaranteed descent: a fit that does not converge returns the iterate of least chi-square
     (``converged`` stays False).
     """
-    from tqdm import tqdm
-
     if psf_kwargs.get("flux_unit", "electron") != "electron":
         msg = (f"fit_psf works on images in e-: flux_unit must be 'electron', got "
                f"{psf_kwargs['flux_unit']!r} (convert the fitted model with with_flux_unit)")

@@ -11,9 +11,11 @@ catalogue, as a user hands them to ``piffify``. `piff_config` is the config of o
 `bfpsf.measure.slopes.fit_bf_slope` (one free intercept per exposure).
 """
 
+import time
 from pathlib import Path
 
 import numpy as np
+from astropy.table import Table
 
 from ..measure.slopes import fit_bf_slope
 from ..model.redistribution import redistribute
@@ -53,8 +55,6 @@ def write_field(directory, *, n_exposures=4, sensor="lsst_itl_50_8", gain=1.5,
         coordinates, as Piff reads FITS images; ``flux_e``, ``peak_e``, ``fwhm``, ``e1``).
         With ``control``, a second list of (control image, catalogue) follows.
     """
-    from astropy.table import Table
-
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     images, twins, truth = simulate_varying_exposures(
@@ -166,8 +166,6 @@ def fit_exposures(files, *, calib=None, gain=1.5, psf=None):
     seconds : float
         CPU time of the fits (process time: the machine may be shared).
     """
-    import time
-
     import piff
 
     psf = inner_psf_config() if psf is None else psf

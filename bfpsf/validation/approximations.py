@@ -1,8 +1,9 @@
 """G15 section 6.2 experiments: the error of the boundary-density approximation (fig. bva) and of
 the one-step model against the build-up during the exposure, on Moffat spots drawn with GalSim."""
 
-import numpy as np
 import galsim
+import numpy as np
+from astropy.table import Table
 
 from ..model.buildup import redistribute_buildup
 from ..model.density import exact_boundary_density
@@ -100,8 +101,6 @@ def density_approximation_error(shifts, iq=(1.0, 1.2, 1.4, 1.6, 2.0, 2.5, 3.0, 3
         dsigma_exact, relative size; negative: the approximation underestimates the size) and
         ``error_fraction`` (error / dsigma_exact: the fraction of the BF effect misestimated).
     """
-    from astropy.table import Table
-
     rows = []
     for target in iq:
         fwhm, sigma0, image, sub = _moffat_for_iq(target, peak, beta=beta,
@@ -129,8 +128,6 @@ def buildup_error(shifts, peaks=(2e4, 5e4, 1e5, 1.5e5), *, fwhm=4.0, nsteps=32, 
         relative size), ``size_difference_fraction`` (over dsigma_buildup) and
         ``max_pixel_difference`` (max |Q_one_step - Q_buildup| / max |dQ_buildup|).
     """
-    from astropy.table import Table
-
     rows = []
     unit, _ = moffat_charge(fwhm, 1.0, beta=beta)
     sigma0 = _sigma(unit)

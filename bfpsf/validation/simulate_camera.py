@@ -7,6 +7,7 @@ by side along x on the detector. Used by the tests and benchmarks of `bfpsf.io.a
 """
 
 import numpy as np
+from astropy.io import fits
 
 from ..errors import BFPSFValueError
 from ..outputs import write_fits
@@ -45,8 +46,6 @@ def amplifier_hdus(images, names, *, bias_adu, overscan_columns=20, read_noise_a
     -------
     astropy.io.fits.HDUList
     """
-    from astropy.io import fits
-
     if not (len(images) == len(names) == len(bias_adu)):
         msg = "give one name and one bias level per amplifier image"
         raise BFPSFValueError(msg, (len(images), len(names), len(bias_adu)))

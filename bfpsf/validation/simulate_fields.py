@@ -13,6 +13,7 @@ falls beyond the image's edge included, before the sky).
 from dataclasses import dataclass, field
 
 import numpy as np
+from astropy.table import Table
 
 from ..errors import BFPSFValueError
 from ..model.redistribution import redistribute
@@ -107,7 +108,6 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
     SimulatedField
     """
     import galsim
-    from astropy.table import Table
 
     rng = np.random.default_rng(seed)
     ny, nx = (int(value) for value in shape)

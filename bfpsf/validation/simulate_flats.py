@@ -34,6 +34,8 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from astropy.io import fits
+from tqdm import tqdm
 
 from ..errors import BFPSFFileExistsError, BFPSFValueError, integer_at_least
 from ..outputs import write_fits
@@ -228,8 +230,6 @@ def simulate_flats(sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, pairs=1
     total = len(levels_e) * int(pairs) * 2
     bar = None
     if progress:
-        from tqdm import tqdm
-
         bar = tqdm(total=total * int(nsteps), desc="simulating flats", unit="step")
     outputs = []
     for level in levels_e:
@@ -349,8 +349,6 @@ def write_flats(outdir, sensor="lsst_itl_50_8", levels_e=DEFAULT_LEVELS_E, *, ov
     BFPSFFileExistsError
         A file exists and ``overwrite`` is False.
     """
-    from astropy.io import fits
-
     outdir = Path(outdir)
     levels = np.atleast_1d(np.asarray(levels_e, dtype=float))
     pairs = int(options.get("pairs", 1))

@@ -14,6 +14,9 @@ uses OpenMP: run with ``OMP_NUM_THREADS=1`` when anything else runs on the machi
 from dataclasses import dataclass, field
 
 import numpy as np
+from astropy.io import fits
+from astropy.table import Table
+from tqdm import tqdm
 
 from ..errors import BFPSFInputError, BFPSFValueError, integer_at_least
 from ..files import refuse_overwrite
@@ -82,8 +85,6 @@ class SpotSet:
             ``x``, ``y`` (0-based image pixels), ``flux_e``, ``peak_e``, ``level``,
             ``stamp`` (index into ``stamps``).
         """
-        from astropy.table import Table
-
         n_spots, size, _ = self.stamps.shape
         n_columns = int(np.ceil(np.sqrt(n_spots))) if n_columns is None else int(n_columns)
         n_rows = int(np.ceil(n_spots / n_columns))
@@ -320,7 +321,6 @@ def simulate_star_field(*, shape=(512, 512), n_stars=100, peak_range_e=(2e3, 1.2
     StarField
     """
     import galsim
-    from astropy.table import Table
 
     ny, nx = (int(value) for value in shape)
     half = spacing // 2
@@ -421,9 +421,6 @@ def simulate_varying_exposures(*, n_exposures=36, shape=(400, 400), spacing=40,
     truth : astropy.table.Table
         ``image``, ``x``, ``y`` (pixels), ``flux_e``, ``peak_e``, ``fwhm``, ``e1``.
     """
-    from astropy.table import Table
-    from tqdm import tqdm
-
     ny, nx = (int(value) for value in shape)
     if ny % spacing or nx % spacing:
         msg = f"shape {shape} must be a multiple of spacing {spacing}"
@@ -474,8 +471,6 @@ def write_image_adu(path, image_e, *, gain, exptime=1.0, catalog=None, overwrite
     overwrite : bool, optional
         Replace an existing file (default False: `BFPSFFileExistsError`).
     """
-    from astropy.io import fits
-
     _check_positive("gain", gain)
     refuse_overwrite(path, overwrite, how="overwrite=True")
     array = np.asarray(image_e, dtype=float)

@@ -36,6 +36,7 @@ import logging
 import time
 
 import numpy as np
+from tqdm import tqdm
 
 from .. import calibration
 from ..diagnosis.loop import diagnose
@@ -74,8 +75,6 @@ def _unavailable(reason):
 def _progress(enabled, total, description):
     if not enabled:
         return None
-    from tqdm import tqdm
-
     return tqdm(total=total, desc=description, unit="stage")
 
 
