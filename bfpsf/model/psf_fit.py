@@ -43,14 +43,14 @@ from tqdm import tqdm
 
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError, integer_at_least
 from ..resources import check_psf_fit
-from ..shifts import BoundaryShifts, as_shifts
 from .empirical import PATTERNS, pattern_series
 from .gridded import GriddedFluxDependentPSF, bilinear_weights
 from .psf import FluxDependentPSF
 from .psf_fit_grid import (Grid, Sampling, cardinal_splines, dense_weights_of, grid_nodes,
-                           node_solution, normalise_nodes, project, recentred,
-                           without_translation)
-from .psf_fit_stars import STAR_FLAGS, as_star_list, cut_stars, neighbour_table, star_table
+                           mean_shifts, node_solution, normalise_nodes, project, recentred,
+                           shift_sets_of, without_translation)
+from .psf_fit_stars import (STAR_FLAGS, as_star_list, cut_stars, misfits, neighbour_table,
+                             star_table)
 
 __all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS", "DEFAULT_SIZE"]
 
@@ -315,14 +315,14 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                   None if grid is None else (x_nodes.size, y_nodes.size), max_iterations)
     half = size // 2 + 1  # cutouts one pixel wider than P0: every node gets samples
     if neighbours is not None:
-        neighbours = as_star_list(images, neighbours)[1]
+        neighbours = as_star_list(images_e, neighbours)[1]
     flags, image_index, stars = cut_stars(images, positions, half,
                                            read_noise**2 + skies + 1.0, neighbours)
     if stars is None or np.sum(stars.p0) < 3:
         n_usable = 0 if stars is None else int(np.sum(stars.p0))
         msg = f"need at least 3 usable stars to fit a PSF, got {n_usable} of {len(flags)}"
         raise BFPSFInputError(msg, n_usable)
-    shift_sets, image_set = _shift_sets(shifts, len(images))
+    shift_sets, image_set = shift_sets_of(shifts, len(images))
     if not include_bf:
         shift_sets = [shift_sets[0].scaled(0.0)]
         image_set = np.zeros(len(images), dtype=int)
@@ -336,14 +336,19 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     cardinal = cardinal_splines(npix)
     origin = ((npix - 1) / 2.0,) * 2
     shapes = [image.shape for image in images]
-    if initial is None:
+
+    def stack():
+        """P0 from the stack of the stars used, at the positions given."""
         xs = Sampling(stars.column, stars.x_0, 2 * half + 1, over, origin[0], cardinal)
         ys = Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
         flux = stars.flux[:, None, None]
         variance = np.clip(stars.data, 0.0, None) + stars.floor[:, None, None]
-        data = node_solution(stars.data / flux, np.where(stars.p0[:, None, None],
+        return node_solution(stars.data / flux, np.where(stars.used[:, None, None],
                                                           flux**2 / variance, 0.0),
-                              dense_weights, xs, ys, npix)
+                             dense_weights, xs, ys, npix)
+
+    if initial is None:
+        data = stack()
     else:
         data = np.asarray(initial, dtype=float)
         if data.shape[-2:] != shape or data.size != n_nodes * npix * npix:
@@ -358,10 +363,14 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     converged = diverged = False
     positions_settled, free_iterations, settle_factor = False, 0, 5.0
     best = None  # (chi-square, P0, fluxes, x_0, y_0) of the best iterate
-    bar = tqdm(range(1, max_iterations + 1), disable=(False if progress else
-                                                      None if progress is None else True),
+    bar = tqdm(total=max_iterations, disable=(False if progress else
+                                              None if progress is None else True),
                desc="P0 fit", unit="it", leave=False)
-    for iteration in bar:
+    iteration = start = 0  # a restart without the misfits counts from ``start``
+    first_damping = damping
+    while iteration < start + max_iterations:
+        iteration += 1
+        bar.update()
         # Hold the positions while P0 is far from converged: free positions would absorb a
         # phase-dependent distortion of the first stack (bright stars at different phases
         # carry different BF), a near-degeneracy the iteration would not leave.
@@ -369,7 +378,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         # positions share a weakly constrained direction (the odd part of P0 against each
         # star's centre) along which alternating updates creep; with the positions fixed the
         # remaining problem is linear in P0 and the fluxes and converges in a few steps.
-        free_positions = iteration > hold_positions and not positions_settled
+        free_positions = iteration - start > hold_positions and not positions_settled
         model, residual, variance, xs, ys, chi2 = _fit_step(fitted, dense_weights, stars,
                                                             free_positions, shapes)
         if best is None or chi2 < best[0]:
@@ -379,7 +388,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         ys = Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
         flux = stars.flux[:, None, None]
         # the neighbours are modelled, not used for P0
-        weight = np.where(((stars.flags & 8) == 0)[:, None, None] & stars.p0[:, None, None],
+        weight = np.where(((stars.flags & 8) == 0)[:, None, None] & stars.used[:, None, None],
                           flux**2 / variance, 0.0)
         update = node_solution(residual / flux, weight, dense_weights, xs, ys, npix)
         stepped = [node + damping * without_translation(step, node)
@@ -404,8 +413,9 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         change = float(max(np.abs(new - old).max() / np.abs(old).max()
                            for new, old in zip(new_data, fitted.data)))
         changes.append(change)
-        if (not free_positions and iteration > hold_positions + 3 and damping > MIN_DAMPING
-                and len(changes) >= 4 and np.all(np.diff(changes[-4:]) > 0)):
+        if (not free_positions and iteration - start > hold_positions + 3
+                and damping > MIN_DAMPING and len(changes) >= 4
+                and np.all(np.diff(changes[-4:]) > 0)):
             # grown 3 times running with the positions fixed: the step overshoots (0.0016 -> 0.014)
             damping /= 2
         bar.set_postfix(change=f"{change:.2e}")
@@ -414,7 +424,26 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         if free_positions:
             free_iterations += 1
             positions_settled = change < settle_factor * tolerance or free_iterations >= 15
-        elif change < tolerance and iteration > hold_positions:
+            # once P0 and the positions have settled, stars unlike the others (`misfits`: a
+            # new user's crowded field made P0 double-peaked through unresolved blends) leave
+            # P0, modelled as neighbours are, at most half of them, and the fit starts again
+            # without them: their shape is in P0 and in the positions of the others
+            rejected = (misfits(stars, stars.data - stars.others(model, shapes))
+                        if positions_settled else np.zeros(len(model), dtype=bool))
+            if rejected.any() and np.sum(stars.used & ~rejected) >= np.sum(stars.p0) / 2:
+                log.info("P0 fit: %d stars unlike the others left out; starting again",
+                         np.sum(rejected))
+                stars.rejected |= rejected
+                stars.flux[:] = stars.data.sum(axis=(1, 2))
+                stars.x_0[:], stars.y_0[:] = stars.x_start, stars.y_start
+                fitted = Grid(normalise_nodes(stack(), (over, over), x_nodes, y_nodes,
+                                              dense_weights), x_nodes, y_nodes, shift_sets,
+                              star_set, over, psf_kwargs)
+                fitted.cardinal = cardinal
+                positions_settled, free_iterations, damping = False, 0, first_damping
+                best, start = None, iteration
+                bar.reset(total=max_iterations)
+        elif change < tolerance and iteration - start > hold_positions:
             converged = True
             break
     bar.close()
@@ -434,8 +463,8 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         variance = _fit_step(fitted, dense_weights, stars, True, shapes)[2]
     if len(shift_sets) > 1:  # the model carries the mean of the stars' shifts
         fitted = Grid(fitted.data, x_nodes, y_nodes,
-                       [_mean_shifts(shift_sets,
-                                     star_set[((stars.flags & 8) == 0) & stars.p0])],
+                       [mean_shifts(shift_sets,
+                                     star_set[((stars.flags & 8) == 0) & stars.used])],
                        np.zeros_like(star_set), over, psf_kwargs)
     psf = (fitted.nodes[0] if grid is None
            else GriddedFluxDependentPSF(fitted.nodes, x_nodes, y_nodes))
@@ -450,37 +479,6 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                         neighbours=neighbour_table(stars), diverged=bool(diverged))
 
 
-def _shift_sets(shifts, n_images):
-    """The distinct sets of shifts and the set of each image (`fit_psf`'s ``shifts``)."""
-    if not isinstance(shifts, (list, tuple)):
-        return [as_shifts(shifts)], np.zeros(n_images, dtype=int)
-    if len(shifts) != n_images:
-        msg = f"got {len(shifts)} sets of shifts for {n_images} images (one per image, or one)"
-        raise BFPSFValueError(msg, len(shifts))
-    sets, image_set = [], []
-    for one in shifts:
-        one = as_shifts(one)
-        same = [index for index, known in enumerate(sets)
-                if known.radius == one.radius and np.array_equal(known.north, one.north)
-                and np.array_equal(known.east, one.east)]
-        if not same:
-            same = [len(sets)]
-            sets.append(one)
-        image_set.append(same[0])
-    return sets, np.array(image_set, dtype=int)
-
-
-def _mean_shifts(shift_sets, star_set):
-    """Mean of the shift sets weighted by their stars (every set alike when none)."""
-    counts = np.bincount(star_set, minlength=len(shift_sets)).astype(float)
-    weights = counts / counts.sum() if counts.sum() else np.full(len(shift_sets),
-                                                                 1.0 / len(shift_sets))
-    radius = max(one.radius for one in shift_sets)
-    padded = [one.padded(radius) for one in shift_sets]
-    return BoundaryShifts(sum(w * one.north for w, one in zip(weights, padded)),
-                          sum(w * one.east for w, one in zip(weights, padded)), check=False)
-
-
 def _fit_step(fitted, dense_weights, stars, free_positions, shapes):
     """Every star's model and one Gauss-Newton step on its cutout minus its neighbours'
     models: (model, residual predicted after the step, pixel variance, xs, ys, chi-square of
@@ -491,7 +489,7 @@ def _fit_step(fitted, dense_weights, stars, free_positions, shapes):
     # the neighbours' light is noise in every cutout; pixels beyond the image weigh nothing
     variance = np.where(stars.valid, np.clip(model + others, 0.0, None)
                         + stars.floor[:, None, None], np.inf)
-    chi2 = float(np.nansum(((stars.data - others - model)**2 / variance)[stars.p0]))
+    chi2 = float(np.nansum(((stars.data - others - model)**2 / variance)[stars.used]))
     residual = _gauss_newton(stars, stars.data - others, model, jacobian, variance,
                              np.ones(len(model), dtype=bool))
     return model, residual, variance, xs, ys, chi2

@@ -9,12 +9,13 @@ from scipy.interpolate import make_interp_spline
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..moments.adaptive import adaptive_moments
+from ..shifts import BoundaryShifts, as_shifts
 from .gridded import grid_node_positions
 from .psf import FluxDependentPSF
 
 __all__ = ["Grid", "Sampling", "cardinal_splines", "project", "dense_weights_of",
            "node_solution", "normalise", "normalise_nodes", "without_translation", "recentred",
-           "fill_empty", "grid_nodes"]
+           "fill_empty", "grid_nodes", "shift_sets_of", "mean_shifts"]
 
 
 def fill_empty(stack, weight):
@@ -255,3 +256,34 @@ def grid_nodes(grid, images):
         raise BFPSFInputError(msg, sorted(shapes))
     ny, nx = shapes.pop()
     return grid_node_positions(int(grid[0]), nx), grid_node_positions(int(grid[1]), ny)
+
+
+def shift_sets_of(shifts, n_images):
+    """The distinct sets of shifts and the set of each image (`fit_psf`'s ``shifts``)."""
+    if not isinstance(shifts, (list, tuple)):
+        return [as_shifts(shifts)], np.zeros(n_images, dtype=int)
+    if len(shifts) != n_images:
+        msg = f"got {len(shifts)} sets of shifts for {n_images} images (one per image, or one)"
+        raise BFPSFValueError(msg, len(shifts))
+    sets, image_set = [], []
+    for one in shifts:
+        one = as_shifts(one)
+        same = [index for index, known in enumerate(sets)
+                if known.radius == one.radius and np.array_equal(known.north, one.north)
+                and np.array_equal(known.east, one.east)]
+        if not same:
+            same = [len(sets)]
+            sets.append(one)
+        image_set.append(same[0])
+    return sets, np.array(image_set, dtype=int)
+
+
+def mean_shifts(shift_sets, star_set):
+    """Mean of the shift sets weighted by their stars (every set alike when none)."""
+    counts = np.bincount(star_set, minlength=len(shift_sets)).astype(float)
+    weights = counts / counts.sum() if counts.sum() else np.full(len(shift_sets),
+                                                                 1.0 / len(shift_sets))
+    radius = max(one.radius for one in shift_sets)
+    padded = [one.padded(radius) for one in shift_sets]
+    return BoundaryShifts(sum(w * one.north for w, one in zip(weights, padded)),
+                          sum(w * one.east for w, one in zip(weights, padded)), check=False)

@@ -3,10 +3,13 @@ vectorised fitting, the neighbours modelled beside them, their flags and the res
 
 import numpy as np
 from astropy.table import Table
+from scipy.stats import theilslopes
 
 from ..errors import BFPSFInputError
+from ..moments.adaptive import adaptive_moments_batch
 
-__all__ = ["STAR_FLAGS", "Stars", "as_star_list", "cut_stars", "cut_neighbours", "star_table",
+__all__ = ["STAR_FLAGS", "MISFIT_SIGMA", "MISFIT_SIZE", "MISFIT_SHAPE",
+           "misfits", "Stars", "as_star_list", "cut_stars", "cut_neighbours", "star_table",
            "neighbour_table"]
 
 
@@ -16,7 +19,15 @@ STAR_FLAGS = {
     2: "non-finite pixel in the cutout (star not used)",
     4: "non-positive flux estimate (star not used)",
     8: "position fit failed or moved more than 1 pixel (star not used in the last iteration)",
+    16: "its shape is not the other stars' (`misfits`: an unresolved blend, a cosmic ray, "
+        "a galaxy; modelled, not used)",
 }
+
+#: `misfits`: a star is a misfit beyond this many of the stars' spread about their trend
+MISFIT_SIGMA = 5.0
+#: `misfits`: and beyond this change of its adaptive size T (relative) or of its e1 or e2
+MISFIT_SIZE = 0.05
+MISFIT_SHAPE = 0.04
 
 
 def as_star_list(images, positions):
@@ -44,7 +55,8 @@ class Stars:
     column / row; ``floor`` (N,) variance floor, e-**2; ``flux``, ``x_0``, ``y_0`` (N,) the
     current estimates (first: the cutout's sum and the positions given); ``flags`` (N,)
     `STAR_FLAGS`; ``image`` (N,) image of each; ``valid`` (N, n, n) pixels inside the image;
-    ``p0`` (N,) True for the stars P0 is fitted to, False for the neighbours (modelled only).
+    ``p0`` (N,) True for the stars P0 is fitted to, False for the neighbours (modelled only);
+    ``rejected`` (N,) stars left out of P0 by `misfits` (modelled, as the neighbours are).
     """
 
     def __init__(self, data, column, row, floor, x_0, y_0, image, valid, p0):
@@ -57,6 +69,12 @@ class Stars:
         self.x_0, self.y_0 = np.array(x_0, dtype=float), np.array(y_0, dtype=float)
         self.flags = np.zeros(len(data), dtype=int)
         self.x_start, self.y_start = self.x_0.copy(), self.y_0.copy()
+        self.rejected = np.zeros(len(data), dtype=bool)
+
+    @property
+    def used(self):
+        """The stars P0 is fitted to now: not neighbours, not rejected by `misfits`."""
+        return self.p0 & ~self.rejected
 
     def others(self, model, shapes):
         """Per star, the light of every other star's model in its cutout, e-: the
@@ -143,6 +161,46 @@ def cut_stars(images, positions, half, floors, neighbours=None):
     return flags, image_index, stars
 
 
+def misfits(stars, clean):
+    """The stars P0 is fitted to whose shape is not that of the others: an unresolved blend
+    (a new user's crowded field: 9 of 48 "isolated" stars had a neighbour 4-7 px away that
+    detection had not split; weighted by their flux they were half of P0, which came out
+    double-peaked, 10 % too large and "converged"), a cosmic ray on a star, a galaxy.
+
+    P0 carries the misfits' own shape, so a misfit is what differs from most stars: the
+    adaptive size T = Mxx + Myy and the ellipticity (e1, e2) of each star's cutout (its
+    neighbours' models subtracted: ``clean``), each less its robust straight line in flux
+    (Theil-Sen: BF and effects that grow with flux), beyond `MISFIT_SIGMA` times the stars'
+    spread (1.4826 MAD) and beyond `MISFIT_SIZE` of T or `MISFIT_SHAPE` of e. On that field
+    the stars' T was 5.70-5.87 px^2, the blends' 6.1-19.2. (The pixels' chi2 against P0 is
+    no such test: in a dense field of Kolmogorov stars, neighbours' far wings beyond P0's
+    support left a third of the stars 5 times the median misfit, and P0 without them put
+    the sky 2.4 e- low.)
+
+    Returns
+    -------
+    ndarray of bool (N,)
+    """
+    used = stars.used & ((stars.flags & 8) == 0)
+    out = np.zeros(len(clean), dtype=bool)
+    star = adaptive_moments_batch(np.where(stars.valid, clean, 0.0), weight=stars.valid)
+    size = star.mxx + star.myy
+    for values, floor, ratio in ((size, MISFIT_SIZE, True),
+                                 ((star.mxx - star.myy) / size, MISFIT_SHAPE, False),
+                                 (2 * star.mxy / size, MISFIT_SHAPE, False)):
+        good = used & np.isfinite(values)
+        if np.sum(good) < 6 or np.ptp(stars.flux[good]) == 0:
+            continue
+        slope, intercept = theilslopes(values[good], stars.flux[good])[:2]
+        trend = intercept + slope * stars.flux
+        relative = (values - trend) / trend if ratio else values - trend
+        centre = np.median(relative[good])
+        spread = 1.4826 * np.median(np.abs(relative[good] - centre))
+        out |= np.isfinite(relative) & (np.abs(relative - centre)
+                                        > max(floor, MISFIT_SIGMA * spread))
+    return used & out
+
+
 def neighbour_table(stars):
     """One row per neighbour the fit modelled (see `PSFFitResult`)."""
     mine = ~stars.p0
@@ -160,8 +218,8 @@ def star_table(flags, image_index, positions, stars, variance):
     used = np.flatnonzero(flags == 0)
     flags = flags.copy()
     mine = stars.p0
-    flags[used] |= stars.flags[mine]
-    share = np.where(stars.flags[mine] & 8, 0.0,
+    flags[used] |= stars.flags[mine] | np.where(stars.rejected[mine], 16, 0)
+    share = np.where((stars.flags[mine] & 8) | stars.rejected[mine], 0.0,
                      stars.flux[mine]**2 / variance[mine].mean(axis=(1, 2)))
     table = Table()
     table["image"] = image_index
