@@ -19,6 +19,7 @@ from ..io.saturation import saturation_e
 from ..least_squares import polynomial_fit
 from ..measure.neighbours import isolated_stars
 from ..measure.prepare import prepare_image
+from ..measure.slopes import fit_bf_slope
 from ..measure.sources import aperture_fraction, measure_sources, sky_level
 from ..model.psf_fit import DEFAULT_SIZE, fit_psf
 from ..moments.result import moments_from_hsm
@@ -340,6 +341,19 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
     fluxes, peaks, sigma_x, sigma_y, exposure, columns, rows, skews = (
         np.concatenate(v) for v in (fluxes, peaks, sigma_x, sigma_y, exposure, columns, rows,
                                     skews))
+    # the stars `bfpsf slope` fits (`fit_bf_slope`'s clipping on each axis, an intercept per
+    # exposure): in a new user's crowded field a tenth of the clean stars were unresolved
+    # blends, 10-230 % larger, and the size bins' slope errors were 90 times `slope`'s
+    kept = np.ones(fluxes.size, dtype=bool)
+    if fluxes.size >= 9:
+        for values in (sigma_x, sigma_y):
+            try:
+                kept &= fit_bf_slope(peaks, values, group=exposure).rows
+            except BFPSFValueError:  # no range of peaks: nothing to clip against
+                pass
+    fluxes, peaks, sigma_x, sigma_y, exposure, columns, rows, skews = (
+        values[kept] for values in (fluxes, peaks, sigma_x, sigma_y, exposure, columns, rows,
+                                    skews))
     if fluxes.size < 9:  # the size bins need 3 of 3 stars; no quantile of nothing
         msg = (f"{', '.join(map(str, images))}: {fluxes.size} clean star(s), too few to "
                "diagnose (9 or more)")
@@ -394,7 +408,7 @@ def observables_from_images(flats, images, *, beta=None, maxlag="auto", n_bins=N
     total = fluxes / fraction
     linearity, correlations = flat_observables(cal)
     meta = {"flats": len(list(flats)), "images": len(list(images)), "gain": float(gain),
-            "n_sources": int(peaks.size), "calibration": cal,
+            "n_sources": int(peaks.size), "n_clipped": int(np.sum(~kept)), "calibration": cal,
             "image_paths": [str(path) for path in images],
             "p0_exposures": [int(index) for index in fitted],
             "p0_stars": int(np.sum(fit.stars["flags"] == 0)),
