@@ -66,9 +66,22 @@ def test_shape_of_an_adu_model_is_that_of_the_same_charge():
     assert adu.shape(5e5).sigma == pytest.approx(electrons.shape(1e6).sigma, rel=1e-12)
 
 
-def test_shape_refuses_a_non_positive_flux(psf):
-    with pytest.raises(BFPSFValueError, match="flux must be a positive finite number"):
-        psf.shape(0.0)
+def test_shape_refuses_a_negative_flux(psf):
+    with pytest.raises(BFPSFValueError, match="flux must be a finite number >= 0"):
+        psf.shape(-1.0)
+
+
+def test_shape_at_zero_flux_is_p0(psf):
+    """``shape(0)``, the limit of faint sources (a new user's call, refused before), is P0's:
+    HSM on the model's own P0 rendered through `to_galsim` at a flux where BF is 1e-9 of
+    the bright stars', and 1 e- from ``shape(1)``."""
+    zero = psf.shape(0.0)
+    assert zero.sigma == pytest.approx(psf.shape(1.0).sigma, rel=1e-6)
+    assert zero.sigma < psf.shape(1e3).sigma < psf.shape(1.5e6).sigma
+    profile, _ = to_galsim(psf, 1e-3)
+    hsm = galsim.hsm.FindAdaptiveMom(profile.drawImage(nx=41, ny=41, scale=1.0,
+                                                       method="no_pixel"))
+    assert zero.sigma == pytest.approx(hsm.moments_sigma, abs=1e-4)
 
 
 def test_star_e1_e2_errors_match_the_scatter():

@@ -93,6 +93,11 @@ def fourth_moment(stamps, moments):
     return np.sum(weighted * rho2**2, axis=(1, 2)) / np.sum(weighted, axis=(1, 2))
 
 
+#: The flux, in the model's unit, at which `psf_shapes` renders a flux of 0: the model's BF
+#: and EMPIRICAL terms there are 1e-9 of those at unit flux, its shape is P0's.
+FAINT_LIMIT = 1e-9
+
+
 def psf_shape(psf, flux, *, x=None, y=None):
     """Adaptive moments of a flux-dependent PSF's pixelised model at a flux.
 
@@ -104,7 +109,7 @@ def psf_shape(psf, flux, *, x=None, y=None):
     ----------
     psf : FluxDependentPSF
     flux : float
-        Flux, the model's ``flux_unit``; > 0.
+        Flux, the model's ``flux_unit``; >= 0 (0: the limit of faint sources, P0 itself).
     x, y : float, optional
         Image position, pixels: the star is rendered at its sub-pixel phase
         (``x - round(x)``); default phase 0.
@@ -117,8 +122,8 @@ def psf_shape(psf, flux, *, x=None, y=None):
         msg = (f"flux must be one number, got an array of shape {np.shape(flux)}: the shapes "
                f"of many stars are bfpsf.moments.shapes.psf_shapes(psf, flux, x, y)")
         raise BFPSFValueError(msg, flux)
-    if not (np.isfinite(flux) and flux > 0):
-        msg = f"flux must be a positive finite number, got {flux!r}"
+    if not (np.isfinite(flux) and flux >= 0):
+        msg = f"flux must be a finite number >= 0, got {flux!r}"
         raise BFPSFValueError(msg, flux)
     # every PSF kind (bfpsf.model.base): a field-varying one is evaluated at (x, y) itself,
     # by default at its reference position (the grid's centre), never at the stamp's corner
@@ -140,8 +145,9 @@ def psf_shapes(psf, flux, x, y):
     ----------
     psf : bfpsf.model.base.BFPSFModel
     flux, x, y : array_like
-        Fluxes (the model's ``flux_unit``) and image positions, pixels, one per star.
-        Non-finite or non-positive fluxes and non-finite positions give NaN.
+        Fluxes (the model's ``flux_unit``) and image positions, pixels, one per star. A
+        flux of 0 gives the limit of faint sources (P0); non-finite or negative fluxes and
+        non-finite positions give NaN.
 
     Returns
     -------
@@ -151,7 +157,7 @@ def psf_shapes(psf, flux, x, y):
     """
     flux, x, y = np.broadcast_arrays(*(np.asarray(value, dtype=float).ravel()
                                        for value in (flux, x, y)))
-    good = np.isfinite(flux) & (flux > 0) & np.isfinite(x) & np.isfinite(y)
+    good = np.isfinite(flux) & (flux >= 0) & np.isfinite(x) & np.isfinite(y)
     names = ("sigma", "T", "e1", "e2", "rho4", "mxx", "myy", "mxy")
     result = {name: np.full(flux.shape, np.nan) for name in names}
     result["flux"] = flux.copy()
@@ -163,7 +169,8 @@ def psf_shapes(psf, flux, x, y):
     # The model as a fitter sees it (mode 'table': the stored table; 'exact': R at the phase).
     stamps = np.array([psf.evaluate(columns + np.floor(x_0 + 0.5) - half,
                                     rows + np.floor(y_0 + 0.5) - half, value, x_0, y_0) / value
-                       for value, x_0, y_0 in zip(flux[good], x[good], y[good])])
+                       for value, x_0, y_0 in zip(np.where(flux[good] > 0, flux[good],
+                                                           FAINT_LIMIT), x[good], y[good])])
     moments = adaptive_moments_batch(stamps)
     values = dict(mxx=moments.mxx, myy=moments.myy, mxy=moments.mxy, sigma=moments.sigma,
                   T=moments.mxx + moments.myy, rho4=fourth_moment(stamps, moments))
