@@ -3,12 +3,14 @@ vectorised fitting, the neighbours modelled beside them, their flags and the res
 
 import numpy as np
 from astropy.table import Table
+from scipy.spatial import cKDTree
 from scipy.stats import theilslopes
 
 from ..errors import BFPSFInputError
 from ..moments.adaptive import adaptive_moments_batch
+from ..moments.moment_errors import moment_errors
 
-__all__ = ["STAR_FLAGS", "MISFIT_SIGMA", "MISFIT_SIZE", "MISFIT_SHAPE",
+__all__ = ["STAR_FLAGS", "MISFIT_SIGMA", "MISFIT_SIZE", "MISFIT_SHAPE", "MISFIT_NEIGHBOURS",
            "misfits", "Stars", "as_star_list", "cut_stars", "cut_neighbours", "star_table",
            "neighbour_table"]
 
@@ -23,11 +25,13 @@ STAR_FLAGS = {
         "a galaxy; modelled, not used)",
 }
 
-#: `misfits`: a star is a misfit beyond this many of the stars' spread about their trend
+#: `misfits`: a star is a misfit beyond this many of its shape's statistical errors
 MISFIT_SIGMA = 5.0
 #: `misfits`: and beyond this change of its adaptive size T (relative) or of its e1 or e2
 MISFIT_SIZE = 0.05
 MISFIT_SHAPE = 0.04
+#: `misfits`: how many of the nearest stars of its image a star is compared with
+MISFIT_NEIGHBOURS = 8
 
 
 def as_star_list(images, positions):
@@ -162,20 +166,23 @@ def cut_stars(images, positions, half, floors, neighbours=None):
 
 
 def misfits(stars, clean):
-    """The stars P0 is fitted to whose shape is not that of the others: an unresolved blend
-    (a new user's crowded field: 9 of 48 "isolated" stars had a neighbour 4-7 px away that
-    detection had not split; weighted by their flux they were half of P0, which came out
-    double-peaked, 10 % too large and "converged"), a cosmic ray on a star, a galaxy.
+    """The stars P0 is fitted to whose shape is not that of the stars around them: an
+    unresolved blend (a new user's crowded field: 9 of 48 "isolated" stars had a neighbour
+    4-7 px away that detection had not split; weighted by their flux they were half of P0,
+    which came out double-peaked, 10 % too large and "converged"), a cosmic ray on a star, a
+    galaxy.
 
     P0 carries the misfits' own shape, so a misfit is what differs from most stars: the
     adaptive size T = Mxx + Myy and the ellipticity (e1, e2) of each star's cutout (its
-    neighbours' models subtracted: ``clean``), each less its robust straight line in flux
-    (Theil-Sen: BF and effects that grow with flux), beyond `MISFIT_SIGMA` times the stars'
-    spread (1.4826 MAD) and beyond `MISFIT_SIZE` of T or `MISFIT_SHAPE` of e. On that field
-    the stars' T was 5.70-5.87 px^2, the blends' 6.1-19.2. (The pixels' chi2 against P0 is
-    no such test: in a dense field of Kolmogorov stars, neighbours' far wings beyond P0's
-    support left a third of the stars 5 times the median misfit, and P0 without them put
-    the sky 2.4 e- low.)
+    neighbours' models subtracted: ``clean``), against the median of the `MISFIT_NEIGHBOURS`
+    nearest stars of its image (each exposure has its seeing, a field its variation), less
+    a robust straight line in flux (Theil-Sen: BF and effects that grow with flux), beyond
+    `MISFIT_SIGMA` times its own statistical error (`moment_errors`: a faint star's shape is
+    noisy) and beyond `MISFIT_SIZE` of T (larger only: a blend is never smaller) or
+    `MISFIT_SHAPE` of e. On that field the stars' T was 5.70-5.87 px^2, the blends' 6.1-19.2.
+    (The pixels' chi2 against P0 is no such test: in a dense field of Kolmogorov stars,
+    neighbours' far wings beyond P0's support left a third of the stars 5 times the median
+    chi2, and P0 without them put the sky 2.4 e- low.)
 
     Returns
     -------
@@ -183,22 +190,48 @@ def misfits(stars, clean):
     """
     used = stars.used & ((stars.flags & 8) == 0)
     out = np.zeros(len(clean), dtype=bool)
-    star = adaptive_moments_batch(np.where(stars.valid, clean, 0.0), weight=stars.valid)
+    cutouts = np.where(stars.valid, clean, 0.0)
+    star = adaptive_moments_batch(cutouts, weight=stars.valid)
+    errors = moment_errors(cutouts, star, background_variance=stars.floor)
     size = star.mxx + star.myy
-    for values, floor, ratio in ((size, MISFIT_SIZE, True),
-                                 ((star.mxx - star.myy) / size, MISFIT_SHAPE, False),
-                                 (2 * star.mxy / size, MISFIT_SHAPE, False)):
-        good = used & np.isfinite(values)
-        if np.sum(good) < 6 or np.ptp(stars.flux[good]) == 0:
-            continue
-        slope, intercept = theilslopes(values[good], stars.flux[good])[:2]
-        trend = intercept + slope * stars.flux
-        relative = (values - trend) / trend if ratio else values - trend
-        centre = np.median(relative[good])
-        spread = 1.4826 * np.median(np.abs(relative[good] - centre))
-        out |= np.isfinite(relative) & (np.abs(relative - centre)
-                                        > max(floor, MISFIT_SIGMA * spread))
+    # twice: the second time against the stars the first left, so that a star among misfits
+    # is compared with stars
+    for _ in range(2):
+        reference, out = used & ~out, np.zeros(len(clean), dtype=bool)
+        for values, error, floor, size_like in (
+                (size, np.hypot(errors["mxx_err"], errors["myy_err"]) / size, MISFIT_SIZE,
+                 True),
+                ((star.mxx - star.myy) / size, errors["e1_err"], MISFIT_SHAPE, False),
+                (2 * star.mxy / size, errors["e2_err"], MISFIT_SHAPE, False)):
+            local = _local_median(values, stars, reference)
+            relative = values / local - 1.0 if size_like else values - local
+            good = reference & np.isfinite(relative)
+            if np.sum(good) < 6 or np.ptp(stars.flux[good]) == 0:
+                continue
+            slope, intercept = theilslopes(relative[good], stars.flux[good])[:2]
+            relative = relative - intercept - slope * stars.flux
+            # a blend or a galaxy is larger than a star, never smaller
+            beyond = relative if size_like else np.abs(relative)
+            out |= np.isfinite(relative) & (beyond > np.maximum(
+                floor, MISFIT_SIGMA * np.nan_to_num(error, nan=np.inf)))
     return used & out
+
+
+def _local_median(values, stars, used):
+    """Each star's median of ``values`` over the `MISFIT_NEIGHBOURS` nearest other stars of
+    its image used for P0 (NaN in an image with fewer than 5 of them)."""
+    out = np.full(values.shape, np.nan)
+    position = np.column_stack([stars.x_0, stars.y_0])
+    for image in np.unique(stars.image[used]):
+        mine = np.flatnonzero(used & (stars.image == image) & np.isfinite(values))
+        if mine.size < 5:
+            continue
+        members = np.flatnonzero(stars.image == image)
+        count = min(MISFIT_NEIGHBOURS + 1, mine.size)
+        _, nearest = cKDTree(position[mine]).query(position[members], k=count)
+        for star, row in zip(members, mine[nearest]):
+            out[star] = np.median(values[row[row != star][:count - 1]])
+    return out
 
 
 def neighbour_table(stars):
