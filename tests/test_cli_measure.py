@@ -130,7 +130,9 @@ def test_slope_psf_model_residual_removes_the_bf_slope(tmp_path):
         raw, residual = result[key], result["model_residual"][key]
         predicted = result["prediction"][key]
         assert set(residual) == {"slope", "slope_err", "intercept", "relative_percent",
-                                 "slope_err_total", "pull"}
+                                 "slope_err_total", "pull", "percent_of_raw"}
+        assert residual["percent_of_raw"] == pytest.approx(100 * residual["slope"]
+                                                           / raw["slope"])
         assert raw["slope"] > 5 * raw["slope_err"]
         # the residual is consistent with zero (4 sigma) and far below the raw slope
         assert abs(residual["slope"]) < 4 * residual["slope_err"]

@@ -15,7 +15,8 @@ star's own flux, position and sub-pixel phase (so neither the BF change the mode
 the field's size variation of a ``--grid`` product is left in them), each with
 ``slope_err_total`` (the statistical and calibration errors combined) and ``pull``; the sizes'
 ``intercept`` is star minus model at zero flux and their ``relative_percent`` is the residual
-slope in percent of the stars' own size (the raw intercept). ``prediction`` holds ``e1`` and
+slope in percent of the stars' own size (the raw intercept), ``percent_of_raw`` in percent of
+the measured slope. ``prediction`` holds ``e1`` and
 ``e2`` too, with their calibration errors.
 And ``empirical``: the EMPIRICAL term of a refined calibration the PSF product applies (its
 record, label ``'empirical'``; in the prediction and the residual), or None.
@@ -154,6 +155,10 @@ def run(args):
                 # the residual's intercept is star minus model at zero flux (about 0): the
                 # residual slope in percent of the stars' own size
                 entry["relative_percent"] = 100.0 * entry["slope"] / summary[key]["intercept"]
+                # and in percent of the measured (raw) slope, the README's figure of merit (a
+                # new user read relative_percent -10.2 as the residual; it was -512 % of raw)
+                raw = summary[key]["slope"]
+                entry["percent_of_raw"] = 100.0 * entry["slope"] / raw if raw else np.nan
             # the residual's error with the calibration's: what a pull should divide by
             # (a PSF without calibration samples, e.g. a static ePSF, has none: NaN)
             calibration_err = prediction[key]["slope_err"]
@@ -194,7 +199,8 @@ def run(args):
                      "(the PSF carries no calibration samples: no calibration error)")
                   + "; residual after P(F) "
                   f"{entry['slope']:+.5f} +- {entry['slope_err_total']:.5f} pix/100ke- "
-                  f"(pull {entry['pull']:+.1f})")
+                  f"({entry['percent_of_raw']:+.0f} % of the measured slope; pull "
+                  f"{entry['pull']:+.1f})")
         print(f"{label:8s} slope {fit.slope:+.5f} +- {fit.slope_err:.5f} pix/100ke-  "
               f"intercept {fit.intercept:.4f} pix  {fit.relative_percent:+.3f} %/100ke-")
     for key in ("e1", "e2"):
