@@ -434,8 +434,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                 log.info("P0 fit: %d stars unlike the others left out; starting again",
                          np.sum(rejected))
                 stars.rejected |= rejected
-                stars.flux[:] = stars.data.sum(axis=(1, 2))
-                stars.x_0[:], stars.y_0[:] = stars.x_start, stars.y_start
+                stars.restart()
                 fitted = Grid(normalise_nodes(stack(), (over, over), x_nodes, y_nodes,
                                               dense_weights), x_nodes, y_nodes, shift_sets,
                               star_set, over, psf_kwargs)

@@ -68,14 +68,19 @@ class Stars:
     def __init__(self, data, column, row, floor, x_0, y_0, image, valid, p0):
         self.data, self.column, self.row, self.floor = data, column, row, floor
         self.image, self.valid, self.p0 = image, valid, p0
-        self.flux = data.sum(axis=(1, 2))
         # the positions given (a centroid of the whole cutout would be pulled towards a
         # neighbour's light; one of its central pixels towards the pixel centre, a bias of
         # the held positions that made the grid fit diverge)
-        self.x_0, self.y_0 = np.array(x_0, dtype=float), np.array(y_0, dtype=float)
+        self.x_start, self.y_start = np.array(x_0, dtype=float), np.array(y_0, dtype=float)
         self.flags = np.zeros(len(data), dtype=int)
-        self.x_start, self.y_start = self.x_0.copy(), self.y_0.copy()
         self.rejected = np.zeros(len(data), dtype=bool)
+        self.restart()
+
+    def restart(self):
+        """Fluxes and positions back to their first estimates: the cutouts' sums and the
+        positions given (a P0 fit that starts again without its misfits)."""
+        self.flux = self.data.sum(axis=(1, 2))
+        self.x_0, self.y_0 = self.x_start.copy(), self.y_start.copy()
 
     @property
     def used(self):
@@ -177,7 +182,7 @@ def misfits(stars, clean):
     P0 carries the misfits' own shape, so a misfit is what differs from most stars: the
     adaptive size T = Mxx + Myy and the ellipticity (e1, e2) of each star's cutout (its
     neighbours' models subtracted: ``clean``), against the stars of its image (each
-    exposure has its seeing; `_local_median`: a plane over the image and the median of the
+    exposure has its seeing; `_expected`: a plane over the image and the median of the
     `MISFIT_NEIGHBOURS` nearest, for a field's variation), less
     a robust straight line in flux (Theil-Sen: BF and effects that grow with flux), beyond
     `MISFIT_SIGMA` times its own statistical error (`moment_errors`: a faint star's shape is
@@ -206,7 +211,7 @@ def misfits(stars, clean):
                  True),
                 ((star.mxx - star.myy) / size, errors["e1_err"], MISFIT_SHAPE, False),
                 (2 * star.mxy / size, errors["e2_err"], MISFIT_SHAPE, False)):
-            local = _local_median(values, stars, reference)
+            local = _expected(values, stars, reference)
             relative = values / local - 1.0 if size_like else values - local
             good = reference & np.isfinite(relative)
             if np.sum(good) < 6 or np.ptp(stars.flux[good]) == 0:
@@ -220,7 +225,7 @@ def misfits(stars, clean):
     return used & out
 
 
-def _local_median(values, stars, used):
+def _expected(values, stars, used):
     """Each star's expected ``values`` from the other stars of its image used for P0: a
     plane over the image (a PSF varying over the field: FWHM 3.0 -> 3.9 px across a grid
     fit's image left its edge stars 9 % larger than their neighbours), fitted with one
