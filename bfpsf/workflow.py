@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import BFPSFInputError, BFPSFValueError
+from .measure.bf_agreement import bf_agreement
 from .measure.neighbours import isolated_stars
 from .measure.sources import DETECTION_THRESHOLD
 from .measure.total_flux import fit_sky_and_wings
@@ -55,11 +56,22 @@ class PSFFromImages:
         the image centre), ``sky_slope`` (e- per pixel per pixel in x, y), ``size_offset``
         (its stars' size over P0's, minus 1, with ``size_offset_err`` and ``n_sized``) and
         ``seeing_bias_mmag`` (the photometry bias that implies; `_size_offsets`).
+    prepared : list of PreparedImage
+        The images as the fit left them: each with the sky fitted jointly with the stars'
+        wings and their glow subtracted.
     """
 
     psf: object
     fit: object
     images: list
+    prepared: list
+
+    def bf_agreement(self):
+        """The used stars' brighter-fatter over the one P(F) predicts, along x and y
+        (`bfpsf.measure.bf_agreement.bf_agreement`; ``bfpsf psf`` warns where they differ):
+        about 1 when the calibration describes the stars."""
+        stars = self.fit.stars
+        return bf_agreement(self.prepared, stars[np.asarray(stars["flags"]) == 0], self.psf)
 
 
 def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=None,
@@ -227,7 +239,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     psf.star_flux_e = _star_flux(result) * psf.electrons_per_unit
     psf.p0_converged = bool(result.converged)
     _size_offsets(per_image, images, result, psf)
-    return PSFFromImages(psf, result, per_image)
+    return PSFFromImages(psf, result, per_image, images)
 
 
 def _star_flux(result):

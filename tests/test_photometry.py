@@ -127,6 +127,34 @@ def test_grouped_overlapping_stars(psf):
     assert np.abs(alone["y_fit"] - xy[:, 1]).max() > 0.01
 
 
+def test_a_pair_fitted_as_one_star_is_flagged_unlike_the_psf(psf):
+    """Two stars 2-3 pixels apart, given as one position (detection does not split them), are
+    fitted as one star: its pixels are larger or more elongated than the PSF at its flux, and
+    ``source_flags`` says ``UNLIKE_PSF`` for each pair (a new user's crowded field had 55 such
+    pairs 190-285 mmag too bright, every flag 0); no single star is flagged, with or without
+    the pairs beside it. The stars are GalSim's (CDModel BF)."""
+    from bfpsf.measure.sources import SourceFlag
+
+    rng = np.random.default_rng(17)
+    xy = grid_positions(10, 5, 30, rng)
+    fluxes = np.exp(rng.uniform(np.log(3e3), np.log(1.2e5), len(xy))) / PEAK_PER_FLUX
+    paired = np.arange(len(xy)) % 3 == 0
+    angle = rng.uniform(0, 2 * np.pi, paired.sum())
+    separation = rng.uniform(2.0, 3.0, paired.sum())
+    companions = xy[paired] + separation[:, None] * np.column_stack([np.cos(angle),
+                                                                     np.sin(angle)])
+    ratio = rng.uniform(0.3, 0.6, paired.sum())
+    singles = galsim_bf_stars(MOFFAT, xy, fluxes, (150, 300), SHIFTS)
+    pairs = galsim_bf_stars(MOFFAT, np.vstack([xy, companions]),
+                            np.concatenate([fluxes, ratio * fluxes[paired]]), (150, 300), SHIFTS)
+    noise = rng.normal(0.0, 1.0, singles.shape)
+    for image, expected in ((singles, np.zeros(len(xy), bool)), (pairs, paired)):
+        image = image + SKY + noise * np.sqrt(image + SKY + 25.0)
+        result = psf_photometry(image, psf, positions=xy, background_e=SKY, read_noise_e=5.0)
+        unlike = (np.asarray(result["source_flags"]) & SourceFlag.UNLIKE_PSF) > 0
+        np.testing.assert_array_equal(unlike, expected)
+
+
 def test_two_models_of_one_class_fitted_in_turn():
     """photutils 3.0 caches its grouped-fit model class by (group size, model class): a second
     FluxDependentPSF fitted after a first one evaluated the first's P0 in its groups
@@ -275,6 +303,8 @@ def test_cli_psf_and_photometry(cli_files):
     assert abs(np.median(ratio) - 1) < 1e-2
     phot_summary = json.loads((directory / "phot.json").read_text())
     assert phot_summary["n_stars"] == len(table)
+    # 64 isolated stars on a grid: none is unlike the PSF (pairs fitted as one are)
+    assert phot_summary["n_unlike_psf"] == 0 == phot_summary["images"][0]["n_unlike_psf"]
     # the correction's error, a scale common to every star, is stated beside the fluxes
     assert table.meta["flux_correction_err"] == pytest.approx(summary["flux_correction_err"])
     assert phot_summary["images"][0]["flux_correction_err"] == pytest.approx(
@@ -562,7 +592,11 @@ def test_psf_says_when_its_calibration_makes_stars_shrink(cli_files, tmp_path, c
     """Boundary shifts of the unphysical sign (a charged pixel's boundaries moving outward, as
     four 128^2 flat pairs gave through the electrostatic solver) make P(F)'s stars shrink
     with flux: `psf` says so and records the size change (the physical calibration's stars
-    grow: no warning)."""
+    grow: no warning). Shifts three times too strong (a new user's nine 150^2 flat pairs gave
+    six times the stars' BF along x) and the outward ones make `psf` say that the stars grow
+    less than the calibration predicts, axis by axis (`bfpsf.measure.bf_agreement`); the
+    stars' BF is GalSim's CDModel with the true shifts, so the true calibration's ratio is 1,
+    and it says nothing."""
     from bfpsf.cli import main
     from bfpsf.shifts import BoundaryShifts
 
@@ -570,12 +604,30 @@ def test_psf_says_when_its_calibration_makes_stars_shrink(cli_files, tmp_path, c
     image = str(directory / "stars.fits")
     outward = BoundaryShifts(-np.asarray(SHIFTS.north), -np.asarray(SHIFTS.east))
     make_calibration(outward, 1.5, 5.0).write(tmp_path / "outward_calib.fits")
-    for name, calib in (("physical", str(directory / "calib.fits")),
-                        ("outward", str(tmp_path / "outward_calib.fits"))):
+    strong = BoundaryShifts(3 * np.asarray(SHIFTS.north), 3 * np.asarray(SHIFTS.east))
+    make_calibration(strong, 1.5, 5.0).write(tmp_path / "strong_calib.fits")
+    for name, calib, ratio in (("physical", str(directory / "calib.fits"), (0.85, 1.15)),
+                               ("outward", str(tmp_path / "outward_calib.fits"), (-1.5, -0.3)),
+                               ("strong", str(tmp_path / "strong_calib.fits"), (0.25, 0.65))):
         assert main(["psf", image, "--calib", calib, "-o", str(tmp_path / f"{name}.fits"),
                      "--size", "21", "--json", str(tmp_path / f"{name}.json")]) == 0
-        change = json.loads((tmp_path / f"{name}.json").read_text())["bf_size_change_px"]
+        summary = json.loads((tmp_path / f"{name}.json").read_text())
+        change, agreement = summary["bf_size_change_px"], summary["bf_agreement"]
         err = capsys.readouterr().err
         shrinks = name == "outward"
         assert (change["x"] < 0 and change["y"] < 0) == shrinks, change
         assert ("WARNING: P(F) makes stars shrink with flux along X and Y" in err) == shrinks
+        for axis in "xy":
+            entry = agreement[axis]
+            assert entry["n"] >= 60, (name, axis, entry)
+            low, high = ratio
+            # the stars' BF over the model's: 1 for the true shifts (1.03 +- 0.04 and 1.02
+            # +- 0.04 measured); below 1 for shifts three times too strong (0.47 and 0.44 +-
+            # 0.03: P0 fitted with them anchors P(F) at the stars' flux, and the ratio is of
+            # the local slopes there); negative for the outward ones (-0.74 +- 0.10)
+            assert low < entry["ratio"] < high, (name, axis, entry)
+            if name == "physical":
+                assert abs(entry["ratio"] - 1) < 4 * entry["ratio_err"] < 0.2, entry
+            said = f"WARNING: along {axis.upper()} the stars grow with flux" in err
+            assert said == (name != "physical"), (name, axis, err)
+

@@ -216,6 +216,7 @@ def run(args):
                               "flux_correction": table.meta["flux_correction"],
                               "flux_correction_err": table.meta["flux_correction_err"],
                               "n_blended": int(np.sum(table["group_size"] > 1)),
+                              "n_unlike_psf": _unlike(table),
                               "n_beyond_flats": beyond,
                               "cross_term_refits": table.meta["cross_term_refits"]})
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
@@ -234,6 +235,7 @@ def run(args):
                "n_flagged": int(np.sum((result["flags"] != 0) | result["saturated"])),
                "n_saturated": int(np.sum(result["saturated"])), "images": per_image,
                "n_fitted_twice": n_twice,
+               "n_unlike_psf": _unlike(result),
                "empirical": result.meta["empirical"]}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
@@ -246,8 +248,16 @@ def run(args):
                                     len(result), min(beyond_tops, default=None))
     if warning:
         print(warning, file=sys.stderr)
+    # a static PSF's fit is not compared with the PSF (psf_photometry: bfpsf models only)
+    unlike = ("" if args.static else f"{summary['n_unlike_psf']} unlike the PSF (two stars "
+              "fitted as one, a galaxy); ")
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "
           f"({summary['n_flagged']} fits flagged, {summary['n_saturated']} of them saturated; "
-          f"{n_blended} fitted in a group with their neighbours; detection's flags in "
-          f"source_flags); wrote {args.output}")
+          f"{n_blended} fitted in a group with their neighbours; {unlike}"
+          f"detection's flags and unlike_psf in source_flags); wrote {args.output}")
     return 0
+
+
+def _unlike(table):
+    """How many fitted stars are flagged ``UNLIKE_PSF`` (`bfpsf.measure.psf_likeness`)."""
+    return int(np.sum((np.asarray(table["source_flags"]) & SourceFlag.UNLIKE_PSF) > 0))

@@ -20,6 +20,7 @@ from ..files import about, check_outputs, input_files, refuse_duplicates
 from ..outputs import write_json
 from . import (finite_float, image_arguments, positive_int, stamp_size_option,
                star_image_options)
+from ..measure.bf_agreement import disagreeing_axes
 from ..measure.model_slopes import model_size_increments
 from ..model.psf_fit import DEFAULT_SIZE
 from ..moments.shapes import MAG_PER_SIZE_ERROR
@@ -195,6 +196,9 @@ def run(args):
     change = _bf_size_change(psf) if args.include_bf else None
     if change is not None:
         summary["bf_size_change_px"] = change
+    # the stars' own BF against the calibration's (a new user's small flats gave 6 times it)
+    agreement = fitted.bf_agreement() if args.include_bf else None
+    summary["bf_agreement"] = agreement
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     shrinking = [axis.upper() for axis in "xy" if change is not None and change[axis] < 0]
@@ -205,6 +209,16 @@ def run(args):
               f"the calibration's boundary shifts have the unphysical sign (too few flats: "
               f"`bfpsf calibrate` says why; calibrate with more flat pairs and levels)",
               file=sys.stderr)
+    for axis in disagreeing_axes(agreement):
+        entry = agreement[axis]
+        print(f"WARNING: along {axis.upper()} the stars grow with flux "
+              f"{entry['ratio']:.2f} +- {entry['ratio_err']:.2f} times as much as the "
+              f"calibration predicts (sigma_{axis} {entry['measured_px']:+.4f} against "
+              f"{entry['predicted_px']:+.4f} px from faint to the brightest star): its boundary "
+              "shifts do not describe these stars (flats too few, or of another sensor or "
+              "setting) or the stars show an effect it lacks; `bfpsf slope --psf` measures "
+              "what is left, `bfpsf diagnose --output-calib` refines the calibration from "
+              "these images", file=sys.stderr)
     warning = describe_beyond_flats(*beyond)
     if warning:
         print(warning, file=sys.stderr)

@@ -24,7 +24,8 @@ from ..interop.photutils import (default_fit_shape, describe_outlying_nodes,
 from ..model.base import BFPSFModel
 from .neighbours import sources_with_companions
 from .prepare import PreparedImage, prepare_image
-from .sources import DETECTION_THRESHOLD
+from .psf_likeness import unlike_psf
+from .sources import DETECTION_THRESHOLD, SourceFlag
 from ..model.wings import WingModel, wing_image
 
 __all__ = ["psf_photometry", "image_read_noise", "sky_variance", "PHOTOMETRY_COLUMNS"]
@@ -360,9 +361,11 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         ``meta['weights']`` the variance model, ``meta['cross_term_refits']`` the refits made,
         ``meta['empirical']`` the EMPIRICAL term the model applied (its record, label
         ``'empirical'``; None without one).
-        With the stars detected here (or ``positions`` a table with a ``source_flags``
-        column), ``source_flags`` carries the detection's `bfpsf.measure.sources.SourceFlag`
-        bits (``BLENDED``: an unresolved neighbour) to each fitted star.
+        ``source_flags``: `bfpsf.measure.sources.SourceFlag` bits, those of the detection here
+        (or of a ``positions`` table with a ``source_flags`` column; ``BLENDED``: a neighbour
+        within the blend radius) and, for a bfpsf model, ``UNLIKE_PSF``: the fitted star, its
+        neighbours' models subtracted, is larger or more elongated than the PSF at its flux
+        (two stars detection did not split; `bfpsf.measure.psf_likeness`).
     """
     prepared = image_e if isinstance(image_e, PreparedImage) else None
     image = np.asarray(image_e.image_e if prepared else image_e, dtype=float)
@@ -451,8 +454,13 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
                 if name in result.colnames and name not in ("id", "group_id", "group_size"):
                     result[name][blended] = refit[name]
             n_cross += 1
-    if source_flags is not None:
-        result["source_flags"] = source_flags[np.asarray(result["id"], dtype=int) - 1]
+    result["source_flags"] = (np.zeros(len(result), dtype=np.int64) if source_flags is None
+                              else source_flags[np.asarray(result["id"], dtype=int) - 1])
+    if bfpsf_model:  # a star whose pixels are not the PSF's: a pair fitted as one, a galaxy
+        residual = data - _model_image(photometry, result, data.shape)
+        unlike = unlike_psf(residual, result["x_fit"], result["y_fit"], result["flux_fit"],
+                            psf, max(float(sky.level), 0.0) + float(read_noise_e)**2)
+        result["source_flags"] |= np.where(unlike, SourceFlag.UNLIKE_PSF, 0)
     # the total flux: the light beyond P0's support (measured when the PSF was fitted)
     if flux_correction is None:
         flux_correction = psf.flux_correction if bfpsf_model else 1.0

@@ -41,16 +41,19 @@ class SourceFlag(MomentsFlag):
     crosses the image border (missing pixels are masked). ``NO_COLOUR`` : a colour table was
     given but no entry lies within ``match_radius``. ``NEIGHBOUR_LIGHT`` : neighbours' light
     under the star makes it larger, significantly and by more than its size error
-    (`bfpsf.measure.neighbour_light`).
+    (`bfpsf.measure.neighbour_light`). ``UNLIKE_PSF`` (PSF photometry only): the fitted star,
+    its neighbours' models subtracted, is larger or more elongated than the PSF at its flux (two
+    stars detection did not split, a galaxy; `bfpsf.measure.psf_likeness`).
     """
 
     BLENDED = 128
     STAMP_EDGE = 256
     NO_COLOUR = 512
     NEIGHBOUR_LIGHT = 1024
+    UNLIKE_PSF = 2048
 
     NAMES = {**MomentsFlag.NAMES, 128: "blended", 256: "stamp_edge", 512: "no_colour",
-             1024: "neighbour_light"}
+             1024: "neighbour_light", 2048: "unlike_psf"}
 
 
 def source_flag_string(flags):

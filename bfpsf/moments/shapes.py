@@ -21,7 +21,8 @@ from .adaptive import adaptive_moments_batch
 
 __all__ = ["PSFShape", "distortion", "fourth_moment", "psf_shape", "psf_shapes",
            "calibration_shape_error",
-           "model_shapes", "shape_residuals", "size_offset"]
+           "model_shapes", "shape_residuals", "size_offset", "star_stamps",
+           "model_stamps"]
 
 #: Magnitudes per relative size error of the template: a PSF fit with a template of width
 #: sigma on a star of width sigma (1 + eps) finds its flux low by about eps (Gaussians).
@@ -164,13 +165,7 @@ def psf_shapes(psf, flux, x, y):
     result["flags"] = np.zeros(flux.shape, dtype=int)
     if not good.any():
         return result
-    half = psf.half_size
-    rows, columns = np.mgrid[:2 * half + 1, :2 * half + 1]
-    # The model as a fitter sees it (mode 'table': the stored table; 'exact': R at the phase).
-    stamps = np.array([psf.evaluate(columns + np.floor(x_0 + 0.5) - half,
-                                    rows + np.floor(y_0 + 0.5) - half, value, x_0, y_0) / value
-                       for value, x_0, y_0 in zip(np.where(flux[good] > 0, flux[good],
-                                                           FAINT_LIMIT), x[good], y[good])])
+    stamps = model_stamps(psf, flux[good], x[good], y[good])
     moments = adaptive_moments_batch(stamps)
     values = dict(mxx=moments.mxx, myy=moments.myy, mxy=moments.mxy, sigma=moments.sigma,
                   T=moments.mxx + moments.myy, rho4=fourth_moment(stamps, moments))
@@ -306,18 +301,14 @@ def size_offset(image, x, y, flux, psf):
         The offset, its error (from the scatter: 1.2533 x 1.4826 MAD / sqrt(n)) and the
         number of stars; NaN, NaN, n with fewer than 3 stars.
     """
-    image = np.asarray(image, dtype=float)
     x, y, flux = (np.asarray(value, dtype=float).ravel() for value in (x, y, flux))
-    half = psf.half_size
-    left, bottom = np.floor(x + 0.5).astype(int) - half, np.floor(y + 0.5).astype(int) - half
-    inside = ((left >= 0) & (bottom >= 0) & (left + 2 * half < image.shape[1])
-              & (bottom + 2 * half < image.shape[0]) & np.isfinite(flux) & (flux > 0))
-    if inside.sum() < 3:
-        return np.nan, np.nan, int(inside.sum())
-    stamps = np.array([image[b:b + 2 * half + 1, a:a + 2 * half + 1]
-                       for a, b in zip(left[inside], bottom[inside])])
+    usable = np.isfinite(flux) & (flux > 0)
+    stamps, inside = star_stamps(image, x[usable], y[usable], psf.half_size)
+    x, y, flux = x[usable][inside], y[usable][inside], flux[usable][inside]
+    if flux.size < 3:
+        return np.nan, np.nan, int(flux.size)
     measured = adaptive_moments_batch(stamps)
-    model = psf_shapes(psf, flux[inside], x[inside], y[inside])
+    model = psf_shapes(psf, flux, x, y)
     ratio = measured.sigma / model["sigma"] - 1.0
     ratio = ratio[np.isfinite(ratio) & (measured.flags == 0)]
     if ratio.size < 3:
@@ -325,3 +316,44 @@ def size_offset(image, x, y, flux, psf):
     median = float(np.median(ratio))
     error = 1.2533 * 1.4826 * float(np.median(np.abs(ratio - median))) / np.sqrt(ratio.size)
     return median, error, int(ratio.size)
+
+
+def star_stamps(image, x, y, half):
+    """The stamps of side ``2 half + 1`` centred on the pixels of ``(x, y)`` (the model's
+    stamps, `psf_shapes`), of the stars whose stamp lies inside the image.
+
+    Returns
+    -------
+    (ndarray (n, 2 half + 1, 2 half + 1), ndarray of bool)
+        The stamps and which of the stars they are (``inside``; non-finite positions are not).
+    """
+    image = np.asarray(image, dtype=float)
+    x, y = (np.asarray(value, dtype=float).ravel() for value in (x, y))
+    finite = np.isfinite(x) & np.isfinite(y)
+    left = np.floor(np.where(finite, x, 0.0) + 0.5).astype(int) - half
+    bottom = np.floor(np.where(finite, y, 0.0) + 0.5).astype(int) - half
+    inside = (finite & (left >= 0) & (bottom >= 0) & (left + 2 * half < image.shape[1])
+              & (bottom + 2 * half < image.shape[0]))
+    stamps = np.array([image[b:b + 2 * half + 1, a:a + 2 * half + 1]
+                       for a, b in zip(left[inside], bottom[inside])]).reshape(
+                           -1, 2 * half + 1, 2 * half + 1)
+    return stamps, inside
+
+
+def model_stamps(psf, flux, x, y):
+    """The model of each star at unit flux on the stamp `star_stamps` cuts around it (side
+    ``2 psf.half_size + 1``): ``psf.evaluate`` at its flux (0: `FAINT_LIMIT`, P0), position
+    and sub-pixel phase, as a fitter sees it (mode 'table': the stored table; 'exact': R at
+    the phase). Fluxes >= 0 and finite positions.
+
+    Returns
+    -------
+    ndarray (n, 2 half + 1, 2 half + 1)
+    """
+    flux, x, y = (np.asarray(value, dtype=float).ravel() for value in (flux, x, y))
+    half = psf.half_size
+    rows, columns = np.mgrid[:2 * half + 1, :2 * half + 1]
+    return np.array([psf.evaluate(columns + np.floor(x_0 + 0.5) - half,
+                                  rows + np.floor(y_0 + 0.5) - half, value, x_0, y_0) / value
+                     for value, x_0, y_0 in zip(np.where(flux > 0, flux, FAINT_LIMIT), x, y)
+                     ]).reshape(-1, 2 * half + 1, 2 * half + 1)
