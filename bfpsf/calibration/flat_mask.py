@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from scipy.stats import median_abs_deviation
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from .flats import Flat
@@ -78,7 +79,7 @@ def _robust_sigma(values):
     values = values[np.isfinite(values)]
     if values.size == 0:
         return np.nan
-    return 1.4826 * float(np.median(np.abs(values - np.median(values))))
+    return float(median_abs_deviation(values, scale="normal"))
 
 
 #: The ``good`` argument of the compiled kernels when every pixel is good.

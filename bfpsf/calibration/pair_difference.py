@@ -10,6 +10,7 @@ import logging
 
 import numba
 import numpy as np
+from scipy.stats import median_abs_deviation
 from scipy.special import erf
 
 from .kernels import FASTMATH, flag_row, flagged_positions
@@ -108,7 +109,7 @@ def sigma_clip(image, nsigma, count, total, total2, max_iterations=50):
     sigma = np.sqrt(max(total2 / count - (total / count) ** 2, 0.0))
     step = max(1, int(np.sqrt(image.size / 100_000)))
     sample = image[::step, ::step].ravel()
-    robust = 1.4826 * np.median(np.abs(sample - np.median(sample)))
+    robust = median_abs_deviation(sample, scale="normal")
     tail_cut = 0.8 * nsigma * (robust if robust > 0 else sigma)
     if not tail_cut > 0:
         return np.empty(0, dtype=np.intp)  # a constant image: nothing to clip

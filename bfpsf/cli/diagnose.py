@@ -205,11 +205,13 @@ def run(args):
         raise BFPSFInputError(msg) from None
     images = observables.meta.get("image_paths")
     chosen = None
+    # the held-out images as read, prepared and detected, shared by every star residual
+    cache = {}
     if args.output_calib:
         # the EMPIRICAL term's pattern kind its held-out stars' pixels prefer
         result, chosen = keep_the_pattern_the_pixels_prefer(
             result, observables, amp=args.amp, background=args.background,
-            saturation=args.saturation)
+            saturation=args.saturation, cache=cache)
     summary = result.to_json_dict()
     if result.holdout and images and observables.sizes.exposure is not None:
         held = result.holdout.get("heldout_exposures") or []
@@ -240,7 +242,7 @@ def run(args):
             refined_star_residual(observables, refined,
                                   (result.holdout or {}).get("heldout_exposures"),
                                   amp=args.amp, background=args.background,
-                                  saturation=args.saturation))
+                                  saturation=args.saturation, cache=cache))
     summary["inputs"] = {key: value for key, value in observables.meta.items()
                          if isinstance(value, (str, float, int, bool)) or value is None}
     summary["position_split"] = observables.meta.get("position_split", {})

@@ -252,9 +252,11 @@ def run(args):
     unlike = ("" if args.static else f"{summary['n_unlike_psf']} unlike the PSF (two stars "
               "fitted as one, a galaxy); ")
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "
-          f"({summary['n_flagged']} fits flagged, {summary['n_saturated']} of them saturated; "
+          f"({summary['n_flagged']} fits flagged by photutils or saturated, "
+          f"{summary['n_saturated']} of them saturated; "
           f"{n_blended} fitted in a group with their neighbours; {unlike}"
-          f"detection's flags and unlike_psf in source_flags); wrote {args.output}")
+          f"detection's flags and unlike_psf in source_flags, bits in "
+          f"bfpsf.measure.sources.SourceFlag.NAMES); wrote {args.output}")
     return 0
 
 

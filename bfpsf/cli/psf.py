@@ -23,6 +23,7 @@ from . import (finite_float, image_arguments, positive_int, stamp_size_option,
 from ..measure.bf_agreement import disagreeing_axes
 from ..measure.model_slopes import model_size_increments
 from ..model.psf_fit import DEFAULT_SIZE
+from ..model.psf_fit_stars import UNLIKE
 from ..moments.shapes import MAG_PER_SIZE_ERROR
 from ._files import read_image
 
@@ -161,7 +162,7 @@ def run(args):
                "oversampling": int(args.oversampling), "size": int(args.size),
                "include_bf": bool(args.include_bf), "n_stars": int(len(result.stars)),
                "n_used": int(np.sum(used)), "iterations": int(result.iterations),
-               "n_unlike": int(np.sum(np.asarray(result.stars["flags"]) & 16 > 0)),
+               "n_unlike": int(np.sum(np.asarray(result.stars["flags"]) & UNLIKE > 0)),
                "n_saturated": sum(entry["n_saturated"] for entry in per_image),
                "converged": bool(result.converged),
                "fwhm_pixels": psf_fwhm(psf),
@@ -284,8 +285,8 @@ def run(args):
     n_detected = sum(entry["n_detected"] for entry in per_image)
     others = ("; the others blended, near an edge or with bad pixels"
               if n_detected > summary["n_stars"] else "")
-    unlike = (f"; {summary['n_unlike']} left out as unlike the other stars (flag 16: unresolved "
-              "blends)" if summary["n_unlike"] else "")
+    unlike = (f"; {summary['n_unlike']} left out as unlike the other stars (unresolved "
+              "blends; bit 16 of the P0 fit's star flags)" if summary["n_unlike"] else "")
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} isolated stars ({n_detected} "
           f"sources detected{others}{unlike}) in "
           f"{len(args.images)} image(s), {result.iterations} iterations "

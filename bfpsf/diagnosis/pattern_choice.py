@@ -21,12 +21,13 @@ __all__ = ["refined_star_residual", "keep_the_pattern_the_pixels_prefer"]
 
 
 def refined_star_residual(observables, refined, heldout, *, flats=None, amp=None,
-                          background=None, saturation=None):
+                          background=None, saturation=None, cache=None):
     """The stacked star residual of the held-out exposures (every exposure without a split)
     against P(F) from the flats' calibration (``flats``: one computed before) and from the
     refined one: {``exposures``, ``heldout``, ``flats``, ``refined``}, each of the last two
     {``chi2_per_pixel``, ``rms_over_peak``, ``n_stars``} or None. ``amp``, ``background``,
-    ``saturation``: as ``bfpsf diagnose``."""
+    ``saturation``: as ``bfpsf diagnose``; ``cache``: kept between calls on the same images
+    (`bfpsf.diagnosis.star_residual.star_residual_with`)."""
     paths = observables.meta["image_paths"]
     exposures = list(heldout or range(len(paths)))
     out = {"exposures": exposures, "heldout": bool(heldout)}
@@ -37,7 +38,7 @@ def refined_star_residual(observables, refined, heldout, *, flats=None, amp=None
         if label in out:
             continue
         star = star_residual_with(calibration, paths, exposures, amp=amp,
-                                  background=background, saturation=saturation)
+                                  background=background, saturation=saturation, cache=cache)
         out[label] = None if star is None else {key: star[key] for key in (
             "chi2_per_pixel", "rms_over_peak", "n_stars")}
     return out
@@ -56,7 +57,7 @@ def keep_the_pattern_the_pixels_prefer(result, observables, **options):
         and the flats' calibration).
     observables : Observables
     **options
-        ``amp``, ``background``, ``saturation``, as `refined_star_residual`.
+        ``amp``, ``background``, ``saturation``, ``cache``, as `refined_star_residual`.
     """
     if not result.empirical or not result.empirical_alternatives:
         return result, None

@@ -84,15 +84,15 @@ def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, m
 
 
 def star_residual_with(calibration, paths, exposures, *, amp=None, background=None,
-                       saturation=None):
+                       saturation=None, cache=None):
     """The stacked star residual of some exposures against the P(F) a calibration gives them
     through the user's path: each image prepared (`prepare_image`, with a refined
     calibration's linearity correction) and its own P0 fitted with the calibration
     (`bfpsf.workflow.psf_from_images`: its build-up and EMPIRICAL term included, at the
     exposure's order in ``paths``), as ``bfpsf psf`` would on that image alone.
 
-    ``bfpsf diagnose --output-calib`` calls it twice on the held-out exposures, with the flats'
-    calibration and with the refined one: the same stars and the same path, so the two chi2
+    ``bfpsf diagnose --output-calib`` calls it on the held-out exposures with the flats'
+    calibration and with each refined one: the same stars and the same path, so the chi2
     compare (the stack of every exposure, `stacked_star_residual` in the observables, uses
     the loop's own P0 fit).
 
@@ -105,6 +105,9 @@ def star_residual_with(calibration, paths, exposures, *, amp=None, background=No
         Indices into ``paths`` of the exposures to stack.
     amp, background, saturation
         As ``bfpsf diagnose``: the amplifier, a known sky (ADU) and a saturation level (ADU).
+    cache : dict, optional
+        Kept between calls on the same images: each image as read, prepared and detected
+        for a gain and linearity correction (calibrations that share them share these).
 
     Returns
     -------
@@ -112,16 +115,24 @@ def star_residual_with(calibration, paths, exposures, *, amp=None, background=No
         `stacked_star_residual`'s, with ``exposures``.
     """
     gain = float(calibration.gain)
+    linearity = linearity_of(calibration)
+    cache = {} if cache is None else cache
     pixels, tables, models, noise = [], [], [], []
     for index in exposures:
-        amplifier = read_amplifiers(paths[index], amp, what="image")[0]
-        prepared = prepare_image(amplifier.data, gain=gain,
-                                 linearity_c_per_1e5=linearity_of(calibration),
-                                 background_e=None if background is None else background * gain)
+        key = (str(paths[index]), amp, gain, linearity, background)
+        if key not in cache:
+            amplifier = read_amplifiers(paths[index], amp, what="image")[0]
+            prepared = prepare_image(amplifier.data, gain=gain, linearity_c_per_1e5=linearity,
+                                     background_e=None if background is None
+                                     else background * gain)
+            cache[key] = (amplifier, prepared, {})
+        amplifier, prepared, sources = cache[key]
         level = saturation_e(amplifier, gain, saturation, calibration)
         fit = psf_from_images([prepared], calibration, saturation_e=level, exposure=index)
         pixels.append(prepared.sky_subtracted)
-        tables.append(measure_sources(prepared.image_e, saturation=level))
+        if level not in sources:
+            sources[level] = measure_sources(prepared.image_e, saturation=level)
+        tables.append(sources[level])
         models.append(fit.psf)
         noise.append(prepared.sky.rms if background is None else sky_level(prepared.image_e)[1])
     star = stacked_star_residual(pixels, tables, models,

@@ -22,6 +22,7 @@ sqrt(pixels)) and that of the median share give the bias its error.
 """
 
 import numpy as np
+from scipy.stats import median_abs_deviation
 
 __all__ = ["neighbour_light", "NEIGHBOUR_LIGHT_NSIGMA", "NEIGHBOUR_LIGHT_ERROR_FRACTION"]
 
@@ -79,7 +80,7 @@ def neighbour_light(stamps, radius2, sigma, flux, rms, size_err, *, usable=None)
         share = np.median(shares)
         # the median's error (1.25 x the robust scatter / sqrt(stars)), which weighs on the
         # bright stars, whose own wings it removes
-        share_err = (1.2533 * 1.4826 * np.median(np.abs(shares - share))
+        share_err = (1.2533 * median_abs_deviation(shares, scale="normal")
                      / np.sqrt(shares.size))
     delta = level - share * flux
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -17,6 +17,7 @@ from astropy.table import vstack
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+from scipy.stats import median_abs_deviation
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import (default_fit_shape, describe_outlying_nodes,
@@ -242,7 +243,7 @@ def sky_variance(prepared):
     if free.sum() < 10:
         return None
     values = data[free]
-    spread = 1.4826 * np.median(np.abs(values - np.median(values)))
+    spread = median_abs_deviation(values, scale="normal")
     return float(spread ** 2), float(np.mean(np.clip(prepared.sky.image()[free], 0.0, None)))
 
 

@@ -20,6 +20,7 @@ import logging
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
+from scipy.stats import median_abs_deviation
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
@@ -191,7 +192,7 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
         if clip_nsigma is None or n_points <= 3:
             break
         normalised = residual * np.sqrt(weights)
-        scale = 1.4826 * np.median(np.abs(normalised - np.median(normalised)))
+        scale = median_abs_deviation(normalised, scale="normal")
         outliers = np.abs(normalised) > clip_nsigma * scale if scale > 0 else np.zeros(
             n_points, dtype=bool)
         if not outliers.any() or n_points - outliers.sum() < 3:

@@ -49,8 +49,8 @@ from .psf import FluxDependentPSF
 from .psf_fit_grid import (Grid, Sampling, cardinal_splines, dense_weights_of, grid_nodes,
                            mean_shifts, node_solution, normalise_nodes, project, recentred,
                            shift_sets_of, without_translation)
-from .psf_fit_stars import (STAR_FLAGS, as_star_list, cut_stars, misfits, neighbour_table,
-                             star_table)
+from .psf_fit_stars import (MOVED, STAR_FLAGS, as_star_list, cut_stars, misfits,
+                             neighbour_table, star_table)
 
 __all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS", "DEFAULT_SIZE"]
 
@@ -198,7 +198,7 @@ def _gauss_newton(stars, data, model, jacobian, variance, usable):
     ok = ~failed & usable
     stars.flux[ok] = flux[ok]
     step[~ok] = 0.0
-    stars.flags[failed] |= 8
+    stars.flags[failed] |= MOVED
     return (residual - np.einsum("ip,ipq->iq", step, jac)).reshape(data.shape)
 
 
@@ -388,7 +388,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         ys = Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
         flux = stars.flux[:, None, None]
         # the neighbours are modelled, not used for P0
-        weight = np.where(((stars.flags & 8) == 0)[:, None, None] & stars.used[:, None, None],
+        weight = np.where(((stars.flags & MOVED) == 0)[:, None, None] & stars.used[:, None, None],
                           flux**2 / variance, 0.0)
         update = node_solution(residual / flux, weight, dense_weights, xs, ys, npix)
         stepped = [node + damping * without_translation(step, node)
@@ -463,7 +463,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
     if len(shift_sets) > 1:  # the model carries the mean of the stars' shifts
         fitted = Grid(fitted.data, x_nodes, y_nodes,
                        [mean_shifts(shift_sets,
-                                     star_set[((stars.flags & 8) == 0) & stars.used])],
+                                     star_set[((stars.flags & MOVED) == 0) & stars.used])],
                        np.zeros_like(star_set), over, psf_kwargs)
     psf = (fitted.nodes[0] if grid is None
            else GriddedFluxDependentPSF(fitted.nodes, x_nodes, y_nodes))

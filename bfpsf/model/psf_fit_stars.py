@@ -4,25 +4,27 @@ vectorised fitting, the neighbours modelled beside them, their flags and the res
 import numpy as np
 from astropy.table import Table
 from scipy.spatial import cKDTree
-from scipy.stats import theilslopes
+from scipy.stats import median_abs_deviation, theilslopes
 
 from ..errors import BFPSFInputError
 from ..moments.adaptive import adaptive_moments_batch
 from ..moments.moment_errors import moment_errors
 
-__all__ = ["STAR_FLAGS", "MISFIT_SIGMA", "MISFIT_SIZE", "MISFIT_SHAPE", "MISFIT_NEIGHBOURS",
+__all__ = ["STAR_FLAGS", "OUTSIDE", "NONFINITE", "NONPOSITIVE", "MOVED", "UNLIKE", "MISFIT_SIGMA", "MISFIT_SIZE", "MISFIT_SHAPE", "MISFIT_NEIGHBOURS",
            "misfits", "Stars", "as_star_list", "cut_stars", "cut_neighbours", "star_table",
            "neighbour_table"]
 
 
-#: Per-star flags of `fit_psf` (bit values).
+#: Per-star flags of `fit_psf` (bit values), named below.
+OUTSIDE, NONFINITE, NONPOSITIVE, MOVED, UNLIKE = 1, 2, 4, 8, 16
 STAR_FLAGS = {
-    1: "cutout outside the image (star not used)",
-    2: "non-finite pixel in the cutout (star not used)",
-    4: "non-positive flux estimate (star not used)",
-    8: "position fit failed or moved more than 1 pixel (star not used in the last iteration)",
-    16: "its shape is not the other stars' (`misfits`: an unresolved blend, a cosmic ray, "
-        "a galaxy; modelled, not used)",
+    OUTSIDE: "cutout outside the image (star not used)",
+    NONFINITE: "non-finite pixel in the cutout (star not used)",
+    NONPOSITIVE: "non-positive flux estimate (star not used)",
+    MOVED: "position fit failed or moved more than 1 pixel (star not used in the last "
+           "iteration)",
+    UNLIKE: "its shape is not the other stars' (`misfits`: an unresolved blend, a cosmic "
+            "ray, a galaxy; modelled, not used)",
 }
 
 #: `misfits`: a star is a misfit beyond this many of its shape's statistical errors
@@ -131,18 +133,18 @@ def cut_stars(images, positions, half, floors, neighbours=None):
         for x_0, y_0 in xy:
             image_index.append(index)
             if not (np.isfinite(x_0) and np.isfinite(y_0)):
-                flags.append(1)
+                flags.append(OUTSIDE)
                 continue
             column, row = int(np.rint(x_0)) - half, int(np.rint(y_0)) - half
             if column < 0 or row < 0 or column + 2 * half >= nx or row + 2 * half >= ny:
-                flags.append(1)
+                flags.append(OUTSIDE)
                 continue
             cutout = image[row:row + 2 * half + 1, column:column + 2 * half + 1]
             if not np.all(np.isfinite(cutout)):
-                flags.append(2)
+                flags.append(NONFINITE)
                 continue
             if not cutout.sum() > 0:
-                flags.append(4)
+                flags.append(NONPOSITIVE)
                 continue
             flags.append(0)
             cutouts.append(cutout)
@@ -196,7 +198,7 @@ def misfits(stars, clean):
     -------
     ndarray of bool (N,)
     """
-    used = stars.used & ((stars.flags & 8) == 0)
+    used = stars.used & ((stars.flags & MOVED) == 0)
     out = np.zeros(len(clean), dtype=bool)
     cutouts = np.where(stars.valid, clean, 0.0)
     star = adaptive_moments_batch(cutouts, weight=stars.valid)
@@ -243,7 +245,7 @@ def _expected(values, stars, used):
         for _ in range(2):
             plane = np.linalg.lstsq(design[kept], values[kept], rcond=None)[0]
             residual = values[mine] - design[mine] @ plane
-            spread = 1.4826 * np.median(np.abs(residual - np.median(residual)))
+            spread = median_abs_deviation(residual, scale="normal")
             kept = mine[np.abs(residual - np.median(residual)) <= 3 * spread] if spread > 0 \
                 else mine
         residual = values - design @ plane
@@ -276,8 +278,8 @@ def star_table(flags, image_index, positions, stars, variance):
     used = np.flatnonzero(flags == 0)
     flags = flags.copy()
     mine = stars.p0
-    flags[used] |= stars.flags[mine] | np.where(stars.rejected[mine], 16, 0)
-    share = np.where((stars.flags[mine] & 8) | stars.rejected[mine], 0.0,
+    flags[used] |= stars.flags[mine] | np.where(stars.rejected[mine], UNLIKE, 0)
+    share = np.where((stars.flags[mine] & MOVED) | stars.rejected[mine], 0.0,
                      stars.flux[mine]**2 / variance[mine].mean(axis=(1, 2)))
     table = Table()
     table["image"] = image_index

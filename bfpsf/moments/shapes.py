@@ -15,6 +15,7 @@ the PSF model (`psf_shape`, ``FluxDependentPSF.shape``) use the same estimator
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import median_abs_deviation
 
 from ..errors import BFPSFValueError
 from .adaptive import adaptive_moments_batch
@@ -314,7 +315,7 @@ def size_offset(image, x, y, flux, psf):
     if ratio.size < 3:
         return np.nan, np.nan, int(ratio.size)
     median = float(np.median(ratio))
-    error = 1.2533 * 1.4826 * float(np.median(np.abs(ratio - median))) / np.sqrt(ratio.size)
+    error = 1.2533 * float(median_abs_deviation(ratio, scale="normal")) / np.sqrt(ratio.size)
     return median, error, int(ratio.size)
 
 
