@@ -95,6 +95,39 @@ def test_slope_json_plot_and_psf_hook(star_image, tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_slope_psf_says_no_percentage_of_a_slope_consistent_with_zero(tmp_path, capsys):
+    """Stars without BF (GalSim's own Moffats, no sensor) measured against a P(F) with BF: the
+    measured slope is zero within its errors, and a residual in percent of it is meaningless
+    (a new user's BF-free twins printed "+18106 % of the measured slope"); `slope --psf` says
+    so, and the pull says what is left."""
+    import galsim
+
+    from bfpsf.model.psf import FluxDependentPSF
+    from bfpsf.shifts import BoundaryShifts
+
+    shifts = BoundaryShifts.from_radial_profile(lambda r: 1.2e-6 * np.exp(-r / 0.8), 5)
+    field = simulate_star_field(shape=(320, 320), n_stars=64, spacing=40, fwhm=3.5, beta=3.5,
+                                peak_range_e=(3e3, 1.2e5), sky_e=0.0, read_noise_e=5.0, seed=6)
+    image = tmp_path / "field.fits"
+    write_image_adu(image, field.image, gain=1.0, exptime=30.0)
+    psf_path = tmp_path / "psf.fits"
+    FluxDependentPSF.from_galsim(galsim.Moffat(beta=3.5, fwhm=3.5), shifts).write(psf_path)
+    stars, summary = tmp_path / "stars.ecsv", tmp_path / "slope.json"
+    assert main(["measure", str(image), "-o", str(stars), "--gain", "1"]) == 0
+    capsys.readouterr()
+    assert main(["slope", str(stars), "--psf", str(psf_path), "--json", str(summary)]) == 0
+    out = capsys.readouterr().out
+    result = json.loads(summary.read_text())
+    for key, label in (("x", "sigma_x"), ("y", "sigma_y")):
+        raw = result[key]
+        assert abs(raw["slope"]) < 2 * raw["slope_err"], raw
+        line = next(text for text in out.splitlines() if text.startswith(label)
+                    and "residual after P(F)" in text)
+        assert "no percentage of it" in line and "% of the measured slope" not in line, line
+        # the residual is the model's BF, far beyond its error
+        assert result["model_residual"][key]["pull"] < -3
+
+
 def test_slope_psf_model_residual_removes_the_bf_slope(tmp_path):
     """Stars drawn with bfpsf's own redistribution (BFSensor): the raw slope is significant, the
     slope left after subtracting the sizes P(F) predicts is zero within errors."""

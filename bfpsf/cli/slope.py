@@ -199,8 +199,7 @@ def run(args):
                      "(the PSF carries no calibration samples: no calibration error)")
                   + "; residual after P(F) "
                   f"{entry['slope']:+.5f} +- {entry['slope_err_total']:.5f} pix/100ke- "
-                  f"({entry['percent_of_raw']:+.0f} % of the measured slope; pull "
-                  f"{entry['pull']:+.1f})")
+                  f"({_of_raw(entry['percent_of_raw'], fit)}; pull {entry['pull']:+.1f})")
         print(f"{label:8s} slope {fit.slope:+.5f} +- {fit.slope_err:.5f} pix/100ke-  "
               f"intercept {fit.intercept:.4f} pix  {fit.relative_percent:+.3f} %/100ke-")
     for key in ("e1", "e2"):
@@ -225,3 +224,13 @@ def run(args):
     if args.psf:
         warn_unconverged(psf, args.psf)
     return 0
+
+
+def _of_raw(percent, fit):
+    """The residual in percent of the measured slope, or why not: a measured slope within 2
+    of its errors of zero (a BF-free twin's) makes any percentage of it meaningless (a new
+    user read +18106 %)."""
+    if not np.isfinite(percent) or abs(fit.slope) < 2 * fit.slope_err:
+        return (f"the measured slope {fit.slope:+.5f} +- {fit.slope_err:.5f} is within 2 of its "
+                "errors of zero: no percentage of it")
+    return f"{percent:+.0f} % of the measured slope"
