@@ -241,3 +241,31 @@ def test_wing_profile_of_galsim_kolmogorov_stars_drawn_over_the_whole_image():
         assert wings(radius[ring]).mean() == pytest.approx(drawn[ring].mean(), rel=0.03)
     for sky in skies:
         assert sky.level == pytest.approx(200.0, abs=0.1)
+
+
+def test_wing_nodes_are_never_negative_and_say_so_in_their_error():
+    """Stars whose light a simulation cuts at 40 px (81 px stamps: Airy x Moffat, 1.1 % of the
+    light beyond), 130 to an image 14 px apart at least, on a sky of 60 e-. Free, the outer
+    nodes of the wing profile (52-75 px), where the glow of a field's stars is nearly flat,
+    went negative with the sky high in their stead (a new user's SiliconSensor stars: -0.093,
+    the sky 5.8 e- high, the flux correction 1.0183 for the 1.029 its stamps kept). Held at
+    >= 0, the flux correction is the light the stamps kept within its error, and the error
+    holds half the change from the free nodes."""
+    import bfpsf
+    from bfpsf.measure.prepare import prepare_image
+
+    profile = galsim.Convolve(galsim.Airy(lam_over_diam=1.75, obscuration=0.3),
+                              galsim.Moffat(beta=3.5, fwhm=3.25))
+    field = simulate_field(profile, n_images=2, shape=(300, 300), n_stars=130,
+                           min_separation=14.0, sky_range_e=(60.0, 60.0), sensor=None,
+                           shifts=SHIFTS, seed=47, stamp=81)
+    frames = [prepare_image(image, gain=1.0) for image in field.images]
+    fit = bfpsf.psf_from_images(frames, make_calibration(SHIFTS, 1.0, 5.0))
+    kept = _support_fraction(81, profile) / _p0_support_fraction(profile)
+    psf = fit.psf
+    assert min(psf.wing_coefficients) >= 0.0, psf.wing_coefficients
+    assert abs(psf.flux_correction - kept) < 2 * psf.flux_correction_err, (
+        psf.flux_correction, psf.flux_correction_err, kept)
+    assert psf.flux_correction_err < 0.01
+    for prepared in fit.prepared:  # the sky, 60 e-: within 1.5 e- (5.8 free, on SiliconSensor)
+        assert abs(prepared.sky.level - 60.0) < 1.5, prepared.sky.level
