@@ -270,7 +270,7 @@ def cli_files(tmp_path_factory):
     return directory, xy, peaks / PEAK_PER_FLUX
 
 
-def test_cli_psf_and_photometry(cli_files):
+def test_cli_psf_and_photometry(cli_files, capsys):
     from bfpsf.cli import main
 
     directory, xy, fluxes = cli_files
@@ -279,6 +279,9 @@ def test_cli_psf_and_photometry(cli_files):
     assert main(["psf", image, "--calib", calib, "-o", psf_path, "--oversampling", "2",
                  "--size", "21", "--json", str(directory / "psf.json")]) == 0
     summary = json.loads((directory / "psf.json").read_text())
+    # the line says the sky it fitted, e- and ADU (a new user found it only in the JSON)
+    sky = summary["images"][0]["background_e"]
+    assert f"sky {sky:.1f} e- ({sky / 1.5:.1f} ADU) at the image centre;" in capsys.readouterr().out
     assert summary["n_used"] >= 60 and summary["converged"]
     assert summary["fwhm_pixels"] == pytest.approx(3.6, abs=0.1)
     psf = FluxDependentPSF.read(psf_path)

@@ -294,10 +294,23 @@ def run(args):
           f"{summary['n_saturated']} saturated stars left out; "
           f"total flux {psf.flux_correction:.4f}"
           f"{f' +- {psf.flux_correction_err:.4f}' if np.isfinite(psf.flux_correction_err) else ''}"
-          f" times the flux in the {args.size}-pixel support; "
+          f" times the flux in the {args.size}-pixel support; {_skies(per_image)}; "
           f"{'EMPIRICAL term applied; ' if psf.empirical is not None else ''}"
           f"wrote {args.output}")
     return 0
+
+
+def _skies(per_image):
+    """The skies fitted with the stars' wings at each image's centre, e- and ADU (each image
+    with its own gain; a new user found them only in the JSON)."""
+    def span(values):
+        low, high = float(np.min(values)), float(np.max(values))
+        return f"{low:.1f}" if high - low < 0.05 else f"{low:.1f} to {high:.1f}"
+
+    electrons = np.array([entry["background_e"] for entry in per_image], dtype=float)
+    adu = electrons / np.array([entry["gain"] for entry in per_image], dtype=float)
+    return (f"sky {span(electrons)} e- ({span(adu)} ADU) at the image "
+            f"centre{'s' if len(per_image) > 1 else ''}")
 
 
 def _bf_size_change(psf):
