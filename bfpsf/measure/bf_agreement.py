@@ -19,9 +19,8 @@ import numpy as np
 
 from ..errors import BFPSFValueError
 from ..least_squares import weighted_least_squares
-from ..moments.adaptive import adaptive_moments_batch
 from ..moments.moment_errors import moment_errors
-from ..moments.shapes import psf_shapes, star_stamps
+from ..moments.shapes import psf_shapes, stars_beside_psf
 from .slopes import PEAK_UNIT_E, fit_bf_slope
 
 __all__ = ["BF_AGREEMENT_SIGMA", "BF_AGREEMENT_TOLERANCE", "bf_agreement", "disagreeing_axes"]
@@ -62,20 +61,16 @@ def bf_agreement(images, stars, psf):
     """
     rows = {key: [] for key in ("image", "grow_x", "grow_y", "meas_x", "meas_y", "err_x",
                                 "err_y", "light_x", "light_y")}
-    half = psf.half_size
     for index, prepared in enumerate(images):
         mine = stars[np.asarray(stars["image"], dtype=int) == index]
-        x, y, flux = (np.asarray(mine[name], dtype=float) for name in ("x_fit", "y_fit",
-                                                                        "flux_fit"))
-        usable = np.isfinite(flux) & (flux > 0)
-        stamps, inside = star_stamps(prepared.sky_subtracted, x[usable], y[usable], half)
-        if not inside.any():
+        beside = stars_beside_psf(prepared.sky_subtracted, mine["x_fit"], mine["y_fit"],
+                                  mine["flux_fit"], psf)
+        x, y, flux = beside["x"], beside["y"], beside["flux"]
+        if not flux.size:
             continue
-        x, y, flux = x[usable][inside], y[usable][inside], flux[usable][inside]
-        measured = adaptive_moments_batch(stamps)
+        measured, bright = beside["measured"], beside["model"]
         noise = prepared.sky.rms if np.isfinite(prepared.sky.rms) else 0.0
-        errors = moment_errors(stamps, measured, background_variance=noise**2)
-        bright = psf_shapes(psf, flux, x, y)
+        errors = moment_errors(beside["stamps"], measured, background_variance=noise**2)
         faint = psf_shapes(psf, np.zeros(flux.size), x, y)
         good = (measured.flags == 0) & (bright["flags"] == 0) & (faint["flags"] == 0)
         rows["image"].append(np.full(int(good.sum()), index))
@@ -107,11 +102,11 @@ def bf_agreement(images, stars, psf):
         # the stars ask for it (Bayesian information criterion), a level under them per image
         # (the sky's error, which makes the faint stars large: 3 e- of it had moved the ratio
         # by 0.1-0.4 on a new user's BF-free stars)
-        images = range(labels.max() + 1)
+        groups = range(labels.max() + 1)
         chosen = None
         for columns in ((1.0,), (1.0, light)):
             design = np.column_stack([grow] + [np.where(labels == k, column, 0.0)
-                                               for k in images for column in columns])[rows_fit]
+                                               for k in groups for column in columns])[rows_fit]
             dof = design.shape[0] - design.shape[1]
             if dof < 1:
                 break

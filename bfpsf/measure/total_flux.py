@@ -179,8 +179,8 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         it) and its error averaged over the profiles the images allow (both families, every
         tail power, Akaike weights), the error at least half the range of the likeliest
         family's fractions within chi-square + 4. Where the likeliest profile has a negative
-        node, both families are fitted again at the chosen sky degree with the nodes held at
-        >= 0, and the error holds half the change.
+        node, the nodes are fitted again at the chosen sky degree held at >= 0 (the power law
+        stands), and the error holds half the change.
     """
     n_terms = (degree + 1) * (degree + 2) // 2
     bases, values, wings, tails, offsets, templates = [], [], [], [], [0], []
@@ -278,14 +278,14 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
     families = {"nodes": lambda power: np.eye(WING_NODES),
                 "power law": lambda power: node_radii(half_size)[:, None] ** (BASE_POWER - power)}
 
-    def fit_families(projected, nonnegative=False):
+    def fit_families(projected, names=tuple(families), nonnegative=False):
         results = {}
-        for name, transform in families.items():
+        for name in names:
             fits, models = [], []
             for index, power in enumerate(TAIL_POWERS):
-                matrix = transform(power)
-                params, sky_terms, deviation, normal = solve(
-                    projected, keep, matrix, index, nonnegative=nonnegative and name == "nodes")
+                matrix = families[name](power)
+                params, sky_terms, deviation, normal = solve(projected, keep, matrix, index,
+                                                             nonnegative=nonnegative)
                 covariance = matrix @ (rms**2 * np.linalg.pinv(normal)) @ matrix.T
                 fits.append((sky_terms, deviation))
                 models.append(_wing_model(matrix @ params, covariance, half_size, power, 0,
@@ -317,9 +317,10 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         # 5.8 e- high, the flux correction 1.0183 for a true 1.029, photometry +16 mmag).
         # Refitted with the nodes held at >= 0 (after the sky's degree is chosen: held
         # there, the criterion chose a plane over the true constant sky of crowded small
-        # amplifiers); half the change is added to the error (a node at its bound)
+        # amplifiers); half the change is added to the error (a node at its bound). The
+        # power law's single amplitude is not held: its fits stand
         free = fraction
-        results = fit_families(of_order, nonnegative=True)
+        results = {**results, **fit_families(of_order, ("nodes",), nonnegative=True)}
         _, name, best, fraction, held_error = _averaged(results)
         error = max(error, held_error, abs(fraction - free) / 2)
     _, fits, models = results[name]

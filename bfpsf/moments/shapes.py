@@ -22,8 +22,8 @@ from .adaptive import adaptive_moments_batch
 
 __all__ = ["PSFShape", "distortion", "fourth_moment", "psf_shape", "psf_shapes",
            "calibration_shape_error",
-           "model_shapes", "shape_residuals", "size_offset", "star_stamps",
-           "model_stamps"]
+           "model_shapes", "shape_residuals", "size_offset", "stars_beside_psf",
+           "star_stamps", "model_stamps"]
 
 #: Magnitudes per relative size error of the template: a PSF fit with a template of width
 #: sigma on a star of width sigma (1 + eps) finds its flux low by about eps (Gaussians).
@@ -302,14 +302,10 @@ def size_offset(image, x, y, flux, psf):
         The offset, its error (from the scatter: 1.2533 x 1.4826 MAD / sqrt(n)) and the
         number of stars; NaN, NaN, n with fewer than 3 stars.
     """
-    x, y, flux = (np.asarray(value, dtype=float).ravel() for value in (x, y, flux))
-    usable = np.isfinite(flux) & (flux > 0)
-    stamps, inside = star_stamps(image, x[usable], y[usable], psf.half_size)
-    x, y, flux = x[usable][inside], y[usable][inside], flux[usable][inside]
-    if flux.size < 3:
-        return np.nan, np.nan, int(flux.size)
-    measured = adaptive_moments_batch(stamps)
-    model = psf_shapes(psf, flux, x, y)
+    stars = stars_beside_psf(image, x, y, flux, psf)
+    if stars["flux"].size < 3:
+        return np.nan, np.nan, int(stars["flux"].size)
+    measured, model = stars["measured"], stars["model"]
     ratio = measured.sigma / model["sigma"] - 1.0
     ratio = ratio[np.isfinite(ratio) & (measured.flags == 0)]
     if ratio.size < 3:
@@ -317,6 +313,25 @@ def size_offset(image, x, y, flux, psf):
     median = float(np.median(ratio))
     error = 1.2533 * float(median_abs_deviation(ratio, scale="normal")) / np.sqrt(ratio.size)
     return median, error, int(ratio.size)
+
+
+def stars_beside_psf(image, x, y, flux, psf):
+    """An image's stars measured beside their models: the stars of finite positive flux whose
+    stamp (`star_stamps`, the model's size) lies inside the image, their adaptive moments and
+    the model's at each one's flux, position and phase (`psf_shapes`).
+
+    Returns
+    -------
+    dict
+        ``stamps`` (n, side, side), ``measured`` (`Moments`), ``model`` (`psf_shapes`'s dict),
+        and the stars' ``x``, ``y``, ``flux`` (n,).
+    """
+    x, y, flux = (np.asarray(value, dtype=float).ravel() for value in (x, y, flux))
+    usable = np.isfinite(flux) & (flux > 0)
+    stamps, inside = star_stamps(image, x[usable], y[usable], psf.half_size)
+    x, y, flux = x[usable][inside], y[usable][inside], flux[usable][inside]
+    return {"stamps": stamps, "measured": adaptive_moments_batch(stamps),
+            "model": psf_shapes(psf, flux, x, y), "x": x, "y": y, "flux": flux}
 
 
 def star_stamps(image, x, y, half):
