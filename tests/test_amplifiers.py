@@ -1,6 +1,8 @@
 """Camera input: IRAF sections, overscan, multi-amplifier files, malformed inputs, and the
 per-amplifier calibration of a two-amplifier GalSim flat set against truth."""
 
+import json
+
 import numpy as np
 import pytest
 from astropy.io import fits
@@ -11,6 +13,7 @@ from bfpsf.calibration.detector import DetectorCalibration, read_calibration
 from bfpsf.calibration.product import Calibration
 from bfpsf.cli import main
 from bfpsf.errors import BFPSFInputError
+from bfpsf.measure.sources import SourceFlag
 from bfpsf.io.amplifiers import (amplifier_layout, parse_section, read_amplifiers,
                                  subtract_overscan)
 from bfpsf.validation.simulate_camera import amplifier_hdus, write_amplifier_file
@@ -389,8 +392,8 @@ def test_photometry_applies_each_amplifiers_gain_and_shifts(tmp_path, capsys):
         # electrons with the amplifier's gain; the model is the pixel-integrated Gaussian,
         # the image the sampled one (0.3 % wider): within 2 %
         assert abs(row["flux_fit"] / flux - 1) < 0.02, (row["flux_fit"], flux)
-    import json
-
+    # each star like its amplifier's P(F) (`unlike_psf`), the boundary stars too
+    assert not np.any(np.asarray(table["source_flags"]) & SourceFlag.UNLIKE_PSF)
     summary = json.loads((tmp_path / "phot.json").read_text())
     assert [entry["gain"] for entry in summary["images"]] == [1.4, 1.7]
     assert boundary_stars >= 1 and summary["n_fitted_twice"] == boundary_stars
@@ -469,6 +472,7 @@ def test_psf_keeps_each_amplifiers_shifts(tmp_path, capsys):
 
     from bfpsf.calibration import calibrate_from_ptc
     from bfpsf.cli.photometry import _amplifier_model
+    from bfpsf.measure.bf_agreement import disagreeing_axes
     from bfpsf.model.galsim_profile import render_stars
     from bfpsf.calibration.cp_pipe import ptc_table_hdu
     from bfpsf.model.psf import FluxDependentPSF
@@ -497,8 +501,15 @@ def test_psf_keeps_each_amplifiers_shifts(tmp_path, capsys):
     write_amplifier_file(tmp_path / "stars.fits", images, list(shifts), bias_adu=[900.0, 1300.0],
                          read_noise_adu=[2.0, 2.0], exptime=1.0, rng=rng)
     code = main(["psf", str(tmp_path / "stars.fits"), "--calib", str(tmp_path / "cal.fits"),
-                 "-o", str(tmp_path / "psf.fits"), "--size", "15", "--max-iterations", "8"])
+                 "-o", str(tmp_path / "psf.fits"), "--size", "15", "--max-iterations", "8",
+                 "--json", str(tmp_path / "psf.json")])
     assert code == 0, capsys.readouterr().err
+    # the stars' BF against the product's, each amplifier's stars with that amplifier's
+    # shifts (`bf_agreement`): 0.94 +- 0.19 (x), 0.96 +- 0.17 (y) on these 32 stars
+    agreement = json.loads((tmp_path / "psf.json").read_text())["bf_agreement"]
+    for entry in agreement.values():
+        assert abs(entry["ratio"] - 1.0) < 3 * entry["ratio_err"], agreement
+    assert disagreeing_axes(agreement) == []
     psf = FluxDependentPSF.read(tmp_path / "psf.fits")
     assert sorted(psf.amplifier_shifts) == ["C00", "C01"]
     for name, one in shifts.items():
@@ -566,8 +577,6 @@ def _amplifier_fields_psf(tmp_path, field, profile, names, gains, seed):
     """Each image of ``field`` cut into 128-pixel-wide amplifiers side by side (bias-free
     ADU at ``gains``), through ``bfpsf psf`` at defaults: (the files, psf's JSON summary, the
     true flux correction), the summary's flux correction within 3 errors of the truth."""
-    import json
-
     from test_total_flux_wings import _p0_support_fraction
 
     rng = np.random.default_rng(seed)

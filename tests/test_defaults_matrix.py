@@ -19,6 +19,8 @@ import pytest
 from astropy.table import Table
 
 from bfpsf.cli import main
+from bfpsf.measure.bf_agreement import disagreeing_axes
+from bfpsf.measure.sources import SourceFlag
 from bfpsf.shifts import BoundaryShifts
 from bfpsf.validation.simulate_fields import simulate_field
 from bfpsf.validation.simulate_spots import write_image_adu
@@ -98,6 +100,12 @@ def test_psf_finds_the_sky_and_the_wings(data, products, kind):
         assert entry["sky_slope"] == pytest.approx(sky[1:], abs=0.01)
     # a Moffat of beta 3.5 has 0.12 % of its flux beyond the 25-pixel support
     assert summary["flux_correction"] == pytest.approx(1.0012, abs=0.003)
+    # the stars' own BF against the product's (`bf_agreement`), with the true shifts: x, y
+    # 0.91, 0.93 +- 0.03 (single: the flats' calibration leaves the non-linearity in the
+    # stars), 1.03 +- 0.09, 0.96 +- 0.06 (gridded), 1.01, 1.04 +- 0.03 (refined)
+    for entry in summary["bf_agreement"].values():
+        assert entry["ratio"] == pytest.approx(1.0, abs=0.15) and entry["n"] >= 50
+    assert disagreeing_axes(summary["bf_agreement"]) == []
     if kind == "gridded":  # 15 stars per node: no node stands out
         assert summary["grid"]["outlying_nodes"] == []
         assert sum(summary["grid"]["star_weights"]) == pytest.approx(summary["n_used"])
@@ -156,6 +164,8 @@ def test_photometry_gives_total_fluxes(data, products, psf_kind, with_calibratio
                                           np.rint(mine["x_fit"]).astype(int)]
         true_sky = true_sky if linearised else _non_linear(true_sky)
         assert np.all(np.abs(np.asarray(mine["sky_e"]) - true_sky) < 1.5)
+    # isolated stars, each like its product's P(F) at its flux and place (`unlike_psf`)
+    assert not np.any(np.asarray(table["source_flags"]) & SourceFlag.UNLIKE_PSF)
     ratio, peak = np.concatenate(ratios), np.concatenate(peaks)
     # the linearity correction is the refined calibration's and the refined product's:
     # without it the brightest stars come out about c * peak / 2e5 ~ 0.2 % high
