@@ -49,8 +49,8 @@ from .psf import FluxDependentPSF
 from .psf_fit_grid import (Grid, Sampling, cardinal_splines, dense_weights_of, grid_nodes,
                            mean_shifts, node_solution, normalise_nodes, project, recentred,
                            shift_sets_of, without_translation)
-from .psf_fit_stars import (MOVED, STAR_FLAGS, as_star_list, cut_stars, misfits,
-                             neighbour_table, star_table)
+from .psf_fit_stars import (MOVED, STAR_FLAGS, as_star_list, cut_stars, hidden_companions,
+                             misfits, neighbour_table, star_table)
 
 __all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS", "DEFAULT_SIZE"]
 
@@ -427,9 +427,13 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
             # once P0 and the positions have settled, stars unlike the others (`misfits`: a
             # new user's crowded field made P0 double-peaked through unresolved blends) leave
             # P0, modelled as neighbours are, at most half of them, and the fit starts again
-            # without them: their shape is in P0 and in the positions of the others
-            rejected = (misfits(stars, stars.data - stars.others(model, shapes))
-                        if positions_settled else np.zeros(len(model), dtype=bool))
+            # without them: their shape is in P0 and in the positions of the others; then
+            # (P0 without them) stars holding a companion detection did not split
+            clean = stars.data - stars.others(model, shapes) if positions_settled else None
+            rejected = (misfits(stars, clean) if positions_settled
+                        else np.zeros(len(model), dtype=bool))
+            if positions_settled and not rejected.any():
+                rejected = hidden_companions(stars, clean, model, variance)
             if rejected.any() and np.sum(stars.used & ~rejected) >= np.sum(stars.p0) / 2:
                 log.info("P0 fit: %d stars unlike the others left out; starting again",
                          np.sum(rejected))
