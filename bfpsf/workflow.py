@@ -29,7 +29,8 @@ from .measure.bf_agreement import bf_agreement
 from .measure.neighbours import isolated_stars
 from .measure.sources import DETECTION_THRESHOLD
 from .measure.total_flux import fit_sky_and_wings
-from .moments.shapes import MAG_PER_SIZE_ERROR, size_offset
+from .moments.shapes import (MAG_PER_SIZE_ERROR, size_across, size_offset, size_ratios,
+                             stars_beside_psf)
 from .model.empirical import empirical_of
 from .model.psf_fit import DEFAULT_SIZE, fit_psf
 from .model.wings import wing_image
@@ -55,7 +56,9 @@ class PSFFromImages:
         Per image: ``n_detected``, ``n_isolated``, ``n_excluded``, ``background_e`` (the sky at
         the image centre), ``sky_slope`` (e- per pixel per pixel in x, y), ``size_offset``
         (its stars' size over P0's, minus 1, with ``size_offset_err`` and ``n_sized``) and
-        ``seeing_bias_mmag`` (the photometry bias that implies; `_size_offsets`).
+        ``seeing_bias_mmag`` (the photometry bias that implies; `_size_offsets`), and
+        ``size_across``: how that changes across the image (`bfpsf.moments.shapes.size_across`:
+        a PSF varying over the field that one P(F) does not follow).
     prepared : list of PreparedImage
         The images as the fit left them: each with the sky fitted jointly with the stars'
         wings and their glow subtracted.
@@ -255,7 +258,8 @@ def _star_flux(result):
 
 def _size_offsets(per_image, images, result, psf):
     """Each image's stars against the one P0 (`bfpsf.moments.shapes.size_offset`):
-    ``size_offset``, ``size_offset_err``, ``n_sized`` and the photometry bias it implies
+    ``size_offset``, ``size_offset_err``, ``n_sized``, ``size_across`` (its change across the
+    image, `bfpsf.moments.shapes.size_across`) and the photometry bias the offset implies
     for sky-limited stars, ``seeing_bias_mmag`` (positive: fluxes too faint; a bright star's
     fit, weighted by its own Poisson noise, sums its pixels and is far less biased: 1.4 mmag
     per 1 % where the sky-limited bias is 10.9). Images of several exposures whose
@@ -264,10 +268,12 @@ def _size_offsets(per_image, images, result, psf):
     used = result.stars[np.asarray(result.stars["flags"]) == 0]
     for index, (entry, prepared) in enumerate(zip(per_image, images)):
         mine = used[np.asarray(used["image"], dtype=int) == index]
-        offset, error, count = size_offset(prepared.sky_subtracted, mine["x_fit"],
-                                           mine["y_fit"], mine["flux_fit"], psf)
+        beside = stars_beside_psf(prepared.sky_subtracted, mine["x_fit"], mine["y_fit"],
+                                  mine["flux_fit"], psf)
+        offset, error, count = size_offset(size_ratios(beside))
         entry.update(size_offset=offset, size_offset_err=error, n_sized=count,
-                     seeing_bias_mmag=1e3 * MAG_PER_SIZE_ERROR * offset)
+                     seeing_bias_mmag=1e3 * MAG_PER_SIZE_ERROR * offset,
+                     size_across=size_across(beside, psf, prepared.sky_subtracted.shape))
 
 
 

@@ -270,14 +270,25 @@ def test_python_path_gives_the_command_line_numbers(data, products):
                                np.asarray(Table.read(output)["flux_fit"]), rtol=1e-6)
 
 
-def test_static_comparison_gives_total_fluxes_too(data, products):
+@pytest.mark.parametrize("kind", ["single", "gridded"])
+def test_static_comparison_gives_total_fluxes_too(data, products, kind):
     """``photometry --static`` (the static P0, for comparison) applies the product's total-flux
-    correction too, so both columns compare at total fluxes."""
+    correction too, so both columns compare at total fluxes; a gridded product's static
+    models too (a new user's ``--static`` with a 2 x 2 grid was an internal error)."""
     directory, field, images = data
-    output = directory / "phot_static.ecsv"
-    assert main(["photometry", images[0], "--psf", str(directory / "psf_single.fits"), "-o",
-                 str(output), "--static", "--json", str(directory / "phot_static.json")]) == 0
-    summary = json.loads((directory / "phot_static.json").read_text())
+    output = directory / f"phot_static_{kind}.ecsv"
+    assert main(["photometry", images[0], "--psf", str(directory / f"psf_{kind}.fits"), "-o",
+                 str(output), "--static", "--json",
+                 str(directory / f"phot_static_{kind}.json")]) == 0
+    if kind == "gridded":
+        table = Table.read(output)
+        matched, nearest = _matched(table, field.truth[0])
+        assert matched.sum() >= len(field.truth[0]) - 1
+        ratio = (np.asarray(table["flux_fit"])[matched]
+                 / field.truth[0]["flux_e"][nearest[matched]])
+        assert abs(np.median(ratio) - 1.0) < 0.01
+        return
+    summary = json.loads((directory / "phot_static_single.json").read_text())
     assert summary["images"][0]["flux_correction"] == pytest.approx(
         products["single"]["flux_correction"], rel=1e-12)
     assert summary["images"][0]["flux_correction"] > 1.0

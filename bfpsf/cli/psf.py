@@ -30,6 +30,10 @@ from ._files import read_image
 #: Size offset of an image's stars from P0 above which (and above 3 sigma) `psf` warns that
 #: the seeing differs between its images: 0.3 %, about 3 mmag of photometry bias there.
 SEEING_TOLERANCE = 0.003
+#: The stars' size against P(F) changing across an image by more than this (a fraction of
+#: sigma, and 5 of its errors) is a PSF varying over the field that the model does not follow:
+#: 1 %, about 11 mmag of photometry bias from one side to the other for sky-limited stars.
+FIELD_TOLERANCE = 0.01
 #: A grid node whose used stars weigh less than this (their summed bilinear weights) is said
 #: to have too few: a new user's corner nodes of 6-9 came out broken, 15 fit (tests).
 MIN_NODE_STARS = 10
@@ -148,7 +152,8 @@ def run(args):
                      sky_slope=found["sky_slope"], sky_method=found["sky_method"],
                      sky_degree=found["sky_degree"],
                      **{key: found[key] for key in ("size_offset", "size_offset_err",
-                                                    "n_sized", "seeing_bias_mmag")})
+                                                    "n_sized", "seeing_bias_mmag",
+                                                    "size_across")})
     result = fitted.fit
     psf = fitted.psf
     gain = float(psf.gain)  # of the images the stars came from, weighted by their stars
@@ -230,9 +235,13 @@ def run(args):
               "iterate of least chi-square: too few stars for this model (fewer --grid "
               "nodes, a smaller --size) or stars it cannot describe", file=sys.stderr)
     elif not result.converged:
-        print(f"WARNING: P0 did not converge in {result.iterations} iterations (last change "
-              f"{100 * result.changes[-1]:.2g} % of the peak): raise --max-iterations or "
-              "check the stars", file=sys.stderr)
+        # after a restart without the stars left out the count starts again (a new user read
+        # "did not converge in 80 iterations" beside --max-iterations' default of 40)
+        again = (f" after it started again without the stars it left out ({result.iterations} "
+                 "in all)" if result.iterations > args.max_iterations else "")
+        print(f"WARNING: P0 did not converge in {args.max_iterations} iterations{again} "
+              f"(last change {100 * result.changes[-1]:.2g} % of the peak): raise "
+              "--max-iterations or check the stars", file=sys.stderr)
     if args.grid is not None:
         weights = summary["grid"]["star_weights"]
         few = int(np.sum(np.asarray(weights) < MIN_NODE_STARS))
@@ -270,6 +279,7 @@ def run(args):
                   "exposure's PSF on its own images, or, if its stars lie in another part of "
                   "the field than the others' (an amplifier), the PSF varies over the field: "
                   "--grid", file=sys.stderr)
+    _warn_field_variation(per_image, args.grid)
     if psf.flux_correction_err > FLUX_CORRECTION_TOLERANCE:  # False for NaN (not measured)
         print(f"WARNING: the light beyond P0's support is poorly measured on these images: "
               f"total flux {psf.flux_correction:.4f} +- {psf.flux_correction_err:.4f} times the "
@@ -348,3 +358,28 @@ def node_star_weights(psf, stars):
                                    np.asarray(stars["y_fit"], float))
     return np.bincount(indices.ravel(), weights=weights.ravel(),
                        minlength=psf.x_nodes.size * psf.y_nodes.size)
+
+
+def _warn_field_variation(per_image, grid):
+    """One warning for the images whose stars' size against P(F) changes across them beyond
+    `FIELD_TOLERANCE` and 5 of its errors (`bfpsf.moments.shapes.size_across`)."""
+    varying = [entry for entry in per_image if entry.get("size_across") and (
+        entry["size_across"]["change"] > max(FIELD_TOLERANCE,
+                                             5 * entry["size_across"]["change_err"]))]
+    if not varying:
+        return
+    worst = max(varying, key=lambda entry: entry["size_across"]["change"])
+    across = worst["size_across"]
+    name = worst["image"] + (f" [{worst['amplifier']}]" if worst["amplifier"] else "")
+    advice = (f"a finer grid than --grid {grid[0]} {grid[1]}" if grid is not None
+              else "a grid (--grid NX NY, about 30 stars per node)")
+    along = ", ".join(f"{100 * across['along_' + axis]:+.1f} +- "
+                      f"{100 * across['along_' + axis + '_err']:.1f} % along {axis}"
+                      for axis in ("x", "y"))
+    print(f"WARNING: on {len(varying)} of {len(per_image)} images the stars' size against "
+          f"P(F) changes across the image, by up to {100 * across['change']:.1f} +- "
+          f"{100 * across['change_err']:.1f} % of sigma ({name}: {along}, from one side to "
+          f"the other): the PSF varies over the field and the model does not follow it "
+          "(PSF photometry of sky-limited stars "
+          f"up to {1e3 * MAG_PER_SIZE_ERROR * across['change']:.0f} mmag off from one side to "
+          f"the other, `unlike_psf` flags on single stars); fit {advice}", file=sys.stderr)

@@ -194,7 +194,12 @@ def run(args):
         if residual is not None:
             entry = summary["model_residual"][key]
             error = prediction[key]["slope_err"]
-            print(f"{label:8s} predicted by P(F) {prediction[key]['slope']:+.5f} "
+            # a gridded model's prediction holds the field's variation too (a new user read
+            # -0.386 as the calibration's BF)
+            print(f"{label:8s} predicted by "
+                  + ("P(F, x, y) (its BF and the field's variation) "
+                     if len(psf.field_nodes[0]) * len(psf.field_nodes[1]) > 1 else "P(F) ")
+                  + f"{prediction[key]['slope']:+.5f} "
                   + (f"+- {error:.5f} (calibration)" if np.isfinite(error) else
                      "(the PSF carries no calibration samples: no calibration error)")
                   + "; residual after P(F) "

@@ -55,7 +55,13 @@ def psf_fwhm(psf, x=None, y=None):
 
 
 def largest_fwhm(psf):
-    """The largest `psf_fwhm` over the model's field nodes (any kind), pixels."""
+    """The largest `psf_fwhm` over the model's field nodes (any kind, and a photutils
+    `~photutils.psf.GriddedPSFModel`: ``photometry --static`` with a gridded product), pixels."""
+    from photutils.psf import GriddedPSFModel, ImagePSF
+
+    if isinstance(psf, GriddedPSFModel):
+        return max(psf_fwhm(ImagePSF(node, oversampling=psf.oversampling))
+                   for node in psf.data)
     if not isinstance(psf, BFPSFModel):
         return psf_fwhm(psf)
     x_nodes, y_nodes = psf.field_nodes

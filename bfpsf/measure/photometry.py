@@ -272,8 +272,8 @@ def _check_read_noise(prepared, read_noise_e):
         log.warning("read noise %.3g e- and a sky of %.4g e- make a background variance %.3g "
                     "times what the image's sky pixels show (%.4g e-^2, read noise %.3g e-): "
                     "faint stars' flux errors are %s by up to %.0f %%; give the read noise "
-                    "(--read-noise)%s", read_noise_e, level, ratio, variance,
-                    _read_noise_of(variance, level),
+                    "(--read-noise; read_noise_e in Python)%s", read_noise_e, level, ratio,
+                    variance, _read_noise_of(variance, level),
                     "too large" if ratio > 1 else "too small", 100 * abs(np.sqrt(ratio) - 1),
                     "" if ratio > 1 else ", unless the sky pixels hold the light of faint "
                     "neighbours (a crowded field), which no read noise describes")

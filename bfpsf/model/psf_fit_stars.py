@@ -11,10 +11,10 @@ from ..errors import BFPSFInputError
 from ..moments.adaptive import adaptive_moments_batch
 from ..moments.moment_errors import moment_errors
 
-__all__ = ["STAR_FLAGS", "OUTSIDE", "NONFINITE", "NONPOSITIVE", "MOVED", "UNLIKE", "MISFIT_SIGMA", "MISFIT_SIZE", "MISFIT_SHAPE", "MISFIT_NEIGHBOURS",
-           "COMPANION_SIGMA", "COMPANION_RADIUS", "COMPANION_FRACTION", "misfits",
-           "hidden_companions", "Stars", "as_star_list", "cut_stars", "cut_neighbours", "star_table",
-           "neighbour_table"]
+__all__ = ["STAR_FLAGS", "OUTSIDE", "NONFINITE", "NONPOSITIVE", "MOVED", "UNLIKE",
+           "MISFIT_SIGMA", "MISFIT_SIZE", "MISFIT_SHAPE", "MISFIT_NEIGHBOURS", "COMPANION_SIGMA",
+           "COMPANION_RADIUS", "COMPANION_FRACTION", "misfits", "hidden_companions", "Stars",
+           "as_star_list", "cut_stars", "cut_neighbours", "star_table", "neighbour_table"]
 
 
 #: Per-star flags of `fit_psf` (bit values), named below.

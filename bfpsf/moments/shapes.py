@@ -22,7 +22,8 @@ from .adaptive import adaptive_moments_batch
 
 __all__ = ["PSFShape", "distortion", "fourth_moment", "psf_shape", "psf_shapes",
            "calibration_shape_error",
-           "model_shapes", "shape_residuals", "size_offset", "stars_beside_psf",
+           "model_shapes", "shape_residuals", "size_offset", "size_ratios", "size_across",
+           "stars_beside_psf",
            "star_stamps", "model_stamps"]
 
 #: Magnitudes per relative size error of the template: a PSF fit with a template of width
@@ -287,11 +288,10 @@ def shape_residuals(stars, psf, *, flux=None):
             "e2": np.asarray(stars["e2"], dtype=float) - model["e2"]}
 
 
-def size_offset(image, x, y, flux, psf):
-    """How much larger an image's stars are than a PSF model: the median of star / model - 1
-    of the adaptive sigma, each star against the model at its own flux, position and phase
-    (`psf_shapes`), on the same pixels (stamps of the model's size; stars whose stamp leaves
-    the image are left out).
+def size_offset(ratio):
+    """How much larger an image's stars are than a PSF model: the median of `size_ratios`
+    (star / model - 1 of the adaptive sigma, each star against the model at its own flux,
+    position and phase, on the same pixels; NaN left out).
 
     A seeing different from the P0's: PSF photometry of the image is then biased by about
     ``-offset`` in flux (`MAG_PER_SIZE_ERROR` offset magnitudes, fainter for larger stars).
@@ -302,17 +302,68 @@ def size_offset(image, x, y, flux, psf):
         The offset, its error (from the scatter: 1.2533 x 1.4826 MAD / sqrt(n)) and the
         number of stars; NaN, NaN, n with fewer than 3 stars.
     """
-    stars = stars_beside_psf(image, x, y, flux, psf)
-    if stars["flux"].size < 3:
-        return np.nan, np.nan, int(stars["flux"].size)
-    measured, model = stars["measured"], stars["model"]
-    ratio = measured.sigma / model["sigma"] - 1.0
-    ratio = ratio[np.isfinite(ratio) & (measured.flags == 0)]
+    ratio = np.asarray(ratio, dtype=float)
+    ratio = ratio[np.isfinite(ratio)]
     if ratio.size < 3:
         return np.nan, np.nan, int(ratio.size)
     median = float(np.median(ratio))
     error = 1.2533 * float(median_abs_deviation(ratio, scale="normal")) / np.sqrt(ratio.size)
     return median, error, int(ratio.size)
+
+
+def size_ratios(beside):
+    """Each star's adaptive sigma over its model's at its flux, position and phase, less 1
+    (``beside``: `stars_beside_psf`'s); NaN where either is not measured."""
+    ratio = beside["measured"].sigma / beside["model"]["sigma"] - 1.0
+    return np.where(np.isfinite(ratio) & (beside["measured"].flags == 0), ratio, np.nan)
+
+
+def size_across(beside, psf, shape):
+    """How the stars' size against their model changes across an image: a plane fitted to
+    each star's adaptive sigma over the model's at its flux and position, at a pixel's
+    centre (one clipping at 3 robust sigma), its range over the image's corners. (The model
+    at each star's own phase, `size_ratios`, is no measure of this: one P0 fitted on a
+    varying field takes some of the variation into its sub-pixel phases, 1.54-1.82 px at
+    three phases of the same flux on a field of 3.0 -> 3.9 px FWHM, and hid most of it.)
+
+    One P(F) fitted on a field whose PSF varies leaves its stars larger on one side and
+    smaller on the other (a new user's FWHM 3.2 -> 3.9 px across 400 px: photometry 50-73
+    mmag off from one side to the other, false ``unlike_psf`` flags, no word); a gridded
+    P(F) follows the field.
+
+    Returns
+    -------
+    dict or None
+        ``change`` (the plane's highest minus lowest value at the corners, a fraction of
+        sigma) and ``change_err`` (from the scatter about the plane); ``along_x`` and
+        ``along_y`` (the plane's change from one side to the other along each axis, signed)
+        with ``along_x_err``, ``along_y_err``; ``n`` stars; None with fewer than 6 stars.
+    """
+    x, y = beside["x"], beside["y"]
+    centred = psf_shapes(psf, beside["flux"], np.floor(x + 0.5), np.floor(y + 0.5))
+    ratio = beside["measured"].sigma / centred["sigma"] - 1.0
+    good = np.isfinite(ratio) & (beside["measured"].flags == 0) & (centred["flags"] == 0)
+    ratio, x, y = ratio[good], x[good], y[good]
+    if ratio.size < 6:
+        return None
+    ny, nx = shape
+    design = np.column_stack([np.ones(ratio.size), x / nx - 0.5, y / ny - 0.5])
+    kept = np.ones(ratio.size, dtype=bool)
+    for _ in range(2):
+        plane = np.linalg.lstsq(design[kept], ratio[kept], rcond=None)[0]
+        residual = ratio - design @ plane
+        spread = float(median_abs_deviation(residual[kept], scale="normal"))
+        kept = np.abs(residual) <= 3 * spread if spread > 0 else kept
+    if kept.sum() < 6:
+        return None
+    covariance = spread**2 * np.linalg.inv(design[kept].T @ design[kept])
+    signs = np.sign(plane[1:])
+    change = float(np.abs(plane[1:]).sum())  # the corners: x and y each half the frame away
+    change_err = float(np.sqrt(signs @ covariance[1:, 1:] @ signs))
+    errors = np.sqrt(np.diag(covariance)[1:])
+    return {"change": change, "change_err": change_err, "along_x": float(plane[1]),
+            "along_x_err": float(errors[0]), "along_y": float(plane[2]),
+            "along_y_err": float(errors[1]), "n": int(kept.sum())}
 
 
 def stars_beside_psf(image, x, y, flux, psf):
