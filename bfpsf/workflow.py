@@ -62,19 +62,25 @@ class PSFFromImages:
     prepared : list of PreparedImage
         The images as the fit left them: each with the sky fitted jointly with the stars'
         wings and their glow subtracted.
+    beside : list of dict, optional
+        Per image, its used stars measured beside the model
+        (`bfpsf.moments.shapes.stars_beside_psf`), shared by the checks above and
+        `bf_agreement`.
     """
 
     psf: object
     fit: object
     images: list
     prepared: list
+    beside: list = None
 
     def bf_agreement(self):
         """The used stars' brighter-fatter over the one P(F) predicts, along x and y
         (`bfpsf.measure.bf_agreement.bf_agreement`; ``bfpsf psf`` warns where they differ):
         about 1 when the calibration describes the stars."""
         stars = self.fit.stars
-        return bf_agreement(self.prepared, stars[np.asarray(stars["flags"]) == 0], self.psf)
+        return bf_agreement(self.prepared, stars[np.asarray(stars["flags"]) == 0], self.psf,
+                            beside=self.beside)
 
 
 def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=None,
@@ -241,8 +247,8 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     psf.flux_correction_err = wings.fraction_err
     psf.star_flux_e = _star_flux(result) * psf.electrons_per_unit
     psf.p0_converged = bool(result.converged)
-    _size_offsets(per_image, images, result, psf)
-    return PSFFromImages(psf, result, per_image, images)
+    beside = _size_offsets(per_image, images, result, psf)
+    return PSFFromImages(psf, result, per_image, images, beside)
 
 
 def _star_flux(result):
@@ -257,7 +263,8 @@ def _star_flux(result):
 
 
 def _size_offsets(per_image, images, result, psf):
-    """Each image's stars against the one P0 (`bfpsf.moments.shapes.size_offset`):
+    """Each image's stars against the one P0 (`bfpsf.moments.shapes.size_offset`), returned
+    as measured beside it (`stars_beside_psf`, per image):
     ``size_offset``, ``size_offset_err``, ``n_sized``, ``size_across`` (its change across the
     image, `bfpsf.moments.shapes.size_across`) and the photometry bias the offset implies
     for sky-limited stars, ``seeing_bias_mmag`` (positive: fluxes too faint; a bright star's
@@ -266,14 +273,17 @@ def _size_offsets(per_image, images, result, psf):
     seeing differs share one P0 (a new user's night of 3 % seeing changes: -2.6 to +5.1
     mmag from exposure to exposure)."""
     used = result.stars[np.asarray(result.stars["flags"]) == 0]
+    measured = []
     for index, (entry, prepared) in enumerate(zip(per_image, images)):
         mine = used[np.asarray(used["image"], dtype=int) == index]
         beside = stars_beside_psf(prepared.sky_subtracted, mine["x_fit"], mine["y_fit"],
                                   mine["flux_fit"], psf)
+        measured.append(beside)
         offset, error, count = size_offset(size_ratios(beside))
         entry.update(size_offset=offset, size_offset_err=error, n_sized=count,
                      seeing_bias_mmag=1e3 * MAG_PER_SIZE_ERROR * offset,
                      size_across=size_across(beside, psf, prepared.sky_subtracted.shape))
+    return measured
 
 
 

@@ -35,7 +35,7 @@ BF_AGREEMENT_SIGMA = 5.0
 BF_AGREEMENT_TOLERANCE = 0.3
 
 
-def bf_agreement(images, stars, psf):
+def bf_agreement(images, stars, psf, *, beside=None):
     """The stars' brighter-fatter over the model's, along x and y.
 
     Parameters
@@ -48,6 +48,10 @@ def bf_agreement(images, stars, psf):
         P0 was fitted from.
     psf : bfpsf.model.base.BFPSFModel
         The fitted model, in electrons.
+    beside : list of dict, optional
+        Per image, ``stars`` measured beside ``psf`` already
+        (`bfpsf.moments.shapes.stars_beside_psf`, as `bfpsf.workflow.psf_from_images` keeps
+        them); default measured here.
 
     Returns
     -------
@@ -63,14 +67,15 @@ def bf_agreement(images, stars, psf):
                                 "err_y", "light_x", "light_y")}
     for index, prepared in enumerate(images):
         mine = stars[np.asarray(stars["image"], dtype=int) == index]
-        beside = stars_beside_psf(prepared.sky_subtracted, mine["x_fit"], mine["y_fit"],
-                                  mine["flux_fit"], psf)
-        x, y, flux = beside["x"], beside["y"], beside["flux"]
+        measured_here = beside[index] if beside is not None else stars_beside_psf(
+            prepared.sky_subtracted, mine["x_fit"], mine["y_fit"], mine["flux_fit"], psf)
+        x, y, flux = measured_here["x"], measured_here["y"], measured_here["flux"]
         if not flux.size:
             continue
-        measured, bright = beside["measured"], beside["model"]
+        measured, bright = measured_here["measured"], measured_here["model"]
         noise = prepared.sky.rms if np.isfinite(prepared.sky.rms) else 0.0
-        errors = moment_errors(beside["stamps"], measured, background_variance=noise**2)
+        errors = moment_errors(measured_here["stamps"], measured,
+                               background_variance=noise**2)
         faint = psf_shapes(psf, np.zeros(flux.size), x, y)
         good = (measured.flags == 0) & (bright["flags"] == 0) & (faint["flags"] == 0)
         rows["image"].append(np.full(int(good.sum()), index))
