@@ -340,3 +340,32 @@ def test_slopes_say_when_the_field_confounds_them(varying_field, caplog):
           f"%, beside the plane {beside:+.4f} +- {error:.4f}")
     assert change > 10.0  # 30 % in FWHM along x
     assert error < slopes["x"].slope_err / 5 and abs(beside) < 3 * error
+
+
+def test_diagnose_verdict_names_a_field_its_model_does_not_follow(varying_field):
+    """Every star's BF slope against the column (`star_slope_split`) on the field whose FWHM
+    grows 30 % along x, without brighter-fatter: the verdict is no success while no term of
+    the model follows the column (a new user's 13.2 sigma read "explained"), and is one with
+    a validated EMPIRICAL term along the column; nothing along the row."""
+    from bfpsf.diagnosis.position_split import star_slope_split
+    from bfpsf.diagnosis.unexplained import verdict
+    from bfpsf.measure.sources import measure_sources
+
+    _, xy, fluxes, _ = varying_field
+    # the peaks drawn independently of the width (wide stars of a flux have low peaks)
+    fluxes = np.exp(np.random.default_rng(8).uniform(np.log(5e4), np.log(3e6), len(xy)))
+    image = sum(render_stars(moffat(x), [(x, y)], [flux], (LENGTH, LENGTH))
+                for (x, y), flux in zip(xy, fluxes))
+    noisy = image + np.random.default_rng(6).normal(0.0, np.sqrt(image + 25.0))
+    stars = measure_sources(noisy)
+    stars = stars[stars["flags"] == 0]
+    split = star_slope_split(stars["peak_e"], stars["sigma_x"], stars["sigma_y"],
+                             np.zeros(len(stars)), stars["x"], stars["y"])
+    print({along: {axis: round(values["significance"], 1) for axis, values in entry.items()}
+           for along, entry in split.items()})
+    judged = verdict([], {}, position_split=split)
+    assert not judged["success"]
+    assert [reason for reason in judged["reasons"] if "depends on the column" in reason]
+    assert not [reason for reason in judged["reasons"] if "depends on the row" in reason]
+    followed = {"validation": {"position_term": True, "validated": True}}
+    assert verdict([], {}, position_split=split, empirical=followed)["success"]

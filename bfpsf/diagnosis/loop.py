@@ -494,4 +494,4 @@ def _with_verdict(result, observables):
     unexplained = with_scale_parts(result.unexplained, result.nuisance)
     return dataclasses.replace(result, unexplained=unexplained, verdict=verdict(
         unexplained, result.nuisance, meta.get("star_residual"),
-        meta.get("star_chi2_null", 1.0)))
+        meta.get("star_chi2_null", 1.0), meta.get("position_split"), result.empirical))

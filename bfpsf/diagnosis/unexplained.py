@@ -16,12 +16,16 @@ from .signature import SIGNATURE_ALPHA, TEMPLATE_TOLERANCE, cross_test
 
 __all__ = ["describe_unexplained", "verdict", "with_scale_parts", "hiding_room",
            "HIDING_ROOM_PERCENT", "UNEXPLAINED_NSIGMA",
-           "STAR_CHI2_FACTOR"]
+           "STAR_CHI2_FACTOR", "POSITION_VERDICT_NSIGMA"]
 
 
 #: Percent of the raw slope an undeclared BF-like effect may hide in the flats' errors before
 #: the verdict says so (`hiding_room`).
 HIDING_ROOM_PERCENT = 30.0
+
+#: A dependence of every star's BF slope on the column or the row beyond this many errors
+#: (`bfpsf.diagnosis.position_split`), which no term of the model follows, fails the verdict
+POSITION_VERDICT_NSIGMA = 5.0
 
 #: The stacked star residual's chi2 per pixel is "far above" its null expectation beyond this
 #: factor (the null expectation is 1 for the noise model of `stacked_star_residual`; a
@@ -29,7 +33,8 @@ HIDING_ROOM_PERCENT = 30.0
 STAR_CHI2_FACTOR = 10.0
 
 
-def verdict(unexplained, nuisance, star=None, null_expectation=1.0):
+def verdict(unexplained, nuisance, star=None, null_expectation=1.0, position_split=None,
+            empirical=None):
     """Whether a run explains its data: never a success while something is left.
 
     Parameters
@@ -42,6 +47,15 @@ def verdict(unexplained, nuisance, star=None, null_expectation=1.0):
         The stacked star residual (`stacked_star_residual`), with ``chi2_per_pixel``.
     null_expectation : float
         Its chi2 per pixel on data the model describes (1 for the noise model).
+    position_split : dict, optional
+        The test of every star's BF slope against the column and the row
+        (`bfpsf.diagnosis.position_split.star_slope_split`): a dependence beyond
+        `POSITION_VERDICT_NSIGMA` that no validated term of the model follows (``empirical``'s
+        position or row term) is left, though the slope over the field is explained (a new
+        user's PSF varying over the field, one P0 per exposure: the X slope rose with the
+        column at 13.2 sigma, and the run said "explained").
+    empirical : dict, optional
+        The EMPIRICAL term (`DiagnosisResult.empirical`).
 
     Returns
     -------
@@ -57,6 +71,15 @@ def verdict(unexplained, nuisance, star=None, null_expectation=1.0):
         against = (nuisance.get(entry.name) or {}).get("contradicted_by")
         if against:
             reasons.append(f"the {entry.what} is contradicted by {against}")
+    validation = (empirical or {}).get("validation") or {}
+    for along, term in (("column", "position_term"), ("row", "row_term")):
+        worst = max(((values["significance"], axis) for axis, values
+                     in ((position_split or {}).get(along) or {}).items()), default=None)
+        if worst and worst[0] > POSITION_VERDICT_NSIGMA and not (
+                validation.get(term) and validation.get("validated")):
+            reasons.append(f"the stars' {worst[1].upper()} BF slope depends on the {along} "
+                           f"({worst[0]:.1f} sigma) and no term of the model does (a PSF "
+                           "varying over the field: bfpsf psf --grid)")
     chi2 = None if star is None else float(star["chi2_per_pixel"])
     limit = STAR_CHI2_FACTOR * float(null_expectation)
     if chi2 is not None and chi2 > limit:
