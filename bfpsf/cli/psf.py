@@ -300,7 +300,9 @@ def run(args):
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} isolated stars ({n_detected} "
           f"sources detected{others}{unlike}) in "
           f"{len(args.images)} image(s), {result.iterations} iterations "
-          f"({'converged' if result.converged else 'NOT converged'}); "
+          + ("in all, restarts without the stars left out included " if
+             result.iterations > args.max_iterations else "")
+          + f"({'converged' if result.converged else 'NOT converged'}); "
           f"{summary['n_saturated']} saturated stars left out; "
           f"total flux {psf.flux_correction:.4f}"
           f"{f' +- {psf.flux_correction_err:.4f}' if np.isfinite(psf.flux_correction_err) else ''}"
@@ -380,6 +382,9 @@ def _warn_field_variation(per_image, grid):
           f"P(F) changes across the image, by up to {100 * across['change']:.1f} +- "
           f"{100 * across['change_err']:.1f} % of sigma ({name}: {along}, from one side to "
           f"the other): the PSF varies over the field and the model does not follow it "
-          "(PSF photometry of sky-limited stars "
-          f"up to {1e3 * MAG_PER_SIZE_ERROR * across['change']:.0f} mmag off from one side to "
-          f"the other, `unlike_psf` flags on single stars); fit {advice}", file=sys.stderr)
+          # the model is the field's mean: each edge is half the change off (a new user read
+          # the whole change as a bias and measured a third of it on its faint stars)
+          "(PSF photometry of sky-limited stars up to "
+          f"+-{1e3 * MAG_PER_SIZE_ERROR * across['change'] / 2:.0f} mmag off at the field's "
+          "edges, less for bright ones; `unlike_psf` flags on single stars); fit "
+          f"{advice}", file=sys.stderr)

@@ -365,7 +365,7 @@ def _warn_field(table, clean, result, use_errors):
         if not np.any((change > FIELD_SIZE_CHANGE) & (np.abs(plane) > 5 * plane_err)):
             continue
         log.warning("the stars' %s changes across the field beside its brighter-fatter: "
-                    "%+.1f +- %.1f %% from x %.0f to %.0f, %+.1f +- %.1f %% from y %.0f to "
+                    "%+.2f +- %.2f %% from x %.0f to %.0f, %+.2f +- %.2f %% from y %.0f to "
                     "%.0f: the PSF varies over the field, and a wide star has a low peak, so "
                     "the slope against peak (%+.4f +- %.4f px per 100 ke-) is confounded "
                     "with it; with a plane over the field beside it, %+.4f +- %.4f. Fit a "
