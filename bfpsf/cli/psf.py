@@ -70,8 +70,9 @@ def add_parser(subparsers):
                              "0-based, in the order of the images given to bfpsf diagnose "
                              "(default the middle of the exposures it was learned on, with a "
                              "warning)")
-    parser.add_argument("--max-iterations", type=positive_int, default=40,
-                        help="iterations of the P0 fit (default 40)")
+    parser.add_argument("--max-iterations", type=positive_int, default=None,
+                        help="iterations of the P0 fit after its last restart (default 40, "
+                             "100 with --grid)")
     parser.add_argument("--no-bf", dest="include_bf", action="store_false",
                         help="fit a static ePSF (no BF term), for comparison")
     parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
@@ -85,11 +86,13 @@ def run(args):
     from ..io.saturation import count_saturated_regions, describe_beyond_flats, saturation_e
     from ..measure.prepare import linearity_of, prepare_image
     from ..resources import check_psf_fit, resource_option
-    from ..workflow import psf_from_images
+    from ..workflow import default_iterations, psf_from_images
 
     check_outputs([args.output, args.json], args.overwrite,
                   inputs=input_files(args.images, args.calib))
     refuse_duplicates(args.images, "image")
+    if args.max_iterations is None:
+        args.max_iterations = default_iterations(args.grid)
     check_psf_fit(0, args.size, args.oversampling, args.grid, args.max_iterations)
     calibration = read_calibration(args.calib)
     refinement = {}
