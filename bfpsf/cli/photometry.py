@@ -248,9 +248,9 @@ def run(args):
                                     len(result), min(beyond_tops, default=None))
     if warning:
         print(warning, file=sys.stderr)
-    # a static PSF's fit is not compared with the PSF (psf_photometry: bfpsf models only)
-    unlike = ("" if args.static else f"{summary['n_unlike_psf']} unlike the PSF (two stars "
-              "fitted as one, a galaxy); ")
+    # with --static too, each star against the product's P(F) (psf_photometry's ``wings``)
+    unlike = (f"{summary['n_unlike_psf']} unlike the PSF (two stars fitted as one, a "
+              "galaxy); ")
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "
           f"({summary['n_flagged']} fits flagged by photutils or saturated, "
           f"{summary['n_saturated']} of them saturated; "

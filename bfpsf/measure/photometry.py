@@ -339,12 +339,12 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         when it was fitted), 1 for a photutils model: give the product's to compare a static
         P0 (`bfpsf.interop.photutils.static_image_psf`) at total fluxes too.
     wings : BFPSFModel, optional
-        The model whose wing profile (``wing_coefficients``, ``wing_tail_power``) gives the
-        stars' light beyond the support, subtracted with the sky of the final fit; default the PSF
-        itself when it is a bfpsf model, none for a photutils model: give the product's to
-        compare a static P0 with the same sky (without it, a static P0 took the Airy stars'
-        wings into the sky, 304-305 e- against the true 300 and P(F)'s 299, and its faint
-        stars 2-4 mmag too faint).
+        The model whose wing profile gives the stars' light beyond the support, subtracted with
+        the sky of the final fit, and whose P(F) the stars are compared with (`unlike_psf`);
+        default the PSF itself when it is a bfpsf model, none for a photutils model: give the
+        product's to compare a static P0 with the same sky and flags (without it, a static P0
+        took the Airy stars' wings into the sky, 304-305 e- against the true 300 and P(F)'s
+        299, its faint stars 2-4 mmag too faint; and flagged no pair fitted as one).
     **kwargs
         Passed to `photutils.psf.PSFPhotometry`.
 
@@ -457,10 +457,12 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
             n_cross += 1
     result["source_flags"] = (np.zeros(len(result), dtype=np.int64) if source_flags is None
                               else source_flags[np.asarray(result["id"], dtype=int) - 1])
-    if bfpsf_model:  # a star whose pixels are not the PSF's: a pair fitted as one, a galaxy
+    # stars unlike the PSF (two as one, a galaxy): against the bfpsf model or a static P0's
+    likeness = psf if bfpsf_model else wings
+    if isinstance(likeness, BFPSFModel):
         residual = data - _model_image(photometry, result, data.shape)
         unlike = unlike_psf(residual, result["x_fit"], result["y_fit"], result["flux_fit"],
-                            psf, max(float(sky.level), 0.0) + float(read_noise_e)**2)
+                            likeness, max(float(sky.level), 0.0) + float(read_noise_e)**2)
         result["source_flags"] |= np.where(unlike, SourceFlag.UNLIKE_PSF, 0)
     # the total flux: the light beyond P0's support (measured when the PSF was fitted)
     if flux_correction is None:
