@@ -457,23 +457,23 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
             n_cross += 1
     result["source_flags"] = (np.zeros(len(result), dtype=np.int64) if source_flags is None
                               else source_flags[np.asarray(result["id"], dtype=int) - 1])
-    # stars unlike the PSF (two as one, a galaxy): against the bfpsf model or a static P0's
-    likeness = psf if bfpsf_model else wings
-    if isinstance(likeness, BFPSFModel):
+    # the product: the bfpsf model, or a static P0's (``wings``); stars unlike its P(F) (two
+    # as one, a galaxy) are flagged
+    product = psf if bfpsf_model else wings
+    if isinstance(product, BFPSFModel):
         residual = data - _model_image(photometry, result, data.shape)
         unlike = unlike_psf(residual, result["x_fit"], result["y_fit"], result["flux_fit"],
-                            likeness, max(float(sky.level), 0.0) + float(read_noise_e)**2)
+                            product, max(float(sky.level), 0.0) + float(read_noise_e)**2)
         result["source_flags"] |= np.where(unlike, SourceFlag.UNLIKE_PSF, 0)
     # the total flux: the light beyond P0's support (measured when the PSF was fitted)
     if flux_correction is None:
         flux_correction = psf.flux_correction if bfpsf_model else 1.0
     correction = float(flux_correction)
     # its error, a scale common to every star (not in flux_err): the model's, when the
-    # correction is the model's own (or, for a static P0, the ``wings`` model's)
-    owner = psf if bfpsf_model else wings
-    correction_err = (float(owner.flux_correction_err)
-                      if isinstance(owner, BFPSFModel) and correction == owner.flux_correction
-                      and np.isfinite(owner.flux_correction_err) else None)
+    # correction is the product's own
+    correction_err = (float(product.flux_correction_err)
+                      if isinstance(product, BFPSFModel) and correction == product.flux_correction
+                      and np.isfinite(product.flux_correction_err) else None)
     if not (np.isfinite(correction) and correction > 0):
         msg = f"flux_correction must be a positive finite number, got {flux_correction!r}"
         raise BFPSFValueError(msg, flux_correction)

@@ -424,16 +424,16 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         if free_positions:
             free_iterations += 1
             positions_settled = change < settle_factor * tolerance or free_iterations >= 15
-            # once P0 and the positions have settled, stars unlike the others (`misfits`: a
-            # new user's crowded field made P0 double-peaked through unresolved blends) leave
-            # P0, modelled as neighbours are, at most half of them, and the fit starts again
-            # without them: their shape is in P0 and in the positions of the others; then
-            # (P0 without them) stars holding a companion detection did not split
-            clean = stars.data - stars.others(model, shapes) if positions_settled else None
-            rejected = (misfits(stars, clean) if positions_settled
-                        else np.zeros(len(model), dtype=bool))
-            if positions_settled and not rejected.any():
-                rejected = hidden_companions(stars, clean, model, variance)
+            # once P0 and the positions have settled, stars unlike the others (`misfits`: a new
+            # user's unresolved blends made P0 double-peaked), then, P0 without them, stars
+            # holding a companion detection did not split leave P0, modelled as neighbours are,
+            # at most half of them, and the fit starts again (their shape is in P0)
+            rejected = np.zeros(len(model), dtype=bool)
+            if positions_settled:
+                clean = stars.data - stars.others(model, shapes)
+                rejected = misfits(stars, clean)
+                if not rejected.any():
+                    rejected = hidden_companions(stars, clean, model, variance)
             if rejected.any() and np.sum(stars.used & ~rejected) >= np.sum(stars.p0) / 2:
                 log.info("P0 fit: %d stars unlike the others left out; starting again",
                          np.sum(rejected))
