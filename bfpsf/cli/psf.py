@@ -171,6 +171,7 @@ def run(args):
                "include_bf": bool(args.include_bf), "n_stars": int(len(result.stars)),
                "n_used": int(np.sum(used)), "iterations": int(result.iterations),
                "n_unlike": int(np.sum(np.asarray(result.stars["flags"]) & UNLIKE > 0)),
+               "n_masked": int(np.sum(np.asarray(result.stars["masked"])[used] > 0)),
                "n_saturated": sum(entry["n_saturated"] for entry in per_image),
                "converged": bool(result.converged),
                "fwhm_pixels": psf_fwhm(psf),
@@ -300,6 +301,8 @@ def run(args):
               if n_detected > summary["n_stars"] else "")
     unlike = (f"; {summary['n_unlike']} left out as unlike the other stars (unresolved "
               "blends; bit 16 of the P0 fit's star flags)" if summary["n_unlike"] else "")
+    unlike += (f"; {summary['n_masked']} with a fainter companion's pixels masked"
+               if summary["n_masked"] else "")
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} isolated stars ({n_detected} "
           f"sources detected{others}{unlike}) in "
           f"{len(args.images)} image(s), {result.iterations} iterations "

@@ -49,8 +49,8 @@ from .psf import FluxDependentPSF
 from .psf_fit_grid import (Grid, Sampling, cardinal_splines, dense_weights_of, grid_nodes,
                            mean_shifts, node_solution, normalise_nodes, project, recentred,
                            shift_sets_of, without_translation)
-from .psf_fit_stars import (MOVED, STAR_FLAGS, as_star_list, cut_stars, hidden_companions,
-                             misfits, neighbour_table, star_table)
+from .psf_fit_stars import (MOVED, STAR_FLAGS, as_star_list, cut_stars, neighbour_table,
+                             star_table, unlike_others)
 
 __all__ = ["PSFFitResult", "fit_psf", "STAR_FLAGS", "DEFAULT_SIZE"]
 
@@ -76,7 +76,9 @@ class PSFFitResult:
         given.
     stars : astropy.table.Table
         One row per input star: ``image``, ``x_init``, ``y_init``, ``x_fit``, ``y_fit``
-        (pixels), ``flux_fit`` (e-), ``weight`` (share of the stack), ``flags`` (`STAR_FLAGS`).
+        (pixels), ``flux_fit`` (e-), ``weight`` (share of the stack), ``flags`` (`STAR_FLAGS`),
+        ``masked`` (pixels of a companion left out,
+        `~bfpsf.model.psf_fit_stars.companion_pixels`).
     iterations : int
         Iterations run (those that went back from a diverging step too).
     converged, diverged : bool
@@ -424,16 +426,11 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         if free_positions:
             free_iterations += 1
             positions_settled = change < settle_factor * tolerance or free_iterations >= 15
-            # once P0 and the positions have settled, stars unlike the others (`misfits`: a new
-            # user's unresolved blends made P0 double-peaked), then, P0 without them, stars
-            # holding a companion detection did not split leave P0, modelled as neighbours are,
-            # at most half of them, and the fit starts again (their shape is in P0)
-            rejected = np.zeros(len(model), dtype=bool)
-            if positions_settled:
-                clean = stars.data - stars.others(model, shapes)
-                rejected = misfits(stars, clean)
-                if not rejected.any():
-                    rejected = hidden_companions(stars, clean, model, variance)
+            # once P0 and the positions have settled, stars unlike the others leave P0 (and
+            # their companions' pixels), and the fit starts again (their shape is in P0)
+            rejected = (unlike_others(stars, stars.data - stars.others(model, shapes), model,
+                                      variance) if positions_settled
+                        else np.zeros(len(model), dtype=bool))
             if rejected.any() and np.sum(stars.used & ~rejected) >= np.sum(stars.p0) / 2:
                 log.info("P0 fit: %d stars unlike the others left out; starting again",
                          np.sum(rejected))
@@ -490,7 +487,7 @@ def _fit_step(fitted, dense_weights, stars, free_positions, shapes):
     model, jacobian, xs, ys = _star_models(fitted, dense_weights, stars, free_positions)
     others = stars.others(model, shapes)
     # the neighbours' light is noise in every cutout; pixels beyond the image weigh nothing
-    variance = np.where(stars.valid, np.clip(model + others, 0.0, None)
+    variance = np.where(stars.valid & ~stars.masked, np.clip(model + others, 0.0, None)
                         + stars.floor[:, None, None], np.inf)
     chi2 = float(np.nansum(((stars.data - others - model)**2 / variance)[stars.used]))
     residual = _gauss_newton(stars, stars.data - others, model, jacobian, variance,
