@@ -28,7 +28,7 @@ from .errors import BFPSFInputError, BFPSFValueError
 from .measure.bf_agreement import bf_agreement
 from .measure.neighbours import isolated_stars
 from .measure.sources import DETECTION_THRESHOLD
-from .measure.total_flux import fit_sky_and_wings
+from .measure.total_flux import fit_sky_and_wings, wing_gradient
 from .moments.shapes import (MAG_PER_SIZE_ERROR, size_across, size_offset, size_ratios,
                              stars_beside_psf)
 from .model.empirical import empirical_of
@@ -211,10 +211,10 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         # refitted on the images with that sky and glow; a known sky is subtracted and only
         # a constant left free (what the wings' glow adds to it is not sky)
         stars = _with_the_exposure_s_stars(_stars_of_images(result, len(images)), frames)
-        skies, wings = fit_sky_and_wings(
-            [prepared.image_e - prepared.sky.image() if known else prepared.image_e
-             for prepared in images], stars, half_size=size // 2,
-            degree=degree, oversampling=oversampling)
+        sky_fitted = [prepared.image_e - prepared.sky.image() if known else prepared.image_e
+                      for prepared in images]
+        skies, wings = fit_sky_and_wings(sky_fitted, stars, half_size=size // 2,
+                                         degree=degree, oversampling=oversampling)
         if known:
             break
         images = [prepared.with_sky(prepared.sky if prepared.sky.method == "known" else sky,
@@ -249,6 +249,11 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     # the flux beyond the support, over the flux inside it
     psf.flux_correction = 1.0 + wings.fraction
     psf.flux_correction_err = wings.fraction_err
+    if grid is not None and wings.fraction > 0:
+        # a PSF that varies over the field has wings that do too: their change across it
+        psf.flux_correction_slope, psf.flux_correction_slope_err = wing_gradient(
+            sky_fitted, stars, wings, skies)
+        psf.flux_correction_centre = tuple((np.array(images[0].image_e.shape[::-1]) - 1.0) / 2)
     psf.star_flux_e = _star_flux(result) * psf.electrons_per_unit
     psf.p0_converged = bool(result.converged)
     beside = _size_offsets(per_image, images, result, psf)

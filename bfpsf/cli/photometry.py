@@ -177,7 +177,6 @@ def run(args):
                                        # --static too: total fluxes, with the product's
                                        # correction for the light beyond P0's support, and
                                        # its wings taken out of the sky as P(F)'s are
-                                       flux_correction=bf_model.flux_correction,
                                        wings=bf_model)
             level = saturation_e(amplifier, amp_gain, args.saturation, one)
             table["saturated"] = saturated_stars(
@@ -188,7 +187,8 @@ def run(args):
             _warn_beyond_field(psf, table, path, args.psf)
             # the stars whose brightest pixel lies above the flats' highest level
             beyond, top = beyond_flats(
-                bf_model, np.asarray(table["flux_fit"], float) / table.meta["flux_correction"],
+                bf_model, np.asarray(table["flux_fit"], float)
+                / bf_model.flux_correction_at(table["x_fit"], table["y_fit"]),
                 table["sky_e"], one)
             beyond_tops += [] if top is None else [top]
             margin = (args.fit_shape or 2 * psf.half_size + 1) / 2
@@ -222,8 +222,10 @@ def run(args):
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     # a star near a shared side is fitted on both amplifiers: the fit from its own is kept
     result, n_twice = one_fit_per_star(result, 2 * psf_fwhm(psf), x="x_fit", y="y_fit")
+    # the product's (one for every image; vstack would join the images' lists)
     result.meta.update({"psf": str(args.psf), "gain": gain, "flux_unit": "electron",
-                        "static_psf": bool(args.static)})
+                        "static_psf": bool(args.static),
+                        "flux_correction_slope": tables[0].meta["flux_correction_slope"]})
     # the EMPIRICAL term the model applied (psf_photometry's meta; None for --static)
     result.meta["empirical"] = tables[0].meta.get("empirical")
     result["flux_fit"].unit = "electron"
@@ -236,7 +238,8 @@ def run(args):
                "n_saturated": int(np.sum(result["saturated"])), "images": per_image,
                "n_fitted_twice": n_twice,
                "n_unlike_psf": _unlike(result),
-               "empirical": result.meta["empirical"]}
+               "empirical": result.meta["empirical"],
+               "flux_correction_slope": result.meta["flux_correction_slope"]}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     n_blended = sum(entry["n_blended"] for entry in per_image)

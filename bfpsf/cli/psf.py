@@ -181,6 +181,9 @@ def run(args):
                "images": per_image,
                "flux_correction": psf.flux_correction,
                "flux_correction_err": psf.flux_correction_err,
+               "flux_correction_slope": list(psf.flux_correction_slope),
+               "flux_correction_slope_err": list(psf.flux_correction_slope_err),
+               "flux_correction_centre": list(psf.flux_correction_centre),
                "refinement_applied": sorted(refinement.get("applied", {})),
                # the EMPIRICAL term (issue 22): it describes the stars, it explains nothing
                "empirical": None if psf.empirical is None else psf.empirical.to_dict()}
@@ -312,10 +315,21 @@ def run(args):
           f"{summary['n_saturated']} saturated stars left out; "
           f"total flux {psf.flux_correction:.4f}"
           f"{f' +- {psf.flux_correction_err:.4f}' if np.isfinite(psf.flux_correction_err) else ''}"
-          f" times the flux in the {args.size}-pixel support; {_skies(per_image)}; "
+          f" times the flux in the {args.size}-pixel support{_across(psf)}; {_skies(per_image)}; "
           f"{'EMPIRICAL term applied; ' if psf.empirical is not None else ''}"
           f"wrote {args.output}")
     return 0
+
+
+def _across(psf):
+    """A grid's flux correction from one edge of the image to the other along x and y."""
+    if not any(psf.flux_correction_slope):
+        return ""
+    length = 2 * np.array(psf.flux_correction_centre) + 1.0
+    change = np.array(psf.flux_correction_slope) * length
+    error = np.array(psf.flux_correction_slope_err) * length
+    return (f" at the centre, {change[0]:+.4f} +- {error[0]:.4f} from left to right and "
+            f"{change[1]:+.4f} +- {error[1]:.4f} from bottom to top")
 
 
 def _skies(per_image):

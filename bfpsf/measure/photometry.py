@@ -12,8 +12,7 @@ the data minus the models of the stars outside it.
 import logging
 
 import numpy as np
-from astropy.table import Table
-from astropy.table import vstack
+from astropy.table import Table, vstack
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -292,8 +291,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         (``background_e``, ``linearity_c_per_1e5``); or an image prepared already
         (`bfpsf.measure.prepare.prepare_image`: its sky and linearity are used as they are).
     psf : FluxDependentPSF or photutils PSF model
-        PSF model in electrons (``flux_unit='electron'``; an ADU model is refused). A static photutils model can be passed for
-        comparison.
+        PSF model in electrons (``flux_unit='electron'``; an ADU model is refused); or a
+        static photutils model, for comparison.
     positions : astropy.table.Table or (N, 2) array_like, optional
         Initial ``x_init``, ``y_init`` (and optionally ``flux_init``) or (x, y) pairs, pixels;
         default: detected with `bfpsf.measure.sources.measure_sources`.
@@ -335,9 +334,10 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         PSF's own (``psf.linearity_c_per_1e5``, 0 for a photutils model).
     flux_correction : float, optional
         The total flux over the flux the PSF holds (the light beyond its support), applied to
-        ``flux_fit`` and ``flux_err``; default the PSF's own (``psf.flux_correction``, measured
-        when it was fitted), 1 for a photutils model: give the product's to compare a static
-        P0 (`bfpsf.interop.photutils.static_image_psf`) at total fluxes too.
+        ``flux_fit`` and ``flux_err``; default the product's own at each star
+        (``flux_correction_at``, measured when it was fitted; the product is the PSF, or
+        ``wings`` for a photutils model such as a static P0,
+        `bfpsf.interop.photutils.static_image_psf`), 1 for a photutils model alone.
     wings : BFPSFModel, optional
         The model whose wing profile gives the stars' light beyond the support, subtracted with
         the sky of the final fit, and whose P(F) the stars are compared with (`unlike_psf`);
@@ -352,14 +352,14 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     -------
     astropy.table.Table
         photutils' result table: ``x_fit``, ``y_fit`` (pixels), ``flux_fit``, ``flux_err``
-        (e-; the star's total flux: the flux P0 holds times ``psf.flux_correction``, the
-        light beyond its support; ``flux_err`` leaves out ``psf.flux_correction_err``, a
-        scale common to every star, as the gain's error is), ``sky_e`` (the sky subtracted
-        under each star, e- per pixel), ``flags`` (photutils bit flags,
-        `photutils.psf.decode_psf_flags`) and photutils' other columns; ``meta['flux_correction']`` and ``meta['flux_correction_err']`` the
-        total-flux correction applied and its error (None when unknown or given),
-        ``meta['background_e']`` the subtracted sky and
-        ``meta['weights']`` the variance model, ``meta['cross_term_refits']`` the refits made,
+        (e-; the star's total flux: the flux P0 holds times ``psf.flux_correction_at`` the
+        star, the light beyond its support; ``flux_err`` leaves out its error, a scale common
+        to every star, as the gain's is), ``sky_e`` (the sky subtracted under each star, e-
+        per pixel), ``flags`` (`photutils.psf.decode_psf_flags`) and photutils' other
+        columns; ``meta['flux_correction']``, ``_err`` and ``_slope``: the correction at the
+        image's centre, its error (None when unknown or given) and its change per pixel;
+        ``meta['background_e']`` the subtracted sky, ``meta['weights']`` the variance
+        model, ``meta['cross_term_refits']`` the refits made,
         ``meta['empirical']`` the EMPIRICAL term the model applied (its record, label
         ``'empirical'``; None without one).
         ``source_flags``: `bfpsf.measure.sources.SourceFlag` bits, those of the detection here
@@ -457,31 +457,31 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
             n_cross += 1
     result["source_flags"] = (np.zeros(len(result), dtype=np.int64) if source_flags is None
                               else source_flags[np.asarray(result["id"], dtype=int) - 1])
-    # the product: the bfpsf model, or a static P0's (``wings``); stars unlike its P(F) (two
-    # as one, a galaxy) are flagged
+    # the product (the model, or a static P0's ``wings``): stars unlike its P(F) are flagged
     product = psf if bfpsf_model else wings
     if isinstance(product, BFPSFModel):
         residual = data - _model_image(photometry, result, data.shape)
         unlike = unlike_psf(residual, result["x_fit"], result["y_fit"], result["flux_fit"],
                             product, max(float(sky.level), 0.0) + float(read_noise_e)**2)
         result["source_flags"] |= np.where(unlike, SourceFlag.UNLIKE_PSF, 0)
-    # the total flux: the light beyond P0's support (measured when the PSF was fitted)
-    if flux_correction is None:
-        flux_correction = psf.flux_correction if bfpsf_model else 1.0
-    correction = float(flux_correction)
-    # its error, a scale common to every star (not in flux_err): the model's, when the
-    # correction is the product's own
-    correction_err = (float(product.flux_correction_err)
-                      if isinstance(product, BFPSFModel) and correction == product.flux_correction
-                      and np.isfinite(product.flux_correction_err) else None)
-    if not (np.isfinite(correction) and correction > 0):
+    # the total flux: the light beyond P0's support (measured when the PSF was fitted), at
+    # each star's place (a grid's changes across the image)
+    given = flux_correction is not None or not isinstance(product, BFPSFModel)
+    correction = (np.float64(1.0 if flux_correction is None else flux_correction) if given
+                  else product.flux_correction_at(np.asarray(result["x_fit"], float),
+                                                  np.asarray(result["y_fit"], float)))
+    correction_err = (None if given or not np.isfinite(product.flux_correction_err)
+                      else float(product.flux_correction_err))  # given: unknown here
+    if not (np.all(np.isfinite(correction)) and np.all(correction > 0)):
         msg = f"flux_correction must be a positive finite number, got {flux_correction!r}"
         raise BFPSFValueError(msg, flux_correction)
     result["flux_fit"] = result["flux_fit"] * correction
     result["flux_err"] = result["flux_err"] * correction
     result["sky_e"] = sky(np.asarray(result["x_fit"], float), np.asarray(result["y_fit"], float))
-    result.meta["flux_correction"] = correction
+    result.meta["flux_correction"] = float(correction if given else product.flux_correction)
     result.meta["flux_correction_err"] = correction_err
+    result.meta["flux_correction_slope"] = [0.0, 0.0] if given else list(
+        product.flux_correction_slope)
     result.meta["background_e"] = sky.level
     # the slope per pixel is what `bfpsf psf` reports (``sky_slope``), and the coefficients say
     # what they multiply: a new user compared the two

@@ -29,6 +29,8 @@ calibration's linearity correction, applied to the images on input by
 `bfpsf.measure.prepare.prepare_image`), and ``flux_correction`` / ``flux_correction_err``: the ratio of
 a star's total flux to the flux P0 holds in its support (the wings beyond it), measured from
 the bright isolated stars, applied by photometry so that ``flux_fit`` is the total flux, with
+its change across the image, ``flux_correction_slope`` (per pixel, with its
+``flux_correction_slope_err``) about ``flux_correction_centre`` (a grid's; `flux_correction_at`),
 the profile of those wings, ``wing_coefficients``, ``wing_tail_power`` and ``wing_half_size``
 (`bfpsf.model.wings.WingModel`, its nodes set by the support it was fitted beyond: 12 for
 ``--size 25``, where the model's stamp ``half_size`` is 13), whose glow the sky estimate
@@ -107,7 +109,9 @@ _METADATA = {"calibration": str, "linearity_c_per_1e5": float,
              "flux_correction": lambda: 1.0, "flux_correction_err": lambda: float("nan"),
              "star_flux_e": lambda: float("nan"), "p0_converged": lambda: None,
              "wing_coefficients": tuple, "wing_tail_power": lambda: 4.0, "wing_half_size": int,
-             "empirical": lambda: None}
+             "empirical": lambda: None, "flux_correction_slope": lambda: (0.0, 0.0),
+             "flux_correction_slope_err": lambda: (float("nan"),) * 2,
+             "flux_correction_centre": lambda: (0.0, 0.0)}
 
 
 class BFPSFModel(Fittable2DModel):
@@ -150,6 +154,14 @@ class BFPSFModel(Fittable2DModel):
         out = self.copy()
         out.empirical = term
         return out
+
+    def flux_correction_at(self, x, y):
+        """``flux_correction`` at pixel (x, y): the product's, plus its change across the
+        image where it was measured (``flux_correction_slope`` per pixel about
+        ``flux_correction_centre``; a grid's, `bfpsf.measure.total_flux.wing_gradient`)."""
+        (slope_x, slope_y), (x_0, y_0) = self.flux_correction_slope, self.flux_correction_centre
+        return (self.flux_correction + slope_x * (np.asarray(x, dtype=float) - x_0)
+                + slope_y * (np.asarray(y, dtype=float) - y_0))
 
     def copy_metadata_to(self, other, *, shift_samples=False):
         """Give ``other`` this model's product metadata (and shift samples if asked)."""

@@ -128,6 +128,15 @@ def write_psf(psf, path, *, calibration=None, meta=None, overwrite=False):
         header[f"WINGC{index}"] = (float(value), f"wing profile: r^3 W at node {index}")
     header["WINGPOW"] = (float(psf.wing_tail_power), "wings beyond the last node: r^-p")
     header["WINGHALF"] = (int(psf.wing_half_size), "support half-width the wings lie beyond")
+    if any(psf.flux_correction_slope):  # absent: one correction for the whole image
+        for key, value, comment in zip(
+                ("FLUXCSX", "FLUXCSY", "FLUXCSXE", "FLUXCSYE", "FLUXCX0", "FLUXCY0"),
+                (*psf.flux_correction_slope, *psf.flux_correction_slope_err,
+                 *psf.flux_correction_centre),
+                ("FLUXCORR change per pixel along x", "FLUXCORR change per pixel along y",
+                 "error of FLUXCSX", "error of FLUXCSY", "x where FLUXCORR holds",
+                 "y where FLUXCORR holds")):
+            header[key] = (float(value), comment)
     if np.isfinite(psf.flux_correction_err):  # absent: unknown (too few isolated stars)
         header["FLUXCERR"] = (float(psf.flux_correction_err), "error of FLUXCORR")
     if np.isfinite(psf.star_flux_e):  # absent: not fitted from stars
@@ -258,6 +267,12 @@ def read_psf(path, *, cls=None, **kwargs):
                     "linearity_c_per_1e5": float(header.get("LINC", 0.0)),
                     "flux_correction": float(header.get("FLUXCORR", 1.0)),
                     "flux_correction_err": float(header.get("FLUXCERR", np.nan)),
+                    "flux_correction_slope": tuple(float(header.get(key, 0.0))
+                                                   for key in ("FLUXCSX", "FLUXCSY")),
+                    "flux_correction_slope_err": tuple(float(header.get(key, np.nan))
+                                                       for key in ("FLUXCSXE", "FLUXCSYE")),
+                    "flux_correction_centre": tuple(float(header.get(key, 0.0))
+                                                    for key in ("FLUXCX0", "FLUXCY0")),
                     "star_flux_e": float(header.get("STARFLUX", np.nan)),
                     "p0_converged": (bool(header["CONVERGD"]) if "CONVERGD" in header
                                      else None),
