@@ -45,6 +45,14 @@ def image_arguments(parser, verb, about="", after=""):
                         help=f"{verb} only this amplifier (EXTNAME); repeatable")
 
 
+def output_options(parser, *, json=True):
+    """``--json`` (a JSON summary) and ``--overwrite`` (outputs are never replaced without it)
+    of every command that writes files."""
+    if json:
+        parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+
+
 #: Default of ``--saturation`` in the commands that read star images.
 SATURATION_DEFAULT = ("default the header's SATURATE or a variant; the calibration's "
                       "linearity turnoff where lower")

@@ -12,8 +12,8 @@ from ..errors import BFPSFInputError
 from ..files import check_outputs, input_files
 from ..outputs import make_directory, write_json
 from ..resources import check_time
-from . import (flat_edge_option, maxlag_option, non_negative_int, positive_float, positive_int,
-               saturation_option)
+from . import (flat_edge_option, maxlag_option, non_negative_int, output_options, positive_float,
+               positive_int, saturation_option)
 
 PLOT_NAMES = ("ptc.png", "correlation_map.png", "area_profile.png")
 AMPLIFIER_PLOT = "amplifiers.png"
@@ -78,9 +78,7 @@ def add_parser(subparsers):
                           help="run on an existing Dask cluster (e.g. tcp://host:8786)")
     parser.add_argument("--plots", metavar="DIR",
                         help="write PTC, correlation-map and a(r) plots (PNG) into DIR")
-    parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="replace existing output files")
+    output_options(parser)
     return parser
 
 

@@ -33,7 +33,8 @@ from ..diagnosis.position_split import describe_split
 from ..diagnosis.problem import describe_slope
 from ..diagnosis.signature import describe_entry, describe_rejection
 from ..errors import BFPSFInputError, BFPSFValueError
-from . import flat_edge_option, maxlag_option, positive_float, positive_int, star_image_options
+from . import (flat_edge_option, maxlag_option, output_options, positive_float, positive_int,
+               star_image_options)
 
 __all__ = ["add_parser", "run"]
 
@@ -98,8 +99,7 @@ def add_parser(subparsers):
                         help="images mode: write the flats' calibration with the confirmed "
                              "effects folded in (bfpsf.diagnosis.refine), for bfpsf psf")
     parser.add_argument("--report", metavar="DIR", help="write report.md and PNG figures")
-    parser.add_argument("--json", metavar="FILE", help="write the JSON summary")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    output_options(parser)
     return parser
 
 

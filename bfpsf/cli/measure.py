@@ -10,7 +10,7 @@ import numpy as np
 from ..errors import BFPSFInputError
 from ..files import about, check_outputs, input_files, read_table, refuse_duplicates
 from ..outputs import write_json, write_table
-from . import image_arguments, positive_float, stamp_size_option, star_image_options
+from . import image_arguments, output_options, positive_float, stamp_size_option, star_image_options
 from ._files import place_stars, read_image
 
 
@@ -51,8 +51,7 @@ def add_parser(subparsers):
     parser.add_argument("--stamp-size", type=stamp_size_option, default=32,
                         help="measurement stamp side, pixels (default 32)")
     star_image_options(parser, saturation="flags, does not drop", background=False)
-    parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    output_options(parser)
     return parser
 
 

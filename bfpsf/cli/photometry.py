@@ -12,7 +12,7 @@ import numpy as np
 from ..files import about, check_outputs, input_files
 from ..outputs import write_json, write_table
 from ..measure.sources import SourceFlag
-from . import (image_arguments, non_negative_float, positive_float, positive_int,
+from . import (image_arguments, non_negative_float, output_options, positive_float, positive_int,
                star_image_options)
 from ._files import one_fit_per_star, place_stars, read_image, warn_unconverged
 
@@ -51,8 +51,7 @@ def add_parser(subparsers):
     parser.add_argument("--no-cross-terms", action="store_true",
                         help="skip the refit of blended stars without the BF of their charge "
                              "on each other")
-    parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    output_options(parser)
     return parser
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import BFPSFInputError
 from ..files import about, check_outputs, input_files, refuse_duplicates
 from ..outputs import write_json
-from . import (finite_float, image_arguments, positive_int, stamp_size_option,
+from . import (finite_float, image_arguments, output_options, positive_int, stamp_size_option,
                star_image_options)
 from ..measure.bf_agreement import disagreeing_axes
 from ..measure.model_slopes import model_size_increments
@@ -75,8 +75,7 @@ def add_parser(subparsers):
                              "100 with --grid)")
     parser.add_argument("--no-bf", dest="include_bf", action="store_false",
                         help="fit a static ePSF (no BF term), for comparison")
-    parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    output_options(parser)
     return parser
 
 

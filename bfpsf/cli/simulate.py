@@ -9,8 +9,8 @@ added to ``TARGETS``).
 
 import argparse
 
-from . import (_real, add_common_options, finite_float, flat_level_option, non_negative_float,
-               non_negative_int, positive_float, positive_int)
+from . import (add_common_options, finite_float, flat_level_option, non_negative_float,
+               non_negative_int, output_options, positive_float, positive_int, _real)
 
 __all__ = ["add_parser", "run", "TARGETS"]
 
@@ -66,7 +66,7 @@ def _add_flats(targets):
                              "exposure time, 0 where the shot noise explains it)")
     parser.add_argument("-o", "--output", required=True, metavar="DIR",
                         help="output directory (created if missing)")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing files")
+    output_options(parser, json=False)
     add_common_options(parser)
     return parser
 

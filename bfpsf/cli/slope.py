@@ -25,7 +25,7 @@ record, label ``'empirical'``; in the prediction and the residual), or None.
 import numpy as np
 
 from ..errors import BFPSFInputError
-from . import _real
+from . import output_options, _real
 from ._files import warn_unconverged
 from ..files import about, check_outputs, input_files, read_table
 from ..outputs import save_figure, write_json
@@ -55,12 +55,11 @@ def add_parser(subparsers):
                              "unflagged stars)")
     parser.add_argument("--unweighted", action="store_true",
                         help="ignore the *_err columns (errors from the scatter)")
-    parser.add_argument("--json", metavar="FILE", help="write a JSON summary")
     parser.add_argument("--plot", metavar="FILE", help="write size against peak (PNG, PDF)")
     parser.add_argument("--psf-plot", metavar="FILE",
                         help="with --psf: star-minus-model size, e1, e2 against magnitude, "
                              "static PSF beside P(F) (PNG, PDF)")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    output_options(parser)
     return parser
 
 

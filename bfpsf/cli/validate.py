@@ -7,7 +7,8 @@ chain, print the side-by-side table, write the JSON summary and the Markdown rep
 import sys
 from pathlib import Path
 
-from . import _real, flat_level_option, non_negative_int, positive_float, positive_int
+from . import (flat_level_option, non_negative_int, output_options, positive_float, positive_int,
+               _real)
 
 
 __all__ = ["add_parser", "run"]
@@ -48,8 +49,7 @@ def add_parser(subparsers):
     parser.add_argument("--seed", type=non_negative_int, default=None,
                         help="random seed (default: the configuration's)")
     parser.add_argument("--report", metavar="DIR", help="write report.md and PNG figures")
-    parser.add_argument("--json", metavar="FILE", help="write the JSON summary")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    output_options(parser)
     return parser
 
 
