@@ -303,6 +303,11 @@ def run(args):
               if n_detected > summary["n_stars"] else "")
     unlike = (f"; {summary['n_unlike']} left out as unlike the other stars (unresolved "
               "blends; bit 16 of the P0 fit's star flags)" if summary["n_unlike"] else "")
+    # the rest: cut by an edge, bad pixels, a flux or position fit that failed (a new
+    # user's "170 of 244 ... 73 left out" did not add up)
+    failed = summary["n_stars"] - summary["n_used"] - summary["n_unlike"]
+    unlike += (f"; {failed} not used: cut by an edge, bad pixels or a failed fit (bits 1-8)"
+               if failed else "")
     unlike += (f"; {summary['n_masked']} with a fainter companion's pixels masked"
                if summary["n_masked"] else "")
     print(f"P0 from {summary['n_used']} of {summary['n_stars']} isolated stars ({n_detected} "
