@@ -132,6 +132,29 @@ def _templates(x, y, flux, rows, columns, half_size):
     return templates, tails.T, inside
 
 
+def _sky_basis(template, rows, columns):
+    """The sky surface's terms (of ``template``, a `SkyModel`) at the pixels (rows,
+    columns): shape (pixels, terms)."""
+    x_centre, y_centre, scale = template._scale()
+    return _powers((columns - x_centre) / scale, (rows - y_centre) / scale, template.degree).T
+
+
+def _without_skies(columns, bases, offsets, keep, terms=None):
+    """Each image's sky terms (its first ``terms``; default all) projected out of
+    ``columns`` on the kept pixels (image k's pixels are rows ``offsets[k]:offsets[k + 1]``,
+    and its terms touch them only): (what is left of every column, and per image the sky
+    terms of every column)."""
+    left, parts = np.empty_like(columns), []
+    for index, basis in enumerate(bases):
+        block = slice(offsets[index], offsets[index + 1])
+        basis = basis[:, :terms]
+        of_columns = np.linalg.lstsq(basis[keep[block]], columns[block][keep[block]],
+                                     rcond=None)[0]
+        left[block] = columns[block] - basis @ of_columns
+        parts.append(of_columns)
+    return left, parts
+
+
 def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000,
                       clip_nsigma=4.0, oversampling=2):
     """The sky surface of every image and the stars' wings beyond the PSF support, fitted
@@ -204,9 +227,7 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         tails.append(tail[keep])
         template = SkyModel((0.0,) * n_terms, degree, image.shape, np.nan, "")
         templates.append(template)
-        x_centre, y_centre, scale = template._scale()
-        bases.append(_powers((columns[keep] - x_centre) / scale,
-                             (rows[keep] - y_centre) / scale, degree).T)
+        bases.append(_sky_basis(template, rows[keep], columns[keep]))
         values.append(image[rows[keep], columns[keep]])
         offsets.append(offsets[-1] + int(keep.sum()))
     values, wings, tails = np.concatenate(values), np.concatenate(wings), np.concatenate(tails)
@@ -214,19 +235,10 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
     columns = np.column_stack([wings, tails, values])
 
     def project(keep, terms=n_terms):
-        """Each image's sky terms (its first ``terms``) projected out of the node and tail
-        templates and of the data, on the kept pixels (its terms touch its own pixels only):
-        (what is left of every column, and per image the sky terms of every column). Linear,
-        so done once for all the designs below, which are combinations of these columns."""
-        left, parts = np.empty_like(columns), []
-        for index, basis in enumerate(bases):
-            block = slice(offsets[index], offsets[index + 1])
-            basis = basis[:, :terms]
-            of_columns = np.linalg.lstsq(basis[keep[block]], columns[block][keep[block]],
-                                         rcond=None)[0]
-            left[block] = columns[block] - basis @ of_columns
-            parts.append(of_columns)
-        return left, parts
+        """The skies projected out of the node and tail templates and of the data
+        (`_without_skies`). Linear, so done once for all the designs below, which are
+        combinations of these columns."""
+        return _without_skies(columns, bases, offsets, keep, terms)
 
     def solve(projected, keep, matrix, tail, nonnegative=False):
         """The least squares of [the nodes' templates with the last carried on at TAIL_POWERS
@@ -392,10 +404,11 @@ def _wing_model(coefficients, covariance, half_size, power, n_stars, oversamplin
 def wing_gradient(images_e, stars, wings, skies, *, max_pixels=40_000, clip_nsigma=4.0):
     """How the light beyond the support changes across the image, for a PSF that varies over
     the field (a grid of P0s): the wings' amplitude as a plane over the image, fitted with
-    every image's sky terms (of ``skies``' degree) on the pixels `fit_sky_and_wings` uses, the
-    profile's shape held at ``wings``. A new user's field of FWHM 2.7 -> 3.5 px had a true
-    flux correction of 1.0170 -> 1.0207 along it, and one correction for the whole grid put
-    +2.3 mmag between its bottom and top stars.
+    every image's sky terms (of ``skies``' degree) on the pixels beyond every star's support
+    and the sources' cores, as `fit_sky_and_wings` masks them (subsampled to ``max_pixels``
+    after the masking, not before as there), the profile's shape held at ``wings``. A new
+    user's field of FWHM 2.7 -> 3.5 px had a true flux correction of 1.0170 -> 1.0207 along
+    it, and one correction for the whole grid put +2.3 mmag between its bottom and top stars.
 
     The plane is of the light beyond the support per unit of each star's fitted flux, so it
     also takes up how the grid's fluxes change across the field: on GalSim Airy x Kolmogorov
@@ -447,20 +460,13 @@ def wing_gradient(images_e, stars, wings, skies, *, max_pixels=40_000, clip_nsig
                  for weight in (np.ones_like(x), u, v)]
         columns_of.append(np.column_stack([glow[rows, columns] for glow in glows]))
         values.append(image[rows, columns])
-        template = SkyModel((0.0,) * len(sky.coefficients), sky.degree, shape, np.nan, "")
-        x_centre, y_centre, scale = template._scale()
-        bases.append(_powers((columns - x_centre) / scale, (rows - y_centre) / scale,
-                             sky.degree).T)
+        bases.append(_sky_basis(SkyModel((0.0,) * len(sky.coefficients), sky.degree, shape,
+                                         np.nan, ""), rows, columns))
         offsets.append(offsets[-1] + rows.size)
-    design, values = np.concatenate(columns_of), np.concatenate(values)
-    keep = np.ones(values.size, dtype=bool)
+    columns = np.column_stack([np.concatenate(columns_of), np.concatenate(values)])
+    keep = np.ones(len(columns), dtype=bool)
     for _ in range(5):  # clipped as `fit_sky_and_wings` clips
-        left = np.empty((values.size, 4))
-        for index, basis in enumerate(bases):  # each image's sky projected out
-            block = slice(offsets[index], offsets[index + 1])
-            both = np.column_stack([design[block], values[block]])
-            terms = np.linalg.lstsq(basis[keep[block]], both[keep[block]], rcond=None)[0]
-            left[block] = both - basis @ terms
+        left = _without_skies(columns, bases, offsets, keep)[0]
         normal = left[keep, :3].T @ left[keep, :3]
         amplitude = np.linalg.lstsq(normal, left[keep, :3].T @ left[keep, 3], rcond=None)[0]
         deviation = left[:, 3] - left[:, :3] @ amplitude
