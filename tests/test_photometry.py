@@ -563,7 +563,7 @@ def test_read_noise_from_the_image_when_the_calibration_left_it_undetermined(cli
     from astropy.io import fits
 
     from bfpsf.cli.photometry import _read_noise
-    from bfpsf.measure.photometry import image_read_noise, sky_variance
+    from bfpsf.measure.read_noise import image_read_noise, sky_variance
     from bfpsf.measure.prepare import prepare_image
 
     directory, _, _ = cli_files

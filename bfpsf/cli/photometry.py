@@ -11,9 +11,10 @@ import numpy as np
 
 from ..files import about, check_outputs, input_files
 from ..outputs import write_json, write_table
+from ..measure.photometry import RESIDUAL_PASSES
 from ..measure.sources import SourceFlag
-from . import (image_arguments, non_negative_float, output_options, positive_float, positive_int,
-               star_image_options)
+from . import (image_arguments, non_negative_float, non_negative_int, output_options,
+               positive_float, positive_int, star_image_options)
 from ._files import one_fit_per_star, place_stars, read_image, warn_unconverged
 
 
@@ -51,6 +52,12 @@ def add_parser(subparsers):
     parser.add_argument("--no-cross-terms", action="store_true",
                         help="skip the refit of blended stars without the BF of their charge "
                              "on each other")
+    parser.add_argument("--residual-passes", type=non_negative_int, default=RESIDUAL_PASSES,
+                        metavar="N",
+                        help="searches of the fit's residual for stars detection missed (a "
+                             "companion on a bright star's wing, faint stars of a crowded "
+                             f"field; bit 4096 of source_flags); default {RESIDUAL_PASSES}, "
+                             "0: none")
     output_options(parser)
     return parser
 
@@ -104,7 +111,7 @@ def _read_noise(args, calibration):
     """``--read-noise``, else the amplifier's calibrated read noise (``--calib``) where its PTC
     determined it (`Calibration.read_noise_determined`: beyond 2 errors, as ``calibrate``
     warns) and None where it did not: from the image's sky
-    (`bfpsf.measure.photometry.image_read_noise`; new users' calibrations had 0.43 +- 48.7
+    (`bfpsf.measure.read_noise.image_read_noise`; new users' calibrations had 0.43 +- 48.7
     and 10.5 +- 6.8 e-, against 5 and 4.5), else 0. The Python path (`psf_photometry(...,
     read_noise_e=...)`) gives the same numbers."""
     if args.read_noise is not None:
@@ -164,6 +171,7 @@ def run(args):
                 msg = f"{path} with {args.psf}: {error}"
                 raise BFPSFInputError(msg, str(path)) from None
             read_noise = _read_noise(args, one)
+            level = saturation_e(amplifier, amp_gain, args.saturation, one)
             # the image preparation (linearity, sky) is psf_photometry's, as in Python
             with about(path):
                 table = psf_photometry(amplifier.data * amp_gain, model,
@@ -173,11 +181,12 @@ def run(args):
                                                      else args.background * amp_gain),
                                        detection_threshold=args.threshold,
                                        cross_terms=not args.no_cross_terms,
+                                       residual_passes=args.residual_passes,
+                                       saturation_e=level,
                                        # --static too: total fluxes, with the product's
                                        # correction for the light beyond P0's support, and
                                        # its wings taken out of the sky as P(F)'s are
                                        wings=bf_model)
-            level = saturation_e(amplifier, amp_gain, args.saturation, one)
             table["saturated"] = saturated_stars(
                 amplifier.data * amp_gain, level, table["x_fit"], table["y_fit"],
                 args.fit_shape or default_fit_shape(model))
@@ -217,7 +226,8 @@ def run(args):
                               "n_blended": int(np.sum(table["group_size"] > 1)),
                               "n_unlike_psf": _unlike(table),
                               "n_beyond_flats": beyond,
-                              "cross_term_refits": table.meta["cross_term_refits"]})
+                              "cross_term_refits": table.meta["cross_term_refits"],
+                              "residual_sources": table.meta["residual_sources"]})
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     # a star near a shared side is fitted on both amplifiers: the fit from its own is kept
     result, n_twice = one_fit_per_star(result, 2 * psf_fwhm(psf), x="x_fit", y="y_fit")
@@ -242,6 +252,7 @@ def run(args):
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     n_blended = sum(entry["n_blended"] for entry in per_image)
+    summary["n_in_residual"] = sum(entry["residual_sources"]["found"] for entry in per_image)
     if n_twice:
         print(f"{n_twice} stars near a side two amplifiers share were fitted on both: the fit "
               "from the amplifier that holds the star's centre is kept, the other left out "
@@ -257,6 +268,7 @@ def run(args):
           f"({summary['n_flagged']} fits flagged by photutils or saturated, "
           f"{summary['n_saturated']} of them saturated; "
           f"{n_blended} fitted in a group with their neighbours; {unlike}"
+          f"{summary['n_in_residual']} found in the fit's residual, missed by detection; "
           f"detection's flags and unlike_psf in source_flags, bits in "
           f"bfpsf.measure.sources.SourceFlag.NAMES); wrote {args.output}")
     return 0

@@ -16,7 +16,11 @@ from scipy.spatial import cKDTree
 
 from .sources import DETECTION_THRESHOLD, SourceFlag, measure_sources
 
-__all__ = ["smoothed_peaks", "sources_with_companions", "isolated_stars"]
+__all__ = ["smoothed_peaks", "sources_with_companions", "isolated_stars",
+           "COMPANION_SEPARATION"]
+
+#: A peak this far (pixels) from every detection is a companion of its own.
+COMPANION_SEPARATION = 2.5
 
 
 def smoothed_peaks(image_e, *, threshold=DETECTION_THRESHOLD, detection_fwhm=3.0):
@@ -44,21 +48,28 @@ def smoothed_peaks(image_e, *, threshold=DETECTION_THRESHOLD, detection_fwhm=3.0
     kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
     smoothed = convolve(image, kernel, normalize_kernel=True)
     _, _, rms = sigma_clipped_stats(smoothed, sigma=3.0)
+    x, y, _, _ = local_peaks(smoothed, (threshold + 3.0) * rms, detection_fwhm)
+    return np.column_stack([x, y])
+
+
+def local_peaks(values, level, detection_fwhm, border=1):
+    """Maxima of ``values`` within a window of ``2 * ceil(detection_fwhm) + 1`` pixels, at
+    least ``level`` and more than ``border`` pixels inside the image, centroided on their
+    3 x 3 neighbourhood: (x, y, rows, columns)."""
     size = 2 * int(np.ceil(detection_fwhm)) + 1
-    peaks = (smoothed == ndimage.maximum_filter(smoothed, size=size)) & (
-        smoothed >= (threshold + 3.0) * rms)
+    peaks = (values == ndimage.maximum_filter(values, size=size)) & (values >= level)
     rows, columns = np.nonzero(peaks)
-    inside = ((rows > 0) & (rows < image.shape[0] - 1) & (columns > 0)
-              & (columns < image.shape[1] - 1))
+    inside = ((rows >= border) & (rows < values.shape[0] - border) & (columns >= border)
+              & (columns < values.shape[1] - border))
     rows, columns = rows[inside], columns[inside]
     offsets = np.arange(-1, 2)
-    windows = smoothed[rows[:, None, None] + offsets[None, :, None],
-                       columns[:, None, None] + offsets[None, None, :]]
+    windows = values[rows[:, None, None] + offsets[None, :, None],
+                     columns[:, None, None] + offsets[None, None, :]]
     windows = np.clip(windows - windows.min(axis=(1, 2), keepdims=True), 0, None)
     total = np.maximum(windows.sum(axis=(1, 2)), 1e-30)
     x = columns + np.sum(windows.sum(axis=1) * offsets, axis=1) / total
     y = rows + np.sum(windows.sum(axis=2) * offsets, axis=1) / total
-    return np.column_stack([x, y])
+    return x, y, rows, columns
 
 
 def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, **kwargs):
@@ -91,7 +102,7 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, **kwargs)
     peaks = smoothed_peaks(image, threshold=threshold)
     if len(peaks) and len(x):
         distance, _ = cKDTree(np.column_stack([x, y])).query(peaks)
-        peaks = peaks[distance > 2.5]
+        peaks = peaks[distance > COMPANION_SEPARATION]
     if len(peaks):
         rows = np.clip(np.rint(peaks[:, 1]).astype(int), 2, image.shape[0] - 3)
         columns = np.clip(np.rint(peaks[:, 0]).astype(int), 2, image.shape[1] - 3)

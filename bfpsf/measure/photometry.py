@@ -6,36 +6,44 @@ they actually have and the faint-to-bright flux scale is free of the brighter-fa
 static PSF from bright stars carries. Pixels and their noise are left untouched; the pixel
 weights come from the fitted model, not from the noisy pixel values (``weights``). Blends
 are fitted together (photutils' ``SourceGrouper``), and every group's final fit is made on
-the data minus the models of the stars outside it.
+the data minus the models of the stars outside it (`bfpsf.measure.neighbour_fits`). The stars
+detection missed are searched for in the fit's residual and fitted with the others
+(`bfpsf.measure.residual_sources`, as photutils' ``IterativePSFPhotometry``).
 """
 
-import logging
+import contextlib
+import warnings
 
 import numpy as np
 from astropy.table import Table, vstack
+from astropy.utils.exceptions import AstropyUserWarning
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy import ndimage
 from scipy.spatial import cKDTree
-from scipy.stats import median_abs_deviation
 
 from ..errors import BFPSFInputError, BFPSFValueError
 from ..interop.photutils import (default_fit_shape, describe_outlying_nodes,
                                 make_psf_photometry, outlying_nodes)
 from ..model.base import BFPSFModel
-from .neighbours import sources_with_companions
+from .neighbour_fits import fit_without_neighbours, merged, model_image, with_found, without_lost
+from .neighbours import COMPANION_SEPARATION, sources_with_companions
 from .prepare import PreparedImage, prepare_image
 from .psf_likeness import unlike_psf
+from .read_noise import check_read_noise, image_read_noise
+from .residual_sources import residual_sources
 from .sources import DETECTION_THRESHOLD, SourceFlag
 from ..model.wings import WingModel, wing_image
 
-__all__ = ["psf_photometry", "image_read_noise", "sky_variance", "PHOTOMETRY_COLUMNS"]
+__all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 
-log = logging.getLogger(__name__)
+#: Searches of the fit's residual for the stars detection missed (photutils'
+#: ``IterativePSFPhotometry`` iterates up to 3 times: detection, then two searches).
+RESIDUAL_PASSES = 2
 
-#: A given read noise whose background variance (with the sky's Poisson variance) is more
-#: than this factor from the sky pixels' variance is said (`_check_read_noise`): the sky's
-#: own scatter is known to about 1 % from 1e4 pixels, its level to the gain's error.
-READ_NOISE_MISMATCH = 1.2
+#: How far a star's misfit reaches, in half-widths of the PSF's support
+#: (`bfpsf.measure.residual_sources`).
+MISFIT_REACH = 3.0
 
 #: Columns every photometry table holds (the ``bfpsf photometry`` contract), plus photutils'.
 PHOTOMETRY_COLUMNS = ["x_fit", "y_fit", "flux_fit", "flux_err", "flags"]
@@ -52,84 +60,16 @@ def _initial_positions(image_e, detection_threshold):
     return table
 
 
-def _refit_init(init, result):
-    """Initial table of the model-weighted refit: the first fit where it is finite."""
-    refit = Table(init, copy=True)
-    for column in ("x", "y", "flux"):
-        fitted = np.asarray(result[f"{column}_fit"], dtype=float)
-        if f"{column}_init" in refit.colnames:
-            start = np.asarray(refit[f"{column}_init"], dtype=float)
-        else:
-            start = np.asarray(result[f"{column}_init"], dtype=float)
-        refit[f"{column}_init"] = np.where(np.isfinite(fitted), fitted, start)
-    return refit
-
-
-def _model_image(photometry, table, shape, rows=None):
-    """Image of the models of the stars of a result table (all, or ``rows``) with finite
-    fitted parameters, e- (`photutils.datasets.make_model_image`, as photutils'
-    ``make_model_image``)."""
-    from photutils.datasets import make_model_image
-
-    model = photometry.psf_model
-    names = ("x_fit", "y_fit", "flux_fit")
-    values = [np.asarray(table[name], dtype=float) for name in names]
-    keep = np.all(np.isfinite(values), axis=0)
-    if rows is not None:
-        keep &= rows
-    if not keep.any():
-        return np.zeros(shape)
-    params = Table({name: value[keep] for name, value in zip(("x_0", "y_0", "flux"), values)})
-    return make_model_image(shape, model, params, x_name="x_0", y_name="y_0")
-
-
-def _fit_without_neighbours(photometry, psf, data, mask, error, init, previous, rows=None):
-    """photutils' fit of the stars ``rows`` of ``init`` (default all), each group on the data
-    minus the models of every other star from ``previous`` (a result table of the same stars).
-
-    photutils fits each group within its fit boxes and leaves a neighbour outside the group
-    in the pixels: in a dense field a bright neighbour's wings in a faint star's fit box. Here
-    every other star's model is subtracted first. Groups no model of one of which reaches the
-    fit boxes of another are fitted in one photutils call (a greedy colouring of the groups);
-    the others in further calls, each on its own neighbour-subtracted image.
-    """
-    n_stars = len(previous)
-    rows = np.ones(n_stars, dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
-    start = _refit_init(init, previous)
-    start["id"] = np.asarray(previous["id"], dtype=int)
-    xy = np.column_stack([np.asarray(start["x_init"], float), np.asarray(start["y_init"], float)])
-    groups = np.unique(np.asarray(previous["group_id"]), return_inverse=True)[1].ravel()
-    # a star's model reaches the support's half-width; its fit box the box's half-width
-    box = float(np.max(np.atleast_1d(photometry.fit_shape)))
-    support = getattr(psf, "half_size", None)
-    support = box / 2 if support is None else support + 0.5
-    reach = box / 2 + support + 1.0
-    chosen = np.flatnonzero(rows)
-    pairs = cKDTree(xy[chosen]).query_pairs(reach, output_type="ndarray")
-    n_groups = int(groups.max()) + 1
-    conflicts = [set() for _ in range(n_groups)]
-    for first, second in groups[chosen][pairs] if len(pairs) else ():
-        if first != second:
-            conflicts[first].add(second)
-            conflicts[second].add(first)
-    colour = np.full(n_groups, -1)
-    for group in np.unique(groups[chosen]):
-        taken = {colour[other] for other in conflicts[group]}
-        colour[group] = next(value for value in range(n_groups + 1) if value not in taken)
-    others = _model_image(photometry, previous, data.shape)
-    fits, offset = [], 0
-    for value in range(int(colour.max()) + 1):
-        mine = rows & (colour[groups] == value)
-        if not mine.any():
-            continue
-        image = data - others + _model_image(photometry, previous, data.shape, mine)
-        fit = photometry(image, mask=mask, error=error, init_params=start[mine])
-        fit["group_id"] = np.asarray(fit["group_id"]) + offset
-        offset = int(np.max(fit["group_id"]))
-        fits.append(fit)
-    result = vstack(fits, metadata_conflicts="silent")
-    result.sort("id")
-    return result
+@contextlib.contextmanager
+def _found_fits(found=True):
+    """Where ``found``: photutils' warning that some fits did not converge is not passed on
+    (`bfpsf.measure.neighbour_fits.without_lost` leaves out the sources found in a residual
+    whose fit failed, and every star's flags say it); elsewhere nothing changes."""
+    with warnings.catch_warnings():
+        if found:
+            warnings.filterwarnings("ignore", message="One or more fit",
+                                    category=AstropyUserWarning)
+        yield
 
 
 def _add_stamp(image, stamp, row, column):
@@ -225,63 +165,11 @@ def _check_groups(psf, fit_shape, group_separation, init):
         raise BFPSFValueError(msg, side)
 
 
-def sky_variance(prepared):
-    """The sky pixels' variance about the fitted sky (1.4826 times their median absolute
-    deviation, squared) and their mean level, e-^2 and e-; None with fewer than 10 of them.
-
-    Parameters
-    ----------
-    prepared : bfpsf.measure.prepare.PreparedImage
-
-    Returns
-    -------
-    (float, float) or None
-    """
-    data = prepared.sky_subtracted
-    free = prepared.sky_pixels & np.isfinite(data)  # the pixels its sky was fitted on
-    if free.sum() < 10:
-        return None
-    values = data[free]
-    spread = median_abs_deviation(values, scale="normal")
-    return float(spread ** 2), float(np.mean(np.clip(prepared.sky.image()[free], 0.0, None)))
-
-
-def image_read_noise(prepared):
-    """Read noise of an image from its sky, e- rms: `sky_variance` less the sky's Poisson
-    variance (its level), 0 when that is negative or there are too few sky pixels."""
-    sky = sky_variance(prepared)
-    return 0.0 if sky is None else _read_noise_of(*sky)
-
-
-def _read_noise_of(variance, level):
-    return float(np.sqrt(max(variance - level, 0.0)))
-
-
-def _check_read_noise(prepared, read_noise_e):
-    """Warn when a given read noise and the sky's level make a background variance
-    `READ_NOISE_MISMATCH` times larger or smaller than the sky pixels show: every flux error
-    scales with it (a new user's calibration gave 11.8 +- 2.1 e- where its images' read noise
-    was 5: 1.30 times the sky's variance, flux pulls of rms 0.74-0.89)."""
-    sky = sky_variance(prepared)
-    if sky is None or not sky[0] > 0:
-        return
-    variance, level = sky
-    ratio = (level + read_noise_e ** 2) / variance
-    if not 1 / READ_NOISE_MISMATCH <= ratio <= READ_NOISE_MISMATCH:
-        log.warning("read noise %.3g e- and a sky of %.4g e- make a background variance %.3g "
-                    "times what the image's sky pixels show (%.4g e-^2, read noise %.3g e-): "
-                    "faint stars' flux errors are %s by up to %.0f %%; give the read noise "
-                    "(--read-noise; read_noise_e in Python)%s", read_noise_e, level, ratio,
-                    variance, _read_noise_of(variance, level),
-                    "too large" if ratio > 1 else "too small", 100 * abs(np.sqrt(ratio) - 1),
-                    "" if ratio > 1 else ", unless the sky pixels hold the light of faint "
-                    "neighbours (a crowded field), which no read noise describes")
-
-
 def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background_e=None,
                    fit_shape=None, group_separation=None,
                    detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
-                   linearity_c_per_1e5=None, flux_correction=None, wings=None, **kwargs):
+                   linearity_c_per_1e5=None, flux_correction=None, wings=None,
+                   residual_passes=RESIDUAL_PASSES, saturation_e=None, **kwargs):
     """Fit every star of an image with the flux-dependent PSF.
 
     Parameters
@@ -345,6 +233,15 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         product's to compare a static P0 with the same sky and flags (without it, a static P0
         took the Airy stars' wings into the sky, 304-305 e- against the true 300 and P(F)'s
         299, its faint stars 2-4 mmag too faint; and flagged no pair fitted as one).
+    residual_passes : int, optional
+        With detected stars (``positions`` None): searches of the residual of the fit for the
+        stars detection missed (`bfpsf.measure.residual_sources`: a companion on a bright
+        star's wing, faint stars of a crowded field), each followed by a fit of every star
+        with the ones it found, flagged ``IN_RESIDUAL``; default `RESIDUAL_PASSES`, 0: none.
+    saturation_e : float, optional
+        Saturation level, e- (sky included): no source is sought within the PSF's support of
+        a pixel at or above it (a clipped core is no model's; 38 saturated stars left 38
+        peaks beside them).
     **kwargs
         Passed to `photutils.psf.PSFPhotometry`.
 
@@ -364,7 +261,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         ``'empirical'``; None without one).
         ``source_flags``: `bfpsf.measure.sources.SourceFlag` bits, those of the detection here
         (or of a ``positions`` table with a ``source_flags`` column; ``BLENDED``: a neighbour
-        within the blend radius) and, for a bfpsf model, ``UNLIKE_PSF``: the fitted star, its
+        within the blend radius; ``IN_RESIDUAL``: found in a fit's residual, ``residual_passes``)
+        and, for a bfpsf model, ``UNLIKE_PSF``: the fitted star, its
         neighbours' models subtracted, is larger or more elongated than the PSF at its flux
         (two stars detection did not split; `bfpsf.measure.psf_likeness`).
     """
@@ -398,7 +296,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     if read_noise_e is None:
         read_noise_e, noise_source = image_read_noise(prepared), "image"
     else:
-        _check_read_noise(prepared, float(read_noise_e))
+        check_read_noise(prepared, float(read_noise_e))
     variance = np.clip(np.where(finite, image, 0.0), 0.0, None) + read_noise_e**2
     error = np.sqrt(np.where(variance > 0, variance, 1.0))
     data = prepared.sky_subtracted
@@ -426,31 +324,72 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
                                      **kwargs)
     mask = mask if mask.any() else None
     result = photometry(data, mask=mask, error=error, init_params=init)
-    if weights == "model":
-        # Refit with the variance the fitted stars and the sky predict: weights computed from
-        # the noisy pixels themselves bias every flux low (see ``weights``).
-        # The 1 e-**2 floor keeps pixels beyond the PSF support of a sky-free image finite.
-        stars = _model_image(photometry, result, data.shape)
-        wing_model = psf if (bfpsf_model and wings is None) else wings
-        if (wing_model is not None and max(wing_model.wing_coefficients, default=0.0) > 0
-                and prepared.glow_e is None):
-            # the sky again, beyond the fitted stars: their models within the support and
-            # the glow of their wings beyond it (which is subtracted with it): the sky is
-            # what is left beyond their total-flux model
-            prepared = prepared.with_glow(_glow(wing_model, result, data.shape), stars)
-            sky, data = prepared.sky, prepared.sky_subtracted
-        model = np.clip(stars, 0.0, None)
-        variance = np.clip(sky.image(), 0.0, None) + model + read_noise_e**2
-        error = np.sqrt(np.maximum(variance, 1.0))
-        result = _fit_without_neighbours(photometry, psf, data, mask, error, init, result)
+    rows = None  # every star; then those near the sources found in the residual
+    n_lost = 0
+    # how far a star's misfit reaches: its wings beyond the support too (a 3e6 e- Moffat's
+    # left peaks 13 px from its centre, beyond a 12 px support)
+    reach = MISFIT_REACH * (getattr(psf, "half_size", None)
+                            or float(np.max(np.atleast_1d(photometry.fit_shape))) / 2)
+    for residual_pass in range(1 + (int(residual_passes) if positions is None else 0)):
+        if residual_pass:  # the stars detection missed, in the residual of the last fit
+            stars = model_image(photometry, result, data.shape)
+            found = residual_sources(
+                data - stars, np.clip(sky.image(), 0.0, None) + np.clip(stars, 0.0, None)
+                + read_noise_e**2, np.column_stack([result["x_fit"], result["y_fit"]]),
+                threshold=detection_threshold, model_e=stars, known_flux=result["flux_fit"],
+                reach=reach, support=getattr(psf, "half_size", None), excluded=None if saturation_e is None else ndimage.binary_dilation(
+                    np.where(finite, image, 0.0) >= saturation_e, iterations=int(reach / 3) + 1))
+            if not len(found):
+                break
+            source_flags = np.r_[np.zeros(len(init), np.int64) if source_flags is None
+                                 else source_flags, found["source_flags"]]
+            init = vstack([init, found[init.colnames]])
+            previous, rows = with_found(result, found, photometry, psf)
+            if residual_pass == 1:  # their fits and their neighbours' kept near their start
+                photometry = make_psf_photometry(
+                    psf, fit_shape=fit_shape, group_separation=group_separation,
+                    **{"xy_bounds": COMPANION_SEPARATION, **kwargs})
+            with _found_fits():
+                result = merged(result, fit_without_neighbours(
+                    photometry, psf, data, mask, error, init, previous, rows), rows)
+            # a found source its fit lost (merged into a neighbour, no flux) is not a star
+            init, source_flags, rows, result, lost = without_lost(
+                init, source_flags, rows, result, detection_threshold + 3.0)
+            n_lost += lost
+        if weights == "model":
+            # Refit with the variance the fitted stars and the sky predict: weights computed
+            # from the noisy pixels themselves bias every flux low (see ``weights``). The
+            # 1 e-**2 floor keeps pixels beyond the PSF support of a sky-free image finite.
+            stars = model_image(photometry, result, data.shape)
+            wing_model = psf if (bfpsf_model and wings is None) else wings
+            if (wing_model is not None and max(wing_model.wing_coefficients, default=0.0) > 0
+                    and prepared.glow_e is None):
+                # the sky again, beyond the fitted stars: their models within the support
+                # and the glow of their wings beyond it (which is subtracted with it): the
+                # sky is what is left beyond their total-flux model
+                prepared = prepared.with_glow(_glow(wing_model, result, data.shape), stars)
+                sky, data = prepared.sky, prepared.sky_subtracted
+            model = np.clip(stars, 0.0, None)
+            variance = np.clip(sky.image(), 0.0, None) + model + read_noise_e**2
+            error = np.sqrt(np.maximum(variance, 1.0))
+            with _found_fits(residual_pass):
+                if rows is None or rows.any():
+                    result = merged(result, fit_without_neighbours(
+                        photometry, psf, data, mask, error, init, result, rows), rows)
+            if residual_pass:
+                init, source_flags, rows, result, lost = without_lost(
+                    init, source_flags, rows, result, detection_threshold + 3.0)
+                n_lost += lost
     n_cross = 0
+    found_any = source_flags is not None and bool(np.any(source_flags & SourceFlag.IN_RESIDUAL))
     if cross_terms and bfpsf_model and "group_size" in result.colnames:
         blended = np.asarray(result["group_size"]) > 1
         for _ in range(int(cross_terms) if blended.any() else 0):
             # Refit the blended stars on the data minus their BF on each other.
             cross = _cross_term_image(psf, result, data.shape)
-            refit = _fit_without_neighbours(photometry, psf, data - cross, mask, error, init,
-                                            result, blended)
+            with _found_fits(n_lost or found_any):
+                refit = fit_without_neighbours(photometry, psf, data - cross, mask, error,
+                                                init, result, blended)
             for name in refit.colnames:
                 if name in result.colnames and name not in ("id", "group_id", "group_size"):
                     result[name][blended] = refit[name]
@@ -460,7 +399,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     # the product (the model, or a static P0's ``wings``): stars unlike its P(F) are flagged
     product = psf if bfpsf_model else wings
     if isinstance(product, BFPSFModel):
-        residual = data - _model_image(photometry, result, data.shape)
+        residual = data - model_image(photometry, result, data.shape)
         unlike = unlike_psf(residual, result["x_fit"], result["y_fit"], result["flux_fit"],
                             product, max(float(sky.level), 0.0) + float(read_noise_e)**2)
         result["source_flags"] |= np.where(unlike, SourceFlag.UNLIKE_PSF, 0)
@@ -470,6 +409,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     correction = (np.float64(1.0 if flux_correction is None else flux_correction) if given
                   else product.flux_correction_at(np.asarray(result["x_fit"], float),
                                                   np.asarray(result["y_fit"], float)))
+    if not given:  # a failed fit (no position) keeps its NaN flux, at the image's correction
+        correction = np.where(np.isfinite(correction), correction, product.flux_correction)
     correction_err = (None if given or not np.isfinite(product.flux_correction_err)
                       else float(product.flux_correction_err))  # given: unknown here
     if not (np.all(np.isfinite(correction)) and np.all(correction > 0)):
@@ -490,6 +431,9 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
                           "coefficients_of": sky.coefficients_of,
                           "slope": list(sky.slope), "rms_e": sky.rms}
     result.meta["cross_term_refits"] = n_cross
+    # sources found in a fit's residual (IN_RESIDUAL), and those whose fit failed
+    result.meta["residual_sources"] = {"found": int(np.sum(
+        (result["source_flags"] & SourceFlag.IN_RESIDUAL) > 0)), "lost": n_lost}
     result.meta["weights"] = weights
     result.meta["read_noise_e"] = float(read_noise_e)
     result.meta["read_noise_source"] = noise_source

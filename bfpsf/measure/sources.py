@@ -43,7 +43,9 @@ class SourceFlag(MomentsFlag):
     under the star makes it larger, significantly and by more than its size error
     (`bfpsf.measure.neighbour_light`). ``UNLIKE_PSF`` (PSF photometry only): the fitted star,
     its neighbours' models subtracted, is larger or more elongated than the PSF at its flux (two
-    stars detection did not split, a galaxy; `bfpsf.measure.psf_likeness`).
+    stars detection did not split, a galaxy; `bfpsf.measure.psf_likeness`). ``IN_RESIDUAL`` (PSF
+    photometry only): found in the residual of the first fit, not by detection (a companion on
+    a bright star's wing, a faint star in a crowded field; `bfpsf.measure.residual_sources`).
     """
 
     BLENDED = 128
@@ -51,9 +53,10 @@ class SourceFlag(MomentsFlag):
     NO_COLOUR = 512
     NEIGHBOUR_LIGHT = 1024
     UNLIKE_PSF = 2048
+    IN_RESIDUAL = 4096
 
     NAMES = {**MomentsFlag.NAMES, 128: "blended", 256: "stamp_edge", 512: "no_colour",
-             1024: "neighbour_light", 2048: "unlike_psf"}
+             1024: "neighbour_light", 2048: "unlike_psf", 4096: "in_residual"}
 
 
 def source_flag_string(flags):

@@ -44,7 +44,7 @@ from ..diagnosis.observables import flat_observables, observables_from_sizes
 from ..diagnosis.spot_model import SpotForwardModel
 from ..diagnosis.tables import SizeTable
 from ..errors import BFPSFError, BFPSFValueError
-from ..measure import photometry
+from ..measure import photometry, read_noise
 from ..measure.slopes import PEAK_UNIT_E, fit_bf_slope
 from ..model import psf_fit
 from ..model.inverse import correct
@@ -323,11 +323,11 @@ def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts):
     magnitudes = {"static": [], "flux_dependent": [], "photutils_static": [],
                   "photutils_flux_dependent": []}
     quiet = _NoiselessSkyByDesign()
-    photometry.log.addFilter(quiet)
+    read_noise.log.addFilter(quiet)
     try:
         _photometry_of_spots(images, spots, fluxes, static, psf, config, magnitudes)
     finally:
-        photometry.log.removeFilter(quiet)
+        read_noise.log.removeFilter(quiet)
     for key, values in magnitudes.items():
         values = np.asarray(values)
         faint = values[spots.level == spots.level.min()].mean()
