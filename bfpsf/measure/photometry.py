@@ -42,8 +42,8 @@ __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 RESIDUAL_PASSES = 2
 
 #: How far a star's misfit reaches, in half-widths of the PSF's support
-#: (`bfpsf.measure.residual_sources`).
-MISFIT_REACH = 3.0
+#: (`bfpsf.measure.residual_sources`): beyond the support's edge too.
+MISFIT_REACH = 1.5
 
 #: Columns every photometry table holds (the ``bfpsf photometry`` contract), plus photutils'.
 PHOTOMETRY_COLUMNS = ["x_fit", "y_fit", "flux_fit", "flux_err", "flags"]
@@ -330,6 +330,11 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     # left peaks 13 px from its centre, beyond a 12 px support)
     reach = MISFIT_REACH * (getattr(psf, "half_size", None)
                             or float(np.max(np.atleast_1d(photometry.fit_shape))) / 2)
+    # the support about every saturated pixel: a clipped core is no model's (a fit's flux of
+    # it too low to tell its misfit by: 10 peaks of 1e4 e- 6-8 px from 3e6 e- stars)
+    clipped = None if saturation_e is None else ndimage.binary_dilation(
+        np.where(finite, image, 0.0) >= saturation_e, structure=np.ones((3, 3), dtype=bool),
+        iterations=int(reach / MISFIT_REACH) + 1)
     for residual_pass in range(1 + (int(residual_passes) if positions is None else 0)):
         if residual_pass:  # the stars detection missed, in the residual of the last fit
             stars = model_image(photometry, result, data.shape)
@@ -337,8 +342,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
                 data - stars, np.clip(sky.image(), 0.0, None) + np.clip(stars, 0.0, None)
                 + read_noise_e**2, np.column_stack([result["x_fit"], result["y_fit"]]),
                 threshold=detection_threshold, model_e=stars, known_flux=result["flux_fit"],
-                reach=reach, support=getattr(psf, "half_size", None), excluded=None if saturation_e is None else ndimage.binary_dilation(
-                    np.where(finite, image, 0.0) >= saturation_e, iterations=int(reach / 3) + 1))
+                reach=reach, support=getattr(psf, "half_size", None), excluded=clipped)
             if not len(found):
                 break
             source_flags = np.r_[np.zeros(len(init), np.int64) if source_flags is None

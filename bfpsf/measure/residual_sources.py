@@ -30,6 +30,10 @@ __all__ = ["residual_sources", "MODEL_ERROR"]
 #: worse), and a residual there is not a star; a companion on the wing is far above it.
 MODEL_ERROR = 0.05
 
+#: The most of a star's flux a misfit of it holds (the peak's 5 x 5 pixels): misfits found
+#: held 0.03-0.7 % (a wrong PSF, a poor grid, clipped cores), 1-2 % once.
+MISFIT_FRACTION = 0.01
+
 #: How near the edge of a star's support (pixels) a peak is taken for the model's end.
 SUPPORT_EDGE = 1.5
 
@@ -106,12 +110,6 @@ def residual_sources(residual_e, variance_e, known_xy, *, threshold, model_e=Non
         distance, _ = cKDTree(known_xy).query(np.column_stack([x, y]))
         keep = distance > COMPANION_SEPARATION
         x, y, rows, columns = x[keep], y[keep], rows[keep], columns[keep]
-    if len(x) and known_flux is not None and reach is not None:
-        opposite = _opposite_significance(significance, np.column_stack([x, y]), known_xy,
-                                          np.asarray(known_flux, float)[finite], reach,
-                                          support)
-        keep = significance[rows, columns] - opposite >= threshold
-        x, y, rows, columns = x[keep], y[keep], rows[keep], columns[keep]
     # light, not a pattern: the 5 x 5 pixels about the peak hold ``threshold`` times their
     # noise (a misfit's dipole or ring sums to about nothing: a 2 x 2 grid of 15 stars per
     # node left 18 peaks of 8-16 errors whose pixels held 1-500 e-)
@@ -120,17 +118,26 @@ def residual_sources(residual_e, variance_e, known_xy, *, threshold, model_e=Non
                    for values in (residual, variance))
     light = flux >= threshold * np.sqrt(error)
     x, y, rows, columns, flux = x[light], y[light], rows[light], columns[light], flux[light]
+    if len(x) and known_flux is not None and reach is not None:
+        opposite = _opposite_significance(significance, np.column_stack([x, y]), flux,
+                                          known_xy, np.asarray(known_flux, float)[finite],
+                                          reach, support)
+        keep = significance[rows, columns] - opposite >= threshold
+        x, y, rows, columns, flux = x[keep], y[keep], rows[keep], columns[keep], flux[keep]
     return Table({"x_init": x, "y_init": y, "flux_init": flux,
                   "source_flags": np.full(len(x), SourceFlag.IN_RESIDUAL, dtype=np.int64),
                   "significance": significance[rows, columns]})
 
 
-def _opposite_significance(significance, xy, known_xy, known_flux, reach, support=None):
-    """The highest significance within 2 pixels of the point opposite each peak ``xy`` through
-    the known star of largest flux over distance cubed within ``reach`` (a ring's peaks are
-    rarely exactly opposite): -inf where there is no such star, inf where that point is off
-    the image or the peak lies within `SUPPORT_EDGE` of the edge of that star's square
-    support of half-width ``support``."""
+def _opposite_significance(significance, xy, flux_xy, known_xy, known_flux, reach,
+                           support=None):
+    """The highest significance within 2 pixels of the point opposite each peak ``xy`` (of
+    light ``flux_xy``) through the known star of largest flux over distance cubed within
+    ``reach`` (a ring's peaks are rarely exactly opposite): inf where that point is off the
+    image or the peak lies within `SUPPORT_EDGE` of the edge of that star's square support of
+    half-width ``support``; -inf where there is no such star or the peak holds more than
+    `MISFIT_FRACTION` of its flux (a star's misfit is a small part of its light: faint
+    isolated stars 10-14 px from bright ones were taken for misfits)."""
     opposite = np.full(len(xy), -np.inf)
     if not len(known_xy):
         return opposite
@@ -142,6 +149,8 @@ def _opposite_significance(significance, xy, known_xy, known_flux, reach, suppor
         near = np.asarray(near, dtype=int)
         distance = np.hypot(*(known_xy[near] - xy[index]).T)
         host = near[np.argmax(flux[near] / np.maximum(distance, 1.0) ** 3)]
+        if flux_xy[index] > MISFIT_FRACTION * flux[host]:
+            continue
         if support is not None and abs(np.abs(xy[index] - known_xy[host]).max()
                                        - support) <= SUPPORT_EDGE:
             # at the edge of the host's square support, where its model ends and its wings
