@@ -12,6 +12,7 @@ detection missed are searched for in the fit's residual and fitted with the othe
 """
 
 import contextlib
+import logging
 import warnings
 
 import numpy as np
@@ -37,6 +38,11 @@ from ..model.wings import WingModel, wing_image
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
 
+log = logging.getLogger(__name__)
+
+#: photutils' flag of a fit that did not converge.
+NO_CONVERGENCE = 8
+
 #: Searches of the fit's residual for the stars detection missed (photutils'
 #: ``IterativePSFPhotometry`` iterates up to 3 times: detection, then two searches).
 RESIDUAL_PASSES = 2
@@ -61,14 +67,14 @@ def _initial_positions(image_e, detection_threshold):
 
 
 @contextlib.contextmanager
-def _found_fits(found=True):
-    """Where ``found``: photutils' warning that some fits did not converge is not passed on
-    (`bfpsf.measure.neighbour_fits.without_lost` leaves out the sources found in a residual
-    whose fit failed, and every star's flags say it); elsewhere nothing changes."""
+def _quiet():
+    """photutils' warning that some fits did not converge is not passed on: most fits here
+    are refitted (with the model's weights, with the sources found in a residual, without the
+    cross terms), and a new user read it beside a table whose every flag was 0; the final
+    fits' flags are said once (`psf_photometry`)."""
     with warnings.catch_warnings():
-        if found:
-            warnings.filterwarnings("ignore", message="One or more fit",
-                                    category=AstropyUserWarning)
+        warnings.filterwarnings("ignore", message="One or more fit",
+                                category=AstropyUserWarning)
         yield
 
 
@@ -323,7 +329,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     photometry = make_psf_photometry(psf, fit_shape=fit_shape, group_separation=group_separation,
                                      **kwargs)
     mask = mask if mask.any() else None
-    result = photometry(data, mask=mask, error=error, init_params=init)
+    with _quiet():
+        result = photometry(data, mask=mask, error=error, init_params=init)
     rows = None  # every star; then those near the sources found in the residual
     n_lost = 0
     # how far a star's misfit reaches: its wings beyond the support too (a 3e6 e- Moffat's
@@ -353,7 +360,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
                 photometry = make_psf_photometry(
                     psf, fit_shape=fit_shape, group_separation=group_separation,
                     **{"xy_bounds": COMPANION_SEPARATION, **kwargs})
-            with _found_fits():
+            with _quiet():
                 result = merged(result, fit_without_neighbours(
                     photometry, psf, data, mask, error, init, previous, rows), rows)
             # a found source its fit lost (merged into a neighbour, no flux) is not a star
@@ -376,7 +383,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
             model = np.clip(stars, 0.0, None)
             variance = np.clip(sky.image(), 0.0, None) + model + read_noise_e**2
             error = np.sqrt(np.maximum(variance, 1.0))
-            with _found_fits(residual_pass):
+            with _quiet():
                 if rows is None or rows.any():
                     result = merged(result, fit_without_neighbours(
                         photometry, psf, data, mask, error, init, result, rows), rows)
@@ -385,19 +392,22 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
                     init, source_flags, rows, result, detection_threshold + 3.0)
                 n_lost += lost
     n_cross = 0
-    found_any = source_flags is not None and bool(np.any(source_flags & SourceFlag.IN_RESIDUAL))
     if cross_terms and bfpsf_model and "group_size" in result.colnames:
         blended = np.asarray(result["group_size"]) > 1
         for _ in range(int(cross_terms) if blended.any() else 0):
             # Refit the blended stars on the data minus their BF on each other.
             cross = _cross_term_image(psf, result, data.shape)
-            with _found_fits(n_lost or found_any):
+            with _quiet():
                 refit = fit_without_neighbours(photometry, psf, data - cross, mask, error,
                                                 init, result, blended)
             for name in refit.colnames:
                 if name in result.colnames and name not in ("id", "group_id", "group_size"):
                     result[name][blended] = refit[name]
             n_cross += 1
+    unconverged = int(np.sum((np.asarray(result["flags"], dtype=int) & NO_CONVERGENCE) > 0))
+    if unconverged:
+        log.warning("%d of %d fits did not converge (bit %d of the flags column)", unconverged,
+                    len(result), NO_CONVERGENCE)
     result["source_flags"] = (np.zeros(len(result), dtype=np.int64) if source_flags is None
                               else source_flags[np.asarray(result["id"], dtype=int) - 1])
     # the product (the model, or a static P0's ``wings``): stars unlike its P(F) are flagged
