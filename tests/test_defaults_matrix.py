@@ -347,7 +347,10 @@ def test_photometry_says_where_a_gridded_psf_is_extrapolated(data, products, tmp
     capsys.readouterr()
     assert main(["photometry", images[0], "--psf", psf, "-o", str(tmp_path / "own.ecsv")]) == 0
     assert "beyond the field" not in capsys.readouterr().err
-    assert main(["photometry", str(tiled), "--psf", psf, "-o", str(tmp_path / "big.ecsv")]) == 0
+    # without the search of the residual: the tiles' seams cut stars, and at 61f4ad8 the search
+    # took 284 s on them (open, issue 22); the warning is what this test is about
+    assert main(["photometry", str(tiled), "--psf", psf, "-o", str(tmp_path / "big.ecsv"),
+                 "--residual-passes", "0"]) == 0
     warnings = [line for line in capsys.readouterr().err.splitlines() if "beyond" in line]
     table = Table.read(tmp_path / "big.ecsv")
     beyond = int(np.sum((table["x_fit"] > 221) | (table["y_fit"] > 221)))
