@@ -105,6 +105,13 @@ def fit_without_neighbours(photometry, psf, data, mask, error, init, previous, r
     return result
 
 
+def _fitted_xy(result):
+    """The fitted positions (N, 2), a failed fit's far off the image (for nearest-star
+    queries)."""
+    xy = np.column_stack([np.asarray(result["x_fit"], float), np.asarray(result["y_fit"], float)])
+    return np.where(np.isfinite(xy), xy, -1e9)
+
+
 def with_found(result, found, photometry, psf):
     """The fitted stars of ``result`` and the sources ``found`` in its residual as the previous
     fit of `fit_without_neighbours` (``id``, ``group_id``, ``x_fit``, ``y_fit``,
@@ -116,10 +123,9 @@ def with_found(result, found, photometry, psf):
     previous = Table({name: np.asarray(result[name]) for name in
                       ("id", "group_id", "x_fit", "y_fit", "flux_fit")})
     groups = np.asarray(result["group_id"], dtype=int)
-    xy = np.column_stack([np.asarray(result["x_fit"], float), np.asarray(result["y_fit"], float)])
-    xy = np.where(np.isfinite(xy), xy, -1e9)
+    tree = cKDTree(_fitted_xy(result))
     new_xy = np.column_stack([found["x_init"], found["y_init"]])
-    distance, nearest = cKDTree(xy).query(new_xy)
+    distance, nearest = tree.query(new_xy)
     separation = getattr(photometry.grouper, "min_separation", 0.0)
     new_groups = np.where(distance <= separation, groups[nearest],
                           groups.max() + 1 + np.arange(len(found)))
@@ -128,7 +134,7 @@ def with_found(result, found, photometry, psf):
         "x_fit": found["x_init"], "y_fit": found["y_init"], "flux_fit": found["flux_init"]})])
     reached = np.zeros(len(previous), dtype=bool)
     reached[len(result):] = True
-    for near in cKDTree(xy).query_ball_point(new_xy, _reach(photometry, psf)):
+    for near in tree.query_ball_point(new_xy, _reach(photometry, psf)):
         reached[np.asarray(near, dtype=int)] = True
     return previous, np.isin(previous["group_id"], previous["group_id"][reached])
 
@@ -141,9 +147,8 @@ def without_lost(init, source_flags, rows, result, threshold):
     companions; a bright core's misfit, 200-3000 e- 3-7 px from stars of 1e5-1e6 e-, the
     truncated wings of sky-free spots tiled side by side) or ended within
     `COMPANION_SEPARATION` of another star (the same star twice), and how many."""
-    x, y, flux, error = (np.asarray(result[name], dtype=float)
-                         for name in ("x_fit", "y_fit", "flux_fit", "flux_err"))
-    xy = np.where(np.isfinite(np.column_stack([x, y])), np.column_stack([x, y]), -1e9)
+    flux, error = (np.asarray(result[name], dtype=float) for name in ("flux_fit", "flux_err"))
+    xy = _fitted_xy(result)
     nearest = cKDTree(xy).query(xy, k=2)[0][:, 1] if len(xy) > 1 else np.full(len(xy), np.inf)
     failed = (np.asarray(result["flags"], dtype=int) & FAILED_FIT) > 0
     lost = ~(np.isfinite(flux) & (flux > threshold * error) & (nearest > COMPANION_SEPARATION)

@@ -335,13 +335,14 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
     n_lost = 0
     # how far a star's misfit reaches: its wings beyond the support too (a 3e6 e- Moffat's
     # left peaks 13 px from its centre, beyond a 12 px support)
-    reach = MISFIT_REACH * (getattr(psf, "half_size", None)
-                            or float(np.max(np.atleast_1d(photometry.fit_shape))) / 2)
+    half_width = (getattr(psf, "half_size", None)
+                  or float(np.max(np.atleast_1d(photometry.fit_shape))) / 2)
+    reach = MISFIT_REACH * half_width
     # the support about every saturated pixel: a clipped core is no model's (a fit's flux of
     # it too low to tell its misfit by: 10 peaks of 1e4 e- 6-8 px from 3e6 e- stars)
     clipped = None if saturation_e is None else ndimage.binary_dilation(
         np.where(finite, image, 0.0) >= saturation_e, structure=np.ones((3, 3), dtype=bool),
-        iterations=int(reach / MISFIT_REACH) + 1)
+        iterations=int(half_width) + 1)
     for residual_pass in range(1 + (int(residual_passes) if positions is None else 0)):
         if residual_pass:  # the stars detection missed, in the residual of the last fit
             stars = model_image(photometry, result, data.shape)
