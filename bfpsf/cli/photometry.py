@@ -39,8 +39,8 @@ def add_parser(subparsers):
     parser.add_argument("--read-noise", type=non_negative_float, default=None, metavar="E",
                         help="read noise, e- rms, for the pixel errors (with --background 0 "
                              "on sky-subtracted images: include the sky's noise; default the "
-                             "calibration's with --calib, measured on the image's sky where "
-                             "its PTC left it undetermined; else 0)")
+                             "calibration's with --calib where its PTC determined it, else "
+                             "measured on the image's sky)")
     star_image_options(parser, saturation="stars with a pixel at or above it in the fit box "
                                           "are flagged (column saturated and bit 8 of "
                                           "source_flags)")
@@ -112,13 +112,13 @@ def _read_noise(args, calibration):
     determined it (`Calibration.read_noise_determined`: beyond 2 errors, as ``calibrate``
     warns) and None where it did not: from the image's sky
     (`bfpsf.measure.read_noise.image_read_noise`; new users' calibrations had 0.43 +- 48.7
-    and 10.5 +- 6.8 e-, against 5 and 4.5), else 0. The Python path (`psf_photometry(...,
-    read_noise_e=...)`) gives the same numbers."""
+    and 10.5 +- 6.8 e-, against 5 and 4.5), as without a calibration. The Python path
+    (`psf_photometry(..., read_noise_e=...)`) gives the same numbers."""
     if args.read_noise is not None:
         return float(args.read_noise)
-    if calibration is None:
-        return 0.0
-    return float(calibration.noise_e) if calibration.read_noise_determined else None
+    if calibration is None or not calibration.read_noise_determined:
+        return None
+    return float(calibration.noise_e)
 
 
 def run(args):
@@ -210,8 +210,7 @@ def run(args):
                               "gain": amp_gain, "read_noise_e": table.meta["read_noise_e"],
                               "read_noise_source": (
                                   "--read-noise" if args.read_noise is not None else
-                                  "image" if read_noise is None else
-                                  "calibration" if one is not None else "default 0"),
+                                  "image" if read_noise is None else "calibration"),
                               "linearity_c_per_1e5": bf_model.linearity_c_per_1e5,
                               "n_stars": len(table),
                               "n_flagged": int(np.sum((table["flags"] != 0)
