@@ -8,6 +8,7 @@ misread (`open_product`). How outputs are written (atomically, all or nothing) i
 `bfpsf.outputs`.
 """
 
+import logging
 import os
 import warnings
 from contextlib import contextmanager
@@ -246,10 +247,15 @@ def reading(path, what):
 
 
 @contextmanager
-def about(path):
+def about(path, name_warnings=True):
     """Within this block, a `BFPSFInputError` (a problem of the data, not of an option) whose
-    message does not name ``path`` is raised again with ``path: `` in front (library
-    functions on arrays do not know the file)."""
+    message does not name ``path`` is raised again with ``path: `` in front, and, with
+    ``name_warnings``, a warning logged by the package gets it too (library functions on
+    arrays do not know the file: of three images, which one's sky is not a plane)."""
+    naming = _NamingPath(path)
+    handlers = logging.getLogger("bfpsf").handlers if name_warnings else []
+    for handler in handlers:
+        handler.addFilter(naming)
     try:
         yield
     except BFPSFInputError as error:
@@ -257,6 +263,23 @@ def about(path):
             raise
         msg = f"{path}: {error}"
         raise type(error)(msg, error.value) from None
+    finally:
+        for handler in handlers:
+            handler.removeFilter(naming)
+
+
+class _NamingPath(logging.Filter):
+    """Puts ``path: `` in front of a warning that does not name it."""
+
+    def __init__(self, path):
+        super().__init__()
+        self.path = str(path)
+
+    def filter(self, record):
+        message = record.getMessage()
+        if record.levelno >= logging.WARNING and self.path not in message:
+            record.msg, record.args = f"{self.path}: {message}", None
+        return True
 
 
 def read_table(path, what, *, format=None, numeric=()):  # noqa: A002

@@ -347,9 +347,12 @@ def test_photometry_says_where_a_gridded_psf_is_extrapolated(data, products, tmp
     capsys.readouterr()
     assert main(["photometry", images[0], "--psf", psf, "-o", str(tmp_path / "own.ecsv")]) == 0
     assert "beyond the field" not in capsys.readouterr().err
-    assert main(["photometry", str(tiled), "--psf", psf, "-o", str(tmp_path / "big.ecsv")]) == 0
+    assert main(["photometry", str(tiled), "--psf", psf, "-o", str(tmp_path / "big.ecsv"),
+                 "--json", str(tmp_path / "big.json")]) == 0
     warnings = [line for line in capsys.readouterr().err.splitlines() if "beyond" in line]
     table = Table.read(tmp_path / "big.ecsv")
+    summary = json.loads((tmp_path / "big.json").read_text())
+    assert summary["residual_passes"] == 2 and summary["n_in_residual"] == 0
     # the tiles' seams (sky steps of hundreds of e-, stars cut) are no stars: at d63c7c5 the
     # search of the residual took them for 737 (284 s), its noise from a read noise of 0
     # (the command's default without --calib) and any peak's light counted, round or not

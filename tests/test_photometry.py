@@ -594,6 +594,16 @@ def test_read_noise_from_the_image_when_the_calibration_left_it_undetermined(cli
         with caplog.at_level(logging.WARNING, logger="bfpsf"):
             psf_photometry(prepared, model, read_noise_e=noise)
         assert ("times what the image's sky pixels show" in caplog.text) == said, noise
+    # a sky the fitted plane does not follow (a new user's halves 220 e- apart: a read noise
+    # of 61.5 e- from the image, against 5, unsaid) is said; this field's sky is not
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="bfpsf"):
+        image_read_noise(prepared)
+        assert "the sky is not the fitted surface" not in caplog.text
+        stepped = fits.getdata(directory / "stars.fits") * 1.5
+        stepped[:, stepped.shape[1] // 2:] += 220.0
+        assert image_read_noise(prepare_image(stepped)) > 50.0
+        assert "the sky is not the fitted surface" in caplog.text
 
 
 def test_psf_says_when_its_calibration_makes_stars_shrink(cli_files, tmp_path, capsys):

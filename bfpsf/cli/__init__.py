@@ -191,11 +191,17 @@ def add_common_options(parser):
 
 
 class _StderrHandler(logging.StreamHandler):
-    """Log records to the current ``sys.stderr`` (which may be replaced after set-up)."""
+    """Log records to the current ``sys.stderr`` (which may be replaced after set-up), a
+    warning after ``WARNING:`` as the commands' own (docs/hostile_input.md), the rest after
+    ``bfpsf:``."""
 
     def emit(self, record):
         self.stream = sys.stderr
         super().emit(record)
+
+    def format(self, record):
+        prefix = record.levelname if record.levelno >= logging.WARNING else "bfpsf"
+        return f"{prefix}: {record.getMessage()}"
 
 
 def _apply_common_options(args):
@@ -206,9 +212,7 @@ def _apply_common_options(args):
     level = logging.WARNING + 10 * (args.quiet - args.verbose)
     logger.setLevel(min(max(level, logging.DEBUG), logging.CRITICAL))
     if not any(isinstance(handler, _StderrHandler) for handler in logger.handlers):
-        handler = _StderrHandler()
-        handler.setFormatter(logging.Formatter("bfpsf: %(message)s"))
-        logger.addHandler(handler)
+        logger.addHandler(_StderrHandler())
     if args.progress is None:
         args.progress = sys.stderr.isatty()
     from ..resources import check_settings

@@ -138,8 +138,8 @@ def _print(detector, calibration):
             # the PTC's intercept: flats far above the read noise do not measure it
             print(f"{prefix}WARNING: these flats do not determine the read noise "
                   f"({one.noise_e:.3f} +- {one.noise_e_err:.3f} e-); `bfpsf photometry` "
-                  f"takes it from the calibration unless given --read-noise (bias frames or "
-                  f"a flat level near the read noise measure it)")
+                  f"measures it on each image's sky unless given --read-noise (bias frames "
+                  f"or a flat level near the read noise measure it)")
         how = ("chosen from the data: " + one.parameters["maxlag_reason"]
                if one.parameters.get("maxlag_auto") else "given")
         print(f"{prefix}maxlag {one.maxlag} ({how})")

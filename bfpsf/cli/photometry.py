@@ -248,11 +248,12 @@ def run(args):
                "n_unlike_psf": _unlike(result),
                "empirical": result.meta["empirical"],
                "flux_correction_slope": result.meta["flux_correction_slope"]}
+    summary["residual_passes"] = args.residual_passes
+    summary["n_in_residual"] = sum(entry["residual_sources"]["found"] for entry in per_image)
+    summary["n_residual_lost"] = sum(entry["residual_sources"]["lost"] for entry in per_image)
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     n_blended = sum(entry["n_blended"] for entry in per_image)
-    summary["n_in_residual"] = sum(entry["residual_sources"]["found"] for entry in per_image)
-    summary["n_residual_lost"] = sum(entry["residual_sources"]["lost"] for entry in per_image)
     if n_twice:
         print(f"{n_twice} stars near a side two amplifiers share were fitted on both: the fit "
               "from the amplifier that holds the star's centre is kept, the other left out "
@@ -268,10 +269,11 @@ def run(args):
           f"({summary['n_flagged']} fits flagged by photutils or saturated, "
           f"{summary['n_saturated']} of them saturated; "
           f"{n_blended} fitted in a group with their neighbours; {unlike}"
-          f"{summary['n_in_residual']} found in the fit's residual, missed by detection "
-          f"({summary['n_residual_lost']} more found there left out: a failed fit, too faint "
-          "or the same star twice); "
-          f"detection's flags and unlike_psf in source_flags, bits in "
+          + (f"{summary['n_in_residual']} found in the fit's residual, missed by detection "
+             f"({summary['n_residual_lost']} more found there left out: a failed fit, too "
+             "faint or the same star twice); " if args.residual_passes else
+             "no search of the fit's residual (--residual-passes 0); ")
+          + "detection's flags and unlike_psf in source_flags, bits in "
           f"bfpsf.measure.sources.SourceFlag.NAMES); wrote {args.output}")
     return 0
 

@@ -139,7 +139,8 @@ def run(args):
                                                                      level)})
     # a FITS header is ASCII: other characters of the name stored escaped (\xe4, \u20ac)
     calibration_name = Path(args.calib).name.encode("ascii", "backslashreplace").decode()
-    with about(", ".join(map(str, args.images))), resource_option(f"--size {args.size}"):
+    with (about(", ".join(map(str, args.images)), name_warnings=False),
+          resource_option(f"--size {args.size}")):
         fitted = psf_from_images(prepared, calibrations, size=args.size,
                                  oversampling=args.oversampling, grid=args.grid,
                                  threshold=args.threshold, saturation_e=saturation,

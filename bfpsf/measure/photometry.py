@@ -171,7 +171,7 @@ def _check_groups(psf, fit_shape, group_separation, init):
         raise BFPSFValueError(msg, side)
 
 
-def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background_e=None,
+def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, background_e=None,
                    fit_shape=None, group_separation=None,
                    detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
                    linearity_c_per_1e5=None, flux_correction=None, wings=None,
@@ -192,8 +192,10 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=0.0, background
         default: detected with `bfpsf.measure.sources.measure_sources`.
     read_noise_e : float or None, optional
         Read noise, e- rms, for the pixel errors (Poisson noise of the image is included).
-        Default 0. None: from the image, `image_read_noise` (for a calibration whose PTC
-        left the read noise undetermined).
+        Default None: from the image's sky pixels, `image_read_noise` (their scatter about
+        the fitted sky less its Poisson variance: what the sky model misses counts as noise,
+        and is said when it exceeds the pixel-to-pixel noise), as `bfpsf photometry` does
+        without a calibration or where its PTC left the read noise undetermined.
     background_e : float, optional
         A known sky level, e- per pixel, subtracted before fitting; default the sky surface
         of the image (`bfpsf.measure.sky.estimate_sky`: a plane fitted beyond the masked

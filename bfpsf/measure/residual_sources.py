@@ -13,8 +13,8 @@ photutils' ``IterativePSFPhotometry`` does, but against the noise the fit predic
 the stars' Poisson noise, the read noise and `MODEL_ERROR` of each model pixel, for the PSF's
 own error at bright cores) rather than the image's RMS: the matched-filter significance of
 every peak, the same threshold as detection's companions. A source is light above the surface
-about it (what the sky model left there) and round (DAOFIND's roundness), so that a seam of
-the sky or a trail is none.
+about it (what the sky model left there) and shaped as the fitted stars, so that a seam of
+the sky, a trail or a cosmic ray is none.
 """
 
 import numpy as np
@@ -39,9 +39,14 @@ MISFIT_FRACTION = 0.01
 #: How near the edge of a star's support (pixels) a peak is taken for the model's end.
 SUPPORT_EDGE = 1.5
 
-#: DAOFIND's bound on a source's roundness (its marginals' heights, 2 (hx - hy) / (hx + hy)):
-#: a line (a seam of the sky, a trail) has one marginal flat, a star both alike.
+#: DAOFIND's bound on a source's roundness (its marginals' heights along x and y, 2 (hx -
+#: hy) / (hx + hy)): a line along a row or a column (a seam of the sky) has one marginal
+#: flat, a star both alike.
 MAX_ROUNDNESS = 1.0
+
+#: How far (pixels, each side) a source's line fraction samples the filtered residual: the
+#: mean along the best of 8 directions over the value at the peak (`_line_fractions`).
+LINE_LENGTH = 4
 
 #: The detection smoothing's FWHM, pixels (`measure_sources`' default).
 DETECTION_FWHM = 3.0
@@ -52,9 +57,9 @@ def residual_sources(residual_e, variance_e, known_xy, *, threshold, model_e=Non
                      detection_fwhm=DETECTION_FWHM):
     """Sources in the residual of a PSF fit: peaks of its matched filter at least
     ``threshold + 3`` times the filter's noise (detection's rule for the companions of a
-    merged segment, `bfpsf.measure.neighbours.smoothed_peaks`), whose light above the
-    quadratic surface about them is ``threshold`` times its noise and whose roundness is
-    within `MAX_ROUNDNESS`, more than
+    merged segment, `bfpsf.measure.neighbours.smoothed_peaks`), whose light, as it is and
+    above the quadratic surface about them, is ``threshold`` times its noise, shaped as a
+    star (`_line_fractions`: neither a line nor sharper than the fitted stars), more than
     `COMPANION_SEPARATION` pixels from every known source and, within ``reach`` of a known
     star, ``threshold`` above the point opposite through that star (the one of largest flux
     over distance cubed; the highest within 2 pixels of that point): a misfit of the star is
@@ -119,17 +124,29 @@ def residual_sources(residual_e, variance_e, known_xy, *, threshold, model_e=Non
         distance, _ = cKDTree(known_xy).query(np.column_stack([x, y]))
         keep = distance > COMPANION_SEPARATION
         x, y, rows, columns = x[keep], y[keep], rows[keep], columns[keep]
-    # light, not a pattern: the 5 x 5 pixels about the peak, above the surface about it, hold
-    # ``threshold`` times their noise (a misfit's dipole or ring sums to about nothing: a
-    # 2 x 2 grid of 15 stars per node left 18 peaks of 8-16 errors whose pixels held 1-500
-    # e-), and the source is round, not a line (a frame tiled 2 x 2, its seams steps of the
-    # sky of hundreds of e-: 737 sources found about 120 stars, 284 s of fits)
-    error = np.array([np.sum(variance[row - 2:row + 3, column - 2:column + 3])
-                      for row, column in zip(rows, columns)], dtype=float)
-    stamps = _stamps(residual, rows, columns)
-    flux = stamps[:, 2:-2, 2:-2].sum(axis=(1, 2))
-    light = ((flux >= threshold * np.sqrt(error))
-             & (np.abs(_roundness(stamps, detection_fwhm)) <= MAX_ROUNDNESS))
+    # light, not a pattern: the 5 x 5 pixels about the peak hold ``threshold`` times their
+    # noise, as they are (a misfit's dipole or ring sums to about nothing: a 2 x 2 grid of
+    # 15 stars per node left 18 peaks of 8-16 errors whose pixels held 1-500 e-) and above
+    # the surface about them (a level the sky model missed is no light: a frame tiled 2 x 2,
+    # its seams steps of the sky of hundreds of e-, gave 737 sources about 120 stars, 284 s
+    # of fits)
+    flux, error = (np.array([np.sum(values[row - 2:row + 3, column - 2:column + 3])
+                             for row, column in zip(rows, columns)], dtype=float)
+                   for values in (residual, variance))
+    stamps, surfaces = _stamps(residual, rows, columns)
+    flux = np.minimum(flux, stamps[:, 2:-2, 2:-2].sum(axis=(1, 2)))
+    star, point = _reference_fractions(model_e, known_xy, weights)
+    fraction = _line_fractions(filtered, rows, columns, surfaces)
+    # a star's shape: round, neither a line in any direction (the line fraction halfway from
+    # a star's to 1: a trail, a seam) nor sharper than the fitted stars (halfway to a single
+    # pixel's: a cosmic ray). Noise on a seam of the sky can pass the line fraction, a
+    # diagonal trail passes the roundness: with both, a new user's trails of 100, 200 and
+    # 400 e- per pixel left 19, 12 and 5 sources instead of 40, 33 and 32 (the trail's ends
+    # at the stars detection fitted on it have one side, as a companion's off-centre peak)
+    shaped = ((np.abs(_roundness(stamps, detection_fwhm)) <= MAX_ROUNDNESS)
+              & (fraction < star + 0.5 * (1.0 - star))
+              & (fraction > point + 0.5 * (star - point)))
+    light = (flux >= threshold * np.sqrt(error)) & shaped
     x, y, rows, columns, flux = x[light], y[light], rows[light], columns[light], flux[light]
     if len(x) and known_flux is not None and reach is not None:
         opposite = _opposite_significance(significance, np.column_stack([x, y]), flux,
@@ -180,22 +197,77 @@ def _opposite_significance(significance, xy, flux_xy, known_xy, known_flux, reac
 
 def _stamps(residual, rows, columns, inner=4, outer=7):
     """The residual's (2 ``inner`` + 1)^2 pixels about each peak, less the quadratic surface
-    fitted to the ring ``inner`` < |dx|, |dy| <= ``outer`` about it: what the sky model left
-    there (a level, a slope) and the curvature of a bright neighbour's wing, not light of the
-    peak."""
+    fitted to the ring ``inner`` < |dx|, |dy| <= ``outer`` about it (what the sky model left
+    there, a level or a slope, and the curvature of a bright neighbour's wing, not light of
+    the peak), and that surface's coefficients (1, dx, dy, dx^2, dx dy, dy^2)."""
     offsets = np.arange(-outer, outer + 1)
     dy, dx = (grid.ravel() for grid in np.meshgrid(offsets, offsets, indexing="ij"))
     ring = np.maximum(np.abs(dy), np.abs(dx)) > inner
-    design = np.column_stack([np.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy]).astype(float)
-    solver = np.linalg.pinv(design[ring])
+    solver = np.linalg.pinv(_quadratic(dx, dy)[ring])
     padded = np.pad(residual, outer, mode="edge")
     centre = slice(outer - inner, outer + inner + 1)
     stamps = np.empty((len(rows), 2 * inner + 1, 2 * inner + 1))
+    surfaces = np.empty((len(rows), 6))
     for index, (row, column) in enumerate(zip(rows, columns)):
         box = padded[row:row + 2 * outer + 1, column:column + 2 * outer + 1]
-        surface = design @ (solver @ box.ravel()[ring])
+        surfaces[index] = solver @ box.ravel()[ring]
+        surface = _quadratic(dx, dy) @ surfaces[index]
         stamps[index] = (box - surface.reshape(box.shape))[centre, centre]
-    return stamps
+    return stamps, surfaces
+
+
+def _quadratic(dx, dy):
+    dx, dy = np.asarray(dx, float), np.asarray(dy, float)
+    return np.column_stack([np.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy])
+
+
+def _line_fractions(filtered, rows, columns, surfaces=None, length=LINE_LENGTH):
+    """Each peak's line fraction: the lower of the means of the filtered image (less the
+    surface about the peak) at 1 to ``length`` pixels on either side of it, along the best of
+    8 directions, over its value at the peak: about 0.5 for a star, 1 for a line (a trail, a seam of the sky), 0.35
+    for a single pixel (a cosmic ray) through the detection filter."""
+    from scipy.ndimage import map_coordinates
+
+    steps = np.r_[-length:0, 1:length + 1].astype(float)
+    angles = np.arange(8) * np.pi / 8
+    dx, dy = np.outer(np.cos(angles), steps), np.outer(np.sin(angles), steps)
+    fractions = np.full(len(rows), np.inf)
+    for index, (row, column) in enumerate(zip(rows, columns)):
+        along = map_coordinates(filtered, [row + dy.ravel(), column + dx.ravel()], order=1,
+                                mode="nearest").reshape(dx.shape)
+        peak = filtered[row, column]
+        if surfaces is not None:
+            along = along - (_quadratic(dx.ravel(), dy.ravel()) @ surfaces[index]).reshape(
+                dx.shape)
+            peak = peak - surfaces[index][0]
+        if peak > 0:  # both sides: a star off the peak (on a wing's slope) has one
+            fractions[index] = np.minimum(along[:, :length].mean(axis=1),
+                                          along[:, length:].mean(axis=1)).max() / peak
+    return fractions
+
+
+def _reference_fractions(model_e, known_xy, weights):
+    """The line fraction of a star (the median over the known stars of the fitted models,
+    or a Gaussian as wide as the filter without them) and of a single pixel, through the
+    filter ``weights``."""
+    from astropy.convolution import convolve
+
+    size = weights.shape[0] + 2 * LINE_LENGTH + 2
+    point = np.zeros((size, size))
+    point[size // 2, size // 2] = 1.0
+    spread = convolve(point, weights, normalize_kernel=False)
+    centre = np.array([size // 2])
+    single = _line_fractions(spread, centre, centre)[0]
+    if model_e is not None and len(known_xy):
+        columns, rows = np.rint(known_xy).astype(int).T
+        inside = ((rows >= 0) & (rows < model_e.shape[0]) & (columns >= 0)
+                  & (columns < model_e.shape[1]))
+        if inside.any():
+            stars = convolve(np.clip(model_e, 0.0, None), weights, normalize_kernel=False,
+                             boundary="extend")
+            return float(np.median(_line_fractions(stars, rows[inside], columns[inside]))), single
+    return float(_line_fractions(convolve(spread, weights, normalize_kernel=False),
+                                 centre, centre)[0]), single
 
 
 def _roundness(stamps, fwhm, width=5):
