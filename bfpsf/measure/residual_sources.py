@@ -20,6 +20,7 @@ the sky, a trail or a cosmic ray is none.
 import numpy as np
 from astropy.convolution import convolve
 from astropy.table import Table
+from scipy.ndimage import map_coordinates
 from scipy.spatial import cKDTree
 
 from .neighbours import COMPANION_SEPARATION, local_peaks
@@ -226,8 +227,6 @@ def _line_fractions(filtered, rows, columns, surfaces=None, length=LINE_LENGTH):
     surface about the peak) at 1 to ``length`` pixels on either side of it, along the best of
     8 directions, over its value at the peak: about 0.5 for a star, 1 for a line (a trail, a seam of the sky), 0.35
     for a single pixel (a cosmic ray) through the detection filter."""
-    from scipy.ndimage import map_coordinates
-
     steps = np.r_[-length:0, 1:length + 1].astype(float)
     angles = np.arange(8) * np.pi / 8
     dx, dy = np.outer(np.cos(angles), steps), np.outer(np.sin(angles), steps)
@@ -250,8 +249,6 @@ def _reference_fractions(model_e, known_xy, weights):
     """The line fraction of a star (the median over the known stars of the fitted models,
     or a Gaussian as wide as the filter without them) and of a single pixel, through the
     filter ``weights``."""
-    from astropy.convolution import convolve
-
     size = weights.shape[0] + 2 * LINE_LENGTH + 2
     point = np.zeros((size, size))
     point[size // 2, size // 2] = 1.0
