@@ -160,6 +160,29 @@ def test_a_pair_fitted_as_one_star_is_flagged_unlike_the_psf(psf):
             np.testing.assert_array_equal(unlike, expected)
 
 
+def test_a_cosmic_ray_fitted_as_a_star_is_flagged_unlike_the_psf(psf):
+    """Cosmic rays (one pixel, or two along a row or a diagonal, 1500-8000 e- each) fitted as
+    stars are sharper than the PSF: ``UNLIKE_PSF`` (a new user's 27 cosmic rays fitted by
+    photometry had every flag 0, their adaptive moments stopping at the PSF's size); none of
+    the GalSim stars beside them is."""
+    from bfpsf.measure.sources import SourceFlag
+
+    rng = np.random.default_rng(23)
+    xy = grid_positions(10, 5, 30, rng)
+    fluxes = np.exp(rng.uniform(np.log(3e3), np.log(1.2e5), len(xy))) / PEAK_PER_FLUX
+    image = galsim_bf_stars(MOFFAT, xy, fluxes, (150, 300), SHIFTS)
+    image = image + SKY + rng.normal(0.0, 1.0, image.shape) * np.sqrt(image + SKY + 25.0)
+    hits = np.rint(xy[xy[:, 0] < 250][:20] + [15.0, 15.0]).astype(int)  # between the stars
+    for index, (column, row) in enumerate(hits):
+        image[row, column] += rng.uniform(1500.0, 8000.0)
+        if index % 3:  # a short track: two pixels
+            image[row + index % 3 - 1, column + 1] += rng.uniform(1500.0, 8000.0)
+    result = psf_photometry(image, psf, positions=np.vstack([xy, hits]), background_e=SKY,
+                            read_noise_e=5.0)
+    unlike = (np.asarray(result["source_flags"]) & SourceFlag.UNLIKE_PSF) > 0
+    np.testing.assert_array_equal(unlike, np.arange(len(result)) >= len(xy))
+
+
 def test_two_models_of_one_class_fitted_in_turn():
     """photutils 3.0 caches its grouped-fit model class by (group size, model class): a second
     FluxDependentPSF fitted after a first one evaluated the first's P0 in its groups

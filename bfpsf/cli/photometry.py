@@ -263,8 +263,8 @@ def run(args):
     if warning:
         print(warning, file=sys.stderr)
     # with --static too, each star against the product's P(F) (psf_photometry's ``wings``)
-    unlike = (f"{summary['n_unlike_psf']} unlike the PSF (two stars fitted as one, a "
-              "galaxy); ")
+    unlike = (f"{summary['n_unlike_psf']} unlike the PSF (two stars fitted as one, a galaxy, "
+              "a cosmic ray); ")
     print(f"{len(result)} stars fitted in {len(args.images)} image(s) "
           f"({summary['n_flagged']} fits flagged by photutils or saturated, "
           f"{summary['n_saturated']} of them saturated; "

@@ -1,5 +1,5 @@
 """Fitted stars whose image is not the PSF's (`unlike_psf`): two stars too close for detection
-to split, a galaxy or a cosmic ray, fitted as one star. `psf_photometry` flags them
+to split, a galaxy, or a cosmic ray (sharper than the PSF), fitted as one star. `psf_photometry` flags them
 ``UNLIKE_PSF`` in ``source_flags``.
 
 A new user's crowded E2V field (880 true stars, 740 detections) had 55 stars with a neighbour
@@ -30,6 +30,10 @@ UNLIKE_SIZE = 0.08
 #: here each star meets the model at its own flux; a pair 2 pixels apart with fluxes 1:0.35
 #: (326 mmag too bright) is 0.09 in e.
 UNLIKE_SHAPE = 0.05
+#: ... or sharper than the PSF: its brightest pixel near the centre this much above the
+#: model's, as a fraction of the model's (a cosmic ray or a hot pixel fitted as a star: the
+#: adaptive moments of one pixel stop at the size of their smallest weight, the PSF's).
+UNLIKE_PEAK = 0.5
 #: `_common_trend` is fitted on at most this many stars
 TREND_STARS = 400
 
@@ -82,8 +86,19 @@ def unlike_psf(residual_e, x, y, flux, psf, background_variance):
         # a blend or a galaxy is larger than a star, never smaller
         beyond |= (offset if index == 0 else np.abs(offset)) > np.maximum(
             UNLIKE_SIZE if index == 0 else UNLIKE_SHAPE, MISFIT_SIGMA * error)
-    out[rows] = good & beyond
+    out[rows] = (good & beyond) | _sharper(stamps, model, flux[rows], background_variance)
     return out
+
+
+def _sharper(stamps, model, flux, background_variance):
+    """Stamps whose brightest pixel of the central 3 x 3 is `UNLIKE_PEAK` of the model's and
+    `MISFIT_SIGMA` of its noise above the model's (the model at the star's flux)."""
+    centre = model.shape[-1] // 2
+    core = (slice(None), slice(centre - 1, centre + 2), slice(centre - 1, centre + 2))
+    peak = stamps[core].reshape(len(stamps), -1).max(axis=1)
+    predicted = flux * model[core].reshape(len(model), -1).max(axis=1)
+    noise = np.sqrt(np.clip(predicted, 0.0, None) + background_variance)
+    return peak - predicted > np.maximum(UNLIKE_PEAK * predicted, MISFIT_SIGMA * noise)
 
 
 def _common_trend(offset, flux, good):

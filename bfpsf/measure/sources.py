@@ -42,8 +42,9 @@ class SourceFlag(MomentsFlag):
     given but no entry lies within ``match_radius``. ``NEIGHBOUR_LIGHT`` : neighbours' light
     under the star makes it larger, significantly and by more than its size error
     (`bfpsf.measure.neighbour_light`). ``UNLIKE_PSF`` (PSF photometry only): the fitted star,
-    its neighbours' models subtracted, is larger or more elongated than the PSF at its flux (two
-    stars detection did not split, a galaxy; `bfpsf.measure.psf_likeness`). ``IN_RESIDUAL`` (PSF
+    its neighbours' models subtracted, is larger, more elongated or sharper than the PSF at its
+    flux (two stars detection did not split, a galaxy, a cosmic ray;
+    `bfpsf.measure.psf_likeness`). ``IN_RESIDUAL`` (PSF
     photometry only): found in the residual of the first fit, not by detection (a companion on
     a bright star's wing, a faint star in a crowded field; `bfpsf.measure.residual_sources`).
     """
