@@ -586,7 +586,7 @@ def test_read_noise_from_the_image_when_the_calibration_left_it_undetermined(cli
     from astropy.io import fits
 
     from bfpsf.cli.photometry import _read_noise
-    from bfpsf.measure.read_noise import image_read_noise, sky_variance
+    from bfpsf.measure.read_noise import check_sky, image_read_noise, sky_variance
     from bfpsf.measure.prepare import prepare_image
 
     directory, _, _ = cli_files
@@ -618,14 +618,17 @@ def test_read_noise_from_the_image_when_the_calibration_left_it_undetermined(cli
             psf_photometry(prepared, model, read_noise_e=noise)
         assert ("times what the image's sky pixels show" in caplog.text) == said, noise
     # a sky the fitted plane does not follow (a new user's halves 220 e- apart: a read noise
-    # of 61.5 e- from the image, against 5, unsaid) is said; this field's sky is not
+    # of 61.5 e- from the image, against 5, unsaid) is said, and its scatter over the pixel-
+    # to-pixel variance is in the table's meta; this field's sky is not said
+    assert 0.9 < table.meta["sky_scatter"] < 1.1
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="bfpsf"):
-        image_read_noise(prepared)
+        assert 0.9 < check_sky(prepared) < 1.1
         assert "the sky is not the fitted surface" not in caplog.text
         stepped = fits.getdata(directory / "stars.fits") * 1.5
         stepped[:, stepped.shape[1] // 2:] += 220.0
-        assert image_read_noise(prepare_image(stepped)) > 50.0
+        stepped = prepare_image(stepped)
+        assert image_read_noise(stepped) > 50.0 and check_sky(stepped) > 4.0
         assert "the sky is not the fitted surface" in caplog.text
 
 

@@ -103,3 +103,21 @@ def test_a_level_the_sky_model_missed_is_no_star():
     distance = np.hypot(found["x_init"][:, None] - stars[:, 0], found["y_init"][:, None]
                         - stars[:, 1])
     assert np.all(distance.min(axis=1) < 1.5)
+
+
+def test_a_refit_starts_where_the_fit_before_is_sane():
+    """A refit starts from the fit before where that is finite and of positive flux, else
+    from its start: a fit on a satellite trail went to a flux of -6e7 and its refits ran off
+    to x = 3.8e8, a row of NaN in the output."""
+    from astropy.table import Table
+
+    from bfpsf.measure.neighbour_fits import _refit_init
+
+    init = Table({"x_init": [10.0, 20.0, 30.0], "y_init": [5.0, 6.0, 7.0],
+                  "flux_init": [1e4, 2e4, 3e4]})
+    result = Table({"x_fit": [10.5, 3.8e8, np.nan], "y_fit": [5.5, 2e8, 7.0],
+                    "flux_fit": [1.1e4, -6e7, 3e4]})
+    start = _refit_init(init, result)
+    np.testing.assert_array_equal(start["x_init"], [10.5, 20.0, 30.0])
+    np.testing.assert_array_equal(start["y_init"], [5.5, 6.0, 7.0])
+    np.testing.assert_array_equal(start["flux_init"], [1.1e4, 2e4, 3e4])

@@ -42,7 +42,7 @@ def add_parser(subparsers):
                              "calibration's with --calib where its PTC determined it, else "
                              "measured on the image's sky)")
     star_image_options(parser, saturation="stars with a pixel at or above it in the fit box "
-                                          "are flagged (column saturated and bit 8 of "
+                                          "are flagged (column saturated and flag value 8 in "
                                           "source_flags)")
     parser.add_argument("--fit-shape", type=positive_int, default=None,
                         help="fit box, pixels, odd (default about 3 FWHM)")
@@ -211,6 +211,7 @@ def run(args):
                               "read_noise_source": (
                                   "--read-noise" if args.read_noise is not None else
                                   "image" if read_noise is None else "calibration"),
+                              "sky_scatter": table.meta["sky_scatter"],
                               "linearity_c_per_1e5": bf_model.linearity_c_per_1e5,
                               "n_stars": len(table),
                               "n_flagged": int(np.sum((table["flags"] != 0)

@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from ..errors import BFPSFInputError, BFPSFValueError
+from ..errors import BFPSFInputError, BFPSFValueError, BFPSFWarning
 from ..interop.photutils import (default_fit_shape, describe_outlying_nodes,
                                 make_psf_photometry, outlying_nodes)
 from ..model.base import BFPSFModel
@@ -31,7 +31,7 @@ from .neighbour_fits import fit_without_neighbours, merged, model_image, with_fo
 from .neighbours import COMPANION_SEPARATION, sources_with_companions
 from .prepare import PreparedImage, prepare_image
 from .psf_likeness import unlike_psf
-from .read_noise import check_read_noise, image_read_noise
+from .read_noise import check_read_noise, check_sky, image_read_noise
 from .residual_sources import residual_sources
 from .sources import DETECTION_THRESHOLD, SourceFlag
 from ..model.wings import WingModel, wing_image
@@ -71,10 +71,14 @@ def _quiet():
     """photutils' warning that some fits did not converge is not passed on: most fits here
     are refitted (with the model's weights, with the sources found in a residual, without the
     cross terms), and a new user read it beside a table whose every flag was 0; the final
-    fits' flags are said once (`psf_photometry`)."""
+    fits' flags are said once (`psf_photometry`). Nor is the model's warning of a flux beyond
+    its first-order range met on the fitter's way (-6e7 e- on a satellite trail, printed 8
+    times with photutils' source lines): the final fluxes beyond it are said once."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="One or more fit",
                                 category=AstropyUserWarning)
+        warnings.filterwarnings("ignore", message="flux .* is beyond the first-order BF model",
+                                category=BFPSFWarning)
         yield
 
 
@@ -300,6 +304,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
         prepared = prepare_image(image, background_e=background_e,
                                  linearity_c_per_1e5=linearity_c_per_1e5)
     image, sky = prepared.image_e, prepared.sky
+    scatter = check_sky(prepared)
     noise_source = "given"
     if read_noise_e is None:
         read_noise_e, noise_source = image_read_noise(prepared), "image"
@@ -407,9 +412,14 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
                 if name in result.colnames and name not in ("id", "group_id", "group_size"):
                     result[name][blended] = refit[name]
             n_cross += 1
+    limit = getattr(psf, "first_order_flux", np.inf)
+    beyond = int(np.sum(np.asarray(result["flux_fit"], dtype=float) > limit))
+    if beyond:
+        log.warning("%d of %d fitted fluxes are beyond the first-order BF model (P(F) goes "
+                    "negative above %.3g for these boundary shifts)", beyond, len(result), limit)
     unconverged = int(np.sum((np.asarray(result["flags"], dtype=int) & NO_CONVERGENCE) > 0))
     if unconverged:
-        log.warning("%d of %d fits did not converge (bit %d of the flags column)", unconverged,
+        log.warning("%d of %d fits did not converge (flag value %d in the flags column)", unconverged,
                     len(result), NO_CONVERGENCE)
     result["source_flags"] = (np.zeros(len(result), dtype=np.int64) if source_flags is None
                               else source_flags[np.asarray(result["id"], dtype=int) - 1])
@@ -454,6 +464,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     result.meta["weights"] = weights
     result.meta["read_noise_e"] = float(read_noise_e)
     result.meta["read_noise_source"] = noise_source
+    # the sky pixels' scatter about the fitted sky over their pixel-to-pixel variance
+    result.meta["sky_scatter"] = scatter
     result.meta["flux_unit"] = "electron"
     # the EMPIRICAL term of a refined calibration the model applied (issue 22), labelled
     term = getattr(psf, "empirical", None) if bfpsf_model else None
