@@ -339,13 +339,13 @@ def _stage_psf(config, spots, measured_sizes, twin_sizes, raw, shifts):
 
 
 class _NoiselessSkyByDesign(logging.Filter):
-    """Drops `psf_photometry`'s read-noise check: the spots' photometry adds a noiseless sky
-    and weighs with the sky's and the read noise's variance by design, which the check
-    reported for every spot (88 warnings in ``bfpsf validate --quick``: a new user's terminal
-    flooded)."""
+    """Drops `psf_photometry`'s read-noise and sky checks: the spots' photometry adds a
+    noiseless sky and weighs with the sky's and the read noise's variance by design, which
+    the checks reported for every spot (88 warnings in ``bfpsf validate --quick``: a new
+    user's terminal flooded)."""
 
     def filter(self, record):
-        return not record.getMessage().startswith("read noise")
+        return not record.getMessage().startswith(("read noise", "the sky pixels scatter"))
 
 
 def _photometry_of_spots(images, spots, fluxes, static, psf, config, magnitudes):
