@@ -419,8 +419,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
                     "negative above %.3g for these boundary shifts)", beyond, len(result), limit)
     unconverged = int(np.sum((np.asarray(result["flags"], dtype=int) & NO_CONVERGENCE) > 0))
     if unconverged:
-        log.warning("%d of %d fits did not converge (flag value %d in the flags column)", unconverged,
-                    len(result), NO_CONVERGENCE)
+        log.warning("%d of %d fits did not converge (flag value %d in the flags column)",
+                    unconverged, len(result), NO_CONVERGENCE)
     result["source_flags"] = (np.zeros(len(result), dtype=np.int64) if source_flags is None
                               else source_flags[np.asarray(result["id"], dtype=int) - 1])
     # the product (the model, or a static P0's ``wings``): stars unlike its P(F) are flagged

@@ -1,6 +1,6 @@
 """Fitted stars whose image is not the PSF's (`unlike_psf`): two stars too close for detection
-to split, a galaxy, or a cosmic ray (sharper than the PSF), fitted as one star. `psf_photometry` flags them
-``UNLIKE_PSF`` in ``source_flags``.
+to split, a galaxy, or a cosmic ray (sharper than the PSF), fitted as one star.
+`psf_photometry` flags them ``UNLIKE_PSF`` in ``source_flags``.
 
 A new user's crowded E2V field (880 true stars, 740 detections) had 55 stars with a neighbour
 closer than 5 pixels; detection merged them and the fit returned the pair's light as one star,

@@ -45,8 +45,8 @@ SUPPORT_EDGE = 1.5
 #: flat, a star both alike.
 MAX_ROUNDNESS = 1.0
 
-#: How far (pixels, each side) a source's line fraction samples the filtered residual: the
-#: mean along the best of 8 directions over the value at the peak (`_line_fractions`).
+#: How far (pixels, each side) a source's line fraction samples the filtered residual
+#: (`_line_fractions`).
 LINE_LENGTH = 4
 
 #: The detection smoothing's FWHM, pixels (`measure_sources`' default).
@@ -136,7 +136,10 @@ def residual_sources(residual_e, variance_e, known_xy, *, threshold, model_e=Non
                    for values in (residual, variance))
     stamps, surfaces = _stamps(residual, rows, columns)
     flux = np.minimum(flux, stamps[:, 2:-2, 2:-2].sum(axis=(1, 2)))
-    star, point = _reference_fractions(model_e, known_xy, weights)
+    # the fitted stars' own line fraction (a convolution of the whole model image): only
+    # when a peak is left to compare with it
+    star, point = (_reference_fractions(model_e, known_xy, weights) if len(x)
+                   else (np.nan, np.nan))
     fraction = _line_fractions(filtered, rows, columns, surfaces)
     # a star's shape: round, neither a line in any direction (the line fraction halfway from
     # a star's to 1: a trail, a seam) nor sharper than the fitted stars (halfway to a single
@@ -205,6 +208,7 @@ def _stamps(residual, rows, columns, inner=4, outer=7):
     dy, dx = (grid.ravel() for grid in np.meshgrid(offsets, offsets, indexing="ij"))
     ring = np.maximum(np.abs(dy), np.abs(dx)) > inner
     solver = np.linalg.pinv(_quadratic(dx, dy)[ring])
+    design = _quadratic(dx, dy)
     padded = np.pad(residual, outer, mode="edge")
     centre = slice(outer - inner, outer + inner + 1)
     stamps = np.empty((len(rows), 2 * inner + 1, 2 * inner + 1))
@@ -212,8 +216,7 @@ def _stamps(residual, rows, columns, inner=4, outer=7):
     for index, (row, column) in enumerate(zip(rows, columns)):
         box = padded[row:row + 2 * outer + 1, column:column + 2 * outer + 1]
         surfaces[index] = solver @ box.ravel()[ring]
-        surface = _quadratic(dx, dy) @ surfaces[index]
-        stamps[index] = (box - surface.reshape(box.shape))[centre, centre]
+        stamps[index] = (box - (design @ surfaces[index]).reshape(box.shape))[centre, centre]
     return stamps, surfaces
 
 
@@ -225,19 +228,19 @@ def _quadratic(dx, dy):
 def _line_fractions(filtered, rows, columns, surfaces=None, length=LINE_LENGTH):
     """Each peak's line fraction: the lower of the means of the filtered image (less the
     surface about the peak) at 1 to ``length`` pixels on either side of it, along the best of
-    8 directions, over its value at the peak: about 0.5 for a star, 1 for a line (a trail, a seam of the sky), 0.35
-    for a single pixel (a cosmic ray) through the detection filter."""
+    8 directions, over its value at the peak: about 0.5 for a star, 1 for a line (a trail, a
+    seam of the sky), 0.35 for a single pixel (a cosmic ray) through the detection filter."""
     steps = np.r_[-length:0, 1:length + 1].astype(float)
     angles = np.arange(8) * np.pi / 8
     dx, dy = np.outer(np.cos(angles), steps), np.outer(np.sin(angles), steps)
+    design = _quadratic(dx.ravel(), dy.ravel())
     fractions = np.full(len(rows), np.inf)
     for index, (row, column) in enumerate(zip(rows, columns)):
         along = map_coordinates(filtered, [row + dy.ravel(), column + dx.ravel()], order=1,
                                 mode="nearest").reshape(dx.shape)
         peak = filtered[row, column]
         if surfaces is not None:
-            along = along - (_quadratic(dx.ravel(), dy.ravel()) @ surfaces[index]).reshape(
-                dx.shape)
+            along = along - (design @ surfaces[index]).reshape(dx.shape)
             peak = peak - surfaces[index][0]
         if peak > 0:  # both sides: a star off the peak (on a wing's slope) has one
             fractions[index] = np.minimum(along[:, :length].mean(axis=1),
