@@ -227,7 +227,9 @@ def run(args):
                               "n_unlike_psf": _unlike(table),
                               "n_beyond_flats": beyond,
                               "cross_term_refits": table.meta["cross_term_refits"],
-                              "residual_sources": table.meta["residual_sources"]})
+                              "residual_sources": table.meta["residual_sources"],
+                              "line_pixels": table.meta["line_pixels"],
+                              "n_on_line": _flagged(table, SourceFlag.ON_LINE)})
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     # a star near a shared side is fitted on both amplifiers: the fit from its own is kept
     result, n_twice = one_fit_per_star(result, 2 * psf_fwhm(psf), x="x_fit", y="y_fit")
@@ -247,6 +249,7 @@ def run(args):
                "n_saturated": int(np.sum(result["saturated"])), "images": per_image,
                "n_fitted_twice": n_twice,
                "n_unlike_psf": _unlike(result),
+               "n_on_line": _flagged(result, SourceFlag.ON_LINE),
                "empirical": result.meta["empirical"],
                "flux_correction_slope": result.meta["flux_correction_slope"]}
     summary["residual_passes"] = args.residual_passes
@@ -274,11 +277,19 @@ def run(args):
              f"({summary['n_residual_lost']} more found there left out: a failed fit, too "
              "faint or the same star twice); " if args.residual_passes else
              "no search of the fit's residual (--residual-passes 0); ")
+          + (f"{sum(entry['line_pixels'] for entry in per_image)} pixels of trails or hot "
+             f"columns left out, {summary['n_on_line']} stars beside them flagged on_line; "
+             if any(entry["line_pixels"] for entry in per_image) else "")
           + "detection's flags and unlike_psf in source_flags, bits in "
           f"bfpsf.measure.sources.SourceFlag.NAMES); wrote {args.output}")
     return 0
 
 
+def _flagged(table, flag):
+    """How many fitted stars have the `SourceFlag` ``flag`` in ``source_flags``."""
+    return int(np.sum((np.asarray(table["source_flags"]) & flag) > 0))
+
+
 def _unlike(table):
     """How many fitted stars are flagged ``UNLIKE_PSF`` (`bfpsf.measure.psf_likeness`)."""
-    return int(np.sum((np.asarray(table["source_flags"]) & SourceFlag.UNLIKE_PSF) > 0))
+    return _flagged(table, SourceFlag.UNLIKE_PSF)

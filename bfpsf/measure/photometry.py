@@ -32,6 +32,7 @@ from .neighbours import COMPANION_SEPARATION, sources_with_companions
 from .prepare import PreparedImage, prepare_image
 from .psf_likeness import unlike_psf
 from .read_noise import check_read_noise, check_sky, image_read_noise
+from .line_features import in_fit_boxes, line_mask
 from .residual_sources import residual_sources
 from .sources import DETECTION_THRESHOLD, SourceFlag
 from ..model.wings import WingModel, wing_image
@@ -179,7 +180,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
                    fit_shape=None, group_separation=None,
                    detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
                    linearity_c_per_1e5=None, flux_correction=None, wings=None,
-                   residual_passes=RESIDUAL_PASSES, saturation_e=None, **kwargs):
+                   residual_passes=RESIDUAL_PASSES, saturation_e=None, mask_lines=True,
+                   **kwargs):
     """Fit every star of an image with the flux-dependent PSF.
 
     Parameters
@@ -254,6 +256,10 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
         Saturation level, e- (sky included): no source is sought within the PSF's support of
         a pixel at or above it (a clipped core is no model's; 38 saturated stars left 38
         peaks beside them).
+    mask_lines : bool, optional
+        With detected stars: the pixels of trails and hot columns
+        (`bfpsf.measure.line_features.line_mask`) are left out of detection and of every
+        fit, and a star whose fit box holds some is flagged ``ON_LINE`` (default True).
     **kwargs
         Passed to `photutils.psf.PSFPhotometry`.
 
@@ -313,9 +319,12 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     variance = np.clip(np.where(finite, image, 0.0), 0.0, None) + read_noise_e**2
     error = np.sqrt(np.where(variance > 0, variance, 1.0))
     data = prepared.sky_subtracted
-    mask = ~finite
+    # trails and hot columns: left out of detection and of every fit
+    lines = (line_mask(np.where(finite, data, 0.0), threshold=detection_threshold)
+             if positions is None and mask_lines else np.zeros(image.shape, dtype=bool))
+    mask = ~finite | lines
     if positions is None:
-        init = _initial_positions(np.where(finite, data, 0.0), detection_threshold)
+        init = _initial_positions(np.where(mask, 0.0, data), detection_threshold)
     elif isinstance(positions, Table):
         init = positions
     else:
@@ -357,7 +366,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
                 data - stars, np.clip(sky.image(), 0.0, None) + np.clip(stars, 0.0, None)
                 + read_noise_e**2, np.column_stack([result["x_fit"], result["y_fit"]]),
                 threshold=detection_threshold, model_e=stars, known_flux=result["flux_fit"],
-                reach=reach, support=getattr(psf, "half_size", None), excluded=clipped)
+                reach=reach, support=getattr(psf, "half_size", None),
+                excluded=lines if clipped is None else clipped | lines)
             if not len(found):
                 break
             source_flags = np.r_[np.zeros(len(init), np.int64) if source_flags is None
@@ -426,10 +436,13 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     # the product (the model, or a static P0's ``wings``): stars unlike its P(F) are flagged
     product = psf if bfpsf_model else wings
     if isinstance(product, BFPSFModel):
-        residual = data - model_image(photometry, result, data.shape)
+        residual = np.where(lines, 0.0, data - model_image(photometry, result, data.shape))
         unlike = unlike_psf(residual, result["x_fit"], result["y_fit"], result["flux_fit"],
                             product, max(float(sky.level), 0.0) + float(read_noise_e)**2)
         result["source_flags"] |= np.where(unlike, SourceFlag.UNLIKE_PSF, 0)
+    result["source_flags"] |= np.where(in_fit_boxes(lines, result["x_fit"], result["y_fit"],
+                                                    photometry.fit_shape),
+                                       SourceFlag.ON_LINE, 0)
     # the total flux: the light beyond P0's support (measured when the PSF was fitted), at
     # each star's place (a grid's changes across the image)
     given = flux_correction is not None or not isinstance(product, BFPSFModel)
@@ -467,6 +480,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     # the sky pixels' scatter about the fitted sky over their pixel-to-pixel variance
     result.meta["sky_scatter"] = scatter
     result.meta["flux_unit"] = "electron"
+    result.meta["line_pixels"] = int(lines.sum())
     # the EMPIRICAL term of a refined calibration the model applied (issue 22), labelled
     term = getattr(psf, "empirical", None) if bfpsf_model else None
     result.meta["empirical"] = None if term is None else term.to_dict()

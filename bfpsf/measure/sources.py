@@ -47,6 +47,8 @@ class SourceFlag(MomentsFlag):
     `bfpsf.measure.psf_likeness`). ``IN_RESIDUAL`` (PSF
     photometry only): found in the residual of the first fit, not by detection (a companion on
     a bright star's wing, a faint star in a crowded field; `bfpsf.measure.residual_sources`).
+    ``ON_LINE`` (PSF photometry only): the star's fit box holds pixels of a trail or a hot
+    column, left out of its fit (`bfpsf.measure.line_features`).
     """
 
     BLENDED = 128
@@ -55,9 +57,11 @@ class SourceFlag(MomentsFlag):
     NEIGHBOUR_LIGHT = 1024
     UNLIKE_PSF = 2048
     IN_RESIDUAL = 4096
+    ON_LINE = 8192
 
     NAMES = {**MomentsFlag.NAMES, 128: "blended", 256: "stamp_edge", 512: "no_colour",
-             1024: "neighbour_light", 2048: "unlike_psf", 4096: "in_residual"}
+             1024: "neighbour_light", 2048: "unlike_psf", 4096: "in_residual",
+             8192: "on_line"}
 
 
 def source_flag_string(flags):
