@@ -26,6 +26,7 @@ import numpy as np
 
 from .errors import BFPSFInputError, BFPSFValueError
 from .measure.bf_agreement import bf_agreement
+from .measure.line_features import line_mask
 from .measure.neighbours import isolated_stars
 from .measure.sources import DETECTION_THRESHOLD
 from .measure.total_flux import fit_sky_and_wings, wing_gradient
@@ -55,7 +56,8 @@ class PSFFromImages:
         The fitted model with its metadata (``flux_correction``, ``linearity_c_per_1e5``, ...).
     fit : bfpsf.model.psf_fit.PSFFitResult
     images : list of dict
-        Per image: ``n_detected``, ``n_isolated``, ``n_excluded``, ``background_e`` (the sky at
+        Per image: ``n_detected``, ``n_isolated``, ``n_excluded``, ``line_pixels`` (of trails
+        and hot columns, left out: `bfpsf.measure.line_features`), ``background_e`` (the sky at
         the image centre), ``sky_slope`` (e- per pixel per pixel in x, y), ``size_offset``
         (its stars' size over P0's, minus 1, with ``size_offset_err`` and ``n_sized``) and
         ``seeing_bias_mmag`` (the photometry bias that implies; `_size_offsets`), and
@@ -140,15 +142,18 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         calibrations = [calibrations] * len(images)
     saturation = np.broadcast_to(np.asarray(saturation_e if saturation_e is not None
                                             else np.nan, dtype=float), (len(images),))
-    positions, others, per_image = [], [], []
+    positions, others, per_image, lines = [], [], [], []
     for index, prepared in enumerate(images):
         data = prepared.sky_subtracted
         # the level in the sky-subtracted image: below it wherever the sky is highest (a
         # clipped pixel minus a sloped sky falls under the level minus the sky's mean)
         level = None if not np.isfinite(saturation[index]) else float(
             saturation[index] - prepared.sky.image().max())
+        # trails and hot columns: no star beside them is used, and the sky-and-wings fit
+        # leaves their pixels out
+        lines.append(line_mask(np.where(np.isfinite(data), data, 0.0), threshold))
         xy, n_detected, neighbours = isolated_stars(data, size, threshold=threshold,
-                                                    saturation_e=level)
+                                                    saturation_e=level, lines=lines[-1])
         excluded = np.zeros(len(xy), dtype=bool)
         if exclude is not None and exclude[index] is not None and len(xy):
             excluded = np.asarray(exclude[index](xy, data.shape), dtype=bool)
@@ -160,7 +165,8 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                           "background_e": prepared.sky.level,
                           "sky_slope": list(prepared.sky.slope),
                           "sky_method": prepared.sky.method,
-                          "sky_degree": prepared.sky.degree})
+                          "sky_degree": prepared.sky.degree,
+                          "line_pixels": int(lines[-1].sum())})
     buildups = {calibration.refinement.get("buildup_steps")
                 for calibration in calibrations if getattr(calibration, "refinement", None)}
     buildups.discard(None)
@@ -211,8 +217,8 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         # refitted on the images with that sky and glow; a known sky is subtracted and only
         # a constant left free (what the wings' glow adds to it is not sky)
         stars = _with_the_exposure_s_stars(_stars_of_images(result, len(images)), frames)
-        sky_fitted = [prepared.image_e - prepared.sky.image() if known else prepared.image_e
-                      for prepared in images]
+        sky_fitted = [np.where(line, np.nan, prepared.image_e - prepared.sky.image() if known
+                               else prepared.image_e) for prepared, line in zip(images, lines)]
         skies, wings = fit_sky_and_wings(sky_fitted, stars, half_size=size // 2,
                                          degree=degree, oversampling=oversampling)
         if known:

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from bfpsf.measure.line_features import line_mask
-from bfpsf.measure.neighbours import sources_with_companions
+from bfpsf.measure.neighbours import isolated_stars, sources_with_companions
 from bfpsf.measure.photometry import psf_photometry
-from bfpsf.measure.sources import SourceFlag
+from bfpsf.measure.sources import DETECTION_THRESHOLD, SourceFlag, measure_sources
 from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.shifts import BoundaryShifts
 
@@ -72,7 +72,7 @@ def test_a_trail_and_a_hot_column_are_masked_and_no_star(field):
     of 3e5 e- 6 px away: 82 % of the column is masked, 96 % of the trail), and no star's
     core; the same stars without them leave no mask."""
     image, clean, xy, _ = field
-    mask = line_mask(image)
+    mask = line_mask(image, DETECTION_THRESHOLD)
     y, x = np.mgrid[:SHAPE[0], :SHAPE[1]].astype(float)
     near_star = np.min([np.hypot(x - sx, y - sy) for sx, sy in xy], axis=0) < 12
     on_trail = (_trail_distance(x, y) < 1.0) & ~near_star
@@ -81,7 +81,7 @@ def test_a_trail_and_a_hot_column_are_masked_and_no_star(field):
     assert mask[on_column].mean() > 0.75, mask[on_column].mean()
     cores = np.rint(xy).astype(int)
     assert not mask[cores[:, 1], cores[:, 0]].any()
-    assert not line_mask(clean).any()
+    assert not line_mask(clean, DETECTION_THRESHOLD).any()
 
 
 def test_a_crowded_field_of_bright_stars_holds_no_line():
@@ -89,7 +89,8 @@ def test_a_crowded_field_of_bright_stars_holds_no_line():
     tangents, bridges between them): no line."""
     rng = np.random.default_rng(43)
     xy, fluxes = _stars(220, rng, shape=(200, 200), low=5e4, high=3e6, clear=0.0)
-    assert not line_mask(_draw(xy, fluxes, rng, shape=(200, 200), lines=False)).any()
+    assert not line_mask(_draw(xy, fluxes, rng, shape=(200, 200), lines=False),
+                         DETECTION_THRESHOLD).any()
 
 
 def test_photometry_leaves_the_lines_out(field):
@@ -99,7 +100,7 @@ def test_photometry_leaves_the_lines_out(field):
     corner and edge, and their crossing), each within its error of its flux, and flags
     ``ON_LINE`` the stars whose fit box holds masked pixels."""
     image, _, xy, fluxes = field
-    assert len(sources_with_companions(image)) > len(xy) + 10  # the lines' strings of peaks
+    assert len(sources_with_companions(image, lines=False)) > len(xy) + 10  # strings of peaks
     psf = FluxDependentPSF.from_galsim(PROFILE, SHIFTS.scaled(0.0), oversampling=2, size=25)
     result = psf_photometry(image + SKY, psf)
     assert result.meta["line_pixels"] > 0
@@ -119,3 +120,32 @@ def test_photometry_leaves_the_lines_out(field):
     pull = ((result["flux_fit"][good] - fluxes[nearest[good]]) / result["flux_err"][good])
     assert np.median(np.abs(pull)) < 1.0, np.sort(pull)
     assert np.all(np.abs(pull) < 5), np.sort(pull)
+
+
+def test_measure_and_the_psf_stars_leave_the_lines_out(field):
+    """`measure_sources` (``bfpsf measure``) replaces the lines' pixels by the sky: every
+    star is measured and no source lies on a line away from the stars; a star with a line
+    within its moments' reach is flagged ``ON_LINE``. `isolated_stars` (the P0 fit's stars,
+    ``bfpsf psf``) keeps no star with a line in its cutout, and no piece of a line among the
+    neighbours the P0 fit models."""
+    image, _, xy, _ = field
+    table = measure_sources(image + SKY)
+    assert table.meta["line_pixels"] > 0
+    x, y = np.asarray(table["x"]), np.asarray(table["y"])
+    distance = np.hypot(x[:, None] - xy[:, 0], y[:, None] - xy[:, 1]).min(axis=1)
+    assert np.sum(distance < 1.0) == len(xy)
+    assert np.sum(distance >= 1.0) <= 3, np.column_stack([x, y])[distance >= 1.0]
+    on_line = (np.asarray(table["flags"]) & SourceFlag.ON_LINE) > 0
+    line_distance = np.minimum(_trail_distance(x, y), np.abs(x - COLUMN))
+    sigma = np.asarray(table["iq"])
+    assert on_line[line_distance < 3.0].all()  # what is left of the lines is flagged
+    assert on_line.sum() >= 4
+    # the mask is a few pixels wide: none beyond its half width and the star's reach
+    assert not np.any(on_line & (line_distance > 4.0 * sigma + 8.0))
+    stars, _, others = isolated_stars(image, 25)
+    star_distance = np.minimum(_trail_distance(*stars.T), np.abs(stars[:, 0] - COLUMN))
+    assert star_distance.min() > 12.0, star_distance.min()
+    # 18 stars, none with a line in its cutout, and 26 other sources to model beside them;
+    # without the mask 23 (5 with a line in the cutout) and 69, the lines' pieces among them
+    assert len(stars) >= 15
+    assert len(others) < len(isolated_stars(image, 25, lines=False)[2]) - 30

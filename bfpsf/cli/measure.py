@@ -129,6 +129,7 @@ def run(args):
                                    "n_saturated": int(np.sum(
                                        (table["flags"] & MomentsFlag.SATURATED) != 0)),
                                    "n_amp_boundary": int(np.sum(table["amp_boundary"])),
+                                   "line_pixels": table.meta["line_pixels"],
                                    "exptime": header.get("EXPTIME")})
     stars = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     stars.meta["gains"] = [entry["gain"] for entry in summary_images]
@@ -141,10 +142,16 @@ def run(args):
                # on a bright neighbour's wings, which make them large (slope leaves them out)
                "n_neighbour_light": int(np.sum((stars["flags"] & SourceFlag.NEIGHBOUR_LIGHT)
                                                != 0)),
+               # beside a trail or a hot column, whose pixels were left out
+               "n_on_line": int(np.sum((stars["flags"] & SourceFlag.ON_LINE) != 0)),
                "images": summary_images}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
     print(f"{len(stars)} sources ({summary['n_clean']} clean, {summary['n_saturated']} "
           f"saturated, {summary['n_neighbour_light']} on a bright neighbour's light, which "
-          f"makes them large) in {len(args.images)} image(s); wrote {args.output}")
+          f"makes them large"
+          + (f", {summary['n_on_line']} beside a trail or a hot column, whose "
+             f"{sum(entry['line_pixels'] for entry in summary_images)} pixels were left out"
+             if any(entry["line_pixels"] for entry in summary_images) else "")
+          + f") in {len(args.images)} image(s); wrote {args.output}")
     return 0

@@ -153,7 +153,7 @@ def run(args):
         entry.update(n_detected=found["n_detected"], n_isolated=found["n_isolated"],
                      n_amp_boundary=found["n_excluded"], background_e=found["background_e"],
                      sky_slope=found["sky_slope"], sky_method=found["sky_method"],
-                     sky_degree=found["sky_degree"],
+                     sky_degree=found["sky_degree"], line_pixels=found["line_pixels"],
                      **{key: found[key] for key in ("size_offset", "size_offset_err",
                                                     "n_sized", "seeing_bias_mmag",
                                                     "size_across")})

@@ -37,9 +37,7 @@ from astropy.convolution import convolve
 from astropy.stats import sigma_clipped_stats
 from scipy import ndimage
 
-from .sources import DETECTION_THRESHOLD
-
-__all__ = ["line_mask", "in_fit_boxes", "N_DIRECTIONS", "INNER", "OUTER", "ALONG_FRACTION",
+__all__ = ["line_mask", "near_lines", "N_DIRECTIONS", "INNER", "OUTER", "ALONG_FRACTION",
            "ACROSS_FRACTION", "MIN_LENGTH", "GAP", "MAX_WIDTH"]
 
 #: Directions tested, evenly over 180 degrees (11.25 degrees apart: a trail between two of
@@ -87,6 +85,24 @@ def _side_levels(smoothed, rows, columns):
     return out
 
 
+def _bright_along(smoothed, rows, columns):
+    """The pixels (rows, columns) that may pass the test along a line: the image halfway
+    from `INNER` to `OUTER` on both sides, along one of the directions, at least half
+    `ALONG_FRACTION` of the pixel's value (a star's pixels are not: the full test looks at 26
+    samples per direction, this at 2; on a crowded field's pixels it is most of the cost)."""
+    ny, nx = smoothed.shape
+    value = smoothed[rows, columns]
+    middle = (INNER + OUTER) / 2.0
+    keep = np.zeros(rows.size, dtype=bool)
+    for angle in np.pi * np.arange(N_DIRECTIONS) / N_DIRECTIONS:
+        sides = [ndimage.map_coordinates(
+            smoothed, [np.clip(rows + sign * middle * np.sin(angle), 0, ny - 1),
+                       np.clip(columns + sign * middle * np.cos(angle), 0, nx - 1)],
+            order=1) for sign in (1.0, -1.0)]
+        keep |= np.minimum(*sides) >= 0.5 * ALONG_FRACTION * value
+    return rows[keep], columns[keep]
+
+
 def _line_structure(angle):
     """A line of `GAP` + 1 pixels through the centre along ``angle``: the structuring
     element that joins the pieces of a line along it, and not lines that cross it."""
@@ -121,17 +137,21 @@ def _long(mask, angle):
     return keep[labels]
 
 
-def line_mask(image_e, *, threshold=DETECTION_THRESHOLD, detection_fwhm=3.0):
+def line_mask(image_e, threshold, *, detection_fwhm=3.0, smoothed=None, rms=None):
     """Pixels of the linear features of an image (trails, hot or bleeding columns).
 
     Parameters
     ----------
     image_e : ndarray [y, x]
         Sky-subtracted image, e-; non-finite pixels count as 0.
-    threshold : float, optional
-        Detection threshold, RMS of the smoothed image (default 5, as detection's).
+    threshold : float
+        Detection threshold, RMS of the smoothed image (detection's,
+        `bfpsf.measure.sources.DETECTION_THRESHOLD` by default).
     detection_fwhm : float, optional
         FWHM of the Gaussian smoothing, pixels (default 3, as detection's).
+    smoothed, rms : ndarray [y, x] and float, optional
+        The image smoothed by that Gaussian and its clipped rms, where detection has them
+        already (`bfpsf.measure.sources.measure_sources`); default computed here.
 
     Returns
     -------
@@ -140,13 +160,15 @@ def line_mask(image_e, *, threshold=DETECTION_THRESHOLD, detection_fwhm=3.0):
     """
     from photutils.segmentation import make_2dgaussian_kernel
 
-    image = np.where(np.isfinite(image_e), image_e, 0.0)
-    kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
-    smoothed = convolve(image, kernel, normalize_kernel=True)
-    _, _, rms = sigma_clipped_stats(smoothed, sigma=3.0)
+    if smoothed is None:
+        kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
+        smoothed = convolve(np.where(np.isfinite(image_e), image_e, 0.0), kernel,
+                            normalize_kernel=True)
+    if rms is None:
+        _, _, rms = sigma_clipped_stats(smoothed, sigma=3.0)
     level = threshold * rms
     bright = smoothed >= level
-    rows, columns = np.nonzero(bright)
+    rows, columns = _bright_along(smoothed, *np.nonzero(bright))
     on_line = np.zeros((N_DIRECTIONS, rows.size), dtype=bool)
     across = (np.arange(N_DIRECTIONS) + N_DIRECTIONS // 2) % N_DIRECTIONS
     for start in range(0, rows.size, _CHUNK):
@@ -158,9 +180,9 @@ def line_mask(image_e, *, threshold=DETECTION_THRESHOLD, detection_fwhm=3.0):
             beside = np.min(median, axis=0)[across]  # the fainter side across it
             on_line[:, part] = ((along >= ALONG_FRACTION * value)
                                 & (beside <= ACROSS_FRACTION * value))
-    mask = np.zeros(image.shape, dtype=bool)
+    mask = np.zeros(smoothed.shape, dtype=bool)
     for direction in np.flatnonzero(on_line.any(axis=1)):
-        pixels = np.zeros(image.shape, dtype=bool)
+        pixels = np.zeros(smoothed.shape, dtype=bool)
         pixels[rows[on_line[direction]], columns[on_line[direction]]] = True
         mask |= _long(pixels, np.pi * direction / N_DIRECTIONS)
     if not mask.any():
@@ -175,16 +197,14 @@ def line_mask(image_e, *, threshold=DETECTION_THRESHOLD, detection_fwhm=3.0):
     return mask | (grown & (smoothed <= line_level))
 
 
-def in_fit_boxes(mask, x, y, fit_shape):
-    """Whether the fit box (``fit_shape``: int or (ny, nx), odd) about each (x, y) holds a
-    pixel of ``mask``: ndarray of bool (False where x or y is not finite)."""
+def near_lines(mask, x, y, reach):
+    """Whether a pixel of ``mask`` lies within ``reach`` pixels (a number, or one per source)
+    of each (x, y): ndarray of bool (False where x or y is not finite)."""
     x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-    if not mask.any():
+    if not np.any(mask):
         return np.zeros(x.shape, dtype=bool)
-    half_y, half_x = np.atleast_1d(fit_shape)[[0, -1]] // 2
-    counts = ndimage.uniform_filter(mask.astype(float), size=(2 * half_y + 1, 2 * half_x + 1),
-                                    mode="constant")
+    distance = ndimage.distance_transform_edt(~np.asarray(mask, dtype=bool))
     good = np.isfinite(x) & np.isfinite(y)
-    row = np.clip(np.rint(np.where(good, y, 0)).astype(int), 0, mask.shape[0] - 1)
-    column = np.clip(np.rint(np.where(good, x, 0)).astype(int), 0, mask.shape[1] - 1)
-    return good & (counts[row, column] > 1e-9)
+    row = np.clip(np.rint(np.where(good, y, 0)).astype(int), 0, distance.shape[0] - 1)
+    column = np.clip(np.rint(np.where(good, x, 0)).astype(int), 0, distance.shape[1] - 1)
+    return good & (distance[row, column] <= reach)

@@ -14,7 +14,8 @@ from astropy.table import Table
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from .sources import DETECTION_THRESHOLD, SourceFlag, measure_sources
+from .line_features import line_mask, near_lines
+from .sources import DETECTION_THRESHOLD, LINE_REACH, SourceFlag, measure_sources
 
 __all__ = ["smoothed_peaks", "sources_with_companions", "isolated_stars",
            "COMPANION_SEPARATION"]
@@ -72,7 +73,7 @@ def local_peaks(values, level, detection_fwhm, border=1):
     return x, y, rows, columns
 
 
-def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, **kwargs):
+def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=True, **kwargs):
     """Every source of an image: the detections of `measure_sources` and the companions a
     merged segment hides (peaks of the smoothed image, `smoothed_peaks`, more than 2.5
     pixels from every detection, flagged ``BLENDED``; their ``flux_e`` the sum of the 5 x 5
@@ -84,6 +85,9 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, **kwargs)
         Sky-subtracted image, e-; non-finite pixels count as 0.
     threshold : float, optional
         Detection threshold (`measure_sources`).
+    lines : bool or ndarray of bool [y, x], optional
+        Pixels of trails and hot columns, left out (`measure_sources`): True (default) finds
+        them, an array gives them, False leaves none out.
     **kwargs
         Passed to `measure_sources`.
 
@@ -91,10 +95,16 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, **kwargs)
     -------
     astropy.table.Table
         ``x``, ``y``, ``flux_e``, ``flags`` (`SourceFlag`); the detections first, then the
-        companions; ``meta['n_detected']`` the detections.
+        companions; ``meta['n_detected']`` the detections, ``meta['line_pixels']`` the pixels
+        of lines left out.
     """
     image = np.where(np.isfinite(image_e), image_e, 0.0)
-    sources = measure_sources(image, threshold=threshold, **kwargs)
+    if lines is True:
+        lines = line_mask(image, threshold)
+    lines = (np.zeros(image.shape, dtype=bool) if lines is None or lines is False
+             else np.asarray(lines, dtype=bool))
+    image = np.where(lines, 0.0, image)
+    sources = measure_sources(image, threshold=threshold, lines=lines, **kwargs)
     x = np.asarray(sources["x"], dtype=float)
     y = np.asarray(sources["y"], dtype=float)
     flux = np.asarray(sources["flux_e"], dtype=float)
@@ -110,13 +120,18 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, **kwargs)
                  for row, column in zip(rows, columns)]
         x, y = np.r_[x, peaks[:, 0]], np.r_[y, peaks[:, 1]]
         flux = np.r_[flux, np.maximum(boxes, 1.0)]
-        flags = np.r_[flags, np.full(len(peaks), SourceFlag.BLENDED, dtype=np.int64)]
+        flags = np.r_[flags, np.full(len(peaks), SourceFlag.BLENDED, dtype=np.int64)
+                      | np.where(near_lines(lines, peaks[:, 0], peaks[:, 1], LINE_REACH
+                                            * kwargs.get("detection_fwhm", 3.0) / 2.355),
+                                 SourceFlag.ON_LINE, 0)]
     table = Table({"x": x, "y": y, "flux_e": flux, "flags": flags})
     table.meta["n_detected"] = len(sources)
+    table.meta["line_pixels"] = int(lines.sum())
     return table
 
 
-def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None):
+def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None,
+                   lines=True):
     """Clean, unsaturated detections isolated within ``size`` pixels: the stars a P0 fit
     (`bfpsf.model.psf_fit.fit_psf`) takes; and every other source (`sources_with_companions`),
     the neighbours the P0 fit models alongside them.
@@ -131,6 +146,9 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
         Detection threshold (`measure_sources`).
     saturation_e : float, optional
         Saturation level above the background, e-.
+    lines : bool or ndarray of bool [y, x], optional
+        Pixels of trails and hot columns (`sources_with_companions`): no star with one in its
+        cutout is isolated.
 
     Returns
     -------
@@ -142,12 +160,15 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
         (x, y) of every other source: flagged detections and the companions of merged
         segments.
     """
-    sources = sources_with_companions(image_e, threshold=threshold,
+    if lines is True:
+        lines = line_mask(np.where(np.isfinite(image_e), image_e, 0.0), threshold)
+    sources = sources_with_companions(image_e, threshold=threshold, lines=lines,
                                       blend_radius=size / 2 + 2, saturation=saturation_e,
                                       stamp_size=size + 6)
     xy = np.column_stack([np.asarray(sources["x"], dtype=float),
                           np.asarray(sources["y"], dtype=float)])
     # neighbours' light biases a star's moments, not the P0 fit, which models the wings of
-    # every source it knows and fits the sky with their glow
-    clean = (np.asarray(sources["flags"]) & ~SourceFlag.NEIGHBOUR_LIGHT) == 0
+    # every source it knows and fits the sky with their glow; a line in a cutout is no model's
+    clean = (((np.asarray(sources["flags"]) & ~SourceFlag.NEIGHBOUR_LIGHT) == 0)
+             & ~near_lines(lines, xy[:, 0], xy[:, 1], size / np.sqrt(2.0)))
     return xy[clean], int(sources.meta["n_detected"]), xy[~clean]

@@ -32,7 +32,7 @@ from .neighbours import COMPANION_SEPARATION, sources_with_companions
 from .prepare import PreparedImage, prepare_image
 from .psf_likeness import unlike_psf
 from .read_noise import check_read_noise, check_sky, image_read_noise
-from .line_features import in_fit_boxes, line_mask
+from .line_features import line_mask, near_lines
 from .residual_sources import residual_sources
 from .sources import DETECTION_THRESHOLD, SourceFlag
 from ..model.wings import WingModel, wing_image
@@ -56,11 +56,12 @@ MISFIT_REACH = 1.5
 PHOTOMETRY_COLUMNS = ["x_fit", "y_fit", "flux_fit", "flux_err", "flags"]
 
 
-def _initial_positions(image_e, detection_threshold):
+def _initial_positions(image_e, detection_threshold, lines):
     """Every source (`bfpsf.measure.neighbours.sources_with_companions`: the detections and the
-    companions a merged segment hides, flagged ``BLENDED``) as photutils' initial table.
-    Fitted as one, a close pair gives one star with both fluxes (a dense field: -250 mmag)."""
-    sources = sources_with_companions(image_e, threshold=detection_threshold)
+    companions a merged segment hides, flagged ``BLENDED``; ``lines`` left out) as photutils'
+    initial table. Fitted as one, a close pair gives one star with both fluxes (a dense
+    field: -250 mmag)."""
+    sources = sources_with_companions(image_e, threshold=detection_threshold, lines=lines)
     table = Table()
     table["x_init"], table["y_init"] = sources["x"], sources["y"]
     table["flux_init"], table["source_flags"] = sources["flux_e"], sources["flags"]
@@ -320,11 +321,11 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     error = np.sqrt(np.where(variance > 0, variance, 1.0))
     data = prepared.sky_subtracted
     # trails and hot columns: left out of detection and of every fit
-    lines = (line_mask(np.where(finite, data, 0.0), threshold=detection_threshold)
+    lines = (line_mask(np.where(finite, data, 0.0), detection_threshold)
              if positions is None and mask_lines else np.zeros(image.shape, dtype=bool))
     mask = ~finite | lines
     if positions is None:
-        init = _initial_positions(np.where(mask, 0.0, data), detection_threshold)
+        init = _initial_positions(np.where(finite, data, 0.0), detection_threshold, lines)
     elif isinstance(positions, Table):
         init = positions
     else:
@@ -440,9 +441,10 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
         unlike = unlike_psf(residual, result["x_fit"], result["y_fit"], result["flux_fit"],
                             product, max(float(sky.level), 0.0) + float(read_noise_e)**2)
         result["source_flags"] |= np.where(unlike, SourceFlag.UNLIKE_PSF, 0)
-    result["source_flags"] |= np.where(in_fit_boxes(lines, result["x_fit"], result["y_fit"],
-                                                    photometry.fit_shape),
-                                       SourceFlag.ON_LINE, 0)
+    # within the fit box (its half diagonal)
+    result["source_flags"] |= np.where(near_lines(
+        lines, result["x_fit"], result["y_fit"],
+        float(np.max(np.atleast_1d(photometry.fit_shape))) / np.sqrt(2.0)), SourceFlag.ON_LINE, 0)
     # the total flux: the light beyond P0's support (measured when the PSF was fitted), at
     # each star's place (a grid's changes across the image)
     given = flux_correction is not None or not isinstance(product, BFPSFModel)

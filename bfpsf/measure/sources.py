@@ -23,11 +23,13 @@ from ..moments.moment_errors import moment_errors
 from ..moments.result import MomentsFlag
 from ..moments.shapes import distortion
 from ..resources import check_pixels
+from .line_features import line_mask, near_lines
 from .neighbour_light import neighbour_light
 from .sky import estimate_sky
 
 __all__ = ["SourceFlag", "measure_sources", "sky_level", "source_flag_string",
-           "aperture_fraction", "model_flux", "STAR_COLUMNS", "DETECTION_THRESHOLD"]
+           "aperture_fraction", "model_flux", "STAR_COLUMNS", "DETECTION_THRESHOLD",
+           "LINE_REACH"]
 
 #: columns every star table holds (the ``bfpsf measure`` contract)
 STAR_COLUMNS = ["x", "y", "flux_e", "peak_e", "mxx", "myy", "mxy", "sigma_x", "sigma_y", "iq",
@@ -47,8 +49,9 @@ class SourceFlag(MomentsFlag):
     `bfpsf.measure.psf_likeness`). ``IN_RESIDUAL`` (PSF
     photometry only): found in the residual of the first fit, not by detection (a companion on
     a bright star's wing, a faint star in a crowded field; `bfpsf.measure.residual_sources`).
-    ``ON_LINE`` (PSF photometry only): the star's fit box holds pixels of a trail or a hot
-    column, left out of its fit (`bfpsf.measure.line_features`).
+    ``ON_LINE``: pixels of a trail or a hot column lie within `LINE_REACH` of the star's
+    sigma (in PSF photometry: within its fit box), left out of its measurement or its fit
+    (`bfpsf.measure.line_features`).
     """
 
     BLENDED = 128
@@ -167,6 +170,9 @@ def _empty_table(colour_columns):
 #: Default detection threshold of every bfpsf command and function, in units of the RMS of the
 #: smoothed background-subtracted image.
 DETECTION_THRESHOLD = 5.0
+#: A source this many of its sigmas from a trail's or a hot column's pixels is ``ON_LINE``
+#: (its adaptive moments' weight reaches about so far).
+LINE_REACH = 4.0
 
 
 def _aperture_flux(stamps, radius2, sigma, aperture_nsigma):
@@ -231,7 +237,7 @@ def model_flux(psf, flux_e, *, aperture_nsigma=5.0):
 def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp_size=32, saturation=None,
                     colour=None, colour_columns=None, match_radius=2.0, sky=None,
                     detection_fwhm=3.0, blend_radius=None, deblend=True,
-                    aperture_nsigma=5.0):
+                    aperture_nsigma=5.0, lines=True):
     """Detect and measure the sources of an image in electrons.
 
     Parameters
@@ -278,6 +284,11 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     aperture_nsigma : float, optional
         ``flux_e`` is the background-subtracted sum within ``aperture_nsigma * iq`` of the
         centroid (default 5: 98 % of a Moffat beta 3.5 flux).
+    lines : bool or ndarray of bool [y, x], optional
+        Pixels of trails and hot columns, replaced by the sky before detection and
+        measurement: True (default) finds them (`bfpsf.measure.line_features.line_mask`),
+        an array gives them, False leaves none out. A source within `LINE_REACH` of its
+        sigma from one is flagged ``ON_LINE``.
 
     Returns
     -------
@@ -324,11 +335,21 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
     convolved = convolve(np.where(bad, 0.0, data), kernel, normalize_kernel=True)
     _, _, smooth_rms = sigma_clipped_stats(convolved[~bad], sigma=3.0)
+    if lines is True:
+        lines = line_mask(data, threshold, smoothed=convolved, rms=smooth_rms)
+    lines = (np.zeros(image.shape, dtype=bool) if lines is None or lines is False
+             else np.asarray(lines, dtype=bool))
+    if lines.any():  # the sky in their place
+        data = np.where(lines, 0.0, data)
+        image = np.where(lines, sky.image(), image)
+        convolved = convolve(np.where(bad, 0.0, data), kernel, normalize_kernel=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NoDetectionsWarning)
         segments = detect_sources(convolved, threshold * smooth_rms, n_pixels, mask=bad)
     if segments is None:
-        return _empty_table(colour_columns)
+        empty = _empty_table(colour_columns)
+        empty.meta["line_pixels"] = int(lines.sum())
+        return empty
     peak_level = (threshold + 3.0) * smooth_rms
     blended_labels = _segments_with_several_peaks(convolved, segments.data, peak_level,
                                                   detection_fwhm)
@@ -393,6 +414,10 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
                                       np.asarray(moments.flux, float), background_rms,
                                       errors["sigma_err"], usable=flags == 0)
     flags |= np.where(lit, SourceFlag.NEIGHBOUR_LIGHT, 0)
+    sigma = np.asarray(moments.sigma, float)
+    flags |= np.where(near_lines(lines, x_stamp + x_origin, y_stamp + y_origin, LINE_REACH
+                                 * np.where(np.isfinite(sigma), sigma, detection_fwhm / 2.355)),
+                      SourceFlag.ON_LINE, 0)
     aperture_flux = _aperture_flux(stamps, radius2, moments.sigma, aperture_nsigma)
 
     table = Table()
@@ -433,6 +458,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     table.meta["stamp_size"] = int(stamp_size)
     table.meta["threshold"] = float(threshold)
     table.meta["saturation_e"] = None if saturation is None else float(saturation)
+    table.meta["line_pixels"] = int(lines.sum())
     return table
 
 
