@@ -7,8 +7,9 @@ such features so that detection, the residual search and every fit leave them ou
 image: 7.7 s, 8 sources from the lines where they pass bright stars, every star found;
 docs/defaults.md, "Trails and hot columns").
 
-On the detection's smoothed image, a pixel at or above the detection level is on a line
-along one of `N_DIRECTIONS` directions when
+On the detection's smoothed image (and on its negative: a dead column is a dark line), a
+pixel at or above `LINE_LEVEL` rms (or the detection threshold, if lower) is on a line along
+one of `N_DIRECTIONS` directions when
 
 * along it, the image stays bright on both sides: the lower quartile of the samples from
   `INNER` to `OUTER` pixels away, on the fainter side, is at least `ALONG_FRACTION` of the
@@ -19,17 +20,19 @@ along one of `N_DIRECTIONS` directions when
   sky, is bright on both; a star beside a trail raises one side only).
 
 The pixels of each direction then make a line only when they reach `MIN_LENGTH` along
-their own axis with an rms width of at most `MAX_WIDTH`, pieces `GAP` pixels apart joined
-along the direction, never across it: a bright star's halo passes the tests along its
-tangent, a different direction every few pixels, and a crowded field's bridges between bright
-stars over a few pixels. A star on a trail, brighter than the trail, is a star (its core
-fails the first test). The mask is grown over the line's wings, never into a source
-brighter than the line beside it.
+their own axis with an rms width of at most `MAX_WIDTH`, cover `MIN_COVERAGE` of that length
+and the image along it is even (`MIN_EVEN`), pieces `GAP` pixels apart joined along the
+direction, never across it. A bright star's halo passes the tests along its tangent, a
+different direction every few pixels; a crowded field's bridges between bright stars pass
+over a few pixels; a chain of bright stars has its cores and dips. A star on a trail,
+brighter than the trail, is a star (its core fails the first test). The mask is grown over
+the line's wings, never into a source brighter than the line beside it.
 
 Limits: a line is not masked where a bright star's light falls along it (within about 25
 pixels of a star of 2e6 e-: a star of 8e4 e- on such a stretch of a trail was 37 mmag too
 bright, flagged ``ON_LINE`` by the masked trail beyond), nor at an image's corner; a line
-fainter than about 3 times the smoothed image's rms is not seen (nor detected as stars).
+fainter than about `LINE_LEVEL` times the smoothed image's rms is not seen; a new user's
+bleed trail of a saturated star was not masked (its star is flagged saturated).
 """
 
 import numpy as np
@@ -38,7 +41,8 @@ from astropy.stats import sigma_clipped_stats
 from scipy import ndimage
 
 __all__ = ["line_mask", "near_lines", "N_DIRECTIONS", "INNER", "OUTER", "ALONG_FRACTION",
-           "ACROSS_FRACTION", "MIN_LENGTH", "GAP", "MAX_WIDTH"]
+           "ACROSS_FRACTION", "MIN_LENGTH", "MIN_COVERAGE", "MIN_EVEN",
+           "LINE_LEVEL", "GAP", "MAX_WIDTH"]
 
 #: Directions tested, evenly over 180 degrees (11.25 degrees apart: a trail between two of
 #: them is off by at most 1.6 pixels at `OUTER`, about the smoothed trail's width).
@@ -51,6 +55,15 @@ ALONG_FRACTION = 0.6
 ACROSS_FRACTION = 0.3
 #: A line is at least this long, pixels (as far as the tests reach on both sides).
 MIN_LENGTH = 2 * OUTER
+#: The fraction of a line's length its pixels cover, at least.
+MIN_COVERAGE = 0.8
+#: The fraction of a line's length where the image is within a factor of 2 of its median
+#: along it, at least.
+MIN_EVEN = 0.7
+#: A line's pixels are at least this many rms of the smoothed image (or the detection
+#: threshold, if lower): a trail of 2.5 times the pixel noise, under the detection
+#: threshold, left 13 sources in the residual search.
+LINE_LEVEL = 3.0
 #: Gaps a line may have, pixels.
 GAP = 6
 #: The rms width of a line's pixels about its axis, at most, pixels (a smoothed trail of 1.5
@@ -114,11 +127,26 @@ def _line_structure(angle):
     return structure
 
 
-def _long(mask, angle):
+def _even(smoothed, centre, axis, start, stop):
+    """Whether ``smoothed`` along the line (from ``start`` to ``stop`` pixels along ``axis``
+    from ``centre``, x and y) stays within a factor of 2 of its median over `MIN_EVEN` of
+    its length: a trail does, a chain of stars does not (its cores, its dips between)."""
+    steps = np.arange(start, stop + 1.0)
+    samples = ndimage.map_coordinates(smoothed, [centre[1] + steps * axis[1],
+                                                 centre[0] + steps * axis[0]], order=1,
+                                      mode="nearest")
+    median = np.median(samples)
+    return median > 0 and np.mean((samples >= median / 2) & (samples <= 2 * median)) >= MIN_EVEN
+
+
+def _long(mask, angle, smoothed):
     """The pixels of ``mask`` in lines along ``angle`` at least `MIN_LENGTH` long and at most
     `MAX_WIDTH` wide about their own axis (a trail between two directions tested), its pieces
     joined along ``angle`` over gaps of up to `GAP` pixels (a line's pixels beside a star
-    or a cosmic ray may fail the tests), never across (lines that cross stay apart)."""
+    or a cosmic ray may fail the tests), never across (lines that cross stay apart), and
+    with pixels along at least `MIN_COVERAGE` of their length (a chain of bright stars
+    passes the tests between them, not on their cores: a new user's crowded field had a
+    chain of 4 masked) and even along them (`_even`)."""
     joined = ndimage.binary_dilation(mask, structure=_line_structure(angle))
     labels, count = ndimage.label(joined, structure=np.ones((3, 3), dtype=bool))
     labels = np.where(mask, labels, 0)
@@ -128,12 +156,16 @@ def _long(mask, angle):
                                    box[1].stop - box[1].start) < MIN_LENGTH:
             continue
         rows, columns = np.nonzero(labels[box] == label)
-        points = np.column_stack([columns, rows]).astype(float)
-        points -= points.mean(axis=0)
+        points = np.column_stack([columns + box[1].start, rows + box[0].start]).astype(float)
+        centre = points.mean(axis=0)
+        points -= centre
         axes = np.linalg.eigh(points.T @ points)[1]  # its own axis: a line between two
         along, across = points @ axes[:, -1], points @ axes[:, 0]  # directions tested
-        keep[label] = (along.max() - along.min() >= MIN_LENGTH
-                       and np.std(across) <= MAX_WIDTH)
+        extent = along.max() - along.min()
+        covered = np.unique(np.floor(along - along.min())).size / (np.floor(extent) + 1.0)
+        keep[label] = (extent >= MIN_LENGTH and np.std(across) <= MAX_WIDTH
+                       and covered >= MIN_COVERAGE
+                       and _even(smoothed, centre, axes[:, -1], along.min(), along.max()))
     return keep[labels]
 
 
@@ -146,7 +178,8 @@ def line_mask(image_e, threshold, *, detection_fwhm=3.0, smoothed=None, rms=None
         Sky-subtracted image, e-; non-finite pixels count as 0.
     threshold : float
         Detection threshold, RMS of the smoothed image (detection's,
-        `bfpsf.measure.sources.DETECTION_THRESHOLD` by default).
+        `bfpsf.measure.sources.DETECTION_THRESHOLD` by default): a line's pixels are above
+        it or above `LINE_LEVEL`, the lower.
     detection_fwhm : float, optional
         FWHM of the Gaussian smoothing, pixels (default 3, as detection's).
     smoothed, rms : ndarray [y, x] and float, optional
@@ -166,7 +199,15 @@ def line_mask(image_e, threshold, *, detection_fwhm=3.0, smoothed=None, rms=None
                             normalize_kernel=True)
     if rms is None:
         _, _, rms = sigma_clipped_stats(smoothed, sigma=3.0)
-    level = threshold * rms
+    mask = np.zeros(smoothed.shape, dtype=bool)
+    level = min(threshold, LINE_LEVEL) * rms
+    for sign in (1.0, -1.0):  # bright lines, and dark ones (a dead column)
+        mask |= _lines_of(sign * smoothed, level, detection_fwhm)
+    return mask
+
+
+def _lines_of(smoothed, level, detection_fwhm):
+    """`line_mask` of the lines brighter than their surroundings in ``smoothed``."""
     bright = smoothed >= level
     rows, columns = _bright_along(smoothed, *np.nonzero(bright))
     on_line = np.zeros((N_DIRECTIONS, rows.size), dtype=bool)
@@ -184,17 +225,17 @@ def line_mask(image_e, threshold, *, detection_fwhm=3.0, smoothed=None, rms=None
     for direction in np.flatnonzero(on_line.any(axis=1)):
         pixels = np.zeros(smoothed.shape, dtype=bool)
         pixels[rows[on_line[direction]], columns[on_line[direction]]] = True
-        mask |= _long(pixels, np.pi * direction / N_DIRECTIONS)
+        mask |= _long(pixels, np.pi * direction / N_DIRECTIONS, smoothed)
     if not mask.any():
         return mask
     # its wings: the pixels about it no brighter than the line beside them (a trail's edges
     # fail the tests, the image falling steeply across them; a star's core beside the line
-    # is brighter than the line)
+    # is brighter than the line) and not of the other sign (a star beside a dead column)
     reach = int(np.ceil(detection_fwhm)) + 1
     grown = ndimage.binary_dilation(mask, structure=ndimage.generate_binary_structure(2, 1),
                                     iterations=reach)
     line_level = ndimage.maximum_filter(np.where(mask, smoothed, -np.inf), size=2 * reach + 1)
-    return mask | (grown & (smoothed <= line_level))
+    return mask | (grown & (smoothed <= line_level) & (smoothed >= -level))
 
 
 def near_lines(mask, x, y, reach):
