@@ -113,11 +113,12 @@ def test_a_refit_starts_where_the_fit_before_is_sane():
 
     from bfpsf.measure.neighbour_fits import _refit_init
 
-    init = Table({"x_init": [10.0, 20.0, 30.0], "y_init": [5.0, 6.0, 7.0],
-                  "flux_init": [1e4, 2e4, 3e4]})
-    result = Table({"x_fit": [10.5, 3.8e8, np.nan], "y_fit": [5.5, 2e8, 7.0],
-                    "flux_fit": [1.1e4, -6e7, 3e4]})
+    init = Table({"x_init": [10.0, 20.0, 30.0, 40.0], "y_init": [5.0, 6.0, 7.0, 8.0],
+                  "flux_init": [1e4, 2e4, 3e4, 4e4]})
+    # the last ran off with a positive flux (a fit on a cosmic-ray track: x = -1096, NaN after)
+    result = Table({"x_fit": [10.5, 3.8e8, np.nan, -1096.0], "y_fit": [5.5, 2e8, 7.0, 8.0],
+                    "flux_fit": [1.1e4, -6e7, 3e4, 227.0]})
     start = _refit_init(init, result)
-    np.testing.assert_array_equal(start["x_init"], [10.5, 20.0, 30.0])
-    np.testing.assert_array_equal(start["y_init"], [5.5, 6.0, 7.0])
-    np.testing.assert_array_equal(start["flux_init"], [1.1e4, 2e4, 3e4])
+    np.testing.assert_array_equal(start["x_init"], [10.5, 20.0, 30.0, 40.0])
+    np.testing.assert_array_equal(start["y_init"], [5.5, 6.0, 7.0, 8.0])
+    np.testing.assert_array_equal(start["flux_init"], [1.1e4, 2e4, 3e4, 4e4])

@@ -20,11 +20,16 @@ FAILED_FIT = 4 | 8 | 128
 __all__ = ["model_image", "fit_without_neighbours", "with_found", "without_lost", "merged"]
 
 
+#: A first fit farther than this from its start (pixels) ran off: its refit starts again.
+REFIT_MOVE = 10.0
+
+
 def _refit_init(init, result):
-    """Initial table of the model-weighted refit: the first fit where it is finite and of
-    positive flux, else the start (a fit on a satellite trail went to a flux of -6e7 and ran
-    off to x = 3.8e8 in its refits, a row of NaN; holding every refit within 5 px of its start
-    instead cost a third more time there, the pieces of the trail sliding along it)."""
+    """Initial table of the model-weighted refit: the first fit where it is finite, of
+    positive flux and within `REFIT_MOVE` of its start, else the start (a fit on a satellite
+    trail went to a flux of -6e7 and ran off to x = 3.8e8 in its refits, a row of NaN; a fit
+    on a cosmic-ray track, of positive flux, to x = -1096; holding every refit within 5 px of
+    its start instead cost a third more time on the trail, its pieces sliding along it)."""
     refit = Table(init, copy=True)
     fitted, start = {}, {}
     for column in ("x", "y", "flux"):
@@ -33,7 +38,8 @@ def _refit_init(init, result):
                                    else result[f"{column}_init"], dtype=float)
     with np.errstate(invalid="ignore"):
         kept = (np.all(np.isfinite([fitted["x"], fitted["y"], fitted["flux"]]), axis=0)
-                & (fitted["flux"] > 0))
+                & (fitted["flux"] > 0)
+                & (np.hypot(fitted["x"] - start["x"], fitted["y"] - start["y"]) <= REFIT_MOVE))
     for column in ("x", "y", "flux"):
         refit[f"{column}_init"] = np.where(kept, fitted[column], start[column])
     return refit
