@@ -282,6 +282,14 @@ def run(args):
              if any(entry["line_pixels"] for entry in per_image) else "")
           + "detection's flags and unlike_psf in source_flags, bits in "
           f"bfpsf.measure.sources.SourceFlag.NAMES); wrote {args.output}")
+    # where the pixel errors' read noise came from, when nobody gave it (a new user read
+    # 9.9 e- in the JSON, against its true 6, and found no word of it)
+    measured = [entry["read_noise_e"] for entry in per_image
+                if entry["read_noise_source"] == "image"]
+    if measured:
+        print(f"read noise measured on each image's sky: "
+              f"{', '.join(f'{value:.2f}' for value in measured)} e- (neither --read-noise "
+              "nor a calibration that determined it; read_noise_e in the JSON)")
     return 0
 
 
