@@ -151,7 +151,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
             saturation[index] - prepared.sky.image().max())
         # trails and hot columns: no star beside them is used, and the sky-and-wings fit
         # leaves their pixels out
-        lines.append(line_mask(np.where(np.isfinite(data), data, 0.0), threshold))
+        lines.append(line_mask(data, threshold))
         xy, n_detected, neighbours = isolated_stars(data, size, threshold=threshold,
                                                     saturation_e=level, lines=lines[-1])
         excluded = np.zeros(len(xy), dtype=bool)

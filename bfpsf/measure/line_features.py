@@ -40,8 +40,8 @@ from astropy.convolution import convolve
 from astropy.stats import sigma_clipped_stats
 from scipy import ndimage
 
-__all__ = ["line_mask", "near_lines", "N_DIRECTIONS", "INNER", "OUTER", "ALONG_FRACTION",
-           "ACROSS_FRACTION", "MIN_LENGTH", "MIN_COVERAGE", "MIN_EVEN",
+__all__ = ["line_mask", "resolve_lines", "near_lines", "N_DIRECTIONS", "INNER", "OUTER",
+           "ALONG_FRACTION", "ACROSS_FRACTION", "MIN_LENGTH", "MIN_COVERAGE", "MIN_EVEN",
            "LINE_LEVEL", "GAP", "MAX_WIDTH"]
 
 #: Directions tested, evenly over 180 degrees (11.25 degrees apart: a trail between two of
@@ -80,6 +80,7 @@ def _side_levels(smoothed, rows, columns):
     ny, nx = smoothed.shape
     distances = np.arange(INNER, OUTER + 1, dtype=float)
     angles = np.pi * np.arange(N_DIRECTIONS) / N_DIRECTIONS
+    middle = distances.size // 2
     out = np.empty((2, 2, N_DIRECTIONS, rows.size))
     for side, sign in enumerate((1.0, -1.0)):
         for index, angle in enumerate(angles):
@@ -91,7 +92,6 @@ def _side_levels(smoothed, rows, columns):
             out[:, side, index] = np.percentile(samples, [25, 50], axis=0)
             # a side mostly beyond the edge says nothing: the other side decides (a trail
             # that leaves the image, to its last pixels)
-            middle = distances.size // 2
             beyond = ((row[middle] < 0) | (row[middle] > ny - 1) | (column[middle] < 0)
                       | (column[middle] > nx - 1))
             out[:, side, index, beyond] = np.inf
@@ -103,15 +103,14 @@ def _bright_along(smoothed, rows, columns):
     from `INNER` to `OUTER` on both sides, along one of the directions, at least half
     `ALONG_FRACTION` of the pixel's value (a star's pixels are not: the full test looks at 26
     samples per direction, this at 2; on a crowded field's pixels it is most of the cost)."""
-    ny, nx = smoothed.shape
     value = smoothed[rows, columns]
     middle = (INNER + OUTER) / 2.0
     keep = np.zeros(rows.size, dtype=bool)
     for angle in np.pi * np.arange(N_DIRECTIONS) / N_DIRECTIONS:
         sides = [ndimage.map_coordinates(
-            smoothed, [np.clip(rows + sign * middle * np.sin(angle), 0, ny - 1),
-                       np.clip(columns + sign * middle * np.cos(angle), 0, nx - 1)],
-            order=1) for sign in (1.0, -1.0)]
+            smoothed, [rows + sign * middle * np.sin(angle),
+                       columns + sign * middle * np.cos(angle)], order=1, mode="nearest")
+                 for sign in (1.0, -1.0)]
         keep |= np.minimum(*sides) >= 0.5 * ALONG_FRACTION * value
     return rows[keep], columns[keep]
 
@@ -216,11 +215,9 @@ def _lines_of(smoothed, level, detection_fwhm):
         part = slice(start, start + _CHUNK)
         value = smoothed[rows[part], columns[part]]
         quartile, median = _side_levels(smoothed, rows[part], columns[part])
-        with np.errstate(invalid="ignore"):
-            along = np.min(quartile, axis=0)  # the fainter side, per direction
-            beside = np.min(median, axis=0)[across]  # the fainter side across it
-            on_line[:, part] = ((along >= ALONG_FRACTION * value)
-                                & (beside <= ACROSS_FRACTION * value))
+        along = np.min(quartile, axis=0)  # the fainter side, per direction
+        beside = np.min(median, axis=0)[across]  # the fainter side across it
+        on_line[:, part] = (along >= ALONG_FRACTION * value) & (beside <= ACROSS_FRACTION * value)
     mask = np.zeros(smoothed.shape, dtype=bool)
     for direction in np.flatnonzero(on_line.any(axis=1)):
         pixels = np.zeros(smoothed.shape, dtype=bool)
@@ -236,6 +233,16 @@ def _lines_of(smoothed, level, detection_fwhm):
                                     iterations=reach)
     line_level = ndimage.maximum_filter(np.where(mask, smoothed, -np.inf), size=2 * reach + 1)
     return mask | (grown & (smoothed <= line_level) & (smoothed >= -level))
+
+
+def resolve_lines(lines, image_e, threshold, **options):
+    """The line pixels a ``lines`` option names: True finds them (`line_mask` of ``image_e``,
+    with ``options``), False or None none, an array of bool [y, x] those."""
+    if lines is True:
+        return line_mask(image_e, threshold, **options)
+    if lines is None or lines is False:
+        return np.zeros(np.shape(image_e), dtype=bool)
+    return np.asarray(lines, dtype=bool)
 
 
 def near_lines(mask, x, y, reach):

@@ -9,12 +9,12 @@ with no detected neighbour within a stamp, for the P0 fit.
 
 import numpy as np
 from astropy.convolution import convolve
-from astropy.stats import sigma_clipped_stats
+from astropy.stats import gaussian_fwhm_to_sigma, sigma_clipped_stats
 from astropy.table import Table
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from .line_features import line_mask, near_lines
+from .line_features import near_lines, resolve_lines
 from .sources import DETECTION_THRESHOLD, LINE_REACH, SourceFlag, measure_sources
 
 __all__ = ["smoothed_peaks", "sources_with_companions", "isolated_stars",
@@ -99,10 +99,7 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=Tru
         of lines left out.
     """
     image = np.where(np.isfinite(image_e), image_e, 0.0)
-    if lines is True:
-        lines = line_mask(image, threshold)
-    lines = (np.zeros(image.shape, dtype=bool) if lines is None or lines is False
-             else np.asarray(lines, dtype=bool))
+    lines = resolve_lines(lines, image, threshold)
     image = np.where(lines, 0.0, image)
     sources = measure_sources(image, threshold=threshold, lines=lines, **kwargs)
     x = np.asarray(sources["x"], dtype=float)
@@ -122,7 +119,8 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=Tru
         flux = np.r_[flux, np.maximum(boxes, 1.0)]
         flags = np.r_[flags, np.full(len(peaks), SourceFlag.BLENDED, dtype=np.int64)
                       | np.where(near_lines(lines, peaks[:, 0], peaks[:, 1], LINE_REACH
-                                            * kwargs.get("detection_fwhm", 3.0) / 2.355),
+                                            * kwargs.get("detection_fwhm", 3.0)
+                                            * gaussian_fwhm_to_sigma),
                                  SourceFlag.ON_LINE, 0)]
     table = Table({"x": x, "y": y, "flux_e": flux, "flags": flags})
     table.meta["n_detected"] = len(sources)
@@ -160,8 +158,7 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
         (x, y) of every other source: flagged detections and the companions of merged
         segments.
     """
-    if lines is True:
-        lines = line_mask(np.where(np.isfinite(image_e), image_e, 0.0), threshold)
+    lines = resolve_lines(lines, image_e, threshold)
     sources = sources_with_companions(image_e, threshold=threshold, lines=lines,
                                       blend_radius=size / 2 + 2, saturation=saturation_e,
                                       stamp_size=size + 6)

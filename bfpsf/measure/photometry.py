@@ -32,7 +32,7 @@ from .neighbours import COMPANION_SEPARATION, sources_with_companions
 from .prepare import PreparedImage, prepare_image
 from .psf_likeness import unlike_psf
 from .read_noise import check_read_noise, check_sky, image_read_noise
-from .line_features import line_mask, near_lines
+from .line_features import near_lines, resolve_lines
 from .residual_sources import residual_sources
 from .sources import DETECTION_THRESHOLD, SourceFlag
 from ..model.wings import WingModel, wing_image
@@ -321,8 +321,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     error = np.sqrt(np.where(variance > 0, variance, 1.0))
     data = prepared.sky_subtracted
     # trails and hot columns: left out of detection and of every fit
-    lines = (line_mask(np.where(finite, data, 0.0), detection_threshold)
-             if positions is None and mask_lines else np.zeros(image.shape, dtype=bool))
+    lines = resolve_lines(positions is None and bool(mask_lines), data, detection_threshold)
     mask = ~finite | lines
     if positions is None:
         init = _initial_positions(np.where(finite, data, 0.0), detection_threshold, lines)

@@ -12,7 +12,7 @@ import warnings
 
 import numpy as np
 from astropy.convolution import convolve
-from astropy.stats import sigma_clipped_stats
+from astropy.stats import gaussian_fwhm_to_sigma, sigma_clipped_stats
 from astropy.table import Table
 from scipy import ndimage
 from scipy.spatial import cKDTree
@@ -23,7 +23,7 @@ from ..moments.moment_errors import moment_errors
 from ..moments.result import MomentsFlag
 from ..moments.shapes import distortion
 from ..resources import check_pixels
-from .line_features import line_mask, near_lines
+from .line_features import near_lines, resolve_lines
 from .neighbour_light import neighbour_light
 from .sky import estimate_sky
 
@@ -335,10 +335,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
     convolved = convolve(np.where(bad, 0.0, data), kernel, normalize_kernel=True)
     _, _, smooth_rms = sigma_clipped_stats(convolved[~bad], sigma=3.0)
-    if lines is True:
-        lines = line_mask(data, threshold, smoothed=convolved, rms=smooth_rms)
-    lines = (np.zeros(image.shape, dtype=bool) if lines is None or lines is False
-             else np.asarray(lines, dtype=bool))
+    lines = resolve_lines(lines, data, threshold, smoothed=convolved, rms=smooth_rms)
     if lines.any():  # the sky in their place
         data = np.where(lines, 0.0, data)
         image = np.where(lines, sky.image(), image)
@@ -416,7 +413,8 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     flags |= np.where(lit, SourceFlag.NEIGHBOUR_LIGHT, 0)
     sigma = np.asarray(moments.sigma, float)
     flags |= np.where(near_lines(lines, x_stamp + x_origin, y_stamp + y_origin, LINE_REACH
-                                 * np.where(np.isfinite(sigma), sigma, detection_fwhm / 2.355)),
+                                 * np.where(np.isfinite(sigma), sigma,
+                                            detection_fwhm * gaussian_fwhm_to_sigma)),
                       SourceFlag.ON_LINE, 0)
     aperture_flux = _aperture_flux(stamps, radius2, moments.sigma, aperture_nsigma)
 
