@@ -55,7 +55,7 @@ def add_parser(subparsers):
                            "(default: Gaussian); the spot model itself is the P0 fitted from "
                            "the stars")
     star_image_options(data, saturation="saturated stars are not used", wings=False,
-                       threshold=False)
+                       threshold=False, sky_degree=False)
     data.add_argument("--maxlag", type=maxlag_option, default="auto", metavar="auto|N",
                       help="calibration lags: 'auto' (default, as bfpsf calibrate) or an "
                            "integer")
@@ -392,7 +392,8 @@ def _empirical_lines(result):
                          f"{after['cross']['slope_per_1e5']:+.4f} +- "
                          f"{after['cross']['slope_err']:.4f} per 1e5 e-")
             lines.append(
-                f"EMPIRICAL term ({block}): BF slope residual {', '.join(axes)}; photometry "
+                f"EMPIRICAL term ({block}): BF slope residual (errors: these stars' and the "
+                f"term's own) {', '.join(axes)}; photometry "
                 f"bias the sizes imply for sky-limited stars (faint - bright; PSF "
                 f"photometry measures the pattern's shape too: docs/undeclared_effects.md) "
                 f"{before['photometry_bias_mmag']:+.2f} -> {after['photometry_bias_mmag']:+.2f} "

@@ -15,6 +15,8 @@ and the photometry bias it implies (mmag, as `bfpsf.diagnosis.loop` computes it)
 after the term.
 """
 
+import dataclasses
+
 import numpy as np
 
 from ..least_squares import weighted_least_squares
@@ -162,13 +164,15 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
     params, covariance, _, _ = weighted_least_squares(
         np.concatenate(targets), np.concatenate(errors_m), np.hstack(blocks))
     first = len(moments) * groups.shape[1]
-    coefficients, errors = {}, {}
+    coefficients, errors, names, columns = {}, {}, [], []
     for index, pattern in enumerate(patterns):
         for k, name in enumerate(terms):
             column = first + index * len(terms) + k
             coefficients.setdefault(pattern, {})[name] = float(params[column])
             errors.setdefault(pattern, {})[name] = float(np.sqrt(abs(covariance[column,
                                                                                 column])))
+            names.append([pattern, name])
+            columns.append(column)
     if extent is not None:
         x_range, y_range = (tuple(float(value) for value in span) for span in extent)
     else:
@@ -181,7 +185,8 @@ def fit_empirical(sizes, fluxes, model_sigma, residual, *, position=False, expos
     return EmpiricalTerm(coefficients, errors=errors, x_reference=references[0],
                          y_reference=references[1], exposure_reference=references[2],
                          x_range=x_range, y_range=y_range, exposure_range=exposure_range,
-                         kind=kind)
+                         kind=kind, covariance={"names": names, "matrix": covariance[
+                             np.ix_(columns, columns)]})
 
 
 def _moment_changes(term, sizes, fluxes, response):
@@ -238,7 +243,52 @@ def evaluate_empirical(term, sizes, fluxes, model_sigma, residual, response=None
         d_e2 = predicted_cross_change(term, sizes, fluxes, model_sigma, residual, response)
         out["before"]["cross"] = cross_slope(sizes, cross_residual)
         out["after"]["cross"] = cross_slope(sizes, np.asarray(cross_residual) - d_e2)
+    _add_term_errors(out["after"], term, sizes, fluxes, model_sigma, residual, response,
+                     cross_residual is not None)
     return out
+
+
+def _add_term_errors(after, term, sizes, fluxes, model_sigma, residual, response, cross):
+    """Add to the errors of ``after`` (`evaluate_empirical`) the error of the term's own
+    prediction, from its coefficients' covariance (`EmpiricalTerm.covariance`), in
+    quadrature: the data the term was fitted on are not those it is judged on, and the
+    residual it leaves scatters by both (on 7 noise draws of the quick one-axis user path the
+    held-out X residual scattered by 1.8 % of raw against the 1.3 % of its data alone). Each
+    slope is linear in the coefficients (the sizes to first order): one column of its
+    Jacobian per coefficient, by a step of that coefficient's error. ``after`` gains
+    ``slope_{x,y}_percent_term_err`` (and ``cross['slope_term_err']``)."""
+    covariance = term.covariance
+    if not covariance or not len(covariance["names"]):
+        return
+    matrix = np.asarray(covariance["matrix"], float)
+    steps = np.sqrt(np.clip(np.diag(matrix), 0.0, None))
+    base = predicted_size_change(term, sizes, fluxes, model_sigma, response)
+    base_e2 = (predicted_cross_change(term, sizes, fluxes, model_sigma, residual, response)
+               if cross else None)
+    jacobian = {key: np.zeros(len(steps)) for key in ("x", "y", "cross")}
+    for index, ((pattern, name), step) in enumerate(zip(covariance["names"], steps)):
+        if not step:
+            continue
+        coefficients = {key: dict(terms) for key, terms in term.coefficients.items()}
+        coefficients[pattern][name] = coefficients[pattern].get(name, 0.0) + step
+        moved = dataclasses.replace(term, coefficients=coefficients)
+        change = predicted_size_change(moved, sizes, fluxes, model_sigma, response)
+        slopes = slope_residuals(sizes, change[0] - base[0], change[1] - base[1])
+        for axis in "xy":
+            jacobian[axis][index] = slopes[f"slope_{axis}_percent"] / step
+        if cross:
+            d_e2 = predicted_cross_change(moved, sizes, fluxes, model_sigma, residual,
+                                          response)
+            jacobian["cross"][index] = cross_slope(sizes, d_e2 - base_e2)["slope_per_1e5"] / step
+    for axis in "xy":
+        error = float(np.sqrt(max(jacobian[axis] @ matrix @ jacobian[axis], 0.0)))
+        after[f"slope_{axis}_percent_term_err"] = error
+        after[f"slope_{axis}_percent_err"] = float(np.hypot(after[f"slope_{axis}_percent_err"],
+                                                            error))
+    if cross and "cross" in after:
+        error = float(np.sqrt(max(jacobian["cross"] @ matrix @ jacobian["cross"], 0.0)))
+        after["cross"]["slope_term_err"] = error
+        after["cross"]["slope_err"] = float(np.hypot(after["cross"]["slope_err"], error))
 
 
 def early_late(observables, late_fraction=1.0 / 3.0):

@@ -99,6 +99,11 @@ class EmpiricalTerm:
         ``bfpsf diagnose``).
     kind : str
         Its patterns' kind, one of `PATTERN_KINDS` (default the squared charge's).
+    covariance : dict
+        The fit's covariance of its coefficients: ``names`` ([pattern, term] pairs) and
+        ``matrix`` (pixel^4 per the terms' units); empty when not known. What a prediction
+        from the term is uncertain by (`bfpsf.diagnosis.empirical_fit.evaluate_empirical`);
+        a term evaluated at a position or an exposure (`at`) has none.
     """
 
     coefficients: dict
@@ -112,6 +117,7 @@ class EmpiricalTerm:
     y_range: tuple = None
     exposure_range: tuple = None
     kind: str = PATTERN_KIND
+    covariance: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.kind not in PATTERN_KINDS:
@@ -203,7 +209,8 @@ class EmpiricalTerm:
         return self._replaced(coefficients, exposure_reference=reference)
 
     def _replaced(self, coefficients, **references):
-        """A copy with other coefficients (and references)."""
+        """A copy with other coefficients (and references); the covariance, which is the
+        original coefficients', is not carried."""
         options = {"errors": self.errors, "x_reference": self.x_reference,
                    "y_reference": self.y_reference,
                    "exposure_reference": self.exposure_reference,
@@ -252,6 +259,10 @@ class EmpiricalTerm:
             record["y_reference"] = float(self.y_reference)
         if self.exposure_range is not None:
             record["exposure_range"] = [float(value) for value in self.exposure_range]
+        if self.covariance:
+            record["covariance"] = {"names": [list(name) for name in self.covariance["names"]],
+                                    "matrix": np.asarray(self.covariance["matrix"],
+                                                         float).tolist()}
         return record
 
     @classmethod
@@ -283,7 +294,7 @@ class EmpiricalTerm:
                        float(value) for value in record["y_range"]),
                    exposure_range=None if record.get("exposure_range") is None else tuple(
                        float(value) for value in record["exposure_range"]),
-                   kind=record["pattern"])
+                   kind=record["pattern"], covariance=record.get("covariance", {}))
 
     @classmethod
     def from_calibration(cls, calibration):
