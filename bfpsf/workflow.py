@@ -210,7 +210,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     known = all(prepared.sky.method == "known" for prepared in images)
     # the highest sky degree the wings fit may take (it may keep a lower one, which the
     # images' skies then have)
-    degree = 0 if known else images[0].sky.degree
+    degree = 0 if known else max(prepared.sky.degree for prepared in images)
     for _ in range(1 if known else 2):
         # the sky of every image and the stars' wings beyond the support, fitted jointly
         # (the wings' glow biases a sky between the stars; the sky, the wings), then P0

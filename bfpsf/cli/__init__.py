@@ -58,12 +58,14 @@ SATURATION_DEFAULT = ("default the header's SATURATE or a variant; the calibrati
                       "linearity turnoff where lower")
 
 
-def star_image_options(parser, *, saturation, wings=True, threshold=True, background=True):
-    """``--threshold`` (detection), ``--background`` and ``--saturation`` of the commands
-    that find stars in images: ``saturation`` says what the level does (its default is
-    `SATURATION_DEFAULT`), ``wings`` whether the default sky masks the stars' wings too,
-    ``threshold`` whether the command detects (``diagnose``'s own --threshold is a Delta
-    BIC), ``background`` whether it takes a sky level (``measure`` fits its own)."""
+def star_image_options(parser, *, saturation, wings=True, threshold=True, background=True,
+                       sky_degree=True):
+    """``--threshold`` (detection), ``--background``, ``--sky-degree`` and ``--saturation``
+    of the commands that find stars in images: ``saturation`` says what the level does (its
+    default is `SATURATION_DEFAULT`), ``wings`` whether the default sky masks the stars'
+    wings too, ``threshold`` whether the command detects (``diagnose``'s own --threshold is a
+    Delta BIC), ``background`` whether it takes a sky level (``measure`` fits its own),
+    ``sky_degree`` whether it takes the degree of the sky surface."""
     if threshold:
         from ..measure.sources import DETECTION_THRESHOLD
 
@@ -75,8 +77,15 @@ def star_image_options(parser, *, saturation, wings=True, threshold=True, backgr
                             metavar="ADU",
                             help="a known sky level of the images, ADU per pixel (0 for "
                                  "sky-subtracted images); default the sky surface of each "
-                                 "image: a plane fitted beyond the masked sources"
+                                 "image: a plane (degree 2 or 3 where the sky is curved) "
+                                 "fitted beyond the masked sources"
                                  + (" and the stars' wings" if wings else ""))
+        if sky_degree:
+            parser.add_argument("--sky-degree", type=sky_degree_option, default="auto",
+                                metavar="auto|0-3",
+                                help="degree of the fitted sky surface of each image (default "
+                                     "auto: a plane, or 2 or 3 where the sky pixels show a "
+                                     "curved sky)")
     parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help=f"saturation level of the raw images, ADU: {saturation} "
                              f"({SATURATION_DEFAULT})")
@@ -89,6 +98,15 @@ def flat_edge_option(parser):
                         help="pixels masked along each side of each amplifier's flats, whose "
                              "edges collect less charge as the flux grows (default 10, as "
                              "cp_pipe's PTC; 0 keeps every pixel)")
+
+
+def sky_degree_option(text):
+    """``--sky-degree``: 'auto' or 0, 1, 2, 3."""
+    if text == "auto":
+        return text
+    if text not in ("0", "1", "2", "3"):
+        raise argparse.ArgumentTypeError(f"must be auto or 0, 1, 2, 3, got {text!r}")
+    return int(text)
 
 
 def maxlag_option(text):

@@ -179,6 +179,7 @@ def run(args):
                                        read_noise_e=read_noise, fit_shape=args.fit_shape,
                                        background_e=(None if args.background is None
                                                      else args.background * amp_gain),
+                                       sky_degree=args.sky_degree,
                                        detection_threshold=args.threshold,
                                        cross_terms=not args.no_cross_terms,
                                        residual_passes=args.residual_passes,

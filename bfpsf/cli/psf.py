@@ -123,7 +123,8 @@ def run(args):
             with about(path):
                 prepared.append(prepare_image(
                     amplifier.data, gain=gain, linearity_c_per_1e5=linearity_of(one),
-                    background_e=None if args.background is None else args.background * gain))
+                    background_e=None if args.background is None else args.background * gain,
+                    sky_degree=args.sky_degree))
             calibrations.append(one)
             # saturated or beyond the turnoff (header SATURATE, --saturation, calibration):
             # left out of the P0 fit, and counted

@@ -182,7 +182,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
                    detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
                    linearity_c_per_1e5=None, flux_correction=None, wings=None,
                    residual_passes=RESIDUAL_PASSES, saturation_e=None, mask_lines=True,
-                   **kwargs):
+                   sky_degree="auto", **kwargs):
     """Fit every star of an image with the flux-dependent PSF.
 
     Parameters
@@ -205,9 +205,10 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
         without a calibration or where its PTC left the read noise undetermined.
     background_e : float, optional
         A known sky level, e- per pixel, subtracted before fitting; default the sky surface
-        of the image (`bfpsf.measure.sky.estimate_sky`: a plane fitted beyond the masked
-        sources, per image), through the one image preparation of every command
-        (`bfpsf.measure.prepare.prepare_image`, which also undoes the PSF's linearity correction,
+        of the image (`bfpsf.measure.sky.estimate_sky`: a plane, curved where the sky is,
+        beyond the masked sources, per image; its degree ``sky_degree``, default 'auto'),
+        through the one image preparation of every command (`bfpsf.measure.prepare.
+        prepare_image`, which also undoes the PSF's linearity correction,
         ``psf.linearity_c_per_1e5``, of a refined calibration).
     fit_shape : int, optional
         Fit box, pixels (odd); default about 3 FWHM.
@@ -308,7 +309,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     if linearity_c_per_1e5 is None:
         linearity_c_per_1e5 = psf.linearity_c_per_1e5 if bfpsf_model else 0.0
     if prepared is None:
-        prepared = prepare_image(image, background_e=background_e,
+        prepared = prepare_image(image, background_e=background_e, sky_degree=sky_degree,
                                  linearity_c_per_1e5=linearity_c_per_1e5)
     image, sky = prepared.image_e, prepared.sky
     scatter = check_sky(prepared)

@@ -109,7 +109,7 @@ def electrons(data, *, gain=1.0, linearity_c_per_1e5=0.0):
 
 
 def prepare_image(data, *, gain=1.0, linearity_c_per_1e5=0.0, background_e=None,
-                  sky_degree=1):
+                  sky_degree="auto"):
     """An image in e- with its sky: the one preparation step of every command.
 
     Parameters
@@ -123,9 +123,10 @@ def prepare_image(data, *, gain=1.0, linearity_c_per_1e5=0.0, background_e=None,
         (`bfpsf.calibration.linearity.linearise`). Default 0.
     background_e : float, optional
         A known sky, e- per pixel (``--background`` times the gain); default: estimated
-        (`bfpsf.measure.sky.estimate_sky`, a plane fitted beyond the masked sources).
-    sky_degree : int, optional
-        Degree of the estimated sky surface (default 1, a plane).
+        (`bfpsf.measure.sky.estimate_sky`, a surface fitted beyond the masked sources).
+    sky_degree : int or 'auto', optional
+        Degree of the estimated sky surface (default ``'auto'``: a plane, or degree 2 or 3
+        where the sky pixels ask for it, `bfpsf.measure.sky.choose_degree`).
 
     Returns
     -------

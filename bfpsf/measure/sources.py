@@ -2,7 +2,7 @@
 
 The star table feeding the size-colour correction and the brighter-fatter slopes (G15
 sections 3.2-3.3). Sources are detected with photutils image segmentation on the smoothed,
-sky-subtracted image; each gets a stamp, the sky of every command under it (the plane of
+sky-subtracted image; each gets a stamp, the sky of every command under it (the surface of
 `bfpsf.measure.sky.estimate_sky`, beyond the masked sources), its peak and aperture flux in
 electrons, and adaptive moments (`bfpsf.moments.adaptive`). Saturated, blended and edge
 sources are flagged, never dropped.
@@ -264,7 +264,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     sky : bfpsf.measure.sky.SkyModel, optional
         The sky under the sources, e- per pixel (a known sky: `SkyModel.constant`); default
         the sky surface of every command (`bfpsf.measure.sky.estimate_sky` of this image, a
-        plane fitted beyond the masked sources). A local annulus per star was the sky here
+        surface fitted beyond the masked sources). A local annulus per star was the sky here
         before: its median holds the star's own wings and its neighbours' (+5 e- for
         Kolmogorov x Airy stars of 3-100 ke- peaks, issue 21) and the noise of a few hundred
         pixels.

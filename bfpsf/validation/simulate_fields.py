@@ -45,7 +45,9 @@ class SimulatedField:
     truth : list of astropy.table.Table
         Per image: ``x``, ``y`` (pixels), ``flux_e`` (total charge drawn), ``peak_e``.
     skies : list of (float, float, float)
-        Per image: the sky plane (level at the image centre, d/dx, d/dy), e- per pixel.
+        Per image: the sky plane (level at the image centre, d/dx, d/dy), e- per pixel (with
+        a ``sky_surface``: its level at the centre, its slopes NaN; `sky_image` evaluates
+        it).
     parameters : dict
     """
 
@@ -56,15 +58,19 @@ class SimulatedField:
 
     def sky_image(self, index):
         """The true sky of image ``index``, e- per pixel."""
-        level, slope_x, slope_y = self.skies[index]
         ny, nx = self.images[index].shape
         y, x = np.mgrid[:ny, :nx]
+        surface = self.parameters.get("sky_surface")
+        if surface is not None:
+            return np.asarray(surface(x, y), dtype=float)
+        level, slope_x, slope_y = self.skies[index]
         return level + slope_x * (x - (nx - 1) / 2) + slope_y * (y - (ny - 1) / 2)
 
 
 def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
                    peak_range_e=(3e3, 1.2e5), min_separation=30.0, sky_range_e=(20.0, 610.0),
-                   sensor="lsst_e2v_50_8", shifts=None, read_noise_e=5.0, seed=0, stamp=STAMP):
+                   sensor="lsst_e2v_50_8", shifts=None, read_noise_e=5.0, seed=0, stamp=STAMP,
+                   sky_surface=None):
     """Star fields of one profile, each image with its own sloped sky.
 
     Parameters
@@ -102,6 +108,9 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
         beyond 32 pixels), and a sky fitted with a model of the whole wings comes out low
         there. Give a larger stamp for such profiles (photon shooting through a sensor is
         slower on a larger stamp).
+    sky_surface : callable, optional
+        ``sky_surface(x, y)``, e- per pixel: the sky of every image instead of the random
+        plane (a curved sky: a vignetting bowl, scattered light).
 
     Returns
     -------
@@ -146,13 +155,17 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
             if shifts is not None:
                 array = redistribute(array, shifts, workers=1)
             array = rng.poisson(np.clip(array, 0, None)).astype(float)
-        low, high = np.sort(rng.uniform(*sky_range_e, 2))
-        angle = rng.uniform(0, 2 * np.pi)
-        span = np.hypot(nx - 1, ny - 1)
-        slope = (high - low) / span
-        sky = ((low + high) / 2, slope * np.cos(angle), slope * np.sin(angle))
         y_grid, x_grid = np.mgrid[:ny, :nx]
-        sky_image = sky[0] + sky[1] * (x_grid - (nx - 1) / 2) + sky[2] * (y_grid - (ny - 1) / 2)
+        if sky_surface is None:
+            low, high = np.sort(rng.uniform(*sky_range_e, 2))
+            angle = rng.uniform(0, 2 * np.pi)
+            slope = (high - low) / np.hypot(nx - 1, ny - 1)
+            sky = ((low + high) / 2, slope * np.cos(angle), slope * np.sin(angle))
+            sky_image = (sky[0] + sky[1] * (x_grid - (nx - 1) / 2)
+                         + sky[2] * (y_grid - (ny - 1) / 2))
+        else:
+            sky_image = np.asarray(sky_surface(x_grid, y_grid), dtype=float)
+            sky = (float(sky_surface((nx - 1) / 2, (ny - 1) / 2)), np.nan, np.nan)
         array = array + rng.poisson(sky_image) + read_noise_e * rng.standard_normal(array.shape)
         images.append(array)
         truths.append(Table({"x": xy[:, 0], "y": xy[:, 1], "flux_e": np.array(fluxes),
@@ -161,7 +174,7 @@ def simulate_field(profile, *, n_images=2, shape=(256, 256), n_stars=40,
     parameters = dict(n_images=n_images, shape=(ny, nx), n_stars=n_stars, stamp=int(stamp),
                       peak_range_e=tuple(peak_range_e), min_separation=min_separation,
                       sky_range_e=tuple(sky_range_e), sensor=sensor, seed=seed,
-                      read_noise_e=read_noise_e)
+                      read_noise_e=read_noise_e, sky_surface=sky_surface)
     return SimulatedField(images, truths, skies, parameters)
 
 

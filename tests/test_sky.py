@@ -1,0 +1,116 @@
+"""The sky surface of every command (`bfpsf.measure.sky`): the degree the sky pixels ask for,
+and what a plane under a curved sky does to PSF photometry at defaults."""
+
+import pathlib
+
+import galsim
+import numpy as np
+import pytest
+
+import bfpsf
+from bfpsf.errors import BFPSFValueError
+from bfpsf.measure.photometry import psf_photometry
+from bfpsf.measure.prepare import prepare_image
+from bfpsf.measure.sky import SkyModel, estimate_sky
+from bfpsf.shifts import BoundaryShifts
+from bfpsf.validation.simulate_fields import simulate_field
+
+
+def _sky(kind, n):
+    """A sky of 400 e- with a shape: flat, a gradient, a vignetting bowl (+24 e- at the
+    edges' middle), a broad hump of scattered light off centre."""
+    y, x = np.mgrid[:n, :n].astype(float)
+    u, v = (x - n / 2) / (n / 2), (y - n / 2) / (n / 2)
+    return 400.0 + {"flat": 0 * u, "plane": 30 * u - 20 * v, "bowl": 24 * (u ** 2 + v ** 2),
+                    "hump": 40 * np.exp(-((u - 0.4) ** 2 + (v + 0.3) ** 2) / 0.5)}[kind]
+
+
+@pytest.mark.parametrize("kind, degree", [("flat", 1), ("plane", 1), ("bowl", 2),
+                                          ("hump", 3)])
+def test_the_sky_takes_the_degree_its_pixels_ask_for(kind, degree):
+    """A flat or planar sky keeps a plane on every one of 4 noise draws (the criterion's
+    false alarms would be curvature fitted to noise); a bowl takes degree 2 and a hump of
+    scattered light degree 3, and the surface is then the sky to a fraction of an e-."""
+    rng = np.random.default_rng(3)
+    sky = _sky(kind, 300)
+    for _ in range(4):
+        image = rng.poisson(sky) + rng.normal(0.0, 5.0, sky.shape)
+        fitted = estimate_sky(image)
+        assert fitted.degree == degree
+        if kind != "hump":  # a Gaussian hump is not a cubic: within 1 e-
+            assert np.abs(fitted.image() - sky).max() < 1.0
+    assert estimate_sky(image, degree=1).degree == 1
+    with pytest.raises(BFPSFValueError, match="0, 1, 2, 3 or 'auto'"):
+        estimate_sky(image, degree="plane")
+
+
+@pytest.fixture(scope="module")
+def bowl_field():
+    """512^2 pixels of 70 Kolmogorov x obscured Airy stars (peaks 500-1.2e5 e-, no BF) on a
+    vignetting bowl (+60 e- at the edges' middle on 600 e-): (data, x, y, flux, psf, sky)."""
+    n = 512
+    profile = galsim.Convolve(galsim.Kolmogorov(fwhm=2.6),
+                              galsim.Airy(lam_over_diam=0.9, obscuration=0.4))
+    bowl = SkyModel((600.0, 0.0, 0.0, 60.0, 0.0, 60.0), 2, (n, n), np.nan, "known")
+    field = simulate_field(profile, n_images=1, shape=(n, n), n_stars=70,
+                           peak_range_e=(5e2, 1.2e5), min_separation=20.0, sensor=None,
+                           sky_surface=bowl, seed=1, stamp=256)
+    truth = field.truth[0]
+    psf = bfpsf.FluxDependentPSF.from_galsim(
+        profile, BoundaryShifts.from_radial_profile(lambda r: 0 * r, 2))
+    return (field.images[0], *(np.asarray(truth[name], float) for name in ("x", "y", "flux_e")),
+            psf, bowl)
+
+
+def test_photometry_at_defaults_under_a_curved_sky(bowl_field):
+    """The bowl: the plane, the default before, read the 13 faint stars (below 20 ke-) with
+    a spread of 67 mmag against the 18 mmag of the true sky; the sky the pixels ask for
+    (degree 2), 19 mmag, and the 27 bright ones 0.1 mmag from the true sky's."""
+    data, x, y, flux, psf, bowl = bowl_field
+
+    def offsets(prepared):
+        table = psf_photometry(prepared, psf, read_noise_e=5.0)
+        distance = np.hypot(table["x_fit"][None] - x[:, None],
+                            table["y_fit"][None] - y[:, None])
+        nearest = np.argmin(distance, axis=1)  # each star's fit
+        assert distance[np.arange(len(x)), nearest].max() < 0.5  # every star found
+        fitted = np.asarray(table["flux_fit"], float)[nearest]
+        return table.meta["sky"]["degree"], 1e3 * 2.5 * np.log10(flux / fitted)
+
+    def spread(values):
+        return 1.4826 * np.median(np.abs(values - np.median(values)))
+
+    faint, bright = flux < 2e4, flux > 2e5
+    degree, chosen = offsets(prepare_image(data))
+    _, plane = offsets(prepare_image(data, sky_degree=1))
+    _, true = offsets(prepare_image(data).with_sky(bowl))
+    assert degree == 2
+    assert spread(plane[faint]) > 2.5 * spread(true[faint])
+    assert spread(chosen[faint]) < 1.3 * spread(true[faint])
+    assert abs(np.median(chosen[bright] - true[bright])) < 2.0
+
+
+def test_the_commands_take_the_sky_degree(bowl_field, tmp_path):
+    """`bfpsf photometry` at its defaults chooses the bowl's degree 2 (in its JSON), and
+    ``--sky-degree 1`` holds it at a plane; a degree beyond 3 is refused."""
+    import json
+
+    from astropy.io import fits
+
+    from bfpsf.cli import main
+
+    data, _, _, _, psf, _ = bowl_field
+    image, product = tmp_path / "bowl.fits", tmp_path / "psf.fits"
+    fits.PrimaryHDU(data.astype(np.float32), header=fits.Header({"EXPTIME": 1.0})).writeto(
+        image)
+    psf.write(product)
+    for option, degree in (([], 2), (["--sky-degree", "1"], 1)):
+        out = tmp_path / f"phot{degree}.ecsv"
+        assert main(["photometry", str(image), "--psf", str(product), "--gain", "1",
+                     "--read-noise", "5", "-o", str(out), "--json", f"{out}.json",
+                     *option]) == 0
+        summary = json.loads(pathlib.Path(f"{out}.json").read_text())
+        assert [entry["sky"]["degree"] for entry in summary["images"]] == [degree], summary
+    with pytest.raises(SystemExit):
+        main(["photometry", str(image), "--psf", str(product), "--gain", "1", "-o",
+              str(tmp_path / "x.ecsv"), "--sky-degree", "4"])
