@@ -226,6 +226,25 @@ DEGREE_GATE = 0.05
 _CELL_PIXELS, _MIN_CELLS = 30, 16
 
 
+def _clipped_fit(design, values, clip_nsigma, max_iterations):
+    """Least squares of ``values`` on ``design`` with iterative sigma clipping about the fit
+    (a single column: the clipped median, robust to the residual tails): (coefficients, rms,
+    kept), the rms 1.4826 times the kept pixels' median absolute deviation."""
+    keep = np.ones(values.size, dtype=bool)
+    for _ in range(max_iterations):
+        if design.shape[1] == 1:
+            coefficients = np.array([np.median(values[keep])])
+        else:
+            coefficients = np.linalg.lstsq(design[keep], values[keep], rcond=None)[0]
+        deviation = values - design @ coefficients
+        rms = 1.4826 * np.median(np.abs(deviation[keep]))
+        new_keep = np.abs(deviation) <= clip_nsigma * max(rms, 1e-12)
+        if np.array_equal(new_keep, keep) or new_keep.sum() < design.shape[1] * 10:
+            break
+        keep = new_keep
+    return coefficients, rms, keep
+
+
 def choose_degree(rows, columns, values, shape, *, degrees=(1, 2, 3), clip_nsigma=3.0):
     """The degree of the sky surface the pixels ask for: the least Bayesian information
     criterion of each degree's fit on `DEGREE_CELLS` x `DEGREE_CELLS` cells of the image.
@@ -249,15 +268,7 @@ def choose_degree(rows, columns, values, shape, *, degrees=(1, 2, 3), clip_nsigm
     x_centre, y_centre, scale = template._scale()
     u, v = (columns - x_centre) / scale, (rows - y_centre) / scale
     highest = _powers(u, v, degrees[-1]).T
-    keep = np.ones(values.size, dtype=bool)
-    for _ in range(5):
-        deviation = values - highest @ np.linalg.lstsq(highest[keep], values[keep],
-                                                        rcond=None)[0]
-        rms = 1.4826 * np.median(np.abs(deviation[keep]))
-        new_keep = np.abs(deviation) <= clip_nsigma * max(rms, 1e-12)
-        if np.array_equal(new_keep, keep) or new_keep.sum() < highest.shape[1] * 10:
-            break
-        keep = new_keep
+    _, rms, keep = _clipped_fit(highest, values, clip_nsigma, 5)
     cell = (rows * DEGREE_CELLS // shape[0]) * DEGREE_CELLS + columns * DEGREE_CELLS // shape[1]
     counts = np.bincount(cell[keep], minlength=DEGREE_CELLS ** 2)
     used = counts >= _CELL_PIXELS
@@ -359,17 +370,6 @@ def estimate_sky(image_e, *, glow_e=None, mask=None, degree="auto", clip_nsigma=
                         np.nan, method)
     x_centre, y_centre, scale = template._scale()
     design = _powers((columns - x_centre) / scale, (rows - y_centre) / scale, degree).T
-    keep = np.ones(values.size, dtype=bool)
-    for _ in range(max_iterations):
-        if degree == 0:  # a constant: the clipped median (robust to the residual tails)
-            coefficients = np.array([np.median(values[keep])])
-        else:
-            coefficients = np.linalg.lstsq(design[keep], values[keep], rcond=None)[0]
-        deviation = values - design @ coefficients
-        rms = 1.4826 * np.median(np.abs(deviation[keep]))
-        new_keep = np.abs(deviation) <= clip_nsigma * max(rms, 1e-12)
-        if np.array_equal(new_keep, keep) or new_keep.sum() < design.shape[1] * 10:
-            break
-        keep = new_keep
+    coefficients, rms, keep = _clipped_fit(design, values, clip_nsigma, max_iterations)
     return SkyModel(tuple(float(c) for c in coefficients), degree, image.shape, float(rms),
                     method, int(keep.sum()))
