@@ -92,7 +92,8 @@ def test_photometry_at_defaults_under_a_curved_sky(bowl_field):
 
 def test_the_commands_take_the_sky_degree(bowl_field, tmp_path):
     """`bfpsf photometry` at its defaults chooses the bowl's degree 2 (in its JSON), and
-    ``--sky-degree 1`` holds it at a plane; a degree beyond 3 is refused."""
+    ``--sky-degree 1`` holds it at a plane; a degree beyond 3 is refused; `bfpsf measure`
+    says its degree."""
     import json
 
     from astropy.io import fits
@@ -114,3 +115,8 @@ def test_the_commands_take_the_sky_degree(bowl_field, tmp_path):
     with pytest.raises(SystemExit):
         main(["photometry", str(image), "--psf", str(product), "--gain", "1", "-o",
               str(tmp_path / "x.ecsv"), "--sky-degree", "4"])
+    # measure's sky, the same surface, says its degree too
+    assert main(["measure", str(image), "--gain", "1", "-o", str(tmp_path / "stars.ecsv"),
+                 "--json", str(tmp_path / "stars.json")]) == 0
+    summary = json.loads((tmp_path / "stars.json").read_text())
+    assert [entry["sky_degree"] for entry in summary["images"]] == [2]

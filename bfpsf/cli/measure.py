@@ -30,8 +30,9 @@ def _amplifier_colours(colour_table, amplifier):
 def add_parser(subparsers):
     parser = subparsers.add_parser(
         "measure", help="detect stars and measure adaptive moments (sizes) in electrons",
-        description="Detect sources (photutils segmentation), subtract the sky (a plane "
-                    "fitted beyond the masked sources, as every command), and "
+        description="Detect sources (photutils segmentation), subtract the sky (a plane, "
+                    "or of degree 2 or 3 where the sky is curved, fitted beyond the masked "
+                    "sources, as every command), and "
                     "measure peak, flux and adaptive second moments (G15 section 3.2). "
                     "Saturated, blended and edge sources are flagged, not dropped.")
     image_arguments(parser, "measure", about=" with header EXPTIME",
@@ -130,6 +131,7 @@ def run(args):
                                        (table["flags"] & MomentsFlag.SATURATED) != 0)),
                                    "n_amp_boundary": int(np.sum(table["amp_boundary"])),
                                    "line_pixels": table.meta["line_pixels"],
+                                   "sky_degree": table.meta["sky_degree"],
                                    "exptime": header.get("EXPTIME")})
     stars = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     stars.meta["gains"] = [entry["gain"] for entry in summary_images]
