@@ -93,6 +93,41 @@ def test_a_crowded_field_of_bright_stars_holds_no_line():
                          DETECTION_THRESHOLD).any()
 
 
+#: A clump of 35 bright stars from a new user's crowded field (x, y in a 160^2 cut-out, total
+#: flux e-; Kolmogorov 0.75" x Airy 0.25", obscuration 0.35, at 0.2"/px), whose saddles of
+#: light between the stars were masked as a line (328 pixels) and its stars flagged on_line.
+CLUMP = [(110.8, 113.7, 7300.0), (31.7, 42.0, 13600.0), (-18.1, 114.3, 13400.0),
+         (143.7, 106.7, 237000.0), (68.4, -16.9, 945000.0), (123.9, 5.8, 806000.0),
+         (171.3, 6.5, 549000.0), (85.7, 28.7, 106000.0), (160.7, 99.3, 738000.0),
+         (67.9, 59.3, 210000.0), (5.7, -12.7, 338000.0), (36.5, 178.1, 515000.0),
+         (143.6, 172.5, 667000.0), (127.9, 168.8, 235000.0), (69.5, 168.8, 419000.0),
+         (75.1, 70.8, 123000.0), (125.2, 173.3, 189000.0), (67.0, 10.4, 427000.0),
+         (146.7, -10.0, 246000.0), (156.4, 88.2, 289000.0), (81.2, 60.2, 301000.0),
+         (77.6, 90.7, 700000.0), (115.8, 154.9, 195000.0), (156.0, 160.5, 569000.0),
+         (33.3, -9.6, 139000.0), (58.1, 21.1, 735000.0), (13.7, 136.3, 100000.0),
+         (29.7, 83.3, 130000.0), (140.1, -11.1, 691000.0), (97.6, 99.1, 538000.0),
+         (93.6, 26.3, 873000.0), (171.7, 117.2, 126000.0), (118.3, 141.9, 115000.0),
+         (82.2, 68.2, 251000.0), (136.3, 34.7, 347000.0)]
+
+
+def test_the_light_between_clumped_bright_stars_is_no_line():
+    """The light between the clump's stars passes a line's tests along and across (bright
+    along the gap, falling on one side), but it is a saddle, a star on its other side: a line
+    is a ridge over at least half its length (`RIDGE_SHARE`)."""
+    profile = galsim.Convolve(galsim.Kolmogorov(fwhm=3.75),
+                              galsim.Airy(lam_over_diam=1.25, obscuration=0.35))
+    canvas = galsim.ImageF(160, 160, scale=1.0)
+    for x, y, flux in CLUMP:
+        stamp = profile.withFlux(flux).drawImage(nx=129, ny=129, scale=1.0,
+                                                 center=galsim.PositionD(x + 1, y + 1))
+        bounds = stamp.bounds & canvas.bounds
+        canvas[bounds] += stamp[bounds]
+    rng = np.random.default_rng(1)
+    image = (rng.poisson(canvas.array + 800.0) - 800.0
+             + 5.0 * rng.standard_normal(canvas.array.shape))
+    assert not line_mask(image, DETECTION_THRESHOLD).any()
+
+
 def test_photometry_leaves_the_lines_out(field):
     """Detection takes the trail and the column for strings of stars (without the mask, PSF
     photometry fitted 97 sources for these 40 stars, in 95 s); PSF photometry at its defaults

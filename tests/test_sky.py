@@ -120,3 +120,32 @@ def test_the_commands_take_the_sky_degree(bowl_field, tmp_path):
                  "--json", str(tmp_path / "stars.json")]) == 0
     summary = json.loads((tmp_path / "stars.json").read_text())
     assert [entry["sky_degree"] for entry in summary["images"]] == [2]
+
+
+def test_psf_refuses_wings_that_took_the_sky(tmp_path, capsys):
+    """A sky 120 e- darker at the edges' middle held at a plane: the sky-and-wings fit gave
+    the light beyond P0's support as twice the light inside it (flux correction 3.0 +- 0.6;
+    a new user's vignetted image, 2.98, was written and read every flux 1.2 mag off). No
+    product is written, with a one-line error; at defaults the sky's degree 2 gives 1.005
+    +- 0.002 for this Moffat (beta 3: 0.1 % beyond 12.5 px)."""
+    from astropy.io import fits
+
+    from bfpsf.cli import main
+    from test_photometry import SHIFTS, make_calibration
+
+    n = 384
+    bowl = SkyModel((800.0, 0.0, 0.0, -120.0, 0.0, -120.0), 2, (n, n), np.nan, "known")
+    field = simulate_field(galsim.Moffat(beta=3.0, fwhm=3.5), n_images=1, shape=(n, n),
+                           n_stars=60, peak_range_e=(1e3, 1e5), min_separation=25.0,
+                           sensor=None, sky_surface=bowl, seed=3)
+    image, calib = tmp_path / "vignetted.fits", tmp_path / "calib.fits"
+    fits.PrimaryHDU(field.images[0], header=fits.Header({"EXPTIME": 1.0})).writeto(image)
+    make_calibration(SHIFTS, 1.0, 5.0).write(calib)
+    out = tmp_path / "psf.fits"
+    assert main(["psf", str(image), "--calib", str(calib), "-o", str(out),
+                 "--sky-degree", "1"]) == 1
+    error = capsys.readouterr().err
+    assert "the light beyond P0's support came out" in error and "not written" in error
+    assert not out.exists()
+    assert main(["psf", str(image), "--calib", str(calib), "-o", str(out)]) == 0
+    assert bfpsf.read_psf(out).flux_correction == pytest.approx(1.0, abs=0.02)

@@ -43,6 +43,10 @@ MIN_NODE_STARS = 10
 #: stars per exposure, with a sky plane per amplifier: 1.080 +- 0.038 against 1.008; with
 #: the constant their images prefer, 1.015 +- 0.032).
 FLUX_CORRECTION_TOLERANCE = 0.01
+#: A total flux more than this many times the flux inside P0's support is a failed fit, not a
+#: PSF: no product is written (the widest wings measured here, a Kolmogorov atmosphere with
+#: struts and defocus, hold 5.5 % beyond a 25-pixel support).
+MAX_FLUX_CORRECTION = 1.5
 
 
 def add_parser(subparsers):
@@ -160,6 +164,16 @@ def run(args):
                                                     "size_across")})
     result = fitted.fit
     psf = fitted.psf
+    if psf.flux_correction > MAX_FLUX_CORRECTION:  # False for NaN (not measured)
+        # a new user's vignetted sky held at a plane: P0 unconverged, 2.98 +- 0.63, written,
+        # and every flux of photometry 1.2 mag off with a warning alone
+        msg = (f"{', '.join(map(str, args.images))}: the light beyond P0's support came out "
+               f"{psf.flux_correction - 1:.2f} +- {psf.flux_correction_err:.2f} of the light "
+               f"inside it (P0 {'converged' if result.converged else 'NOT converged'}): the "
+               "sky is not the fitted surface (give --sky-degree auto, or subtract the sky "
+               f"and give --background 0) or the stars are not one PSF; {args.output} not "
+               "written")
+        raise BFPSFInputError(msg, psf.flux_correction)
     gain = float(psf.gain)  # of the images the stars came from, weighted by their stars
     psf.write(args.output, meta={"NSTARS": int(np.sum(result.stars["flags"] == 0)),
                                  "BFTERM": bool(args.include_bf)},
@@ -291,9 +305,11 @@ def run(args):
     if psf.flux_correction_err > FLUX_CORRECTION_TOLERANCE:  # False for NaN (not measured)
         print(f"WARNING: the light beyond P0's support is poorly measured on these images: "
               f"total flux {psf.flux_correction:.4f} +- {psf.flux_correction_err:.4f} times the "
-              "flux in the support, a scale error of every flux (too few pixels between the "
-              "stars tell the sky from their wings: a crowded field, small amplifiers); fit "
-              "the PSF on sparser or larger images",
+              "flux in the support, a scale error of every flux (the sky's misfit or too "
+              "few pixels between the stars tell the sky from their wings: a sky no "
+              "low-order surface follows, such as scattered light or vignetting, a crowded "
+              "field, small amplifiers); subtract such a sky and give --background 0, fit "
+              "the PSF on sparser or larger images, or give P0 more of the light (--size)",
               file=sys.stderr)
     if p0_error is not None:
         print(f"P0 (the PSF of sources far fainter than the stars) carries the calibration's "

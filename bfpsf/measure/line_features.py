@@ -41,8 +41,8 @@ from astropy.stats import sigma_clipped_stats
 from scipy import ndimage
 
 __all__ = ["line_mask", "resolve_lines", "near_lines", "N_DIRECTIONS", "INNER", "OUTER",
-           "ALONG_FRACTION", "ACROSS_FRACTION", "MIN_LENGTH", "MIN_COVERAGE", "MIN_EVEN",
-           "LINE_LEVEL", "GAP", "MAX_WIDTH"]
+           "ALONG_FRACTION", "ACROSS_FRACTION", "RIDGE_FRACTION", "RIDGE_SHARE", "MIN_LENGTH",
+           "MIN_COVERAGE", "MIN_EVEN", "LINE_LEVEL", "GAP", "MAX_WIDTH"]
 
 #: Directions tested, evenly over 180 degrees (11.25 degrees apart: a trail between two of
 #: them is off by at most 1.6 pixels at `OUTER`, about the smoothed trail's width).
@@ -53,6 +53,10 @@ INNER, OUTER = 4, 16
 ALONG_FRACTION = 0.6
 #: Across the line, the fainter side's median over the pixel's value, at most this.
 ACROSS_FRACTION = 0.3
+#: Across the line, the brighter side's median over the pixel's value, at most this.
+RIDGE_FRACTION = 1.0
+#: The share of a line's pixels that are ridges (`RIDGE_FRACTION`), at least.
+RIDGE_SHARE = 0.5
 #: A line is at least this long, pixels (as far as the tests reach on both sides).
 MIN_LENGTH = 2 * OUTER
 #: The fraction of a line's length its pixels cover, at least.
@@ -138,14 +142,18 @@ def _even(smoothed, centre, axis, start, stop):
     return median > 0 and np.mean((samples >= median / 2) & (samples <= 2 * median)) >= MIN_EVEN
 
 
-def _long(mask, angle, smoothed):
+def _long(mask, angle, smoothed, ridges):
     """The pixels of ``mask`` in lines along ``angle`` at least `MIN_LENGTH` long and at most
     `MAX_WIDTH` wide about their own axis (a trail between two directions tested), its pieces
     joined along ``angle`` over gaps of up to `GAP` pixels (a line's pixels beside a star
     or a cosmic ray may fail the tests), never across (lines that cross stay apart), and
     with pixels along at least `MIN_COVERAGE` of their length (a chain of bright stars
     passes the tests between them, not on their cores: a new user's crowded field had a
-    chain of 4 masked) and even along them (`_even`)."""
+    chain of 4 masked) and even along them (`_even`), and where at least `RIDGE_SHARE` of
+    them are ridges (``ridges``: the brighter side across no brighter than the pixel; a
+    trail beside a star is not, there; the light between the bright stars of a dense field,
+    a saddle with a star on one side, nowhere: a new user's cluster of 440 stars above 1e5
+    e- had 590 pixels masked and 12 stars flagged)."""
     joined = ndimage.binary_dilation(mask, structure=_line_structure(angle))
     labels, count = ndimage.label(joined, structure=np.ones((3, 3), dtype=bool))
     labels = np.where(mask, labels, 0)
@@ -164,6 +172,7 @@ def _long(mask, angle, smoothed):
         covered = np.unique(np.floor(along - along.min())).size / (np.floor(extent) + 1.0)
         keep[label] = (extent >= MIN_LENGTH and np.std(across) <= MAX_WIDTH
                        and covered >= MIN_COVERAGE
+                       and np.mean(ridges[box][labels[box] == label]) >= RIDGE_SHARE
                        and _even(smoothed, centre, axes[:, -1], along.min(), along.max()))
     return keep[labels]
 
@@ -210,6 +219,7 @@ def _lines_of(smoothed, level, detection_fwhm):
     bright = smoothed >= level
     rows, columns = _bright_along(smoothed, *np.nonzero(bright))
     on_line = np.zeros((N_DIRECTIONS, rows.size), dtype=bool)
+    ridge = np.zeros((N_DIRECTIONS, rows.size), dtype=bool)
     across = (np.arange(N_DIRECTIONS) + N_DIRECTIONS // 2) % N_DIRECTIONS
     for start in range(0, rows.size, _CHUNK):
         part = slice(start, start + _CHUNK)
@@ -218,11 +228,16 @@ def _lines_of(smoothed, level, detection_fwhm):
         along = np.min(quartile, axis=0)  # the fainter side, per direction
         beside = np.min(median, axis=0)[across]  # the fainter side across it
         on_line[:, part] = (along >= ALONG_FRACTION * value) & (beside <= ACROSS_FRACTION * value)
+        # the brighter side across no brighter than the pixel: a ridge (`_long`)
+        ridge[:, part] = np.max(median, axis=0)[across] <= RIDGE_FRACTION * value
     mask = np.zeros(smoothed.shape, dtype=bool)
     for direction in np.flatnonzero(on_line.any(axis=1)):
         pixels = np.zeros(smoothed.shape, dtype=bool)
         pixels[rows[on_line[direction]], columns[on_line[direction]]] = True
-        mask |= _long(pixels, np.pi * direction / N_DIRECTIONS, smoothed)
+        ridges = np.zeros(smoothed.shape, dtype=bool)
+        chosen = on_line[direction] & ridge[direction]
+        ridges[rows[chosen], columns[chosen]] = True
+        mask |= _long(pixels, np.pi * direction / N_DIRECTIONS, smoothed, ridges)
     if not mask.any():
         return mask
     # its wings: the pixels about it no brighter than the line beside them (a trail's edges
