@@ -148,4 +148,16 @@ def test_psf_refuses_wings_that_took_the_sky(tmp_path, capsys):
     assert "the light beyond P0's support came out" in error and "not written" in error
     assert not out.exists()
     assert main(["psf", str(image), "--calib", str(calib), "-o", str(out)]) == 0
-    assert bfpsf.read_psf(out).flux_correction == pytest.approx(1.0, abs=0.02)
+    product = bfpsf.read_psf(out)
+    assert product.flux_correction == pytest.approx(1.0, abs=0.02)
+    # a correction measured to 5 % (a sky no low-order surface follows) is said by
+    # photometry too, as the scale error of every flux; one measured to 0.2 % is not
+    for error, said in ((product.flux_correction_err, False), (0.05, True)):
+        product.flux_correction_err = error
+        product.write(tmp_path / f"psf{error}.fits")
+        capsys.readouterr()
+        assert main(["photometry", str(image), "--psf", str(tmp_path / f"psf{error}.fits"),
+                     "--gain", "1", "--read-noise", "5", "-o",
+                     str(tmp_path / f"phot{error}.ecsv")]) == 0
+        assert ("every flux carries a common scale error of +- 5"
+                in capsys.readouterr().err) == said

@@ -16,6 +16,7 @@ from ..measure.sources import SourceFlag
 from . import (image_arguments, non_negative_float, non_negative_int, output_options,
                positive_float, positive_int, star_image_options)
 from ._files import one_fit_per_star, place_stars, read_image, warn_unconverged
+from .psf import FLUX_CORRECTION_TOLERANCE
 
 
 def add_parser(subparsers):
@@ -283,6 +284,17 @@ def run(args):
              if any(entry["line_pixels"] for entry in per_image) else "")
           + "detection's flags and unlike_psf in source_flags, bits in "
           f"bfpsf.measure.sources.SourceFlag.NAMES); wrote {args.output}")
+    # the product's total-flux correction, a scale common to every flux: said where poorly
+    # measured (a new user's scattered-light sky: 1.244 +- 0.128, every flux -200 mmag, and
+    # photometry said nothing; bfpsf psf had)
+    correction, correction_err = (tables[0].meta["flux_correction"],
+                                  tables[0].meta["flux_correction_err"])
+    if correction_err is not None and correction_err > FLUX_CORRECTION_TOLERANCE:
+        print(f"WARNING: the PSF's total-flux correction is {correction:.4f} +- "
+              f"{correction_err:.4f} (the light beyond its P0's support, as bfpsf psf measured "
+              f"it): every flux carries a common scale error of +- "
+              f"{2.5e3 * np.log10(1 + correction_err / correction):.1f} mmag (docs/"
+              "limitations.md: a sky no low-order surface follows)", file=sys.stderr)
     # where the pixel errors' read noise came from, when nobody gave it (a new user read
     # 9.9 e- in the JSON, against its true 6, and found no word of it)
     measured = [entry["read_noise_e"] for entry in per_image
