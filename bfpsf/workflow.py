@@ -211,7 +211,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     # the highest sky degree the wings fit may take (it may keep a lower one, which the
     # images' skies then have)
     degree = 0 if known else max(prepared.sky.degree for prepared in images)
-    for _ in range(1 if known else 2):
+    for _ in range(2):
         # the sky of every image and the stars' wings beyond the support, fitted jointly
         # (the wings' glow biases a sky between the stars; the sky, the wings), then P0
         # refitted on the images with that sky and glow; a known sky is subtracted and only
@@ -221,8 +221,9 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                                else prepared.image_e) for prepared, line in zip(images, lines)]
         skies, wings = fit_sky_and_wings(sky_fitted, stars, half_size=size // 2,
                                          degree=degree, oversampling=oversampling)
-        if known:
-            break
+        # P0 refitted with the wings' glow subtracted, a known sky's too (fitted with the
+        # glow left in, a crowded field's P0 took its neighbours' glow in its outskirts: a
+        # new user's bright stars -9.3 mmag with its true sky given, +0.7 with the sky fitted)
         images = [prepared.with_sky(prepared.sky if prepared.sky.method == "known" else sky,
                                     _glow(wings, mine, prepared.image_e.shape))
                   for prepared, sky, mine in zip(images, skies, stars)]
