@@ -239,32 +239,34 @@ def evaluate_empirical(term, sizes, fluxes, model_sigma, residual, response=None
     for label, (rx, ry) in (("before", residual),
                             ("after", (residual[0] - change[0], residual[1] - change[1]))):
         out[label] = slope_residuals(sizes, rx, ry)
+    d_e2 = None
     if cross_residual is not None:
         d_e2 = predicted_cross_change(term, sizes, fluxes, model_sigma, residual, response)
         out["before"]["cross"] = cross_slope(sizes, cross_residual)
         out["after"]["cross"] = cross_slope(sizes, np.asarray(cross_residual) - d_e2)
     _add_term_errors(out["after"], term, sizes, fluxes, model_sigma, residual, response,
-                     cross_residual is not None)
+                     change, d_e2)
     return out
 
 
-def _add_term_errors(after, term, sizes, fluxes, model_sigma, residual, response, cross):
+def _add_term_errors(after, term, sizes, fluxes, model_sigma, residual, response, base,
+                     base_e2):
     """Add to the errors of ``after`` (`evaluate_empirical`) the error of the term's own
     prediction, from its coefficients' covariance (`EmpiricalTerm.covariance`), in
     quadrature: the data the term was fitted on are not those it is judged on, and the
     residual it leaves scatters by both (on 7 noise draws of the quick one-axis user path the
     held-out X residual scattered by 1.8 % of raw against the 1.3 % of its data alone). Each
     slope is linear in the coefficients (the sizes to first order): one column of its
-    Jacobian per coefficient, by a step of that coefficient's error. ``after`` gains
-    ``slope_{x,y}_percent_term_err`` (and ``cross['slope_term_err']``)."""
+    Jacobian per coefficient, by a step of that coefficient's error, about the term's own
+    predictions ``base`` (d sigma_x, d sigma_y) and ``base_e2`` (d e2, None without the
+    cross moment). ``after`` gains ``slope_{x,y}_percent_term_err`` (and
+    ``cross['slope_term_err']``)."""
     covariance = term.covariance
     if not covariance or not len(covariance["names"]):
         return
+    cross = base_e2 is not None
     matrix = np.asarray(covariance["matrix"], float)
     steps = np.sqrt(np.clip(np.diag(matrix), 0.0, None))
-    base = predicted_size_change(term, sizes, fluxes, model_sigma, response)
-    base_e2 = (predicted_cross_change(term, sizes, fluxes, model_sigma, residual, response)
-               if cross else None)
     jacobian = {key: np.zeros(len(steps)) for key in ("x", "y", "cross")}
     for index, ((pattern, name), step) in enumerate(zip(covariance["names"], steps)):
         if not step:
@@ -285,7 +287,7 @@ def _add_term_errors(after, term, sizes, fluxes, model_sigma, residual, response
         after[f"slope_{axis}_percent_term_err"] = error
         after[f"slope_{axis}_percent_err"] = float(np.hypot(after[f"slope_{axis}_percent_err"],
                                                             error))
-    if cross and "cross" in after:
+    if cross:
         error = float(np.sqrt(max(jacobian["cross"] @ matrix @ jacobian["cross"], 0.0)))
         after["cross"]["slope_term_err"] = error
         after["cross"]["slope_err"] = float(np.hypot(after["cross"]["slope_err"], error))

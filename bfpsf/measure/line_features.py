@@ -36,9 +36,10 @@ bleed trail of a saturated star was not masked (its star is flagged saturated).
 """
 
 import numpy as np
-from astropy.convolution import convolve
 from astropy.stats import sigma_clipped_stats
 from scipy import ndimage
+
+from .smoothing import smoothed_image
 
 __all__ = ["line_mask", "resolve_lines", "near_lines", "N_DIRECTIONS", "INNER", "OUTER",
            "ALONG_FRACTION", "ACROSS_FRACTION", "RIDGE_FRACTION", "RIDGE_SHARE", "MIN_LENGTH",
@@ -162,7 +163,8 @@ def _long(mask, angle, smoothed, ridges):
         if box is None or np.hypot(box[0].stop - box[0].start,
                                    box[1].stop - box[1].start) < MIN_LENGTH:
             continue
-        rows, columns = np.nonzero(labels[box] == label)
+        member = labels[box] == label
+        rows, columns = np.nonzero(member)
         points = np.column_stack([columns + box[1].start, rows + box[0].start]).astype(float)
         centre = points.mean(axis=0)
         points -= centre
@@ -172,7 +174,7 @@ def _long(mask, angle, smoothed, ridges):
         covered = np.unique(np.floor(along - along.min())).size / (np.floor(extent) + 1.0)
         keep[label] = (extent >= MIN_LENGTH and np.std(across) <= MAX_WIDTH
                        and covered >= MIN_COVERAGE
-                       and np.mean(ridges[box][labels[box] == label]) >= RIDGE_SHARE
+                       and np.mean(ridges[box][member]) >= RIDGE_SHARE
                        and _even(smoothed, centre, axes[:, -1], along.min(), along.max()))
     return keep[labels]
 
@@ -199,12 +201,8 @@ def line_mask(image_e, threshold, *, detection_fwhm=3.0, smoothed=None, rms=None
     ndarray of bool [y, x]
         True on the pixels of a line and of its wings.
     """
-    from photutils.segmentation import make_2dgaussian_kernel
-
     if smoothed is None:
-        kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
-        smoothed = convolve(np.where(np.isfinite(image_e), image_e, 0.0), kernel,
-                            normalize_kernel=True)
+        smoothed = smoothed_image(image_e, detection_fwhm)
     if rms is None:
         _, _, rms = sigma_clipped_stats(smoothed, sigma=3.0)
     mask = np.zeros(smoothed.shape, dtype=bool)

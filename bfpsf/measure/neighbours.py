@@ -8,13 +8,13 @@ with no detected neighbour within a stamp, for the P0 fit.
 """
 
 import numpy as np
-from astropy.convolution import convolve
 from astropy.stats import gaussian_fwhm_to_sigma, sigma_clipped_stats
 from astropy.table import Table
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from .line_features import near_lines, resolve_lines
+from .smoothing import smoothed_image
 from .sources import DETECTION_THRESHOLD, LINE_REACH, SourceFlag, measure_sources
 
 __all__ = ["smoothed_peaks", "sources_with_companions", "isolated_stars",
@@ -43,11 +43,7 @@ def smoothed_peaks(image_e, *, threshold=DETECTION_THRESHOLD, detection_fwhm=3.0
     -------
     ndarray (N, 2)
     """
-    from photutils.segmentation import make_2dgaussian_kernel
-
-    image = np.where(np.isfinite(image_e), image_e, 0.0)
-    kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
-    smoothed = convolve(image, kernel, normalize_kernel=True)
+    smoothed = smoothed_image(image_e, detection_fwhm)
     _, _, rms = sigma_clipped_stats(smoothed, sigma=3.0)
     x, y, _, _ = local_peaks(smoothed, (threshold + 3.0) * rms, detection_fwhm)
     return np.column_stack([x, y])

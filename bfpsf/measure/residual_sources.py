@@ -24,6 +24,7 @@ from scipy.ndimage import map_coordinates
 from scipy.spatial import cKDTree
 
 from .neighbours import COMPANION_SEPARATION, local_peaks
+from .smoothing import detection_kernel
 from .sources import SourceFlag
 
 __all__ = ["residual_sources", "MODEL_ERROR"]
@@ -102,14 +103,11 @@ def residual_sources(residual_e, variance_e, known_xy, *, threshold, model_e=Non
         not a misfit's pattern),
         ``source_flags`` (``IN_RESIDUAL``), ``significance``; empty when none.
     """
-    from photutils.segmentation import make_2dgaussian_kernel
-
     residual = np.where(np.isfinite(residual_e), residual_e, 0.0)
     variance = np.where(np.isfinite(variance_e), np.clip(variance_e, 1.0, None), 1.0)
     if model_e is not None:
         variance = variance + (MODEL_ERROR * np.clip(model_e, 0.0, None)) ** 2
-    kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
-    weights = np.asarray(kernel.array, dtype=float)
+    weights = np.asarray(detection_kernel(detection_fwhm).array, dtype=float)
     weights = weights / weights.sum()
     # the filter's output over its noise: sum k r / sqrt(sum k^2 v)
     filtered = convolve(residual, weights, normalize_kernel=False, boundary="extend")

@@ -26,6 +26,7 @@ from ..resources import check_pixels
 from .line_features import near_lines, resolve_lines
 from .neighbour_light import neighbour_light
 from .sky import estimate_sky
+from .smoothing import detection_kernel
 
 __all__ = ["SourceFlag", "measure_sources", "sky_level", "source_flag_string",
            "aperture_fraction", "model_flux", "STAR_COLUMNS", "DETECTION_THRESHOLD",
@@ -302,7 +303,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
         (`bfpsf.measure.neighbour_light`), ``n_iter``, ``flags``
         (`SourceFlag`), ``flag_string`` and the colour columns.
     """
-    from photutils.segmentation import SourceCatalog, detect_sources, make_2dgaussian_kernel
+    from photutils.segmentation import SourceCatalog, detect_sources
     from photutils.utils.exceptions import NoDetectionsWarning
 
     image = np.asarray(image_e, dtype=float)
@@ -332,7 +333,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     if sky is None:
         sky = estimate_sky(np.where(bad, np.nan, image))
     data = np.where(bad, np.nan, image - sky.image())
-    kernel = make_2dgaussian_kernel(detection_fwhm, size=2 * int(2 * detection_fwhm) + 1)
+    kernel = detection_kernel(detection_fwhm)
     convolved = convolve(np.where(bad, 0.0, data), kernel, normalize_kernel=True)
     _, _, smooth_rms = sigma_clipped_stats(convolved[~bad], sigma=3.0)
     lines = resolve_lines(lines, data, threshold, smoothed=convolved, rms=smooth_rms)
