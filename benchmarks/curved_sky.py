@@ -70,7 +70,7 @@ def main():
             cells.append(f"{low / 1e3:g}-{high / 1e3:g} ke- {median:+.1f} ({spread:.1f}, "
                          f"{members.sum()})")
         print(f"sky {args.sky} seed {args.seed}, degree {degree!s:4s} -> "
-              f"{prepared.sky.degree}: found {found.sum()}/{len(x)}; " + "; ".join(cells),
+              f"{prepared.sky.kind}: found {found.sum()}/{len(x)}; " + "; ".join(cells),
               flush=True)
 
 

@@ -28,6 +28,7 @@ from .errors import BFPSFInputError, BFPSFValueError
 from .measure.bf_agreement import bf_agreement
 from .measure.line_features import line_mask
 from .measure.neighbours import isolated_stars
+from .measure.sky import SPLINE
 from .measure.sources import DETECTION_THRESHOLD
 from .measure.total_flux import fit_sky_and_wings, wing_gradient
 from .moments.shapes import (MAG_PER_SIZE_ERROR, size_across, size_offset, size_ratios,
@@ -165,7 +166,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                           "background_e": prepared.sky.level,
                           "sky_slope": list(prepared.sky.slope),
                           "sky_method": prepared.sky.method,
-                          "sky_degree": prepared.sky.degree,
+                          "sky_degree": prepared.sky.kind,
                           "line_pixels": int(lines[-1].sum())})
     buildups = {calibration.refinement.get("buildup_steps")
                 for calibration in calibrations if getattr(calibration, "refinement", None)}
@@ -210,7 +211,8 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     known = all(prepared.sky.method == "known" for prepared in images)
     # the highest sky degree the wings fit may take (it may keep a lower one, which the
     # images' skies then have)
-    degree = 0 if known else max(prepared.sky.degree for prepared in images)
+    kinds = {prepared.sky.kind for prepared in images}
+    degree = 0 if known else SPLINE if SPLINE in kinds else max(kinds)
     for _ in range(2):
         # the sky of every image and the stars' wings beyond the support, fitted jointly
         # (the wings' glow biases a sky between the stars; the sky, the wings), then P0
@@ -230,7 +232,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         result = fit()
     for entry, prepared in zip(per_image, images):
         entry.update(background_e=prepared.sky.level, sky_slope=list(prepared.sky.slope),
-                     sky_method=prepared.sky.method, sky_degree=prepared.sky.degree)
+                     sky_method=prepared.sky.method, sky_degree=prepared.sky.kind)
     psf = result.psf
     psf.empirical = empirical
     psf.calibration = str(calibration_name)

@@ -25,23 +25,45 @@ def _sky(kind, n):
                     "hump": 40 * np.exp(-((u - 0.4) ** 2 + (v + 0.3) ** 2) / 0.5)}[kind]
 
 
-@pytest.mark.parametrize("kind, degree", [("flat", 1), ("plane", 1), ("bowl", 2),
-                                          ("hump", 3)])
-def test_the_sky_takes_the_degree_its_pixels_ask_for(kind, degree):
+@pytest.mark.parametrize("kind, chosen", [("flat", 1), ("plane", 1), ("bowl", 2),
+                                          ("hump", "spline")])
+def test_the_sky_takes_the_degree_its_pixels_ask_for(kind, chosen):
     """A flat or planar sky keeps a plane on every one of 4 noise draws (the criterion's
-    false alarms would be curvature fitted to noise); a bowl takes degree 2 and a hump of
-    scattered light degree 3, and the surface is then the sky to a fraction of an e-."""
+    false alarms would be curvature fitted to noise); a bowl takes degree 2, within 1 e- of
+    the sky everywhere; a hump of scattered light (a Gaussian of 75 px) the spline sky,
+    within 1.2 e- rms where the cubic is 2.7 e- from it (its best fit to the noiseless
+    hump: 2.7 e- rms, 15 e- at a corner)."""
     rng = np.random.default_rng(3)
     sky = _sky(kind, 300)
     for _ in range(4):
         image = rng.poisson(sky) + rng.normal(0.0, 5.0, sky.shape)
         fitted = estimate_sky(image)
-        assert fitted.degree == degree
-        if kind != "hump":  # a Gaussian hump is not a cubic: within 1 e-
+        assert fitted.kind == chosen
+        if kind == "hump":  # noise at the spline's edges: 3-5 e- at the corners
+            assert np.std(fitted.image() - sky) < 1.2
+            assert np.std(estimate_sky(image, degree=3).image() - sky) > 2.5
+        else:
             assert np.abs(fitted.image() - sky).max() < 1.0
     assert estimate_sky(image, degree=1).degree == 1
-    with pytest.raises(BFPSFValueError, match="0, 1, 2, 3 or 'auto'"):
+    with pytest.raises(BFPSFValueError, match="0, 1, 2, 3, 'spline' or 'auto'"):
         estimate_sky(image, degree="plane")
+
+
+def test_the_spline_sky_is_a_surface():
+    """The spline sky's basis sums to one everywhere (a constant is a spline), its image is
+    its value at every pixel, and its level and slope are those at the image's centre."""
+    shape = (300, 520)
+    template = SkyModel.template("spline", shape)
+    assert template.intervals == (2, 4) and len(template.coefficients) == 5 * 7
+    y, x = np.mgrid[:shape[0], :shape[1]]
+    np.testing.assert_allclose(template.basis(x.ravel(), y.ravel()).sum(axis=1), 1.0)
+    rng = np.random.default_rng(5)
+    sky = SkyModel(tuple(rng.normal(100.0, 10.0, 35)), 3, shape, 1.0, "", 0, (2, 4))
+    image = sky.image()
+    np.testing.assert_allclose(image[y[::37, ::41], x[::37, ::41]], sky(x[::37, ::41],
+                                                                        y[::37, ::41]))
+    assert sky.level == pytest.approx(sky(259.5, 149.5))
+    assert sky.slope[0] == pytest.approx((sky(260.5, 149.5) - sky(258.5, 149.5)) / 2, rel=0.05)
 
 
 @pytest.fixture(scope="module")

@@ -77,15 +77,16 @@ def star_image_options(parser, *, saturation, wings=True, threshold=True, backgr
                             metavar="ADU",
                             help="a known sky level of the images, ADU per pixel (0 for "
                                  "sky-subtracted images); default the sky surface of each "
-                                 "image: a plane (degree 2 or 3 where the sky is curved) "
+                                 "image: a plane (degree 2, 3 or a spline where the sky is curved) "
                                  "fitted beyond the masked sources"
                                  + (" and the stars' wings" if wings else ""))
         if sky_degree:
             parser.add_argument("--sky-degree", type=sky_degree_option, default="auto",
-                                metavar="auto|0-3",
+                                metavar="auto|0-3|spline",
                                 help="degree of the fitted sky surface of each image (default "
                                      "auto: a plane, or 2 or 3 where the sky pixels show a "
-                                     "curved sky)")
+                                     "curved sky, or a bicubic spline with knots 128 px "
+                                     "apart where a cubic does not follow it)")
     parser.add_argument("--saturation", type=saturation_option, default=None, metavar="ADU",
                         help=f"saturation level of the raw images, ADU: {saturation} "
                              f"({SATURATION_DEFAULT})")
@@ -101,11 +102,11 @@ def flat_edge_option(parser):
 
 
 def sky_degree_option(text):
-    """``--sky-degree``: 'auto' or 0, 1, 2, 3."""
-    if text == "auto":
+    """``--sky-degree``: 'auto', 'spline' or 0, 1, 2, 3."""
+    if text in ("auto", "spline"):
         return text
     if text not in ("0", "1", "2", "3"):
-        raise argparse.ArgumentTypeError(f"must be auto or 0, 1, 2, 3, got {text!r}")
+        raise argparse.ArgumentTypeError(f"must be auto, spline or 0, 1, 2, 3, got {text!r}")
     return int(text)
 
 

@@ -468,7 +468,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     result.meta["background_e"] = sky.level
     # the slope per pixel is what `bfpsf psf` reports (``sky_slope``), and the coefficients say
     # what they multiply: a new user compared the two
-    result.meta["sky"] = {"method": sky.method, "degree": sky.degree,
+    result.meta["sky"] = {"method": sky.method, "degree": sky.kind,
                           "coefficients": list(sky.coefficients),
                           "coefficients_of": sky.coefficients_of,
                           "slope": list(sky.slope), "rms_e": sky.rms}

@@ -74,7 +74,7 @@ class PreparedImage:
             return self.with_sky(self.sky, glow_e)
         light = np.asarray(stars_e, dtype=float) + np.asarray(glow_e, dtype=float)
         free = self.sky_pixels & np.isfinite(light) & (light < self.sky.rms)
-        sky = estimate_sky(self.image_e, glow_e=light, degree=self.sky.degree,
+        sky = estimate_sky(self.image_e, glow_e=light, degree=self.sky.kind,
                            sky_pixels_mask=free)
         return self.with_sky(sky, glow_e)
 
@@ -124,9 +124,9 @@ def prepare_image(data, *, gain=1.0, linearity_c_per_1e5=0.0, background_e=None,
     background_e : float, optional
         A known sky, e- per pixel (``--background`` times the gain); default: estimated
         (`bfpsf.measure.sky.estimate_sky`, a surface fitted beyond the masked sources).
-    sky_degree : int or 'auto', optional
+    sky_degree : int, 'spline' or 'auto', optional
         Degree of the estimated sky surface (default ``'auto'``: a plane, or degree 2 or 3
-        where the sky pixels ask for it, `bfpsf.measure.sky.choose_degree`).
+        or a spline where the sky pixels ask for it, `bfpsf.measure.sky.choose_degree`).
 
     Returns
     -------

@@ -347,7 +347,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     if segments is None:
         empty = _empty_table(colour_columns)
         empty.meta["line_pixels"] = int(lines.sum())
-        empty.meta["sky_degree"] = int(sky.degree)
+        empty.meta["sky_degree"] = sky.kind
         return empty
     peak_level = (threshold + 3.0) * smooth_rms
     blended_labels = _segments_with_several_peaks(convolved, segments.data, peak_level,
@@ -459,7 +459,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     table.meta["threshold"] = float(threshold)
     table.meta["saturation_e"] = None if saturation is None else float(saturation)
     table.meta["line_pixels"] = int(lines.sum())
-    table.meta["sky_degree"] = int(sky.degree)
+    table.meta["sky_degree"] = sky.kind
     return table
 
 

@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 from ..errors import BFPSFInputError
 from ..model.wings import (BASE_POWER, GLOW, WING_NODES, WingModel, node_basis,
                            node_radii, wing_image)
-from .sky import SkyModel, _powers, source_mask
+from .sky import SPLINE, SkyModel, source_mask
 
 __all__ = ["fit_sky_and_wings", "wing_gradient"]
 
@@ -132,22 +132,14 @@ def _templates(x, y, flux, rows, columns, half_size):
     return templates, tails.T, inside
 
 
-def _sky_basis(template, rows, columns):
-    """The sky surface's terms (of ``template``, a `SkyModel`) at the pixels (rows,
-    columns): shape (pixels, terms)."""
-    x_centre, y_centre, scale = template._scale()
-    return _powers((columns - x_centre) / scale, (rows - y_centre) / scale, template.degree).T
-
-
-def _without_skies(columns, bases, offsets, keep, terms=None):
-    """Each image's sky terms (its first ``terms``; default all) projected out of
+def _without_skies(columns, bases, offsets, keep):
+    """Each image's sky terms projected out of
     ``columns`` on the kept pixels (image k's pixels are rows ``offsets[k]:offsets[k + 1]``,
     and its terms touch them only): (what is left of every column, and per image the sky
     terms of every column)."""
     left, parts = np.empty_like(columns), []
     for index, basis in enumerate(bases):
         block = slice(offsets[index], offsets[index + 1])
-        basis = basis[:, :terms]
         of_columns = np.linalg.lstsq(basis[keep[block]], columns[block][keep[block]],
                                      rcond=None)[0]
         left[block] = columns[block] - basis @ of_columns
@@ -205,8 +197,10 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         node, the nodes are fitted again at the chosen sky degree held at >= 0 (the power law
         stands), and the error holds half the change.
     """
-    n_terms = (degree + 1) * (degree + 2) // 2
-    bases, values, wings, tails, offsets, templates = [], [], [], [], [0], []
+    # the kinds of sky tried: every degree up to ``degree`` (the spline's: every one too)
+    kinds = [*([SPLINE] if degree == SPLINE else []), *range(3 if degree == SPLINE else degree,
+                                                              -1, -1)]
+    bases, values, wings, tails, offsets, shapes = {kind: [] for kind in kinds}, [], [], [], [0], []
     for index, (image, (x, y, flux)) in enumerate(zip(images_e, stars)):
         image = np.asarray(image, dtype=float)
         core = source_mask(image, reach=1.0, grow=1)
@@ -218,6 +212,7 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         # the fitted stars' supports and every source's core (a star not fitted, e.g. a
         # blend, would otherwise put its light in the sky) are left out
         keep = ~inside & ~core[rows, columns]
+        n_terms = len(SkyModel.template(kinds[0], image.shape).coefficients)
         if keep.sum() < 10 * n_terms:  # a field filled with stars: no sky to fit
             msg = (f"image {index + 1}: {int(keep.sum())} pixels lie beyond the stars' supports "
                    f"({2 * int(half_size) + 1} px) and the sources' cores, too few for its sky; "
@@ -225,20 +220,21 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
             raise BFPSFInputError(msg, int(keep.sum()))
         wings.append(wing[keep])
         tails.append(tail[keep])
-        template = SkyModel((0.0,) * n_terms, degree, image.shape, np.nan, "")
-        templates.append(template)
-        bases.append(_sky_basis(template, rows[keep], columns[keep]))
+        shapes.append(image.shape)
+        for kind in kinds:
+            bases[kind].append(SkyModel.template(kind, image.shape).basis(columns[keep],
+                                                                          rows[keep]))
         values.append(image[rows[keep], columns[keep]])
         offsets.append(offsets[-1] + int(keep.sum()))
     values, wings, tails = np.concatenate(values), np.concatenate(wings), np.concatenate(tails)
 
     columns = np.column_stack([wings, tails, values])
 
-    def project(keep, terms=n_terms):
-        """The skies projected out of the node and tail templates and of the data
-        (`_without_skies`). Linear, so done once for all the designs below, which are
+    def project(keep, kind=kinds[0]):
+        """The skies of ``kind`` projected out of the node and tail templates and of the
+        data (`_without_skies`). Linear, so done once for all the designs below, which are
         combinations of these columns."""
-        return _without_skies(columns, bases, offsets, keep, terms)
+        return _without_skies(columns, bases[kind], offsets, keep)
 
     def solve(projected, keep, matrix, tail, nonnegative=False):
         """The least squares of [the nodes' templates with the last carried on at TAIL_POWERS
@@ -306,21 +302,21 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
             results[name] = (chi2, fits, models)
         return results
 
-    # every sky degree up to ``degree`` on the same pixels (clipped with the highest), the
-    # one of least Bayesian information criterion kept (the docstring)
+    # every kind of sky on the same pixels (clipped with the most flexible), the one of
+    # least Bayesian information criterion kept (the docstring)
     n_kept = max(int(keep.sum()), 2)
     candidates = {}
-    for order in range(degree, -1, -1):
-        terms = (order + 1) * (order + 2) // 2
-        of_order = projected if order == degree else project(keep, terms)
-        results = fit_families(of_order)
+    for kind in kinds:
+        of_kind = projected if kind == kinds[0] else project(keep, kind)
+        results = fit_families(of_kind)
         averaged = _averaged(results)
-        information = averaged[0] + len(bases) * terms * np.log(n_kept)
-        candidates[order] = (information, results, averaged, of_order)
-    highest = candidates[degree][2]
-    degree = min(candidates, key=lambda order: candidates[order][0])
-    _, results, (_, name, best, fraction, error), of_order = candidates[degree]
-    if degree < max(candidates):
+        information = averaged[0] + sum(basis.shape[1] for basis in bases[kind]) * np.log(
+            n_kept)
+        candidates[kind] = (information, results, averaged, of_kind)
+    highest = candidates[kinds[0]][2]
+    kind = min(candidates, key=lambda kind: candidates[kind][0])
+    _, results, (_, name, best, fraction, error), of_order = candidates[kind]
+    if kind != kinds[0]:
         error = max(error, abs(fraction - highest[3]) / 2)
     if name == "nodes" and min(results[name][2][best].coefficients) < 0:
         # a star's light is never negative. Free, the outer nodes (52-75 px), where the glow
@@ -341,12 +337,14 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
     wings = WingModel(model.coefficients, model.tail_power, int(half_size), max(fraction, 0.0),
                       error, int(sum(len(star[0]) for star in stars)))
     skies = []
-    for index, (template, part) in enumerate(zip(templates, sky_terms)):
+    for index, (shape, part) in enumerate(zip(shapes, sky_terms)):
         mine = keep[offsets[index]:offsets[index + 1]]
         scatter = deviation[offsets[index]:offsets[index + 1]][mine]
-        skies.append(SkyModel(tuple(float(c) for c in part), degree, template.shape,
+        template = SkyModel.template(kind, shape)
+        skies.append(SkyModel(tuple(float(c) for c in part), template.degree, shape,
                               float(1.4826 * np.median(np.abs(scatter))),
-                              "fitted with the stars' wings", int(mine.sum())))
+                              "fitted with the stars' wings", int(mine.sum()),
+                              template.intervals))
     return skies, wings
 
 
@@ -460,8 +458,7 @@ def wing_gradient(images_e, stars, wings, skies, *, max_pixels=40_000, clip_nsig
                  for weight in (np.ones_like(x), u, v)]
         columns_of.append(np.column_stack([glow[rows, columns] for glow in glows]))
         values.append(image[rows, columns])
-        bases.append(_sky_basis(SkyModel((0.0,) * len(sky.coefficients), sky.degree, shape,
-                                         np.nan, ""), rows, columns))
+        bases.append(sky.basis(columns, rows))
         offsets.append(offsets[-1] + rows.size)
     columns = np.column_stack([np.concatenate(columns_of), np.concatenate(values)])
     keep = np.ones(len(columns), dtype=bool)
