@@ -113,8 +113,9 @@ def test_photometry_at_defaults_under_a_curved_sky(bowl_field):
 
 
 def test_the_commands_take_the_sky_degree(bowl_field, tmp_path):
-    """`bfpsf photometry` at its defaults chooses the bowl's degree 2 (in its JSON), and
-    ``--sky-degree 1`` holds it at a plane; a degree beyond 3 is refused; `bfpsf measure`
+    """`bfpsf photometry` at its defaults chooses the bowl's degree 2 (in its JSON),
+    ``--sky-degree 1`` holds it at a plane and ``spline`` asks for the spline; a degree
+    beyond 3 is refused; `bfpsf measure`
     says its degree."""
     import json
 
@@ -127,7 +128,8 @@ def test_the_commands_take_the_sky_degree(bowl_field, tmp_path):
     fits.PrimaryHDU(data.astype(np.float32), header=fits.Header({"EXPTIME": 1.0})).writeto(
         image)
     psf.write(product)
-    for option, degree in (([], 2), (["--sky-degree", "1"], 1)):
+    for option, degree in (([], 2), (["--sky-degree", "1"], 1),
+                           (["--sky-degree", "spline"], "spline")):
         out = tmp_path / f"phot{degree}.ecsv"
         assert main(["photometry", str(image), "--psf", str(product), "--gain", "1",
                      "--read-noise", "5", "-o", str(out), "--json", f"{out}.json",
