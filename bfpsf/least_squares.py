@@ -2,16 +2,20 @@
 
 `weighted_least_squares` fits values = design @ params with Gaussian errors ``sigma``
 (columns scaled to unit norm for conditioning; a singular design gets the pseudo-inverse
-covariance). `polynomial_fit` is its polynomial case. The PTC fits
+covariance). `polynomial_fit` is its polynomial case. `clipped_least_squares` is the robust
+fit where the errors are unknown and outliers are expected (the sky's surface, a quantity's
+plane over the image, a slope's dependence on position), clipping about the fit. The PTC fits
 (`bfpsf.calibration.ptc_variance`), the closed loop's joint fits and signatures
 (`bfpsf.diagnosis`) and the size tables' error estimates use them; the brighter-fatter
 slope (`bfpsf.measure.slopes.fit_bf_slope`, with its clipping and group intercepts) solves
 through it too.
 """
 
+from dataclasses import dataclass
+
 import numpy as np
 
-__all__ = ["weighted_least_squares", "polynomial_fit"]
+__all__ = ["weighted_least_squares", "polynomial_fit", "clipped_least_squares", "ClippedFit"]
 
 
 def weighted_least_squares(values, sigma, design):
@@ -55,3 +59,59 @@ def polynomial_fit(x, values, sigma, degree):
     """`weighted_least_squares` of ``values = sum_k p_k x^k`` (p low order first)."""
     design = np.vander(np.asarray(x, dtype=float), int(degree) + 1, increasing=True)
     return weighted_least_squares(values, sigma, design)
+
+
+@dataclass(frozen=True)
+class ClippedFit:
+    """A `clipped_least_squares` fit: ``params``, ``scale`` (the robust sigma of the kept
+    points' residuals, 1.4826 times their median absolute value), ``keep`` (the points kept,
+    bool), and the design and values it was fitted to (for `covariance`)."""
+
+    params: np.ndarray
+    scale: float
+    keep: np.ndarray
+    design: np.ndarray
+    values: np.ndarray
+
+    @property
+    def dof(self):
+        """Kept points less parameters."""
+        return int(self.keep.sum()) - self.design.shape[1]
+
+    @property
+    def covariance(self):
+        """Of ``params``, from the kept points' scatter: their residual sum of squares per
+        degree of freedom times (X^T X)^-1 (computed when asked: a sky's design has 250k
+        rows)."""
+        design, values = self.design[self.keep], self.values[self.keep]
+        residual = values - design @ self.params
+        variance = float(residual @ residual) / max(self.dof, 1)
+        return variance * np.linalg.pinv(design.T @ design)
+
+
+def clipped_least_squares(values, design, *, nsigma=3.0, max_iterations=5, min_kept=None):
+    """Least squares of ``values = design @ params`` with iterative sigma clipping about the
+    fit: a point further than ``nsigma`` robust sigma (1.4826 times the kept points' median
+    absolute residual) from the fit is left out, and the fit repeated on the others, until
+    nothing changes, after ``max_iterations`` fits, or where fewer than ``min_kept`` points
+    (default: parameters + 5) would be left. Points of non-finite value or design are never
+    kept. A design of one column of ones is fitted by the median (a level robust to the
+    tails, as a sky's). Returns a `ClippedFit`."""
+    values = np.asarray(values, dtype=float)
+    design = np.asarray(design, dtype=float)
+    finite = np.isfinite(values) & np.all(np.isfinite(design), axis=1)
+    min_kept = design.shape[1] + 5 if min_kept is None else int(min_kept)
+    level = design.shape[1] == 1 and np.all(design[finite] == 1.0)
+    keep = finite
+    for _ in range(max_iterations):
+        if level:
+            params = np.array([np.median(values[keep])])
+        else:
+            params = np.linalg.lstsq(design[keep], values[keep], rcond=None)[0]
+        deviation = values - design @ params
+        scale = 1.4826 * float(np.median(np.abs(deviation[keep])))
+        new_keep = finite & (np.abs(deviation) <= nsigma * max(scale, 1e-12))
+        if np.array_equal(new_keep, keep) or new_keep.sum() < min_kept:
+            break
+        keep = new_keep
+    return ClippedFit(params, scale, keep, design, values)

@@ -17,7 +17,7 @@ layout whose rows follow the peak (spots laid out in rows of one level) makes d 
 
 import numpy as np
 
-from ..least_squares import weighted_least_squares
+from ..least_squares import clipped_least_squares
 
 __all__ = ["star_slope_split", "describe_split", "dependent_directions", "SPLIT_NSIGMA"]
 
@@ -66,21 +66,13 @@ def star_slope_split(peak_e, sigma_x, sigma_y, exposure, x, y):
 
 
 def _robust_fit(values, design):
-    """Least squares with the errors from the scatter, clipping at `_CLIP` robust sigma:
-    (params, covariance), or None when too few stars are left."""
-    keep = np.isfinite(values) & np.all(np.isfinite(design), axis=1)
-    for _ in range(5):
-        dof = int(keep.sum()) - design.shape[1]
-        if dof < 5:
-            return None
-        params, covariance, chi2, _ = weighted_least_squares(values[keep], 1.0, design[keep])
-        deviation = values - design @ params
-        scale = 1.4826 * float(np.median(np.abs(deviation[keep])))
-        new_keep = keep & (np.abs(deviation) <= _CLIP * max(scale, 1e-12))
-        if np.array_equal(new_keep, keep):
-            break
-        keep = new_keep
-    return params, covariance * chi2 / max(dof, 1)
+    """Least squares with the errors from the scatter, clipping at `_CLIP` robust sigma
+    (`bfpsf.least_squares.clipped_least_squares`): (params, covariance), or None when fewer
+    than 5 degrees of freedom are left."""
+    fit = clipped_least_squares(values, design, nsigma=_CLIP)
+    if fit.dof < 5:
+        return None
+    return fit.params, fit.covariance
 
 
 def dependent_directions(split):

@@ -44,6 +44,7 @@ from astropy.stats import sigma_clipped_stats
 from scipy import ndimage
 
 from ..errors import BFPSFInputError, BFPSFValueError
+from ..least_squares import clipped_least_squares
 from .sky_surface import SPLINE, SkyModel
 
 __all__ = ["SkyModel", "estimate_sky", "choose_degree", "sky_pixels", "source_mask",
@@ -154,22 +155,11 @@ _CELL_PIXELS, _MIN_CELLS = 30, 16
 
 
 def _clipped_fit(design, values, clip_nsigma, max_iterations):
-    """Least squares of ``values`` on ``design`` with iterative sigma clipping about the fit
-    (a single column: the clipped median, robust to the residual tails): (coefficients, rms,
-    kept), the rms 1.4826 times the kept pixels' median absolute deviation."""
-    keep = np.ones(values.size, dtype=bool)
-    for _ in range(max_iterations):
-        if design.shape[1] == 1:
-            coefficients = np.array([np.median(values[keep])])
-        else:
-            coefficients = np.linalg.lstsq(design[keep], values[keep], rcond=None)[0]
-        deviation = values - design @ coefficients
-        rms = 1.4826 * np.median(np.abs(deviation[keep]))
-        new_keep = np.abs(deviation) <= clip_nsigma * max(rms, 1e-12)
-        if np.array_equal(new_keep, keep) or new_keep.sum() < design.shape[1] * 10:
-            break
-        keep = new_keep
-    return coefficients, rms, keep
+    """`bfpsf.least_squares.clipped_least_squares` as the sky fits: at least 10 pixels per
+    term kept. Returns (coefficients, rms, kept)."""
+    fit = clipped_least_squares(values, design, nsigma=clip_nsigma,
+                                max_iterations=max_iterations, min_kept=10 * design.shape[1])
+    return fit.params, fit.scale, fit.keep
 
 
 def choose_degree(rows, columns, values, shape, *, degrees=(1, 2, 3), clip_nsigma=3.0,

@@ -7,9 +7,10 @@ import numpy as np
 from astropy.table import Table
 from scipy import ndimage
 from scipy.spatial import cKDTree
-from scipy.stats import median_abs_deviation, theilslopes
+from scipy.stats import theilslopes
 
 from ..errors import BFPSFInputError
+from ..least_squares import clipped_least_squares
 from ..moments.adaptive import adaptive_moments_batch
 from ..moments.moment_errors import moment_errors
 
@@ -375,13 +376,8 @@ def _expected(values, stars, used):
             continue
         members = np.flatnonzero(stars.image == image)
         design = np.column_stack([np.ones(len(stars.x_0)), position])
-        kept = mine
-        for _ in range(2):
-            plane = np.linalg.lstsq(design[kept], values[kept], rcond=None)[0]
-            residual = values[mine] - design[mine] @ plane
-            spread = median_abs_deviation(residual, scale="normal")
-            kept = mine[np.abs(residual - np.median(residual)) <= 3 * spread] if spread > 0 \
-                else mine
+        plane = clipped_least_squares(values[mine], design[mine], nsigma=3.0,
+                                      max_iterations=2, min_kept=3).params
         residual = values - design @ plane
         count = min(MISFIT_NEIGHBOURS + 1, mine.size)
         _, nearest = cKDTree(position[mine]).query(position[members], k=count)

@@ -18,6 +18,7 @@ import numpy as np
 from scipy.stats import median_abs_deviation
 
 from ..errors import BFPSFValueError
+from ..least_squares import clipped_least_squares
 from .adaptive import adaptive_moments_batch
 
 __all__ = ["PSFShape", "distortion", "fourth_moment", "psf_shape", "psf_shapes",
@@ -348,15 +349,10 @@ def size_across(beside, psf, shape):
         return None
     ny, nx = shape
     design = np.column_stack([np.ones(ratio.size), x / nx - 0.5, y / ny - 0.5])
-    kept = np.ones(ratio.size, dtype=bool)
-    for _ in range(2):
-        plane = np.linalg.lstsq(design[kept], ratio[kept], rcond=None)[0]
-        residual = ratio - design @ plane
-        spread = float(median_abs_deviation(residual[kept], scale="normal"))
-        kept = np.abs(residual) <= 3 * spread if spread > 0 else kept
-    if kept.sum() < 6:
+    fit = clipped_least_squares(ratio, design, nsigma=3.0, max_iterations=2, min_kept=6)
+    if fit.keep.sum() < 6:
         return None
-    covariance = spread**2 * np.linalg.inv(design[kept].T @ design[kept])
+    plane, covariance, kept = fit.params, fit.covariance, fit.keep
     signs = np.sign(plane[1:])
     change = float(np.abs(plane[1:]).sum())  # the corners: x and y each half the frame away
     change_err = float(np.sqrt(signs @ covariance[1:, 1:] @ signs))
