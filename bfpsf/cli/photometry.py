@@ -231,7 +231,9 @@ def run(args):
                               "cross_term_refits": table.meta["cross_term_refits"],
                               "residual_sources": table.meta["residual_sources"],
                               "line_pixels": table.meta["line_pixels"],
-                              "n_on_line": _flagged(table, SourceFlag.ON_LINE)})
+                              "n_on_line": _flagged(table, SourceFlag.ON_LINE),
+                              "cosmic_ray_pixels": table.meta["cosmic_ray_pixels"],
+                              "n_cosmic_ray": _flagged(table, SourceFlag.COSMIC_RAY)})
     result = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
     # a star near a shared side is fitted on both amplifiers: the fit from its own is kept
     result, n_twice = one_fit_per_star(result, 2 * psf_fwhm(psf), x="x_fit", y="y_fit")
@@ -252,6 +254,7 @@ def run(args):
                "n_fitted_twice": n_twice,
                "n_unlike_psf": _unlike(result),
                "n_on_line": _flagged(result, SourceFlag.ON_LINE),
+               "n_cosmic_ray": _flagged(result, SourceFlag.COSMIC_RAY),
                "empirical": result.meta["empirical"],
                "flux_correction_slope": result.meta["flux_correction_slope"]}
     summary["residual_passes"] = args.residual_passes
@@ -282,6 +285,8 @@ def run(args):
           + (f"{sum(entry['line_pixels'] for entry in per_image)} pixels of trails or hot "
              f"columns left out, {summary['n_on_line']} stars beside them flagged on_line; "
              if any(entry["line_pixels"] for entry in per_image) else "")
+          + (f"{summary['n_cosmic_ray']} stars hit by a cosmic ray, its pixels left out of "
+             "their fit (flagged cosmic_ray); " if summary["n_cosmic_ray"] else "")
           + "detection's flags and unlike_psf in source_flags, bits in "
           f"bfpsf.measure.sources.SourceFlag.NAMES); wrote {args.output}")
     # the product's total-flux correction, a scale common to every flux: said where poorly

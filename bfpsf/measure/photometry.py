@@ -32,6 +32,8 @@ from .neighbours import COMPANION_SEPARATION, sources_with_companions
 from .prepare import PreparedImage, prepare_image
 from .psf_likeness import unlike_psf
 from .read_noise import check_read_noise, check_sky, image_read_noise
+from .cosmic_rays import cosmic_ray_mask, psf_sharpness
+from .cross_terms import cross_term_image
 from .line_features import near_lines, resolve_lines
 from .residual_sources import residual_sources
 from .sources import DETECTION_THRESHOLD, SourceFlag
@@ -84,56 +86,6 @@ def _quiet():
         yield
 
 
-def _add_stamp(image, stamp, row, column):
-    """Add ``stamp`` to ``image`` with its [0, 0] at (row, column), clipped at the edges."""
-    rows = slice(max(row, 0), min(row + stamp.shape[0], image.shape[0]))
-    columns = slice(max(column, 0), min(column + stamp.shape[1], image.shape[1]))
-    if rows.start < rows.stop and columns.start < columns.stop:
-        image[rows, columns] += stamp[rows.start - row:rows.stop - row,
-                                      columns.start - column:columns.stop - column]
-
-
-def _cross_term_image(psf, table, shape):
-    """BF of the fitted stars' charge on each other, e-: the model's own operator
-    (`FluxDependentPSF.charge_delta`: one step or build-up, mean or exact boundary density)
-    on their summed charge, minus each star's own BF term.
-
-    G15 eq. scrambling_model is quadratic in the charge, so a blend's BF holds cross terms
-    between the stars that no single-star model carries. With another operator for the sum
-    than for each star, an isolated star would get a spurious term (6-8 % of its own BF for
-    exact-density or build-up models with the one-step mean-density operator). Each star's
-    own term is computed here with the same operator on its stamp. A table-mode model read
-    back from its product has lost its density profile: its cross terms then use G15's mean
-    density (the cross term itself a few percent off, no spurious term).
-    """
-    static, own = np.zeros(shape), np.zeros(shape)
-    exact_density = psf.at().density_profile is not None
-    if exact_density:
-        north, east = np.zeros((shape[0] - 1, shape[1])), np.zeros((shape[0], shape[1] - 1))
-    half = psf.half_size + 1
-    for x_0, y_0, flux in zip(table["x_fit"], table["y_fit"], table["flux_fit"]):
-        if not np.all(np.isfinite((x_0, y_0, flux))):
-            continue
-        model = psf.at(x_0, y_0)  # every kind: the single P(F) of this star
-        column, row = int(np.rint(x_0)), int(np.rint(y_0))
-        x_phase, y_phase = x_0 - column, y_0 - row
-        y, x = np.mgrid[row - half:row + half + 1, column - half:column + half + 1]
-        star = flux * model.evaluate_base(x - x_0, y - y_0)  # F P0, no BF
-        _add_stamp(static, star, row - half, column - half)
-        density = None
-        if exact_density:
-            density = tuple(abs(flux) * part
-                            for part in model.boundary_density(x_phase, y_phase, half))
-            _add_stamp(north, density[0], row - half, column - half)
-            _add_stamp(east, density[1], row - half, column - half)
-        # the star's own term with the same operator as the sum: an isolated star gets no
-        # cross term even when the model's own term comes from a stored table whose density
-        # profile is gone (a table-mode exact-density model read back from its product)
-        _add_stamp(own, model.charge_delta(star, density), row - half, column - half)
-    density = (north, east) if exact_density else None
-    return psf.charge_delta(static, density) - own
-
-
 def _glow(psf, table, shape):
     """The light of the fitted stars beyond the PSF support (the PSF's wing model), e-."""
     wings = WingModel(tuple(psf.wing_coefficients), psf.wing_tail_power,
@@ -182,6 +134,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
                    detection_threshold=DETECTION_THRESHOLD, weights="model", cross_terms=True,
                    linearity_c_per_1e5=None, flux_correction=None, wings=None,
                    residual_passes=RESIDUAL_PASSES, saturation_e=None, mask_lines=True,
+                   mask_cosmic_rays=True,
                    sky_degree="auto", **kwargs):
     """Fit every star of an image with the flux-dependent PSF.
 
@@ -262,6 +215,10 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
         With detected stars: the pixels of trails and hot columns
         (`bfpsf.measure.line_features.line_mask`) are left out of detection and of every
         fit, and a star whose fit box holds some is flagged ``ON_LINE`` (default True).
+    mask_cosmic_rays : bool, optional
+        Cosmic rays found in the fit's residual (`bfpsf.measure.cosmic_rays`) are left out
+        of a refit of the stars whose fit box they touch, flagged ``COSMIC_RAY`` (default
+        True).
     **kwargs
         Passed to `photutils.psf.PSFPhotometry`.
 
@@ -410,12 +367,27 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
                 init, source_flags, rows, result, lost = without_lost(
                     init, source_flags, rows, result, detection_threshold + 3.0)
                 n_lost += lost
+    # cosmic rays in the residual: the stars whose fit box they touch refitted without them
+    stars, box = model_image(photometry, result, data.shape), float(np.max(np.atleast_1d(
+        photometry.fit_shape))) / np.sqrt(2.0)  # the fit box's half diagonal
+    cosmic = np.zeros(data.shape, dtype=bool) if not mask_cosmic_rays else cosmic_ray_mask(
+        data - stars, np.clip(sky.image(), 0.0, None) + np.clip(stars, 0.0, None)
+        + read_noise_e**2, stars, read_noise_e=read_noise_e,
+        excluded=lines if clipped is None else clipped | lines, sharpness=psf_sharpness(
+            photometry.psf_model, *((np.array(data.shape[::-1]) - 1) // 2)))
+    hit = near_lines(cosmic, result["x_fit"], result["y_fit"], box)
+    on_ray = near_lines(cosmic, result["x_fit"], result["y_fit"], 1.5)  # a cosmic ray itself
+    if hit.any():
+        mask = cosmic if mask is None else mask | cosmic
+        with _quiet():
+            result = merged(result, fit_without_neighbours(
+                photometry, psf, data, mask, error, init, result, hit), hit)
     n_cross = 0
     if cross_terms and bfpsf_model and "group_size" in result.colnames:
         blended = np.asarray(result["group_size"]) > 1
         for _ in range(int(cross_terms) if blended.any() else 0):
             # Refit the blended stars on the data minus their BF on each other.
-            cross = _cross_term_image(psf, result, data.shape)
+            cross = cross_term_image(psf, result, data.shape)
             with _quiet():
                 refit = fit_without_neighbours(photometry, psf, data - cross, mask, error,
                                                 init, result, blended)
@@ -437,14 +409,14 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     # the product (the model, or a static P0's ``wings``): stars unlike its P(F) are flagged
     product = psf if bfpsf_model else wings
     if isinstance(product, BFPSFModel):
-        residual = np.where(lines, 0.0, data - model_image(photometry, result, data.shape))
+        residual = np.where(lines | cosmic, 0.0, data - model_image(photometry, result,
+                                                                      data.shape))
         unlike = unlike_psf(residual, result["x_fit"], result["y_fit"], result["flux_fit"],
                             product, max(float(sky.level), 0.0) + float(read_noise_e)**2)
-        result["source_flags"] |= np.where(unlike, SourceFlag.UNLIKE_PSF, 0)
-    # within the fit box (its half diagonal)
-    result["source_flags"] |= np.where(near_lines(
-        lines, result["x_fit"], result["y_fit"],
-        float(np.max(np.atleast_1d(photometry.fit_shape))) / np.sqrt(2.0)), SourceFlag.ON_LINE, 0)
+        result["source_flags"] |= np.where(unlike | on_ray, SourceFlag.UNLIKE_PSF, 0)
+    on_line = near_lines(lines, result["x_fit"], result["y_fit"], box)  # within the fit box
+    result["source_flags"] |= (np.where(on_line, SourceFlag.ON_LINE, 0)
+                               | np.where(hit, SourceFlag.COSMIC_RAY, 0))
     # the total flux: the light beyond P0's support (measured when the PSF was fitted), at
     # each star's place (a grid's changes across the image)
     given = flux_correction is not None or not isinstance(product, BFPSFModel)
@@ -483,6 +455,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     result.meta["sky_scatter"] = scatter
     result.meta["flux_unit"] = "electron"
     result.meta["line_pixels"] = int(lines.sum())
+    result.meta["cosmic_ray_pixels"] = int(cosmic.sum())
     # the EMPIRICAL term of a refined calibration the model applied (issue 22), labelled
     term = getattr(psf, "empirical", None) if bfpsf_model else None
     result.meta["empirical"] = None if term is None else term.to_dict()

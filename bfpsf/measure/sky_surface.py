@@ -158,8 +158,12 @@ def _bspline_design(coordinate, length, intervals):
     (clamped at the ends; beyond them the edge's value), at ``coordinate``: [point, spline]."""
     edges = np.linspace(-0.5, length - 0.5, intervals + 1)
     knots = np.concatenate([[edges[0]] * 3, edges, [edges[-1]] * 3])
-    inside = np.clip(np.ravel(coordinate).astype(float), edges[0], edges[-1])
-    return BSpline.design_matrix(inside, knots, 3).toarray()
+    coordinate = np.ravel(coordinate).astype(float)
+    finite = np.isfinite(coordinate)  # a failed fit's position: NaN, as a polynomial gives
+    inside = np.clip(np.where(finite, coordinate, 0.0), edges[0], edges[-1])
+    design = BSpline.design_matrix(inside, knots, 3).toarray()
+    design[~finite] = np.nan
+    return design
 
 
 def _powers(u, v, degree):

@@ -52,7 +52,8 @@ class SourceFlag(MomentsFlag):
     a bright star's wing, a faint star in a crowded field; `bfpsf.measure.residual_sources`).
     ``ON_LINE``: pixels of a trail or a hot column lie within `LINE_REACH` of the star's
     sigma (in PSF photometry: within its fit box), left out of its measurement or its fit
-    (`bfpsf.measure.line_features`).
+    (`bfpsf.measure.line_features`). ``COSMIC_RAY`` (PSF photometry only): a cosmic ray's
+    pixels lay in the fit box, left out of the star's fit (`bfpsf.measure.cosmic_rays`).
     """
 
     BLENDED = 128
@@ -62,10 +63,11 @@ class SourceFlag(MomentsFlag):
     UNLIKE_PSF = 2048
     IN_RESIDUAL = 4096
     ON_LINE = 8192
+    COSMIC_RAY = 16384
 
     NAMES = {**MomentsFlag.NAMES, 128: "blended", 256: "stamp_edge", 512: "no_colour",
              1024: "neighbour_light", 2048: "unlike_psf", 4096: "in_residual",
-             8192: "on_line"}
+             8192: "on_line", 16384: "cosmic_ray"}
 
 
 def source_flag_string(flags):

@@ -167,8 +167,9 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         Per image, the fitted stars: positions (pixels) and the flux inside the support (e-).
     half_size : int
         Half-width of the PSF support, pixels.
-    degree : int, optional
-        Highest degree of each image's sky surface (default 1, a plane). Every lower degree
+    degree : int or 'spline', optional
+        Highest degree of each image's sky surface (default 1, a plane), or 'spline' (every
+        image's sky the spline surface, `bfpsf.measure.sky_surface`). Every lower degree
         is fitted too, and the one of least Bayesian information criterion kept (one for all
         the images); the fraction's error then holds half the difference from the highest
         degree's fraction. On small images the tilts of a plane per image trade with the
@@ -197,9 +198,10 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         node, the nodes are fitted again at the chosen sky degree held at >= 0 (the power law
         stands), and the error holds half the change.
     """
-    # the kinds of sky tried: every degree up to ``degree`` (the spline's: every one too)
-    kinds = [*([SPLINE] if degree == SPLINE else []), *range(3 if degree == SPLINE else degree,
-                                                              -1, -1)]
+    # the kinds of sky tried: every degree up to ``degree``, or the spline alone (where the
+    # sky pixels ask for it, `bfpsf.measure.sky.choose_degree`; left to this criterion, a
+    # vignetting of r^4 kept degree 2, whose misfit took the flux correction +1.6 sigma)
+    kinds = [SPLINE] if degree == SPLINE else list(range(degree, -1, -1))
     bases, values, wings, tails, offsets, shapes = {kind: [] for kind in kinds}, [], [], [], [0], []
     for index, (image, (x, y, flux)) in enumerate(zip(images_e, stars)):
         image = np.asarray(image, dtype=float)
