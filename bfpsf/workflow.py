@@ -28,6 +28,7 @@ from .errors import BFPSFInputError, BFPSFValueError
 from .measure.bf_agreement import bf_agreement
 from .measure.line_features import line_mask
 from .measure.neighbours import isolated_stars
+from .measure.read_noise import sky_scatter
 from .measure.sky import SPLINE
 from .measure.sources import DETECTION_THRESHOLD
 from .measure.total_flux import fit_sky_and_wings, wing_gradient
@@ -232,7 +233,8 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         result = fit()
     for entry, prepared in zip(per_image, images):
         entry.update(background_e=prepared.sky.level, sky_slope=list(prepared.sky.slope),
-                     sky_method=prepared.sky.method, sky_degree=prepared.sky.kind)
+                     sky_method=prepared.sky.method, sky_degree=prepared.sky.kind,
+                     sky_scatter=sky_scatter(prepared))
     psf = result.psf
     psf.empirical = empirical
     psf.calibration = str(calibration_name)

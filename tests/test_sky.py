@@ -185,3 +185,39 @@ def test_psf_refuses_wings_that_took_the_sky(tmp_path, capsys):
                      str(tmp_path / f"phot{error}.ecsv")]) == 0
         assert ("every flux carries a common scale error of +- 5"
                 in capsys.readouterr().err) == said
+
+
+def test_psf_names_the_image_whose_sky_is_not_the_surface(tmp_path, capsys):
+    """A joint `bfpsf psf` of an image whose halves differ by 150 e- (amplifiers' offsets
+    given as one HDU: no surface follows the step) and a flat one: the JSON gives each
+    image's sky scatter about its fitted sky over its pixel-to-pixel variance, and the
+    warning names the stepped image, not the flat one (a new user's joint fit of a flat
+    image and a ringed one gave a flux correction 3 sigma high, and nothing said which)."""
+    import json
+
+    from astropy.io import fits
+
+    from bfpsf.cli import main
+    from test_photometry import SHIFTS, make_calibration
+
+    n = 300
+    paths = []
+    for name, step in (("flat", 0.0), ("stepped", 150.0)):
+        field = simulate_field(galsim.Moffat(beta=3.0, fwhm=3.5), n_images=1, shape=(n, n),
+                               n_stars=40, peak_range_e=(1e3, 1e5), min_separation=25.0,
+                               sensor=None, seed=5 if step else 6,
+                               sky_surface=lambda x, y, step=step: 300.0 + step * (x > n / 2))
+        paths.append(tmp_path / f"{name}.fits")
+        fits.PrimaryHDU(field.images[0], header=fits.Header({"EXPTIME": 1.0})).writeto(
+            paths[-1])
+    make_calibration(SHIFTS, 1.0, 5.0).write(tmp_path / "calib.fits")
+    capsys.readouterr()
+    assert main(["psf", *map(str, paths), "--calib", str(tmp_path / "calib.fits"), "-o",
+                 str(tmp_path / "psf.fits"), "--json", str(tmp_path / "psf.json")]) == 0
+    error = capsys.readouterr().err
+    scatter = [entry["sky_scatter"] for entry in
+               json.loads((tmp_path / "psf.json").read_text())["images"]]
+    print(scatter)
+    assert scatter[0] < 1.1 < 1.2 < scatter[1]
+    assert f"{paths[1]}: its sky pixels scatter" in error
+    assert f"{paths[0]}: its sky pixels scatter" not in error

@@ -24,6 +24,7 @@ from ..measure.bf_agreement import disagreeing_axes
 from ..measure.model_slopes import model_size_increments
 from ..model.psf_fit import DEFAULT_SIZE
 from ..model.psf_fit_stars import UNLIKE
+from ..measure.read_noise import READ_NOISE_MISMATCH
 from ..moments.shapes import MAG_PER_SIZE_ERROR
 from ._files import read_image
 
@@ -159,6 +160,7 @@ def run(args):
                      n_amp_boundary=found["n_excluded"], background_e=found["background_e"],
                      sky_slope=found["sky_slope"], sky_method=found["sky_method"],
                      sky_degree=found["sky_degree"], line_pixels=found["line_pixels"],
+                     sky_scatter=found["sky_scatter"],
                      **{key: found[key] for key in ("size_offset", "size_offset_err",
                                                     "n_sized", "seeing_bias_mmag",
                                                     "size_across")})
@@ -302,6 +304,14 @@ def run(args):
                   "the field than the others' (an amplifier), the PSF varies over the field: "
                   "--grid", file=sys.stderr)
     _warn_field_variation(per_image, args.grid)
+    for entry in per_image:  # the image a joint fit's sky-and-wings misfit comes from
+        if (entry.get("sky_scatter") or 0.0) > READ_NOISE_MISMATCH:
+            name = entry["image"] + (f" [{entry['amplifier']}]" if entry["amplifier"] else "")
+            print(f"WARNING: {name}: its sky pixels scatter {entry['sky_scatter']:.2f} times "
+                  "their pixel-to-pixel variance about its fitted sky: its sky is not the "
+                  "surface fitted (a seam, structure on the scale of the stars) and the light "
+                  "beyond P0's support, one for all the images, carries its misfit; subtract "
+                  "its sky and give --background 0, or fit the PSF without it", file=sys.stderr)
     if psf.flux_correction_err > FLUX_CORRECTION_TOLERANCE:  # False for NaN (not measured)
         print(f"WARNING: the light beyond P0's support is poorly measured on these images: "
               f"total flux {psf.flux_correction:.4f} +- {psf.flux_correction_err:.4f} times the "

@@ -11,7 +11,8 @@ import logging
 import numpy as np
 from scipy.stats import median_abs_deviation
 
-__all__ = ["sky_variance", "pixel_variance", "image_read_noise", "check_sky", "check_read_noise",
+__all__ = ["sky_variance", "pixel_variance", "image_read_noise", "sky_scatter", "check_sky",
+           "check_read_noise",
            "READ_NOISE_MISMATCH"]
 
 log = logging.getLogger(__name__)
@@ -65,16 +66,31 @@ def image_read_noise(prepared):
     return 0.0 if sky is None else _read_noise_of(*sky)
 
 
-def check_sky(prepared):
-    """The sky pixels' variance about the fitted sky over their `pixel_variance` (None when
-    either is unknown), with a warning when it is above `READ_NOISE_MISMATCH`: the sky is not
-    the fitted surface, and every star's flux carries its misfit (a new user's halves of the
-    sky 220 e- apart: a read noise of 61.5 e- from the image against 5, and stars near the
-    seam off by up to 70 mmag, unsaid; quadrants 150-450 e-: faint stars off by 30-56 mmag)."""
+def _scatter(prepared):
+    """(`sky_scatter`, the sky pixels' variance about the fitted sky, their `pixel_variance`),
+    or None."""
     sky, pixels = sky_variance(prepared), pixel_variance(prepared)
     if sky is None or not pixels:
         return None
-    ratio = sky[0] / pixels
+    return float(sky[0] / pixels), sky, pixels
+
+
+def sky_scatter(prepared):
+    """The sky pixels' variance about the fitted sky over their `pixel_variance`: 1 where the
+    sky is the fitted surface (None when either is unknown)."""
+    found = _scatter(prepared)
+    return None if found is None else found[0]
+
+
+def check_sky(prepared):
+    """`sky_scatter`, with a warning when it is above `READ_NOISE_MISMATCH`: the sky is not
+    the fitted surface, and every star's flux carries its misfit (a new user's halves of the
+    sky 220 e- apart: a read noise of 61.5 e- from the image against 5, and stars near the
+    seam off by up to 70 mmag, unsaid; quadrants 150-450 e-: faint stars off by 30-56 mmag)."""
+    found = _scatter(prepared)
+    if found is None:
+        return None
+    ratio, sky, pixels = found
     if ratio > READ_NOISE_MISMATCH:
         log.warning("the sky pixels scatter %.3g e- rms about the fitted sky, %.2g times the "
                     "variance they show from pixel to pixel (%.3g e- rms): the sky is not the "
