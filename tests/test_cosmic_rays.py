@@ -1,5 +1,7 @@
 """Cosmic rays on the stars (`bfpsf.measure.cosmic_rays`): found in the residual of the PSF
-fit, left out of the refit of the stars they touch, those stars flagged ``cosmic_ray``."""
+fit, left out of the refit of the stars they touch, those stars flagged ``cosmic_ray``; and
+the other misfit photometry flags from the fit itself, a reduced chi2 far above its flux
+peers' (`bfpsf.measure.psf_likeness.misfit_outliers`)."""
 
 import galsim
 import numpy as np
@@ -88,3 +90,21 @@ def test_cosmic_ray_mask_reads_the_residual_not_the_stars():
     assert found[41, 30] and found[40, 30] and found[41, 31]
     assert not found[28:37, 28:37].any()
     assert found.sum() <= 12
+
+
+def test_a_fit_far_worse_than_its_flux_peers_is_unlike_the_psf():
+    """`misfit_outliers`: 200 stars whose reduced chi2 grows with flux (a bright star's own
+    model error, shared by its peers: 1 at 1e4 e-, 5 at 1e6) and noise; one bright star at
+    52 (a new user's star robbed by a source on its diffraction spike, every flag 0) and one
+    faint one at 2.9 (below the floor of 3) : only the first is an outlier, and a field of
+    bright stars all at 8 has none."""
+    from bfpsf.measure.psf_likeness import misfit_outliers
+
+    rng = np.random.default_rng(9)
+    flux = np.exp(rng.uniform(np.log(1e4), np.log(1e6), 200))
+    chi2 = (1.0 + 4.0 * (np.log10(flux) - 4.0) / 2.0) * rng.chisquare(300, 200) / 300
+    robbed, faint = np.argmax(flux), np.argmin(flux)
+    chi2[robbed], chi2[faint] = 52.0, 2.9
+    found = misfit_outliers(chi2, flux)
+    assert np.flatnonzero(found).tolist() == [robbed]
+    assert not misfit_outliers(np.full(50, 8.0), np.geomspace(1e5, 1e6, 50)).any()

@@ -30,7 +30,7 @@ from ..model.base import BFPSFModel
 from .neighbour_fits import fit_without_neighbours, merged, model_image, with_found, without_lost
 from .neighbours import COMPANION_SEPARATION, sources_with_companions
 from .prepare import PreparedImage, prepare_image
-from .psf_likeness import unlike_psf
+from .psf_likeness import misfit_outliers, unlike_psf
 from .read_noise import check_read_noise, check_sky, image_read_noise
 from .cosmic_rays import cosmic_ray_mask, psf_sharpness
 from .cross_terms import cross_term_image
@@ -413,6 +413,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
                                                                       data.shape))
         unlike = unlike_psf(residual, result["x_fit"], result["y_fit"], result["flux_fit"],
                             product, max(float(sky.level), 0.0) + float(read_noise_e)**2)
+        unlike |= misfit_outliers(result["reduced_chi2"], result["flux_fit"]) & ~hit
         result["source_flags"] |= np.where(unlike | on_ray, SourceFlag.UNLIKE_PSF, 0)
     on_line = near_lines(lines, result["x_fit"], result["y_fit"], box)  # within the fit box
     result["source_flags"] |= (np.where(on_line, SourceFlag.ON_LINE, 0)
