@@ -86,6 +86,11 @@ def _quiet():
         yield
 
 
+def _model_variance(sky, stars_e, read_noise_e):
+    """The variance of every pixel the sky and the fitted stars' models predict, e-^2."""
+    return np.clip(sky.image(), 0.0, None) + np.clip(stars_e, 0.0, None) + read_noise_e**2
+
+
 def _glow(psf, table, shape):
     """The light of the fitted stars beyond the PSF support (the PSF's wing model), e-."""
     wings = WingModel(tuple(psf.wing_coefficients), psf.wing_tail_power,
@@ -321,8 +326,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
         if residual_pass:  # the stars detection missed, in the residual of the last fit
             stars = model_image(photometry, result, data.shape)
             found = residual_sources(
-                data - stars, np.clip(sky.image(), 0.0, None) + np.clip(stars, 0.0, None)
-                + read_noise_e**2, np.column_stack([result["x_fit"], result["y_fit"]]),
+                data - stars, _model_variance(sky, stars, read_noise_e),
+                np.column_stack([result["x_fit"], result["y_fit"]]),
                 threshold=detection_threshold, model_e=stars, known_flux=result["flux_fit"],
                 reach=reach, support=getattr(psf, "half_size", None),
                 excluded=lines if clipped is None else clipped | lines)
@@ -356,9 +361,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
                 # sky is what is left beyond their total-flux model
                 prepared = prepared.with_glow(_glow(wing_model, result, data.shape), stars)
                 sky, data = prepared.sky, prepared.sky_subtracted
-            model = np.clip(stars, 0.0, None)
-            variance = np.clip(sky.image(), 0.0, None) + model + read_noise_e**2
-            error = np.sqrt(np.maximum(variance, 1.0))
+            error = np.sqrt(np.maximum(_model_variance(sky, stars, read_noise_e), 1.0))
             with _quiet():
                 if rows is None or rows.any():
                     result = merged(result, fit_without_neighbours(
@@ -371,8 +374,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     stars, box = model_image(photometry, result, data.shape), float(np.max(np.atleast_1d(
         photometry.fit_shape))) / np.sqrt(2.0)  # the fit box's half diagonal
     cosmic = np.zeros(data.shape, dtype=bool) if not mask_cosmic_rays else cosmic_ray_mask(
-        data - stars, np.clip(sky.image(), 0.0, None) + np.clip(stars, 0.0, None)
-        + read_noise_e**2, stars, read_noise_e=read_noise_e,
+        data - stars, _model_variance(sky, stars, read_noise_e), stars, read_noise_e=read_noise_e,
         excluded=lines if clipped is None else clipped | lines, sharpness=psf_sharpness(
             photometry.psf_model, *((np.array(data.shape[::-1]) - 1) // 2)))
     hit = near_lines(cosmic, result["x_fit"], result["y_fit"], box)
@@ -409,8 +411,9 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     # the product (the model, or a static P0's ``wings``): stars unlike its P(F) are flagged
     product = psf if bfpsf_model else wings
     if isinstance(product, BFPSFModel):
-        residual = np.where(lines | cosmic, 0.0, data - model_image(photometry, result,
-                                                                      data.shape))
+        if hit.any() or n_cross:  # refitted since the models were drawn for the cosmic rays
+            stars = model_image(photometry, result, data.shape)
+        residual = np.where(lines | cosmic, 0.0, data - stars)
         unlike = unlike_psf(residual, result["x_fit"], result["y_fit"], result["flux_fit"],
                             product, max(float(sky.level), 0.0) + float(read_noise_e)**2)
         unlike |= misfit_outliers(result["reduced_chi2"], result["flux_fit"]) & ~hit

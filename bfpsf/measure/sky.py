@@ -212,7 +212,8 @@ def choose_degree(rows, columns, values, shape, *, degrees=(1, 2, 3), clip_nsigm
     information = _information(means, excess, degrees[-1], noise,
                                {degree: (degree + 1) * (degree + 2) // 2 for degree in degrees})
     chosen = min(degrees, key=lambda degree: (information[degree], degree))
-    if spline and _spline_asked(rows, columns, values, shape, chosen, clip_nsigma):
+    if spline and _spline_asked(rows, columns, values, shape, chosen,
+                                highest[:, :(chosen + 1) * (chosen + 2) // 2], clip_nsigma):
         return SPLINE
     return chosen
 
@@ -240,11 +241,12 @@ def _information(means, excess, freest, noise, terms):
             for kind in means}
 
 
-def _spline_asked(rows, columns, values, shape, degree, clip_nsigma):
-    """Whether the sky pixels ask for the spline beyond the polynomial of ``degree``: the
-    least information criterion, as `choose_degree`'s, on cells twice as fine as the
-    spline's basis along each axis (a quarter of a cell per coefficient), where the
-    polynomial's misfit beyond the noise is at least `DEGREE_GATE` of it; never on an image
+def _spline_asked(rows, columns, values, shape, degree, polynomial, clip_nsigma):
+    """Whether the sky pixels ask for the spline beyond the polynomial of ``degree`` (its
+    terms at the pixels: ``polynomial``): the least information criterion, as
+    `choose_degree`'s, on cells twice as fine as the spline's basis along each axis (a
+    quarter of a cell per coefficient), where the polynomial's misfit beyond the noise is
+    at least `DEGREE_GATE` of it; never on an image
     narrower than two `SPLINE_SPACING` (its knots would come closer than a bright star's
     glow reaches: two 128^2 amplifiers of a constant sky took the spline for their stars'
     wings, the flux correction's error 0.014 for 0.005). A patch of
@@ -254,8 +256,7 @@ def _spline_asked(rows, columns, values, shape, degree, clip_nsigma):
     if min(shape) < 2 * SPLINE_SPACING:  # knots closer than a star's glow reaches
         return False
     spline = SkyModel.template(SPLINE, shape)
-    designs = {SPLINE: spline.basis(columns, rows),
-               degree: SkyModel.template(degree, shape).basis(columns, rows)}
+    designs = {SPLINE: spline.basis(columns, rows), degree: polynomial}
     _, rms, keep = _clipped_fit(designs[SPLINE], values, clip_nsigma, 5)
     cells_y, cells_x = (2 * (intervals + 3) for intervals in spline.intervals)
     cell = (rows * cells_y // shape[0]) * cells_x + columns * cells_x // shape[1]

@@ -223,9 +223,11 @@ def fit_sky_and_wings(images_e, stars, *, half_size, degree=1, max_pixels=40_000
         wings.append(wing[keep])
         tails.append(tail[keep])
         shapes.append(image.shape)
+        # the freest kind's terms; a lower degree's are the first of its polynomial's
+        basis = SkyModel.template(kinds[0], image.shape).basis(columns[keep], rows[keep])
         for kind in kinds:
-            bases[kind].append(SkyModel.template(kind, image.shape).basis(columns[keep],
-                                                                          rows[keep]))
+            bases[kind].append(basis if kind == kinds[0] else
+                               basis[:, :(kind + 1) * (kind + 2) // 2])
         values.append(image[rows[keep], columns[keep]])
         offsets.append(offsets[-1] + int(keep.sum()))
     values, wings, tails = np.concatenate(values), np.concatenate(wings), np.concatenate(tails)
