@@ -26,11 +26,12 @@ import numpy as np
 
 from .errors import BFPSFInputError, BFPSFValueError
 from .measure.bf_agreement import bf_agreement
+from .measure.cosmic_rays import fill_from_neighbours
 from .measure.line_features import line_mask
 from .measure.neighbours import isolated_stars
 from .measure.read_noise import sky_scatter
 from .measure.sky import SPLINE
-from .measure.sources import DETECTION_THRESHOLD
+from .measure.sources import DETECTION_THRESHOLD, find_cosmic_rays
 from .measure.total_flux import fit_sky_and_wings, wing_gradient
 from .moments.shapes import (MAG_PER_SIZE_ERROR, size_across, size_offset, size_ratios,
                              stars_beside_psf)
@@ -144,7 +145,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         calibrations = [calibrations] * len(images)
     saturation = np.broadcast_to(np.asarray(saturation_e if saturation_e is not None
                                             else np.nan, dtype=float), (len(images),))
-    positions, others, per_image, lines = [], [], [], []
+    positions, others, per_image, lines, rays = [], [], [], [], []
     for index, prepared in enumerate(images):
         data = prepared.sky_subtracted
         # the level in the sky-subtracted image: below it wherever the sky is highest (a
@@ -154,8 +155,13 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         # trails and hot columns: no star beside them is used, and the sky-and-wings fit
         # leaves their pixels out
         lines.append(line_mask(data, threshold))
+        # cosmic rays: filled from their neighbours in P0's fit, left out of the sky's, and
+        # no star beside one is used (`bfpsf.measure.cosmic_rays`)
+        found = find_cosmic_rays(data, threshold=threshold, saturation=level, lines=lines[-1])
+        rays.append(np.zeros(data.shape, dtype=bool) if found is None else found)
         xy, n_detected, neighbours = isolated_stars(data, size, threshold=threshold,
-                                                    saturation_e=level, lines=lines[-1])
+                                                    saturation_e=level, lines=lines[-1],
+                                                    cosmic_rays=rays[-1])
         excluded = np.zeros(len(xy), dtype=bool)
         if exclude is not None and exclude[index] is not None and len(xy):
             excluded = np.asarray(exclude[index](xy, data.shape), dtype=bool)
@@ -168,7 +174,8 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                           "sky_slope": list(prepared.sky.slope),
                           "sky_method": prepared.sky.method,
                           "sky_degree": prepared.sky.kind,
-                          "line_pixels": int(lines[-1].sum())})
+                          "line_pixels": int(lines[-1].sum()),
+                          "cosmic_ray_pixels": -1 if found is None else int(found.sum())})
     buildups = {calibration.refinement.get("buildup_steps")
                 for calibration in calibrations if getattr(calibration, "refinement", None)}
     buildups.discard(None)
@@ -195,7 +202,8 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                   for calibration in calibrations]
 
     def fit():
-        return fit_psf([prepared.sky_subtracted for prepared in images], positions, shift_sets,
+        return fit_psf([fill_from_neighbours(prepared.sky_subtracted, ray)
+                        for prepared, ray in zip(images, rays)], positions, shift_sets,
                        oversampling=oversampling, size=size, read_noise=noise,
                        sky_e=[max(prepared.sky.level, 0.0) for prepared in images],
                        include_bf=include_bf, max_iterations=max_iterations,
@@ -220,8 +228,9 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         # refitted on the images with that sky and glow; a known sky is subtracted and only
         # a constant left free (what the wings' glow adds to it is not sky)
         stars = _with_the_exposure_s_stars(_stars_of_images(result, len(images)), frames)
-        sky_fitted = [np.where(line, np.nan, prepared.image_e - prepared.sky.image() if known
-                               else prepared.image_e) for prepared, line in zip(images, lines)]
+        sky_fitted = [np.where(line | ray, np.nan, prepared.image_e - prepared.sky.image()
+                               if known else prepared.image_e)
+                      for prepared, line, ray in zip(images, lines, rays)]
         skies, wings = fit_sky_and_wings(sky_fitted, stars, half_size=size // 2,
                                          degree=degree, oversampling=oversampling)
         # P0 refitted with the wings' glow subtracted, a known sky's too (fitted with the

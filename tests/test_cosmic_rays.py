@@ -10,7 +10,7 @@ import pytest
 import bfpsf
 from bfpsf.measure.cosmic_rays import cosmic_ray_mask
 from bfpsf.measure.photometry import psf_photometry
-from bfpsf.measure.sources import SourceFlag
+from bfpsf.measure.sources import SourceFlag, measure_sources
 from bfpsf.shifts import BoundaryShifts
 from bfpsf.validation.simulate_fields import simulate_field
 
@@ -19,7 +19,7 @@ from bfpsf.validation.simulate_fields import simulate_field
 def hit_field():
     """384^2 pixels of 40 Kolmogorov x obscured Airy stars (no BF) on 300 e-, 14 of them hit
     by a cosmic ray of 1-3 pixels of 300-3000 e- each, 1.5-5 px from the centre: (data, x,
-    y, flux, hit, psf)."""
+    y, flux, hit, psf, the image without them)."""
     n = 384
     profile = galsim.Convolve(galsim.Kolmogorov(fwhm=2.6),
                               galsim.Airy(lam_over_diam=0.9, obscuration=0.4))
@@ -39,7 +39,7 @@ def hit_field():
         data[row, column:column + length] += rng.uniform(300.0, 3000.0, length)
     psf = bfpsf.FluxDependentPSF.from_galsim(
         profile, BoundaryShifts.from_radial_profile(lambda r: 0 * r, 2))
-    return data, x, y, flux, hit, psf
+    return data, x, y, flux, hit, psf, field.images[0]
 
 
 def _offsets(table, x, y, flux):
@@ -57,7 +57,7 @@ def test_photometry_leaves_cosmic_rays_out_of_the_stars_they_hit(hit_field):
     """Without the mask the 14 hit stars read -30.9 mmag at the median, 11 of them beyond 5
     flux errors, none flagged; with it (the default) -3.4, none beyond 3 errors (one is
     allowed), every one flagged ``cosmic_ray`` and none of the 26 others."""
-    data, x, y, flux, hit, psf = hit_field
+    data, x, y, flux, hit, psf, _ = hit_field
     masked = psf_photometry(data, psf, read_noise_e=5.0)
     kept = psf_photometry(data, psf, read_noise_e=5.0, mask_cosmic_rays=False)
     offset, error, flags = _offsets(masked, x, y, flux)
@@ -108,3 +108,64 @@ def test_a_fit_far_worse_than_its_flux_peers_is_unlike_the_psf():
     found = misfit_outliers(chi2, flux)
     assert np.flatnonzero(found).tolist() == [robbed]
     assert not misfit_outliers(np.full(50, 8.0), np.geomspace(1e5, 1e6, 50)).any()
+
+
+def _matched(table, x, y):
+    """Each true star's row of a source table, and how many rows match no star."""
+    distance = np.hypot(np.asarray(table["x"])[None] - x[:, None],
+                        np.asarray(table["y"])[None] - y[:, None])
+    nearest = np.argmin(distance, axis=1)
+    assert distance[np.arange(len(x)), nearest].max() < 1.5  # every star found
+    return table[nearest], len(table) - len(np.unique(nearest))
+
+
+def test_measure_fills_cosmic_rays_and_flags_the_stars_they_hit(hit_field):
+    """Without a PSF model (``measure``, ``psf``'s stars, ``diagnose``): the 14 hits and 40
+    rays on the sky. Not searched, the rays were 40 sources of their own, 4 stars were
+    flagged blended with one, and 11 unflagged stars' sizes moved by more than 1 % (up to
+    14 %). Searched (the default), no ray is a source, no star is blended, the 12 stars they
+    reach are flagged ``cosmic_ray``, and two unflagged stars' sizes moved by more than 1 %
+    (2.4 % at most: a ray on a bright star's wing, below a quarter more than a star's core
+    in sharpness, is not told from a companion's core there)."""
+    data, x, y, _, _, _, clean = hit_field
+    data = data.copy()
+    rng = np.random.default_rng(15)
+    placed = 0
+    while placed < 40:  # on the sky, 8 px or more from every star
+        row, column = rng.integers(5, data.shape[0] - 8, 2)
+        if np.hypot(x - column, y - row).min() >= 8.0:
+            length = int(rng.integers(1, 4))
+            data[row, column:column + length] += rng.uniform(300.0, 3000.0, length)
+            placed += 1
+    reference, _ = _matched(measure_sources(clean), x, y)
+    assert reference.meta["cosmic_ray_pixels"] == 0
+    for search in (False, True):
+        table = measure_sources(data, cosmic_rays=search)
+        stars, spurious = _matched(table, x, y)
+        flags = np.asarray(stars["flags"])
+        usable = (flags == 0) & (np.asarray(reference["flags"]) == 0)
+        moved = np.abs(np.r_[np.asarray(stars["sigma_x"])[usable]
+                             / np.asarray(reference["sigma_x"])[usable],
+                             np.asarray(stars["sigma_y"])[usable]
+                             / np.asarray(reference["sigma_y"])[usable]] - 1.0)
+        print(f"searched {search}: {spurious} spurious sources, "
+              f"{np.sum((flags & SourceFlag.BLENDED) != 0)} stars blended, "
+              f"{np.sum((flags & SourceFlag.COSMIC_RAY) != 0)} flagged cosmic_ray, "
+              f"{np.sum(moved > 0.01)} unflagged sizes moved > 1 % (max {moved.max():.3f}), "
+              f"{table.meta['cosmic_ray_pixels']} ray pixels")
+    assert spurious == 0 and moved.max() < 0.03 and np.sum(moved > 0.01) <= 2
+    assert not np.any((flags & SourceFlag.BLENDED) != 0)
+    assert table.meta["cosmic_ray_pixels"] > 0
+
+
+@pytest.mark.parametrize("profile", [galsim.Gaussian(fwhm=1.6), galsim.Convolve(
+    galsim.Kolmogorov(fwhm=1.2), galsim.Airy(lam_over_diam=0.4, obscuration=0.4))])
+def test_measure_takes_no_undersampled_core_for_a_cosmic_ray(profile):
+    """Stars of 1.2-1.6 px FWHM up to 1.5e5 e- of peak: L.A.Cosmic on the image itself takes
+    their cores for cosmic rays; judged against the stars' own sharpness, no pixel is."""
+    field = simulate_field(profile, n_images=1, shape=(256, 256), n_stars=40,
+                           peak_range_e=(3e2, 1.5e5), min_separation=12.0, sensor=None,
+                           sky_surface=lambda x, y: 300.0 + 0.2 * x, seed=3, stamp=64)
+    table = measure_sources(field.images[0])
+    assert table.meta["cosmic_ray_pixels"] == 0
+    assert not np.any((np.asarray(table["flags"]) & SourceFlag.COSMIC_RAY) != 0)

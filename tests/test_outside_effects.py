@@ -26,7 +26,7 @@ STRENGTH = 0.03          # a: 3 % of a pixel's charge per 1e5 e- in it
 #: the axis, parity and dependence the report must state for each outside effect
 EXPECTED = {"one_axis": ("x", "even", None), "position": (None, "even", "position"),
             "centroid": ("y", "odd", None), "night": (None, "even", "exposure"),
-            "diagonal": (None, "even", None)}
+            "diagonal": (None, "even", None), "halo": (None, "even", None)}
 
 
 def _calibrate(size, pairs, levels, seed, **options):

@@ -234,8 +234,14 @@ def run(args):
                                        in chosen["chi2_per_pixel"].items()) + ")")
         summary["output_calib"] = {"path": str(args.output_calib),
                                    **refined.refinement}
+        record = refined.refinement
+        # the scale and split it applies, said (a new user found the shifts times 2.50 only
+        # in the JSON), and the selected effects it does not hold
         print(f"refined calibration: {args.output_calib} "
-              f"({', '.join(refined.refinement['applied']) or 'nothing applied'})")
+              f"({', '.join(record['applied']) or 'nothing applied'})"
+              + (f"; its shifts are the flats' times {1 + record['scale']:.3f}, X / Y split "
+                 f"{record['split']:+.3f}" if record["scale"] or record["split"] else ""))
+        unheld = [name for name in result.selected if name in record["not_applied"]]
         for name, why in refined.refinement.get("not_applied", {}).items():
             print(f"  not applied: {name}: {why}")
         summary["star_residual_refined"] = (chosen or {}).get("star_residual") or (
@@ -265,6 +271,8 @@ def run(args):
     # equal before and after of a run that selected nothing as "nothing improved")
     alone = (" (the selected effects; the EMPIRICAL term's figures are its own lines)"
              if result.empirical else "")
+    if args.output_calib and unheld:  # a new user read them as the refined calibration's
+        alone += f" ({', '.join(unheld)} not in {args.output_calib})"
     rows = [("before", before), (f"after{alone}", after)]
     if result.residual_after_heldout:
         rows += [("held-out before", result.residual_before_heldout),

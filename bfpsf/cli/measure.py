@@ -120,6 +120,7 @@ def run(args):
                     colour=(_amplifier_colours(colour_table, amplifier) if args.colour
                             else None),
                     colour_columns=args.colour)
+            table.meta.pop("cosmic_rays")  # their pixels: counted, not listed
             place_stars(table, amplifier, sides, args.stamp_size / 2)
             table.add_column(str(path), name="image", index=0)
             tables.append(table)
@@ -131,6 +132,8 @@ def run(args):
                                        (table["flags"] & MomentsFlag.SATURATED) != 0)),
                                    "n_amp_boundary": int(np.sum(table["amp_boundary"])),
                                    "line_pixels": table.meta["line_pixels"],
+                                   # -1: too few bright stars to say how sharp a star is
+                                   "cosmic_ray_pixels": table.meta["cosmic_ray_pixels"],
                                    "sky_degree": table.meta["sky_degree"],
                                    "exptime": header.get("EXPTIME")})
     stars = vstack(tables, metadata_conflicts="silent") if len(tables) > 1 else tables[0]
@@ -146,6 +149,8 @@ def run(args):
                                                != 0)),
                # beside a trail or a hot column, whose pixels were left out
                "n_on_line": int(np.sum((stars["flags"] & SourceFlag.ON_LINE) != 0)),
+               # a cosmic ray within 4 sigma, its pixels filled from their neighbours
+               "n_cosmic_ray": int(np.sum((stars["flags"] & SourceFlag.COSMIC_RAY) != 0)),
                "images": summary_images}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
@@ -155,5 +160,8 @@ def run(args):
           + (f", {summary['n_on_line']} beside a trail or a hot column, whose "
              f"{sum(entry['line_pixels'] for entry in summary_images)} pixels were left out"
              if any(entry["line_pixels"] for entry in summary_images) else "")
+          + (f", {summary['n_cosmic_ray']} beside a cosmic ray, whose "
+             f"{sum(max(entry['cosmic_ray_pixels'], 0) for entry in summary_images)} pixels "
+             "were filled from their neighbours" if summary["n_cosmic_ray"] else "")
           + f") in {len(args.images)} image(s); wrote {args.output}")
     return 0

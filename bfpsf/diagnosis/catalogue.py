@@ -34,7 +34,8 @@ Candidates (`CATALOGUE`), parameters in brackets:
     charge shrinks its own pixel on all four sides). Template: sizes.
 ``second_order`` [t]
     Second-order (flux^2) redistribution / build-up: t times R[Q + R[Q]] - R[Q], the term of
-    order a^2 Q^3 that the one-step model drops. Template: sizes (grows as peak^2).
+    order a^2 Q^3 that the one-step model drops. Template: sizes (grows as peak^2). Bounds
+    t >= 0 (the build-up strengthens BF).
 ``boundary_density`` [t]
     The boundary-density (sampling) error (G15 fig. bva): t times the difference between the
     redistribution with the exact charge density integrated along each boundary and with the
@@ -151,11 +152,12 @@ class Effect:
     bounds : tuple of (low, high) per parameter, or None
         Physically allowed range; a fit outside it is rejected by the loop (e.g. a negative
         diffusion, a negative area beyond the measured lags).
-    flux_signature : bool
-        Whether the signature test checks the ``flux_shape`` dimension
-        (`bfpsf.diagnosis.signature.flux_shape_test`) for this effect: for effects whose
-        identity is how they grow with flux (the flux^2 term), where a residual linear in flux
-        must not pass.
+    flux_signature : str or None
+        The competitor of the ``flux_shape`` dimension
+        (`bfpsf.diagnosis.signature.flux_shape_test`), for effects whose identity is how they
+        grow with flux: ``'linear'`` (a size change linear in peak) for the flux^2 term, where
+        a residual linear in flux must not pass; ``'quadratic'`` for an effect linear in
+        peak, where one that grows faster must not.
     description : str
     """
 
@@ -163,7 +165,7 @@ class Effect:
     parameters = ()
     physical_value = None
     bounds = None
-    flux_signature = False
+    flux_signature = None
     description = ""
 
     def allows(self, values, errors=None):
@@ -282,7 +284,12 @@ class SecondOrder(Effect):
     physical_value = None
     # flux^2: a residual linear in flux (stars with no BF against flats with BF) had been
     # named second_order at t = 6.3; beside a linear term its amplitude falls
-    flux_signature = True
+    flux_signature = "linear"
+    # t >= 0: the build-up strengthens BF (each step's charge sees the boundaries the charge
+    # before it moved); a new user's halo that only stars above 3e4 e- of peak spread (sizes
+    # growing faster than linearly in flux) was named second_order at t = -74.9 +- 8.0, which
+    # --output-calib then could not apply
+    bounds = ((0.0, np.inf),)
     description = "t * (R[Q + R[Q]] - R[Q]): the flux^2 term of the redistribution (build-up)"
 
     def templates(self, observables):
@@ -323,6 +330,11 @@ class FluxDiffusion(Effect):
     name = "flux_diffusion"
     parameters = ("d_pix2_per_1e5",)
     bounds = ((0.0, np.inf),)
+    # linear in peak: a new user's halo that only stars above 3e4 e- of peak spread (sizes
+    # rising faster than linearly; second_order rejected by its sign) was named a diffusion
+    # and "confirmed" on held-out exposures; beside a size term in peak^2 its amplitude moves
+    # (p = 8e-7)
+    flux_signature = "quadratic"
     description = "isotropic blur, sigma^2 -> sigma^2 + d peak / 1e5 e-"
 
     def templates(self, observables):
@@ -410,6 +422,10 @@ class CalibrationScale(Effect):
     # "confirm" it on held-out exposures, the effect being in all of them). GalSim's own flats
     # and stars differ by up to -35 % (its two rules, `bfpsf.interop.silicon_truth`).
     bounds = ((-0.5, 1.0),)
+    # BF's own flux shape: a halo of the brightest stars (nothing below 3e4 e- of peak,
+    # faster than linear above) was taken as the flats' scale, s = 0.45 +- 0.01 against a
+    # prior of 0.16 (the bench's ``halo``); beside a size term in peak^2 it moves
+    flux_signature = "quadratic"
     description = "every boundary shift times (1 + s): a calibration amplitude error"
 
     def templates(self, observables):

@@ -55,8 +55,9 @@ from .problem import (build_problem, effect_columns, effect_design, effect_value
                       global_priors, slope_residuals, summarise)
 from .quiet_axis import scale_beside_the_effect
 from .result import DiagnosisResult
-from .signature import (SIGNATURE_ALPHA, contradiction, cross_test, flux_shape_test,
-                        TEMPLATE_TOLERANCE, parity_test, signature_parts, signature_test)
+from .signature import (SIGNATURE_ALPHA, contradiction, cross_test, flux_competitors,
+                        flux_shape_test, TEMPLATE_TOLERANCE, parity_test, signature_parts,
+                        signature_test)
 from .unexplained import (STAR_CHI2_FACTOR, UNEXPLAINED_NSIGMA, describe_unexplained, verdict,
                           with_scale_parts)
 
@@ -209,16 +210,14 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
     rejected = {}
     parts = signature_parts(problem, observables)
     tolerance = TEMPLATE_TOLERANCE
-    linear = np.zeros(problem.residual.size)
-    if "sizes" in problem.slices:
-        # a size change linear in peak on both axes: the flux_shape dimension's competitor
-        linear[problem.slices["sizes"]] = np.tile(observables.sizes.peak_e / 1e5, 2)
+    competitors = flux_competitors(problem, observables)
     parity = parity_test(observables.sizes, alpha=signature_alpha or SIGNATURE_ALPHA)
     cross = cross_test(observables.sizes, alpha=signature_alpha or SIGNATURE_ALPHA)
 
-    def signature(design, nuisance=None, flux=False, extra=()):
+    def signature(design, nuisance=None, flux=None, extra=()):
         """The signature test of a template given the effects already selected and those in
-        ``extra`` (with the flux dimension for an effect whose identity is its flux shape)."""
+        ``extra`` (with the flux dimension for an effect whose identity is its flux shape:
+        ``flux`` its competitor, `Effect.flux_signature`)."""
         free = [other for other in [*selected, *extra] if other not in fixed]
         offset = sum((fixed[other] for other in selected if other in fixed),
                      np.zeros_like(problem.residual))
@@ -226,9 +225,9 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                                + [designs[other] for other in free])
         test = signature_test(problem.residual - offset, problem.sigma, base, design, parts,
                               alpha=signature_alpha, tolerance=tolerance)
-        if flux and np.any(linear):
+        if flux and np.any(competitors[flux]):
             test["flux_shape"] = flux_shape_test(problem.residual - offset, problem.sigma, base,
-                                                 design, linear,
+                                                 design, competitors[flux], kind=flux,
                                                  alpha=signature_alpha or SIGNATURE_ALPHA)
         if parity is not None and "sizes" in problem.slices and np.any(
                 design[problem.slices["sizes"]]):
@@ -261,10 +260,8 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                 problem.global_columns, False))):
             return None
         test = signature(designs[effect.name], flux=effect.flux_signature, extra=[_SCALE])
-        if (contradiction(test) is not None
-                or contradiction(signature(designs[_SCALE], extra=[name])) is not None):
-            return None
-        return delta_bic, chi2, test
+        against = signature(designs[_SCALE], extra=[name], flux=scale.flux_signature)
+        return None if contradiction(test) or contradiction(against) else (delta_bic, chi2, test)
 
     for round_index in range(int(max_rounds)):
         scores = []
@@ -286,14 +283,18 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                 params, covariance, chi2, _ = fit(selected + [name])
                 statistic = chi2_current - chi2
                 delta_bic = -statistic + k * np.log(n_points)
+                # a value fixed by physics is judged by the free fit's bounds: a new user's
+                # halo had boundary_density@physical named where its template's data asked
+                # for t = 12.1
+                free, free_covariance = fit(selected + [effect.name])[:2] if is_fixed else (
+                    params, covariance)
+                own = slice(free.size - effect.k, free.size)
+                values = free[own].tolist()
+                errors = np.sqrt(np.abs(np.diag(free_covariance)[own])).tolist()
+                allowed = effect.allows(*_bounded(effect, values, errors, free, free_covariance,
+                                                  problem.global_columns, is_fixed))
                 if is_fixed:
                     values, errors = list(effect.physical_value), [0.0] * effect.k
-                else:
-                    own = slice(params.size - k, params.size)
-                    values = params[own].tolist()
-                    errors = np.sqrt(np.abs(np.diag(covariance)[own])).tolist()
-                allowed = effect.allows(*_bounded(effect, values, errors, params, covariance,
-                                                  problem.global_columns, is_fixed))
                 entry.update(statistic=float(statistic), delta_bic=float(delta_bic),
                              parameters=values, errors=errors, allowed=bool(allowed))
                 if not allowed and delta_bic < threshold:
@@ -301,7 +302,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                     rejected.setdefault(name, {
                         "round": round_index + 1, "delta_bic": float(delta_bic),
                         "contradicted_by": "bounds", "p_value": None,
-                        "values": [float(value) for value in values],
+                        "values": [float(value) for value in free[own]],
                         "bounds": [list(bound) for bound in effect.bounds]})
                 if allowed and delta_bic < threshold and signature_alpha:
                     test = signature(designs[effect.name], flux=effect.flux_signature)
@@ -377,7 +378,8 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
         # signature of its own (the same everywhere, in every exposure): tested like a
         # candidate, and the pull against the flats' prior must stay within 3 sigma
         test = signature(problem.nuisance[:, [column]],
-                         nuisance=np.delete(problem.nuisance, column, axis=1))
+                         nuisance=np.delete(problem.nuisance, column, axis=1),
+                         flux=get_effect(_SCALE).flux_signature if name == _SCALE else None)
         if name == SPLIT.name:
             # its template is X against Y by construction: the axis parts are not one
             # amplitude of it

@@ -57,10 +57,11 @@ size measurement is biased by their noise), so it rejects the flats' size scale 
 model describes; none of the bench's outside effects needs it.
 
 ``flux_shape`` (`flux_shape_test`), for effects whose identity is how they grow with flux
-(``Effect.flux_signature``: the flux^2 term): their amplitude must not move when a term
-linear in peak is fitted beside them. The faint-against-bright split could not tell a flux^2
-template from a linear residual (5.5 +- 0.5 against 6.2 +- 0.07 on stars without BF: the
-groups' intercepts are common to both halves).
+(``Effect.flux_signature``): the flux^2 term's amplitude must not move when a term linear in
+peak is fitted beside it, a diffusion's (linear in peak) when a term in peak^2 is. The
+faint-against-bright split could not tell a flux^2 template from a linear residual (5.5 +-
+0.5 against 6.2 +- 0.07 on stars without BF: the groups' intercepts are common to both
+halves).
 
 ``parity`` (`parity_test`): every catalogue effect that changes the stars is even under
 reflection (the G15 redistribution of a symmetric star, a non-linearity, a blur), so each
@@ -82,8 +83,8 @@ from ..least_squares import weighted_least_squares
 
 __all__ = ["SIGNATURE_ALPHA", "TEMPLATE_TOLERANCE", "MEASURABLE", "CROSS_TOLERANCE",
            "CROSS_FLOOR", "signature_parts", "signature_test", "one_amplitude_chi2",
-           "flux_shape_test", "contradiction", "parity_test", "cross_test", "describe_entry",
-           "describe_rejection"]
+           "flux_competitors", "flux_shape_test", "contradiction", "parity_test", "cross_test",
+           "describe_entry", "describe_rejection"]
 
 #: p-value below which a dimension contradicts a candidate (3.3 sigma one-sided).
 SIGNATURE_ALPHA = 1e-3
@@ -344,15 +345,31 @@ def cross_test(sizes, *, alpha=SIGNATURE_ALPHA):
             "chi2": statistic, "dof": 1, "p_value": p_value, "matches": bool(p_value >= alpha)}
 
 
-def flux_shape_test(residual, sigma, base_design, effect_design, linear, *,
-                    alpha=SIGNATURE_ALPHA, tolerance=TEMPLATE_TOLERANCE["flux_shape"]):
-    """The ``flux_shape`` dimension of an effect whose identity is how it grows with flux
-    (``Effect.flux_signature``: the flux^2 term).
+def flux_competitors(problem, observables):
+    """The competitors of the ``flux_shape`` dimension (`Effect.flux_signature`): a size
+    change linear and one quadratic in peak on both axes, as rows of the stacked residual
+    (zero without sizes)."""
+    out = {kind: np.zeros(problem.residual.size) for kind in ("linear", "quadratic")}
+    if "sizes" in problem.slices:
+        scaled = np.tile(observables.sizes.peak_e / 1e5, 2)
+        out["linear"][problem.slices["sizes"]] = scaled
+        out["quadratic"][problem.slices["sizes"]] = scaled**2
+    return out
 
-    Its amplitude is fitted twice: as the loop fits it, and beside a term ``linear`` in peak
-    (the shape of a brighter-fatter scale error). When the effect is what the residual holds,
-    the linear term takes nothing and the two agree; a residual linear in flux (stars with no
-    BF against flats with BF: the flux^2 term had been named at t = 6.3 there) moves it. The
+
+def flux_shape_test(residual, sigma, base_design, effect_design, competitor, *,
+                    kind="linear", alpha=SIGNATURE_ALPHA,
+                    tolerance=TEMPLATE_TOLERANCE["flux_shape"]):
+    """The ``flux_shape`` dimension of an effect whose identity is how it grows with flux
+    (``Effect.flux_signature``).
+
+    Its amplitude is fitted twice: as the loop fits it, and beside a ``competitor`` term of
+    another flux shape (``kind``): for the flux^2 term, a size change linear in peak (the
+    shape of a brighter-fatter scale error); for an effect linear in peak, one in peak^2.
+    When the effect is what the residual holds, the competitor takes nothing and the two
+    agree; a residual linear in flux (stars with no BF against flats with BF: the flux^2 term
+    had been named at t = 6.3 there) moves the flux^2 term, one that rises faster than
+    linearly (a halo of the brightest stars) moves the linear one. The
     statistic is Hausman's, d^T (C_1 - C_0 + (tau a_0)^2 I)^-1 d with d = a_0 - a_1, tau
     `TEMPLATE_TOLERANCE` ['flux_shape'], chi-square with k degrees of freedom (the amplitude with
     the linear term is the less precise one, so C_1 - C_0 is the variance of d).
@@ -360,21 +377,22 @@ def flux_shape_test(residual, sigma, base_design, effect_design, linear, *,
     Returns
     -------
     dict
-        As a `signature_test` entry: ``parts`` ("alone", "beside a linear term"),
+        As a `signature_test` entry: ``parts`` ("alone", "beside a linear term" or
+        "beside a quadratic term"),
         ``amplitudes``, ``errors``, ``chi2``, ``dof``, ``p_value``, ``matches``.
     """
     k = effect_design.shape[1]
     own = slice(base_design.shape[1], base_design.shape[1] + k)
     fits = [weighted_least_squares(residual, sigma, np.column_stack(blocks))[:2]
             for blocks in ([base_design, effect_design],
-                           [base_design, effect_design, linear[:, None]])]
+                           [base_design, effect_design, competitor[:, None]])]
     (alone, alone_cov), (beside, beside_cov) = [(params[own], covariance[own, own])
                                                 for params, covariance in fits]
     difference = alone - beside
     variance = beside_cov - alone_cov + np.diag((tolerance * alone) ** 2)
     statistic = float(difference @ np.linalg.pinv(variance) @ difference)
     p_value = float(chi2_distribution.sf(statistic, k))
-    return {"parts": ["alone", "beside a linear term"],
+    return {"parts": ["alone", f"beside a {kind} term"],
             "amplitudes": [alone.tolist(), beside.tolist()],
             "errors": [np.sqrt(np.abs(np.diag(alone_cov))).tolist(),
                        np.sqrt(np.abs(np.diag(beside_cov))).tolist()],

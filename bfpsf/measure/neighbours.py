@@ -13,9 +13,10 @@ from astropy.table import Table
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from .cosmic_rays import fill_from_neighbours
 from .line_features import near_lines, resolve_lines
 from .smoothing import smoothed_image
-from .sources import DETECTION_THRESHOLD, LINE_REACH, SourceFlag, measure_sources
+from .sources import DETECTION_THRESHOLD, LINE_REACH, SourceFlag, measure_sources, ray_mask
 
 __all__ = ["smoothed_peaks", "sources_with_companions", "isolated_stars",
            "COMPANION_SEPARATION"]
@@ -69,7 +70,8 @@ def local_peaks(values, level, detection_fwhm, border=1):
     return x, y, rows, columns
 
 
-def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=True, **kwargs):
+def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=True,
+                            cosmic_rays=True, **kwargs):
     """Every source of an image: the detections of `measure_sources` and the companions a
     merged segment hides (peaks of the smoothed image, `smoothed_peaks`, more than 2.5
     pixels from every detection, flagged ``BLENDED``; their ``flux_e`` the sum of the 5 x 5
@@ -84,6 +86,10 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=Tru
     lines : bool or ndarray of bool [y, x], optional
         Pixels of trails and hot columns, left out (`measure_sources`): True (default) finds
         them, an array gives them, False leaves none out.
+    cosmic_rays : bool or ndarray of bool [y, x], optional
+        Pixels of cosmic rays, filled from their neighbours (`measure_sources`): True
+        (default) finds them, an array gives them, False leaves them in (a cosmic ray is
+        then a source, or a companion).
     **kwargs
         Passed to `measure_sources`.
 
@@ -92,12 +98,16 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=Tru
     astropy.table.Table
         ``x``, ``y``, ``flux_e``, ``flags`` (`SourceFlag`); the detections first, then the
         companions; ``meta['n_detected']`` the detections, ``meta['line_pixels']`` the pixels
-        of lines left out.
+        of lines left out, ``meta['cosmic_ray_pixels']`` those of cosmic rays filled.
     """
     image = np.where(np.isfinite(image_e), image_e, 0.0)
     lines = resolve_lines(lines, image, threshold)
     image = np.where(lines, 0.0, image)
-    sources = measure_sources(image, threshold=threshold, lines=lines, **kwargs)
+    sources = measure_sources(image, threshold=threshold, lines=lines, cosmic_rays=cosmic_rays,
+                              **kwargs)
+    rays = ray_mask(sources, image.shape)
+    if rays.any():  # no companion on a cosmic ray
+        image = fill_from_neighbours(image, rays)
     x = np.asarray(sources["x"], dtype=float)
     y = np.asarray(sources["y"], dtype=float)
     flux = np.asarray(sources["flux_e"], dtype=float)
@@ -121,11 +131,12 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=Tru
     table = Table({"x": x, "y": y, "flux_e": flux, "flags": flags})
     table.meta["n_detected"] = len(sources)
     table.meta["line_pixels"] = int(lines.sum())
+    table.meta["cosmic_ray_pixels"] = sources.meta["cosmic_ray_pixels"]
     return table
 
 
 def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None,
-                   lines=True):
+                   lines=True, cosmic_rays=True):
     """Clean, unsaturated detections isolated within ``size`` pixels: the stars a P0 fit
     (`bfpsf.model.psf_fit.fit_psf`) takes; and every other source (`sources_with_companions`),
     the neighbours the P0 fit models alongside them.
@@ -143,6 +154,8 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
     lines : bool or ndarray of bool [y, x], optional
         Pixels of trails and hot columns (`sources_with_companions`): no star with one in its
         cutout is isolated.
+    cosmic_rays : bool or ndarray of bool [y, x], optional
+        Pixels of cosmic rays (`sources_with_companions`).
 
     Returns
     -------
@@ -156,8 +169,8 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
     """
     lines = resolve_lines(lines, image_e, threshold)
     sources = sources_with_companions(image_e, threshold=threshold, lines=lines,
-                                      blend_radius=size / 2 + 2, saturation=saturation_e,
-                                      stamp_size=size + 6)
+                                      cosmic_rays=cosmic_rays, blend_radius=size / 2 + 2,
+                                      saturation=saturation_e, stamp_size=size + 6)
     xy = np.column_stack([np.asarray(sources["x"], dtype=float),
                           np.asarray(sources["y"], dtype=float)])
     # neighbours' light biases a star's moments, not the P0 fit, which models the wings of

@@ -58,15 +58,19 @@ MISFIT_REACH = 1.5
 PHOTOMETRY_COLUMNS = ["x_fit", "y_fit", "flux_fit", "flux_err", "flags"]
 
 
-def _initial_positions(image_e, detection_threshold, lines):
+def _initial_positions(image_e, detection_threshold, lines, cosmic_rays):
     """Every source (`bfpsf.measure.neighbours.sources_with_companions`: the detections and the
-    companions a merged segment hides, flagged ``BLENDED``; ``lines`` left out) as photutils'
-    initial table. Fitted as one, a close pair gives one star with both fluxes (a dense
-    field: -250 mmag)."""
-    sources = sources_with_companions(image_e, threshold=detection_threshold, lines=lines)
+    companions a merged segment hides, flagged ``BLENDED``; ``lines`` left out, cosmic rays
+    filled where ``cosmic_rays``, no source of their own) as photutils' initial table. Fitted
+    as one, a close pair gives one star with both fluxes (a dense field: -250 mmag). The
+    detection's ``COSMIC_RAY`` is not carried: photometry's own says a ray's pixels were
+    left out of the fit."""
+    sources = sources_with_companions(image_e, threshold=detection_threshold, lines=lines,
+                                      cosmic_rays=cosmic_rays)
     table = Table()
     table["x_init"], table["y_init"] = sources["x"], sources["y"]
-    table["flux_init"], table["source_flags"] = sources["flux_e"], sources["flags"]
+    table["flux_init"] = sources["flux_e"]
+    table["source_flags"] = np.asarray(sources["flags"]) & ~SourceFlag.COSMIC_RAY
     return table
 
 
@@ -287,7 +291,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     lines = resolve_lines(positions is None and bool(mask_lines), data, detection_threshold)
     mask = ~finite | lines
     if positions is None:
-        init = _initial_positions(np.where(finite, data, 0.0), detection_threshold, lines)
+        init = _initial_positions(np.where(finite, data, 0.0), detection_threshold, lines,
+                                  bool(mask_cosmic_rays))
     elif isinstance(positions, Table):
         init = positions
     else:

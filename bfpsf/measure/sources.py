@@ -23,63 +23,20 @@ from ..moments.moment_errors import moment_errors
 from ..moments.result import MomentsFlag
 from ..moments.shapes import distortion
 from ..resources import check_pixels
+from .cosmic_rays import fill_from_neighbours, image_cosmic_rays
 from .line_features import near_lines, resolve_lines
 from .neighbour_light import neighbour_light
+from .source_flags import SourceFlag, source_flag_string
 from .sky import estimate_sky
 from .smoothing import detection_kernel
 
-__all__ = ["SourceFlag", "measure_sources", "sky_level", "source_flag_string",
-           "aperture_fraction", "model_flux", "STAR_COLUMNS", "DETECTION_THRESHOLD",
-           "LINE_REACH"]
+__all__ = ["SourceFlag", "measure_sources", "find_cosmic_rays", "ray_mask", "sky_level",
+           "source_flag_string", "aperture_fraction", "model_flux", "STAR_COLUMNS",
+           "DETECTION_THRESHOLD", "LINE_REACH"]
 
 #: columns every star table holds (the ``bfpsf measure`` contract)
 STAR_COLUMNS = ["x", "y", "flux_e", "peak_e", "mxx", "myy", "mxy", "sigma_x", "sigma_y", "iq",
                 "e1", "e2", "flags"]
-
-
-class SourceFlag(MomentsFlag):
-    """Bit flags of a source: the `MomentsFlag` bits plus source-level ones.
-
-    ``BLENDED`` : another detection lies within ``blend_radius``. ``STAMP_EDGE`` : the stamp
-    crosses the image border (missing pixels are masked). ``NO_COLOUR`` : a colour table was
-    given but no entry lies within ``match_radius``. ``NEIGHBOUR_LIGHT`` : neighbours' light
-    under the star makes it larger, significantly and by more than its size error
-    (`bfpsf.measure.neighbour_light`). ``UNLIKE_PSF`` (PSF photometry only): the fitted star,
-    its neighbours' models subtracted, is larger, more elongated or sharper than the PSF at its
-    flux (two stars detection did not split, a galaxy, a cosmic ray;
-    `bfpsf.measure.psf_likeness`). ``IN_RESIDUAL`` (PSF
-    photometry only): found in the residual of the first fit, not by detection (a companion on
-    a bright star's wing, a faint star in a crowded field; `bfpsf.measure.residual_sources`).
-    ``ON_LINE``: pixels of a trail or a hot column lie within `LINE_REACH` of the star's
-    sigma (in PSF photometry: within its fit box), left out of its measurement or its fit
-    (`bfpsf.measure.line_features`). ``COSMIC_RAY`` (PSF photometry only): a cosmic ray's
-    pixels lay in the fit box, left out of the star's fit (`bfpsf.measure.cosmic_rays`).
-    """
-
-    BLENDED = 128
-    STAMP_EDGE = 256
-    NO_COLOUR = 512
-    NEIGHBOUR_LIGHT = 1024
-    UNLIKE_PSF = 2048
-    IN_RESIDUAL = 4096
-    ON_LINE = 8192
-    COSMIC_RAY = 16384
-
-    NAMES = {**MomentsFlag.NAMES, 128: "blended", 256: "stamp_edge", 512: "no_colour",
-             1024: "neighbour_light", 2048: "unlike_psf", 4096: "in_residual",
-             8192: "on_line", 16384: "cosmic_ray"}
-
-
-def source_flag_string(flags):
-    """Readable source flags: names joined by ``'|'``, ``'ok'`` for 0 (array in, array out)."""
-    flags_array = np.asarray(flags)
-    if flags_array.ndim == 0:
-        value = int(flags_array)
-        if value == 0:
-            return "ok"
-        return "|".join(name for bit, name in SourceFlag.NAMES.items() if value & bit)
-    return np.array([source_flag_string(value) for value in flags_array.ravel()],
-                    dtype=object).reshape(flags_array.shape)
 
 
 def sky_level(image, *, maxiters=10):
@@ -240,7 +197,7 @@ def model_flux(psf, flux_e, *, aperture_nsigma=5.0):
 def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp_size=32, saturation=None,
                     colour=None, colour_columns=None, match_radius=2.0, sky=None,
                     detection_fwhm=3.0, blend_radius=None, deblend=True,
-                    aperture_nsigma=5.0, lines=True):
+                    aperture_nsigma=5.0, lines=True, cosmic_rays=True):
     """Detect and measure the sources of an image in electrons.
 
     Parameters
@@ -292,6 +249,13 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
         measurement: True (default) finds them (`bfpsf.measure.line_features.line_mask`),
         an array gives them, False leaves none out. A source within `LINE_REACH` of its
         sigma from one is flagged ``ON_LINE``.
+    cosmic_rays : bool or ndarray of bool [y, x], optional
+        Pixels of cosmic rays, filled from their neighbours before detection and
+        measurement: True (default) finds them against the image's own stars
+        (`find_cosmic_rays`; ``meta['cosmic_ray_pixels']``, -1 where too few stars said how
+        sharp a star is; ``meta['cosmic_rays']`` where, `ray_mask`), an array gives them,
+        False leaves them in. A source within
+        `LINE_REACH` of its sigma from one is flagged ``COSMIC_RAY``.
 
     Returns
     -------
@@ -320,6 +284,8 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     if bad.all():
         msg = "the image has no finite pixel"
         raise BFPSFInputError(msg, image.shape)
+    if isinstance(cosmic_rays, np.ndarray) and cosmic_rays.any():
+        image = fill_from_neighbours(image, cosmic_rays)
     if colour is not None:
         for name in ("x", "y"):
             if name not in colour.colnames:
@@ -349,6 +315,11 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     if segments is None:
         empty = _empty_table(colour_columns)
         empty.meta["line_pixels"] = int(lines.sum())
+        if isinstance(cosmic_rays, str):
+            return None
+        given = isinstance(cosmic_rays, np.ndarray)
+        empty.meta["cosmic_ray_pixels"] = int(np.sum(cosmic_rays)) if given else -1
+        empty.meta["cosmic_rays"] = np.flatnonzero(cosmic_rays) if given else np.zeros(0, int)
         empty.meta["sky_degree"] = sky.kind
         return empty
     peak_level = (threshold + 3.0) * smooth_rms
@@ -416,10 +387,30 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
                                       errors["sigma_err"], usable=flags == 0)
     flags |= np.where(lit, SourceFlag.NEIGHBOUR_LIGHT, 0)
     sigma = np.asarray(moments.sigma, float)
-    flags |= np.where(near_lines(lines, x_stamp + x_origin, y_stamp + y_origin, LINE_REACH
-                                 * np.where(np.isfinite(sigma), sigma,
-                                            detection_fwhm * gaussian_fwhm_to_sigma)),
+    reach = LINE_REACH * np.where(np.isfinite(sigma), sigma,
+                                  detection_fwhm * gaussian_fwhm_to_sigma)
+    flags |= np.where(near_lines(lines, x_stamp + x_origin, y_stamp + y_origin, reach),
                       SourceFlag.ON_LINE, 0)
+    if cosmic_rays is True or isinstance(cosmic_rays, str):
+        # found against the stars just measured, then measured again without them
+        rays = image_cosmic_rays(data, rms, x_stamp + x_origin, y_stamp + y_origin, peak,
+                                 flags == 0, excluded=bad | lines | _saturated(image, saturation))
+        if isinstance(cosmic_rays, str):  # "find" (`find_cosmic_rays`)
+            return rays
+        if rays is not None and rays.any():
+            return measure_sources(
+                image, threshold=threshold, n_pixels=n_pixels, stamp_size=stamp_size,
+                saturation=saturation, colour=colour, colour_columns=colour_columns,
+                match_radius=match_radius, sky=sky, detection_fwhm=detection_fwhm,
+                blend_radius=blend_radius, deblend=deblend, aperture_nsigma=aperture_nsigma,
+                lines=lines, cosmic_rays=rays)
+        cosmic_rays = np.zeros(data.shape, dtype=bool) if rays is None else rays
+        ray_pixels = -1 if rays is None else 0
+    else:
+        cosmic_rays = np.asarray(cosmic_rays, dtype=bool)  # False: none
+        ray_pixels = int(cosmic_rays.sum())
+    flags |= np.where(near_lines(np.broadcast_to(cosmic_rays, data.shape), x_stamp + x_origin,
+                                 y_stamp + y_origin, reach), SourceFlag.COSMIC_RAY, 0)
     aperture_flux = _aperture_flux(stamps, radius2, moments.sigma, aperture_nsigma)
 
     table = Table()
@@ -461,8 +452,36 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     table.meta["threshold"] = float(threshold)
     table.meta["saturation_e"] = None if saturation is None else float(saturation)
     table.meta["line_pixels"] = int(lines.sum())
+    table.meta["cosmic_ray_pixels"] = ray_pixels
+    # where they are (flat indices of the image: `ray_mask`)
+    table.meta["cosmic_rays"] = np.flatnonzero(np.broadcast_to(cosmic_rays, data.shape))
     table.meta["sky_degree"] = sky.kind
     return table
+
+
+def find_cosmic_rays(image_e, *, threshold=DETECTION_THRESHOLD, saturation=None, lines=True,
+                     sky=None):
+    """The pixels of cosmic rays of an image without a PSF model: its sources measured, then
+    each pixel L.A.Cosmic finds judged against the stars' own sharpness
+    (`bfpsf.measure.cosmic_rays.image_cosmic_rays`). Returns ndarray of bool [y, x], or None
+    where too few bright stars say how sharp a star is."""
+    return measure_sources(image_e, threshold=threshold, saturation=saturation, lines=lines,
+                           sky=sky, cosmic_rays="find")
+
+
+def ray_mask(table, shape):
+    """The cosmic rays' pixels of a `measure_sources` table's image, [y, x] bool."""
+    mask = np.zeros(shape, dtype=bool)
+    mask.flat[np.asarray(table.meta.get("cosmic_rays", []), dtype=int)] = True
+    return mask
+
+
+def _saturated(image, saturation):
+    """The pixels at or above ``saturation`` and those within 2 of them (none for None)."""
+    if saturation is None:
+        return np.zeros(image.shape, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        return ndimage.binary_dilation(image >= saturation, iterations=2)
 
 
 def _match_colours(table, colour, colour_columns, match_radius):

@@ -30,6 +30,11 @@ charge per 1e5 e- in it; charge conserving):
     charge to each of its (+1, +1) and (-1, -1) neighbours: the stars grow on both axes, as
     from a size effect, and their e2 grows with flux (a new user's invented effect, which
     the flats' size scale had taken).
+``halo``
+    A halo of the brightest pixels only: a pixel holding Q above `HALO_THRESHOLD` passes a
+    fraction a (Q - Q_T) / 1e5 of its charge into a Gaussian of `HALO_SIGMA` pixels about it.
+    Even, isotropic, nothing below the threshold and faster than linear above it (a new
+    user's well-filling halo, named second_order at a negative t, then a diffusion).
 
 Catalogue effects applied to the electrons as the flats simulator applies them
 (`bfpsf.validation.simulate_flats`): ``gain_nonlinearity`` (v -> v (1 + c v)) and
@@ -45,6 +50,7 @@ group per detector column (the spots of a column share their sub-pixel phase).
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from ..diagnosis.odd_moments import skewness
 from ..diagnosis.tables import SizeTable
@@ -58,9 +64,13 @@ __all__ = ["OUTSIDE_EFFECTS", "CATALOGUE_CASES", "BenchSpots", "draw_bench_spots
            "apply_effect", "bench_sizes"]
 
 #: Effects no catalogue entry describes.
-OUTSIDE_EFFECTS = ("one_axis", "position", "centroid", "night", "diagonal")
+OUTSIDE_EFFECTS = ("one_axis", "position", "centroid", "night", "diagonal", "halo")
 #: The null and the catalogue effects injected into the electrons.
 CATALOGUE_CASES = ("null", "gain_nonlinearity", "serial_readout")
+
+#: The halo's threshold (e- in a pixel) and width (pixels).
+HALO_THRESHOLD = 3e4
+HALO_SIGMA = 3.0
 
 #: Detector width the spots are spread over (pixels): columns 0, 1, 2 of the grid of phases
 #: sit at x = (column + 1/2) / 3 of it.
@@ -201,6 +211,10 @@ def apply_effect(spots, name, strength):
         passed = np.clip(strength * stamps / 1e5, 0.0, 0.2) * stamps
         return (stamps - 2 * passed + np.roll(passed, (1, 1), axis=(1, 2))
                 + np.roll(passed, (-1, -1), axis=(1, 2)))
+    if name == "halo":
+        passed = np.clip(strength * (stamps - HALO_THRESHOLD) / 1e5, 0.0, 0.2) * stamps
+        return stamps - passed + ndimage.gaussian_filter(passed, (0, HALO_SIGMA, HALO_SIGMA),
+                                                         mode="constant")
     if name == "gain_nonlinearity":
         return stamps * (1.0 + strength * stamps)
     if name == "serial_readout":
