@@ -214,7 +214,7 @@ def apply_effect(spots, name, strength):
     if name == "halo":
         passed = np.clip(strength * (stamps - HALO_THRESHOLD) / 1e5, 0.0, 0.2) * stamps
         return stamps - passed + ndimage.gaussian_filter(passed, (0, HALO_SIGMA, HALO_SIGMA),
-                                                         mode="constant")
+                                                         mode="wrap")
     if name == "gain_nonlinearity":
         return stamps * (1.0 + strength * stamps)
     if name == "serial_readout":
