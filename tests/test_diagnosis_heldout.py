@@ -207,6 +207,29 @@ def test_refined_calibration_round_trip(flat_sets, tmp_path):
     assert get_effect("xy_anisotropy").name == "xy_anisotropy"
 
 
+@pytest.mark.parametrize("folded_scale, applied", [(0.5, True), (0.7, False), (1.5, False)])
+def test_a_scale_refitted_beyond_the_flats_is_not_applied(flat_sets, folded_scale, applied):
+    """A new user's halo: second_order named at t < 0, which the calibration cannot hold;
+    refitted without it, the flats' scale went to +1.496 (prior 0.22, bounds -0.5 to 1) and
+    every shift was multiplied by 2.50, said nowhere. A refitted scale beyond 3 of the flats'
+    prior (here 0.2) or outside its bounds is not applied, and the refinement says why."""
+    from bfpsf.diagnosis.loop import DiagnosisResult
+
+    cal = flat_sets["lsst_itl_50_8", "null"]
+    result = DiagnosisResult(
+        residual_before={}, candidates=[], residual_after={}, threshold=-10.0, selected=[],
+        parameters={}, nuisance={"calibration_scale": {"value": 0.1, "error": 0.05,
+                                                       "prior": 0.2}},
+        folded={"names": [], "effects": {}, "scale_nuisance": folded_scale},
+        confirmed={"calibration_scale (nuisance)": True})
+    record = refine_calibration(cal, result).refinement
+    label = "calibration_scale (nuisance)"
+    assert (label in record["applied"]) == applied
+    assert record["scale"] == (folded_scale if applied else 0.0)
+    if not applied:
+        assert "refitted to" in record["not_applied"][label]
+
+
 def test_refined_samples_carry_the_stars_errors_of_scale_and_split(flat_sets):
     """Each shift sample of the flats carries its own BF scale and X / Y split
     (`bf_scale_error`'s ``draws``); where the stars fixed them, `refine_calibration`
