@@ -31,7 +31,7 @@ from .measure.line_features import line_mask
 from .measure.neighbours import isolated_stars
 from .measure.read_noise import sky_scatter
 from .measure.sky import SPLINE
-from .measure.sources import DETECTION_THRESHOLD, find_cosmic_rays
+from .measure.sources import DETECTION_THRESHOLD
 from .measure.total_flux import fit_sky_and_wings, wing_gradient
 from .moments.shapes import (MAG_PER_SIZE_ERROR, size_across, size_offset, size_ratios,
                              stars_beside_psf)
@@ -157,11 +157,10 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         lines.append(line_mask(data, threshold))
         # cosmic rays: filled from their neighbours in P0's fit, left out of the sky's, and
         # no star beside one is used (`bfpsf.measure.cosmic_rays`)
-        found = find_cosmic_rays(data, threshold=threshold, saturation=level, lines=lines[-1])
-        rays.append(np.zeros(data.shape, dtype=bool) if found is None else found)
-        xy, n_detected, neighbours = isolated_stars(data, size, threshold=threshold,
-                                                    saturation_e=level, lines=lines[-1],
-                                                    cosmic_rays=rays[-1])
+        xy, n_detected, neighbours, found = isolated_stars(
+            data, size, threshold=threshold, saturation_e=level, lines=lines[-1],
+            return_rays=True)
+        rays.append(found)
         excluded = np.zeros(len(xy), dtype=bool)
         if exclude is not None and exclude[index] is not None and len(xy):
             excluded = np.asarray(exclude[index](xy, data.shape), dtype=bool)
@@ -175,7 +174,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                           "sky_method": prepared.sky.method,
                           "sky_degree": prepared.sky.kind,
                           "line_pixels": int(lines[-1].sum()),
-                          "cosmic_ray_pixels": -1 if found is None else int(found.sum())})
+                          "cosmic_ray_pixels": int(found.sum())})
     buildups = {calibration.refinement.get("buildup_steps")
                 for calibration in calibrations if getattr(calibration, "refinement", None)}
     buildups.discard(None)

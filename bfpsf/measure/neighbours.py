@@ -98,7 +98,8 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=Tru
     astropy.table.Table
         ``x``, ``y``, ``flux_e``, ``flags`` (`SourceFlag`); the detections first, then the
         companions; ``meta['n_detected']`` the detections, ``meta['line_pixels']`` the pixels
-        of lines left out, ``meta['cosmic_ray_pixels']`` those of cosmic rays filled.
+        of lines left out, ``meta['cosmic_ray_pixels']`` and ``meta['cosmic_rays']`` those
+        of cosmic rays filled (`bfpsf.measure.sources.ray_mask`).
     """
     image = np.where(np.isfinite(image_e), image_e, 0.0)
     lines = resolve_lines(lines, image, threshold)
@@ -132,11 +133,12 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=Tru
     table.meta["n_detected"] = len(sources)
     table.meta["line_pixels"] = int(lines.sum())
     table.meta["cosmic_ray_pixels"] = sources.meta["cosmic_ray_pixels"]
+    table.meta["cosmic_rays"] = sources.meta["cosmic_rays"]
     return table
 
 
 def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None,
-                   lines=True, cosmic_rays=True):
+                   lines=True, cosmic_rays=True, return_rays=False):
     """Clean, unsaturated detections isolated within ``size`` pixels: the stars a P0 fit
     (`bfpsf.model.psf_fit.fit_psf`) takes; and every other source (`sources_with_companions`),
     the neighbours the P0 fit models alongside them.
@@ -156,6 +158,8 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
         cutout is isolated.
     cosmic_rays : bool or ndarray of bool [y, x], optional
         Pixels of cosmic rays (`sources_with_companions`).
+    return_rays : bool, optional
+        Return the cosmic rays' pixels too (ndarray of bool [y, x], last).
 
     Returns
     -------
@@ -177,4 +181,5 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
     # every source it knows and fits the sky with their glow; a line in a cutout is no model's
     clean = (((np.asarray(sources["flags"]) & ~SourceFlag.NEIGHBOUR_LIGHT) == 0)
              & ~near_lines(lines, xy[:, 0], xy[:, 1], size / np.sqrt(2.0)))
-    return xy[clean], int(sources.meta["n_detected"]), xy[~clean]
+    found = xy[clean], int(sources.meta["n_detected"]), xy[~clean]
+    return (*found, ray_mask(sources, image_e.shape)) if return_rays else found

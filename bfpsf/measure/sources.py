@@ -30,7 +30,7 @@ from .source_flags import SourceFlag, source_flag_string
 from .sky import estimate_sky
 from .smoothing import detection_kernel
 
-__all__ = ["SourceFlag", "measure_sources", "find_cosmic_rays", "ray_mask", "sky_level",
+__all__ = ["SourceFlag", "measure_sources", "ray_mask", "sky_level",
            "source_flag_string", "aperture_fraction", "model_flux", "STAR_COLUMNS",
            "DETECTION_THRESHOLD", "LINE_REACH"]
 
@@ -252,9 +252,9 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     cosmic_rays : bool or ndarray of bool [y, x], optional
         Pixels of cosmic rays, filled from their neighbours before detection and
         measurement: True (default) finds them against the image's own stars
-        (`find_cosmic_rays`; ``meta['cosmic_ray_pixels']``, -1 where too few stars said how
-        sharp a star is; ``meta['cosmic_rays']`` where, `ray_mask`), an array gives them,
-        False leaves them in. A source within
+        (`bfpsf.measure.cosmic_rays.image_cosmic_rays`; ``meta['cosmic_ray_pixels']``, -1
+        where too few stars said how sharp a star is; ``meta['cosmic_rays']`` where,
+        `ray_mask`), an array gives them, False leaves them in. A source within
         `LINE_REACH` of its sigma from one is flagged ``COSMIC_RAY``.
 
     Returns
@@ -315,8 +315,6 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     if segments is None:
         empty = _empty_table(colour_columns)
         empty.meta["line_pixels"] = int(lines.sum())
-        if isinstance(cosmic_rays, str):
-            return None
         given = isinstance(cosmic_rays, np.ndarray)
         empty.meta["cosmic_ray_pixels"] = int(np.sum(cosmic_rays)) if given else -1
         empty.meta["cosmic_rays"] = np.flatnonzero(cosmic_rays) if given else np.zeros(0, int)
@@ -391,12 +389,10 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
                                   detection_fwhm * gaussian_fwhm_to_sigma)
     flags |= np.where(near_lines(lines, x_stamp + x_origin, y_stamp + y_origin, reach),
                       SourceFlag.ON_LINE, 0)
-    if cosmic_rays is True or isinstance(cosmic_rays, str):
+    if cosmic_rays is True:
         # found against the stars just measured, then measured again without them
         rays = image_cosmic_rays(data, rms, x_stamp + x_origin, y_stamp + y_origin, peak,
                                  flags == 0, excluded=bad | lines | _saturated(image, saturation))
-        if isinstance(cosmic_rays, str):  # "find" (`find_cosmic_rays`)
-            return rays
         if rays is not None and rays.any():
             return measure_sources(
                 image, threshold=threshold, n_pixels=n_pixels, stamp_size=stamp_size,
@@ -457,16 +453,6 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     table.meta["cosmic_rays"] = np.flatnonzero(np.broadcast_to(cosmic_rays, data.shape))
     table.meta["sky_degree"] = sky.kind
     return table
-
-
-def find_cosmic_rays(image_e, *, threshold=DETECTION_THRESHOLD, saturation=None, lines=True,
-                     sky=None):
-    """The pixels of cosmic rays of an image without a PSF model: its sources measured, then
-    each pixel L.A.Cosmic finds judged against the stars' own sharpness
-    (`bfpsf.measure.cosmic_rays.image_cosmic_rays`). Returns ndarray of bool [y, x], or None
-    where too few bright stars say how sharp a star is."""
-    return measure_sources(image_e, threshold=threshold, saturation=saturation, lines=lines,
-                           sky=sky, cosmic_rays="find")
 
 
 def ray_mask(table, shape):
