@@ -35,7 +35,7 @@ the slopes and of P0.
 
 import astroscrappy
 import numpy as np
-from astropy.stats import mad_std
+from astropy.stats import mad_std, sigma_clip
 from scipy import ndimage
 
 __all__ = ["cosmic_ray_mask", "image_cosmic_rays", "fill_from_neighbours", "psf_sharpness",
@@ -60,6 +60,8 @@ STAR_PEAK = 20.0
 #: The percentile of their sharpness taken as the stars' sharpest (most stars lie off a
 #: pixel's centre; a few hit by a cosmic ray are sharper).
 SHARPEST = 90.0
+#: ... and whose adaptive size is more than this share of the median of theirs.
+STAR_SIZE = 0.75
 #: Fewer such stars and an image is not searched without a PSF model.
 MIN_STARS = 3
 #: L.A.Cosmic's contrast over the fine structure on an image itself.
@@ -123,9 +125,8 @@ def cosmic_ray_mask(residual_e, variance_e2, model_e, *, read_noise_e, excluded=
     object_limit : float, optional
         L.A.Cosmic's contrast over the fine structure (default `OBJECT_LIMIT`).
     per_pixel : bool, optional
-        Judge each pixel found rather than each connected set at its brightest (an image's
-        own: with a low ``object_limit`` a star's core joins a cosmic ray beside it).
-
+        Judge each pixel found alone rather than each connected set at its brightest (with a
+        low ``object_limit`` a star's core joins a cosmic ray beside it).
     Returns
     -------
     ndarray of bool [y, x]
@@ -176,7 +177,7 @@ def star_sharpness(data_e, x, y):
     return np.where(inside, share, np.nan)
 
 
-def image_cosmic_rays(data_e, rms_e, x, y, peak_e, usable, *, excluded=None):
+def image_cosmic_rays(data_e, rms_e, x, y, peak_e, usable, sigma, *, excluded=None):
     """The pixels of cosmic rays of a sky-subtracted image without a PSF model, judged
     against its own stars (module docstring).
 
@@ -190,6 +191,12 @@ def image_cosmic_rays(data_e, rms_e, x, y, peak_e, usable, *, excluded=None):
         The sources' positions and peaks (e-).
     usable : ndarray of bool (N,)
         The clean sources (stars measured without a flag).
+    sigma : ndarray (N,)
+        Their adaptive sizes, pixels: a source `STAR_SIZE` times the median size of the
+        bright ones or smaller is no star (a cosmic ray detected as a source). Rays as large
+        as stars (tracks, worms) are left out by their sharpness, clipped at 3 robust sigma
+        above the median: 113 clean bright sources of an image with 120 rays had put the
+        stars' 90th percentile at 0.18 for a median of 0.055.
     excluded : ndarray of bool [y, x], optional
         Pixels not to read (non-finite, trails, saturated).
 
@@ -206,6 +213,9 @@ def image_cosmic_rays(data_e, rms_e, x, y, peak_e, usable, *, excluded=None):
     noise = max(float(rms_e), float(mad_std(data[read])) if read.any() else 0.0)
     bright = np.asarray(usable, dtype=bool) & (np.asarray(peak_e, dtype=float)
                                                > STAR_PEAK * noise)
+    sigma = np.asarray(sigma, dtype=float)
+    if bright.any():
+        bright &= sigma > STAR_SIZE * np.nanmedian(sigma[bright])
     shares = star_sharpness(data_e, np.asarray(x)[bright], np.asarray(y)[bright])
     shares = shares[np.isfinite(shares)]
     if len(shares) < MIN_STARS:
@@ -228,11 +238,19 @@ def image_cosmic_rays(data_e, rms_e, x, y, peak_e, usable, *, excluded=None):
     centres[np.rint(np.asarray(y)[inside]).astype(int),
             np.rint(np.asarray(x)[inside]).astype(int)] = True
     near = ndimage.distance_transform_edt(~centres) <= CENTRE_REACH
+    # the stars' sharpness, rays detected as sources (their shares far above) clipped
+    shares = sigma_clip(shares, sigma_lower=np.inf, sigma_upper=3.0, stdfunc="mad_std",
+                        maxiters=None).compressed()
     star = float(np.percentile(shares, SHARPEST))
-    rays = cosmic_ray_mask(data, variance, np.zeros_like(data), read_noise_e=noise,
-                           excluded=excluded,
-                           sharpness=np.where(near, star, star * WING_SHARPER / SHARPER),
-                           object_limit=IMAGE_OBJECT_LIMIT, per_pixel=True)
+    # L.A.Cosmic's own search, each connected set judged at its brightest pixel (a track
+    # 2 px wide, whose pixels are not sharp against each other), and its search near bright
+    # cores, each pixel judged alone
+    model = np.zeros_like(data)
+    rays = cosmic_ray_mask(data, variance, model, read_noise_e=noise, excluded=excluded,
+                           sharpness=star) | cosmic_ray_mask(
+        data, variance, model, read_noise_e=noise, excluded=excluded,
+        sharpness=np.where(near, star, star * WING_SHARPER / SHARPER),
+        object_limit=IMAGE_OBJECT_LIMIT, per_pixel=True)
     if excluded is None or not rays.any():
         return rays
     # a set of them within `LINE_GAP` of the pixels left out is what is left of a line

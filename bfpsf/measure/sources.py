@@ -392,7 +392,8 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
     if cosmic_rays is True:
         # found against the stars just measured, then measured again without them
         rays = image_cosmic_rays(data, rms, x_stamp + x_origin, y_stamp + y_origin, peak,
-                                 flags == 0, excluded=bad | lines | _saturated(image, saturation))
+                                 flags == 0, sigma,
+                                 excluded=bad | lines | _saturated(image, saturation))
         if rays is not None and rays.any():
             return measure_sources(
                 image, threshold=threshold, n_pixels=n_pixels, stamp_size=stamp_size,
