@@ -15,17 +15,26 @@ from bfpsf.shifts import BoundaryShifts
 from bfpsf.validation.simulate_fields import simulate_field
 
 
+KOLMOGOROV_AIRY = galsim.Convolve(galsim.Kolmogorov(fwhm=2.6),
+                                  galsim.Airy(lam_over_diam=0.9, obscuration=0.4))
+
+
+def _field(n, sky_e, *, seed):
+    """n^2 pixels of 40 Kolmogorov x obscured Airy stars (no BF, peaks 500-1.2e5 e-) on a
+    flat sky."""
+    return simulate_field(KOLMOGOROV_AIRY, n_images=1, shape=(n, n), n_stars=40,
+                          peak_range_e=(5e2, 1.2e5), min_separation=20.0, sensor=None,
+                          sky_surface=lambda x, y: sky_e + 0.0 * x, seed=seed, stamp=128)
+
+
 @pytest.fixture(scope="module")
 def hit_field():
     """384^2 pixels of 40 Kolmogorov x obscured Airy stars (no BF) on 300 e-, 14 of them hit
     by a cosmic ray of 1-3 pixels of 300-3000 e- each, 1.5-5 px from the centre: (data, x,
     y, flux, hit, psf, the image without them)."""
     n = 384
-    profile = galsim.Convolve(galsim.Kolmogorov(fwhm=2.6),
-                              galsim.Airy(lam_over_diam=0.9, obscuration=0.4))
-    field = simulate_field(profile, n_images=1, shape=(n, n), n_stars=40,
-                           peak_range_e=(5e2, 1.2e5), min_separation=20.0, sensor=None,
-                           sky_surface=lambda x, y: 300.0 + 0.0 * x, seed=4, stamp=128)
+    profile = KOLMOGOROV_AIRY
+    field = _field(n, 300.0, seed=4)
     x, y, flux = (np.asarray(field.truth[0][name], float) for name in ("x", "y", "flux_e"))
     data = field.images[0].copy()
     rng = np.random.default_rng(14)
@@ -191,11 +200,7 @@ def test_measure_finds_tracks_among_rays_it_took_for_stars():
     lost). With the stars' sharpness clipped at 3 robust sigma above the median, 93 % of the
     rays' pixels are filled, and the 16 remnants detected beside them are all flagged."""
     n = 384
-    profile = galsim.Convolve(galsim.Kolmogorov(fwhm=2.6),
-                              galsim.Airy(lam_over_diam=0.9, obscuration=0.4))
-    field = simulate_field(profile, n_images=1, shape=(n, n), n_stars=40,
-                           peak_range_e=(5e2, 1.2e5), min_separation=20.0, sensor=None,
-                           sky_surface=lambda x, y: 600.0 + 0.0 * x, seed=6, stamp=128)
+    field = _field(n, 600.0, seed=6)
     x, y = (np.asarray(field.truth[0][name], float) for name in ("x", "y"))
     rng = np.random.default_rng(16)
     rays = np.zeros((n, n))
