@@ -16,21 +16,27 @@ kept as a cosmic ray's only where its brightest carries a tenth or more of the f
 there (`MODEL_SHARE`): at the core of a bright star, the PSF model's own misfit is sharp too
 (and L.A.Cosmic grows it into the pixels beside it, whose own model is faint), and a deposit
 below a tenth of the core's light moves the star's flux by less than a few mmag. And only
-where that pixel is sharper than a star (`SHARPER` times the PSF's own share of its 3 x 3
-pixels in its brightest, `psf_sharpness`): the residual of two stars fitted as one, a star
-itself, had been taken for a cosmic ray in 13 pairs of 17. The pixels kept,
+where that pixel is sharper than a star (`SHARPER` times the PSF's own at its sharpest
+phase, `psf_sharpness`; how sharp a pixel is: its excess over the median of its 8
+neighbours as a share of its 3 x 3, `excess_share`): the residual of two stars fitted as
+one, a star itself, had been taken for a cosmic ray in 13 pairs of 17. The pixels kept,
 grown by one (a track's faint edges), are left out of the refit of the stars whose fit box
 they touch, and those stars are flagged ``cosmic_ray``.
 
-Without a PSF model (`bfpsf.measure.sources.measure_sources`, the stars of ``measure``,
-``psf``'s star selection and ``diagnose``), the same search reads the sky-subtracted image,
-and the sharpness a cosmic ray must exceed is the stars' own: their brightest pixel's share
-of its 3 x 3 (`star_sharpness`), at the `SHARPEST` percentile of the clean stars brighter
-than `STAR_PEAK` sky sigmas (the stars at their sharpest phase). A star's own light is in
-the 3 x 3 sum, so a deposit on a bright star's wing that moves its moments little is not
-sharp there. The pixels found are filled from their neighbours (`fill_from_neighbours`),
-and the stars with one within a few of their sigmas are flagged ``cosmic_ray``, left out of
-the slopes and of P0.
+Without a PSF model (`image_cosmic_rays`: `bfpsf.measure.sources.measure_sources`, so
+``measure``, ``psf``'s star selection, photometry's detection and ``diagnose``), the search
+reads the sky-subtracted image, and the sharpness a cosmic ray must exceed is the stars'
+own (`star_sharpness`, at the `SHARPEST` percentile of the clean stars of a star's size
+brighter than `STAR_PEAK` sky sigmas, clipped above: rays detected as stars). Two
+searches: L.A.Cosmic's own, each connected set judged at its brightest pixel (a track 2 px
+wide, whose pixels are not sharp against each other), and one with a low contrast over the
+fine structure, which had hidden every ray near a bright core, each pixel judged alone,
+`SHARPER` than a star within `CENTRE_REACH` of a centre and `WING_SHARPER` elsewhere (a
+star's light is in the 3 x 3 sum, so a deposit on a bright wing that moves the star's
+moments little is not sharp there). The pixels found are filled from their neighbours
+(`fill_from_neighbours`), and the stars with one within a few of their sigmas are flagged
+``cosmic_ray``, left out of the slopes and of P0. Not found: tracks on undersampled stars,
+as sharp as their cores (docs/limitations.md).
 """
 
 import astroscrappy
