@@ -44,6 +44,8 @@ import numpy as np
 from astropy.stats import mad_std, sigma_clip
 from scipy import ndimage
 
+from .smoothing import detection_kernel, smoothed_image
+
 __all__ = ["cosmic_ray_mask", "image_cosmic_rays", "fill_from_neighbours", "psf_sharpness",
            "star_sharpness", "excess_share", "SIGMA_CLIP", "OBJECT_LIMIT", "MODEL_SHARE",
            "SHARPER", "SHARP_SIGMA", "STAR_PEAK", "SHARPEST"]
@@ -82,10 +84,11 @@ CENTRE_REACH = 1.5
 WING_SHARPER = 1.25
 #: Pixels of a set of them from those left out (a line) within which it is the line's.
 LINE_GAP = 10
-#: A centre is also a peak of the image smoothed by a Gaussian of this sigma (pixels, a 3 px
-#: FWHM, as detection) at this many of its noise sigmas or more.
-PEAK_SMOOTHING = 1.27
+#: A centre is also a peak of the detection's smoothed image at this many of its noise
+#: sigmas or more.
 PEAK_SIGMA = 5.0
+#: The (dy, dx) of a pixel's 3 x 3 window, the pixel itself at index 4.
+_WINDOW = np.array([(dy, dx) for dy in range(-1, 2) for dx in range(-1, 2)])
 
 
 def excess_share(values, rows, columns):
@@ -97,8 +100,7 @@ def excess_share(values, rows, columns):
     values = np.clip(np.nan_to_num(np.asarray(values, dtype=float)), 0.0, None)
     rows = np.clip(np.asarray(rows, dtype=int), 1, values.shape[0] - 2)
     columns = np.clip(np.asarray(columns, dtype=int), 1, values.shape[1] - 2)
-    offsets = np.array([(dy, dx) for dy in range(-1, 2) for dx in range(-1, 2)])
-    windows = values[rows[:, None] + offsets[None, :, 0], columns[:, None] + offsets[None, :, 1]]
+    windows = values[rows[:, None] + _WINDOW[None, :, 0], columns[:, None] + _WINDOW[None, :, 1]]
     total = np.maximum(windows.sum(axis=1), 1e-30)
     return (windows[:, 4] - np.median(np.delete(windows, 4, axis=1), axis=1)) / total, total
 
@@ -176,10 +178,9 @@ def star_sharpness(data_e, x, y):
     sky-subtracted image; NaN where that leaves the image."""
     data = np.nan_to_num(np.asarray(data_e, dtype=float))
     ny, nx = data.shape
-    offsets = np.array([(dy, dx) for dy in range(-1, 2) for dx in range(-1, 2)])
     centre_y, centre_x = np.rint(y).astype(int), np.rint(x).astype(int)
-    rows = np.clip(centre_y[:, None] + offsets[None, :, 0], 1, ny - 2)
-    columns = np.clip(centre_x[:, None] + offsets[None, :, 1], 1, nx - 2)
+    rows = np.clip(centre_y[:, None] + _WINDOW[None, :, 0], 1, ny - 2)
+    columns = np.clip(centre_x[:, None] + _WINDOW[None, :, 1], 1, nx - 2)
     brightest = np.argmax(data[rows, columns], axis=1)
     picked = np.arange(len(rows))
     share, _ = excess_share(data, rows[picked, brightest], columns[picked, brightest])
@@ -187,7 +188,8 @@ def star_sharpness(data_e, x, y):
     return np.where(inside, share, np.nan)
 
 
-def image_cosmic_rays(data_e, rms_e, x, y, peak_e, usable, sigma, *, excluded=None):
+def image_cosmic_rays(data_e, rms_e, x, y, peak_e, usable, sigma, *, excluded=None,
+                      smoothed=None, detection_fwhm=3.0):
     """The pixels of cosmic rays of a sky-subtracted image without a PSF model, judged
     against its own stars (module docstring).
 
@@ -209,6 +211,11 @@ def image_cosmic_rays(data_e, rms_e, x, y, peak_e, usable, sigma, *, excluded=No
         stars' 90th percentile at 0.18 for a median of 0.055.
     excluded : ndarray of bool [y, x], optional
         Pixels not to read (non-finite, trails, saturated).
+    smoothed : ndarray [y, x], optional
+        The image smoothed as detection smooths it (`bfpsf.measure.smoothing.smoothed_image`
+        of ``data_e`` with ``detection_fwhm``; computed here where not given).
+    detection_fwhm : float, optional
+        The FWHM of that smoothing, pixels (default 3).
 
     Returns
     -------
@@ -237,10 +244,10 @@ def image_cosmic_rays(data_e, rms_e, x, y, peak_e, usable, sigma, *, excluded=No
     # (the centres: the sources' and every significant peak of the image smoothed by a star,
     # the cores of a pair detection took as one: 15 pixels of 3 such pairs of a crowded
     # field had been taken for rays)
-    kernel = np.zeros((9, 9))
-    kernel[4, 4] = 1.0
-    kernel = ndimage.gaussian_filter(kernel, PEAK_SMOOTHING)
-    smoothed = ndimage.convolve(np.nan_to_num(data), kernel, mode="constant")
+    kernel = np.asarray(detection_kernel(detection_fwhm).array, dtype=float)
+    kernel = kernel / kernel.sum()
+    if smoothed is None:
+        smoothed = smoothed_image(data, detection_fwhm)
     centres = ((smoothed == ndimage.maximum_filter(smoothed, size=3))
                & (smoothed > PEAK_SIGMA * noise * np.sqrt(np.sum(kernel**2))))
     inside = (np.abs(np.rint(y) - (data.shape[0] - 1) / 2) < data.shape[0] / 2) & (

@@ -393,7 +393,8 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
         # found against the stars just measured, then measured again without them
         rays = image_cosmic_rays(data, rms, x_stamp + x_origin, y_stamp + y_origin, peak,
                                  flags == 0, sigma,
-                                 excluded=bad | lines | _saturated(image, saturation))
+                                 excluded=bad | lines | _saturated(image, saturation),
+                                 smoothed=convolved, detection_fwhm=detection_fwhm)
         if rays is not None and rays.any():
             return measure_sources(
                 image, threshold=threshold, n_pixels=n_pixels, stamp_size=stamp_size,
