@@ -50,7 +50,8 @@ from ..errors import BFPSFInputError, BFPSFValueError
 from ..least_squares import weighted_least_squares
 from .catalogue import CATALOGUE, get_effect
 from .heldout import split_observables, with_empirical, with_heldout
-from .nuisances import GLOBAL_NUISANCES, SCALE, SPLIT, without_priors
+from .nuisances import (GLOBAL_NUISANCES, PRIOR_NSIGMA, SCALE, SPLIT, beyond_the_flats,
+                        without_priors)
 from .problem import (build_problem, effect_columns, effect_design, effect_values,
                       global_priors, slope_residuals, summarise)
 from .quiet_axis import scale_beside_the_effect
@@ -389,14 +390,13 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                                [entry["value"]]], "errors": [[entry["prior"]],
                                [entry["error"]]], "chi2": pull ** 2, "dof": 1,
                                "p_value": float(_chi2.sf(pull ** 2, 1)),
-                               "matches": bool(abs(pull) <= 3.0)}
+                               "matches": bool(abs(pull) <= PRIOR_NSIGMA)}
         entry.update(signature=test, contradicted_by=contradiction(test))
-        # and the scale within its physical range (`CalibrationScale.bounds`): a new user's
-        # isotropic spill was taken as +1.5, within 2.2 sigma of 150^2 flats
-        scale = get_effect(_SCALE)
-        if (name == _SCALE and entry["contradicted_by"] is None
-                and not scale.allows([entry["value"]], [entry["error"]])):
-            entry.update(contradicted_by="bounds", bounds=list(scale.bounds[0]))
+        # and the scale within its physical range (the prior passed its test above)
+        if entry["contradicted_by"] is None and beyond_the_flats(
+                name, entry["value"], entry["error"], entry["prior"]):
+            entry.update(contradicted_by="bounds",
+                         bounds=list(get_effect(_SCALE).bounds[0]))
     curves = {}
     sizes = observables.sizes
     if sizes is not None:

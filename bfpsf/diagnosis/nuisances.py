@@ -14,8 +14,13 @@ only beside it).
 import dataclasses
 from dataclasses import dataclass
 
+from .catalogue import get_effect
+
 __all__ = ["GlobalNuisance", "GLOBAL_NUISANCES", "SCALE", "SPLIT", "HELDOUT_LABEL",
-           "without_priors"]
+           "PRIOR_NSIGMA", "without_priors", "beyond_the_flats"]
+
+#: How many of the flats' prior a global nuisance may lie from zero.
+PRIOR_NSIGMA = 3.0
 
 
 @dataclass(frozen=True)
@@ -70,3 +75,17 @@ def without_priors(part, keys):
     ``error_key`` in its ``meta``, ``keys``): the loop then has no column for them."""
     return None if part is None else dataclasses.replace(
         part, meta={key: value for key, value in part.meta.items() if key not in keys})
+
+
+def beyond_the_flats(name, value, error, prior):
+    """What a global nuisance's ``value`` (with its ``error``) contradicts: ``'flats_prior'``
+    beyond `PRIOR_NSIGMA` of the flats' ``prior``, ``'bounds'`` for a scale outside its
+    physical range (`bfpsf.diagnosis.catalogue.CalibrationScale.bounds`: a new user's
+    isotropic spill was taken as +1.5, within 2.2 sigma of 150^2 flats); None where neither.
+    The loop tests its fit so, and ``--output-calib`` a value refitted without an effect the
+    calibration cannot hold (a new user's scale refitted to +1.496 had been applied unsaid)."""
+    if abs(value) > PRIOR_NSIGMA * prior:
+        return "flats_prior"
+    if name == SCALE.name and not get_effect(SCALE.name).allows([value], [error]):
+        return "bounds"
+    return None

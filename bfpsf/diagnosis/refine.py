@@ -36,8 +36,8 @@ import numpy as np
 from ..errors import BFPSFValueError
 from ..outputs import json_safe
 from ..calibration.linearity import linearise
-from .catalogue import add_shifts, get_effect, quadrupole_shifts, split_shifts
-from .nuisances import GLOBAL_NUISANCES, HELDOUT_LABEL, SCALE, SPLIT
+from .catalogue import add_shifts, quadrupole_shifts, split_shifts
+from .nuisances import GLOBAL_NUISANCES, HELDOUT_LABEL, SCALE, SPLIT, beyond_the_flats
 
 __all__ = ["refine_calibration", "linearise", "undo_refined_linearity", "BUILDUP_STEPS"]
 
@@ -110,13 +110,11 @@ def refine_calibration(calibration, result, *, provenance=None):
         fitted = result.nuisance.get(entry.name) or {}
         against = fitted.get("contradicted_by")
         # refitted without an effect the calibration cannot hold, the value must still pass
-        # the test the loop's own did: within 3 of the flats' prior, the scale within its
-        # physical range (a new user's scale was refitted to +1.496 and applied unsaid)
-        if not against and abs(value) > 3.0 * fitted.get("prior", np.inf):
-            against = f"flats_prior (refitted to {value:+.3f})"
-        if not against and entry.name == SCALE.name and not get_effect(SCALE.name).allows(
-                [value], [fitted.get("error", 0.0)]):
-            against = f"bounds (refitted to {value:+.3f})"
+        # the test the loop's own did
+        beyond = beyond_the_flats(entry.name, value, fitted.get("error", 0.0),
+                                  fitted.get("prior", np.inf))
+        if not against and beyond:
+            against = f"{beyond} (refitted to {value:+.3f})"
         if against:
             not_applied[label] = (f"its signature is contradicted by {against} (an effect "
                                   "outside the catalogue)")
