@@ -243,8 +243,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         entry.update(background_e=prepared.sky.level, sky_slope=list(prepared.sky.slope),
                      sky_method=prepared.sky.method, sky_degree=prepared.sky.kind,
                      sky_scatter=sky_scatter(prepared))
-    psf = result.psf
-    psf.empirical = empirical
+    psf = result.psf  # with its EMPIRICAL term at the amplitude the stars' pixels gave
     psf.calibration = str(calibration_name)
     psf.shift_samples = tuple(calibration_samples(calibrations, counts) if shift_samples is None
                               else shift_samples)

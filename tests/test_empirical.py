@@ -8,8 +8,9 @@ from scipy.special import exp1
 
 from bfpsf.errors import BFPSFValueError
 from bfpsf.moments.adaptive import adaptive_moments_batch
-from bfpsf.model.empirical import (CHARGE_KIND, FLUX_REFERENCE, PATTERN_KINDS, EmpiricalTerm,
-                                   apply_pattern)
+from bfpsf.model.empirical import (CHARGE_KIND, FLUX_REFERENCE, PATTERN_KIND, PATTERN_KINDS,
+                                   EmpiricalTerm, apply_pattern)
+from bfpsf.model.empirical_patterns import REACHES, broad_kind
 from bfpsf.model.psf import FluxDependentPSF
 from bfpsf.shifts import BoundaryShifts
 
@@ -17,8 +18,8 @@ SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 2e-7 * exp1(0.8 * r), 3)
 MOFFAT = galsim.Moffat(beta=3.0, fwhm=3.0)
 
 
-def _star(offset=(0.2, -0.3)):
-    return MOFFAT.drawImage(nx=31, ny=31, scale=1.0, offset=offset).array.astype(float)
+def _star(offset=(0.2, -0.3), size=31):
+    return MOFFAT.drawImage(nx=size, ny=size, scale=1.0, offset=offset).array.astype(float)
 
 
 def _plain_moments(image):
@@ -37,8 +38,9 @@ def test_patterns_add_variance_along_one_axis(kind):
     stamp's edge); the rest to the Moffat wing at the edge of the 31 px stamp (1e-5 of the
     flux per edge pixel row). Both pattern kinds; B[l I] = l B[I]; the charge's pattern
     of a star is its three-tap smear's: I + c B_yy[I] is I convolved with (c/2, 1 - c, c/2)
-    along y."""
-    star = _star()
+    along y. The broad kinds (a Gaussian reach) on a stamp that holds their reach."""
+    size = 31 if kind in (PATTERN_KIND, CHARGE_KIND) else 81
+    star = _star(size=size)
     total, cx, cy, mxx, myy, mxy = _plain_moments(star)
     np.testing.assert_allclose(apply_pattern(3.0 * star, "yy", kind=kind),
                                3.0 * apply_pattern(star, "yy", kind=kind), rtol=1e-12,
@@ -59,13 +61,41 @@ def test_patterns_add_variance_along_one_axis(kind):
         expected = [mxx, myy, mxy]
         expected[grows - 3] += 0.1
         np.testing.assert_allclose(after[3:], expected, rtol=0, atol=2e-3)
-        cut = _star(offset=(13.0, -12.5))
+        cut = _star(offset=(size // 2 - 2, -(size // 2 - 2.5)), size=size)
         assert (cut + apply_pattern(cut, pattern, kind=kind)).sum() == pytest.approx(
             cut.sum(), rel=1e-12)
     with pytest.raises(BFPSFValueError, match="pattern must be one of"):
         apply_pattern(star, "xz")
     with pytest.raises(BFPSFValueError, match="pattern kind must be one of"):
         apply_pattern(star, "xx", kind="the image")
+
+
+@pytest.mark.parametrize("reach", REACHES)
+def test_broad_patterns_make_a_round_halo(reach):
+    """A broad kind's B_xx + B_yy is a round Gaussian blur less the charge it takes, per unit
+    of its variance v: (G * J - J) / v, J the squared charge (scaled by F / sum J), G the
+    outer product of the discrete Gaussian of sigma ``reach`` (out to 3 sigma) with itself,
+    as `scipy.ndimage.convolve` applies it to a star far from the stamp's edges; its B_xy
+    moves charge along the diagonals only (none to a pixel off them)."""
+    from scipy import ndimage
+
+    star = _star(size=31 + 2 * int(np.ceil(3 * reach)) + 10)
+    kind = broad_kind(PATTERN_KIND, reach)
+    halo = apply_pattern(star, "xx", kind=kind) + apply_pattern(star, "yy", kind=kind)
+    distances = np.arange(-int(np.ceil(3 * reach)), int(np.ceil(3 * reach)) + 1)
+    line = np.exp(-0.5 * (distances / reach) ** 2)
+    line /= line.sum()
+    variance = float(line @ distances**2)
+    squared = star**2 * star.sum() / (star**2).sum()
+    blurred = ndimage.convolve(squared, np.outer(line, line), mode="constant")
+    np.testing.assert_allclose(halo, (blurred - squared) / variance, rtol=0,
+                               atol=1e-9 * squared.max())
+    point = np.zeros((41, 41))
+    point[20, 20] = 1.0
+    diagonal = apply_pattern(point, "xy", kind=kind)
+    rows, columns = np.nonzero(diagonal)
+    assert np.all(np.abs(rows - 20) == np.abs(columns - 20))
+    assert diagonal.sum() == pytest.approx(0.0, abs=1e-12)
 
 
 def test_term_changes_adaptive_moments_as_stated():
@@ -304,3 +334,49 @@ def test_what_a_term_leaves_carries_its_own_error():
     # the covariance is stored with the term and read back
     assert EmpiricalTerm.from_dict(term.to_dict()).covariance["matrix"] == (
         term.to_dict()["covariance"]["matrix"])
+
+
+def test_psf_fit_gives_the_term_the_amplitude_of_the_pixels():
+    """`fit_psf` multiplies the EMPIRICAL term's coefficients by one amplitude fitted to the
+    stars' pixels (`bfpsf.model.psf_fit_empirical`). Stars of 1e4-2e6 e- drawn with GalSim,
+    each with an independent halo: a share k Q / Q_ref of every pixel's charge Q spread by
+    `scipy.ndimage.gaussian_filter` (sigma 4 px), which adds m F 16 px^2 to the unweighted
+    Mxx and Myy of a star of flux F (m the share it moves). Given the broad pattern of reach
+    4 px at twice the coefficient that change asks for, the fit takes 0.5 of it (to 10 %),
+    the product keeps the scaled term, and the faint stars' fluxes come out unbiased."""
+    from scipy import ndimage
+
+    from bfpsf.model.psf_fit import fit_psf
+
+    rng = np.random.default_rng(11)
+    size, k, q_ref, sigma = 60, 0.02, 1e5, 4.0
+    fluxes = np.exp(np.linspace(np.log(1e4), np.log(2e6), 36))
+    rng.shuffle(fluxes)
+    image, xy, moved = np.zeros((6 * size, 6 * size)), [], []
+    for index, flux in enumerate(fluxes):
+        row, column = divmod(index, 6)
+        x, y = column * size + size / 2 + rng.uniform(-0.5, 0.5), row * size + size / 2 + \
+            rng.uniform(-0.5, 0.5)
+        stamp = MOFFAT.withFlux(flux).drawImage(nx=size, ny=size, scale=1.0, offset=(
+            x - column * size - (size - 1) / 2, y - row * size - (size - 1) / 2)).array
+        share = k * np.clip(stamp, 0, None) / q_ref * stamp
+        moved.append(share.sum() / flux)
+        image[row * size:(row + 1) * size, column * size:(column + 1) * size] = (
+            stamp - share + ndimage.gaussian_filter(share, sigma, mode="constant"))
+        xy.append((x, y))
+    sky = 100.0
+    noisy = rng.poisson(image + sky).astype(float) - sky
+    # the change of Mxx per unit c at F_ref: m(F) sigma^2 F_ref / F, the same for every star
+    coefficient = float(np.median(np.array(moved) * sigma**2 * FLUX_REFERENCE / fluxes))
+    term = EmpiricalTerm({pattern: {"constant": 2 * coefficient} for pattern in ("xx", "yy")},
+                         kind=broad_kind(PATTERN_KIND, 4.0))
+    zero = BoundaryShifts(np.zeros((3, 3)), np.zeros((3, 3)))
+    result = fit_psf(noisy, np.array(xy), zero, sky_e=sky, empirical=term)
+    assert result.psf.empirical.amplitude == pytest.approx(0.5, abs=0.05)
+    assert result.psf.empirical.coefficients["xx"]["constant"] == pytest.approx(
+        2 * coefficient * result.psf.empirical.amplitude)
+    faint = fluxes < 1e5
+    drawn = np.array([MOFFAT.withFlux(flux).drawImage(nx=25, ny=25, scale=1.0).array.sum()
+                      for flux in fluxes])
+    bias = -2.5 * np.log10(np.asarray(result.stars["flux_fit"])[faint] / drawn[faint])
+    assert abs(np.mean(bias)) < 3 * np.std(bias) / np.sqrt(faint.sum()) + 1e-3

@@ -57,8 +57,13 @@ def truth():
 def test_every_evaluation_applies_the_term(truth, kind):
     """star_image (exact), evaluate in table and exact mode, shape, to_galsim, a gridded
     P(F, x, y) and the copies: the term's pattern on the star's BF image, so its plain Mxx
-    grows by exactly c F / F_ref; the table mode interpolates the same term to 2e-5 of the
-    peak at 1.2e6 e-, and the term-less model is unchanged. Each pattern kind."""
+    grows by exactly c F / F_ref (where the kind's reach stays within the 25 px stamp); the
+    table mode interpolates the same term to 2e-5 of the peak at 1.2e6 e- (1e-4 for the
+    cubed charge's, whose series in the BF term has a larger third order), and the term-less
+    model is unchanged. Each pattern kind."""
+    from bfpsf.model.empirical_patterns import _KINDS
+
+    power, reach = _KINDS[kind]
     flux = 1.2e6
     term = EmpiricalTerm({"xx": {"constant": 0.1, "position": 0.05},
                           "yy": {"flux2": 0.04}}, x_reference=500.0, x_range=(0.0, 1000.0),
@@ -73,7 +78,8 @@ def test_every_evaluation_applies_the_term(truth, kind):
                                                   term.variance_change(flux, x=x)))
         np.testing.assert_allclose(image - plain, expected, rtol=0, atol=1e-9 * flux)
         d_mxx = _plain_moments(image)[0] - _plain_moments(plain)[0]
-        assert d_mxx == pytest.approx(term.variance_change(flux, x=x)[0], rel=0.02)
+        if reach is None or reach <= 2:
+            assert d_mxx == pytest.approx(term.variance_change(flux, x=x)[0], rel=0.02)
         # what a fitter sees: evaluate on the star's pixels, table and exact mode
         column = int(np.floor(x + 0.5))
         rows, columns = np.mgrid[28:53, column - 12:column + 13].astype(float)
@@ -82,14 +88,17 @@ def test_every_evaluation_applies_the_term(truth, kind):
         exact = exact.with_empirical_term(term).evaluate(columns, rows, flux, x, 40.2)
         # the table's series in the BF term stops at second order: its third order is
         # 1.4e-5 of the peak at this flux (far beyond a full well), 7e-7 at half of it
-        np.testing.assert_allclose(table, image, rtol=0, atol=2e-5 * image.max())
+        np.testing.assert_allclose(table, image, rtol=0,
+                                   atol=(2e-5 if power < 3 else 1e-4) * image.max())
         np.testing.assert_allclose(exact, image, rtol=0, atol=1e-4 * image.max())
         # shape (adaptive moments): the term's change through the adaptive response (about
         # 3.4 for a Moffat with the squared charge's pattern, which acts on the core where
         # the weight is, 1.24 with the charge's: `bfpsf.diagnosis.empirical_fit.
-        # adaptive_response`)
+        # adaptive_response`; the cubed charge's, nearer the peak, 5.6; the broad kinds move
+        # charge beyond the weight: less)
         change = model.shape(flux, x, 40.0).mxx - truth.shape(flux, x, 40.0).mxx
-        low, high = (3.0, 4.2) if kind == PATTERN_KINDS[0] else (1.0, 1.5)
+        low, high = {PATTERN_KINDS[0]: (3.0, 4.2), PATTERN_KINDS[1]: (1.0, 1.5)}.get(
+            kind, (0.0, 6.5))
         assert low < change / term.variance_change(flux, x=x)[0] < high
         # to_galsim: the model's image (at the star's column), drawn at the star's phase (the
         # term, like R, is not the same at another phase)
@@ -235,11 +244,16 @@ def test_psf_from_a_refined_calibration_applies_the_term(user_path):
                  for label in ("plain", "refined")}
     assert summaries["plain"]["empirical"] is None
     assert summaries["refined"]["empirical"]["label"] == "empirical"
-    assert summaries["refined"]["empirical"]["coefficients"] == TERM.at_exposure().coefficients
     assert "empirical" in summaries["refined"]["refinement_applied"]
     refined = FluxDependentPSF.read(directory / "psf_refined.fits")
     plain = FluxDependentPSF.read(directory / "psf_plain.fits")
-    assert refined.empirical == TERM.at_exposure() and plain.empirical is None
+    # the stars' pixels give the term (drawn with it) its own amplitude, 1 (to their noise;
+    # `bfpsf.model.psf_fit_empirical`), and the product holds it so scaled
+    amplitude = refined.empirical.amplitude
+    assert amplitude == pytest.approx(1.0, abs=0.03)
+    assert summaries["refined"]["empirical"]["amplitude"] == pytest.approx(amplitude)
+    assert refined.empirical == TERM.at_exposure().scaled(amplitude)
+    assert plain.empirical is None
     faint, bright = 6e4, 1.8e6
 
     def growth(model):
@@ -257,8 +271,9 @@ def test_psf_from_a_refined_calibration_applies_the_term(user_path):
     grid = GriddedFluxDependentPSF.read(directory / "psf_grid.fits")
     assert json.loads((directory / "psf_grid.json").read_text())["empirical"]["label"] == \
         "empirical"
-    assert grid.empirical == TERM.at_exposure()
-    assert all(node.empirical == TERM.at_exposure() for node in grid.nodes)
+    assert grid.empirical.amplitude == pytest.approx(1.0, abs=0.03)
+    assert grid.empirical == TERM.at_exposure().scaled(grid.empirical.amplitude)
+    assert all(node.empirical == grid.empirical for node in grid.nodes)
     for x in (40.0, 250.0):
         at = grid.at(x, 144.0)
         assert at.shape(bright).mxx - at.shape(faint).mxx == pytest.approx(

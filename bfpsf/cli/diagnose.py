@@ -229,8 +229,8 @@ def run(args):
         refined.write(args.output_calib, overwrite=args.overwrite)
         if chosen:
             summary["empirical_pattern"] = chosen
-            print(f"EMPIRICAL pattern: the {chosen['kind']} (held-out star residual chi2 per "
-                  "pixel " + ", ".join(f"{value:.2f} with the {kind}" for kind, value
+            print(f"EMPIRICAL pattern: the {chosen['kind']} (held-out stars' own chi2 per "
+                  "pixel against P(F) " + ", ".join(f"{value:.2f} with the {kind}" for kind, value
                                        in chosen["chi2_per_pixel"].items()) + ")")
         summary["output_calib"] = {"path": str(args.output_calib),
                                    **refined.refinement}

@@ -82,7 +82,7 @@ def _amplifier_model(psf, gain, one, amplifier, gain_option, static):
         model = model.copy()  # the calibration's linearity correction, undone on input
         model.linearity_c_per_1e5 = linearity_of(one)
         term = empirical_of(one)  # and its EMPIRICAL term, where it has one
-        if term is not None:
+        if term is not None and getattr(psf, "empirical", None) is None:
             model = model.with_empirical_term(term)
     return float(gain), (static_image_psf(model) if static else model), model
 

@@ -348,9 +348,17 @@ def run(args):
           f"total flux {psf.flux_correction:.4f}"
           f"{f' +- {psf.flux_correction_err:.4f}' if np.isfinite(psf.flux_correction_err) else ''}"
           f" times the flux in the {args.size}-pixel support{_across(psf)}; {_skies(per_image)}; "
-          f"{'EMPIRICAL term applied; ' if psf.empirical is not None else ''}"
-          f"wrote {args.output}")
+          f"{_empirical(psf.empirical)}wrote {args.output}")
     return 0
+
+
+def _empirical(term):
+    """What the product says of its EMPIRICAL term: applied, at the amplitude the stars'
+    pixels gave the coefficients learned from their sizes (`bfpsf.model.psf_fit`)."""
+    if term is None:
+        return ""
+    return (f"EMPIRICAL term applied, at {term.amplitude:.2f} times the amplitude the stars' "
+            "sizes gave it (their pixels'); ")
 
 
 def _across(psf):

@@ -5,11 +5,14 @@ The loop fits sizes; it never fits the stars' pixels. `refined_star_residual` st
 held-out exposures' stars against P(F) from the flats' calibration and from a refined one,
 each through the user's path (`bfpsf.diagnosis.star_residual.star_residual_with`). The sizes
 cannot tell the EMPIRICAL term's pattern kinds apart (`bfpsf.model.empirical_patterns`: a
-transfer of each pixel's charge, a smear growing with the star's flux); the pixels can, and
-`keep_the_pattern_the_pixels_prefer` keeps the kind whose refined calibration leaves the
-lower chi2 per pixel. A new user's night-growing smear: 2.37 with the squared charge's
-pattern, 1.40 with the charge's, and its held-out PSF photometry drift against the same
-stars without the smear +0.63 -> +0.14 mmag (docs/undeclared_effects.md).
+transfer of each pixel's charge to its neighbours, a smear growing with the star's flux, each
+also to a Gaussian reach of pixels); the pixels can, and `keep_the_pattern_the_pixels_prefer`
+keeps the kind whose refined calibration leaves the stars' own chi2 per pixel the lowest
+(each star against its P(F), averaged over the stars). The stack's chi2 had chosen before:
+the mean residual over the stars, of which P0 takes the flux-independent part, and on a new
+user's halo of the brightest pixels it kept the neighbours' transfer (1.03 against 1.06 for
+the reach of 4 px, whose held-out photometry drift is the smaller; see
+docs/undeclared_effects.md).
 """
 
 import dataclasses
@@ -25,9 +28,9 @@ def refined_star_residual(observables, refined, heldout, *, flats=None, amp=None
     """The stacked star residual of the held-out exposures (every exposure without a split)
     against P(F) from the flats' calibration (``flats``: one computed before) and from the
     refined one: {``exposures``, ``heldout``, ``flats``, ``refined``}, each of the last two
-    {``chi2_per_pixel``, ``rms_over_peak``, ``n_stars``} or None. ``amp``, ``background``,
-    ``saturation``: as ``bfpsf diagnose``; ``cache``: kept between calls on the same images
-    (`bfpsf.diagnosis.star_residual.star_residual_with`)."""
+    {``chi2_per_pixel``, ``stars_chi2_per_pixel``, ``rms_over_peak``, ``n_stars``} or
+    None. ``amp``, ``background``, ``saturation``: as ``bfpsf diagnose``; ``cache``: kept
+    between calls on the same images (`bfpsf.diagnosis.star_residual.star_residual_with`)."""
     paths = observables.meta["image_paths"]
     exposures = list(heldout or range(len(paths)))
     out = {"exposures": exposures, "heldout": bool(heldout)}
@@ -40,14 +43,15 @@ def refined_star_residual(observables, refined, heldout, *, flats=None, amp=None
         star = star_residual_with(calibration, paths, exposures, amp=amp,
                                   background=background, saturation=saturation, cache=cache)
         out[label] = None if star is None else {key: star[key] for key in (
-            "chi2_per_pixel", "rms_over_peak", "n_stars")}
+            "chi2_per_pixel", "stars_chi2_per_pixel", "rms_over_peak", "n_stars")}
     return out
 
 
 def keep_the_pattern_the_pixels_prefer(result, observables, **options):
     """The loop's result with the EMPIRICAL term of the pattern kind whose refined calibration
-    leaves the lower star residual chi2 per pixel on the held-out exposures, and what was
-    compared ({``kind``, ``chi2_per_pixel`` by kind, ``star_residual`` of the kind kept});
+    leaves the lowest stars' own chi2 per pixel on the held-out exposures, and what was
+    compared ({``kind``, ``chi2_per_pixel`` (the stars' own) by kind, ``star_residual`` of
+    the kind kept});
     (result, None) where there is nothing to choose (no term, or one kind validated).
 
     Parameters
@@ -71,7 +75,8 @@ def keep_the_pattern_the_pixels_prefer(result, observables, **options):
         star = refined_star_residual(observables, refined, heldout, flats=flats, **options)
         flats = star.get("flats")
         if star.get("refined"):
-            tried[record["pattern"]] = (star["refined"]["chi2_per_pixel"], candidate, star)
+            tried[record["pattern"]] = (star["refined"]["stars_chi2_per_pixel"], candidate,
+                                        star)
     if len(tried) < 2:
         return result, None
     kind = min(tried, key=lambda name: tried[name][0])

@@ -29,13 +29,16 @@ exposure's order in the night. F_ref
 is 1e6 e- of total flux. It is labelled empirical everywhere: it describes, it does not
 explain, and it is valid only over the fluxes, positions and exposures it was learned on.
 
-Two pattern kinds (`bfpsf.model.empirical_patterns`; ``kind``): the squared charge's above
+Pattern kinds (`bfpsf.model.empirical_patterns`; ``kind``): the squared charge's above
 (`PATTERN_KIND`, a transfer of each pixel's charge in proportion to it) and the charge's,
 B_k[I] = 1/2 d^2 I / dx^2 F / sum(I) (`CHARGE_KIND`, a smear whose variance grows with the
-star's flux). The term is fitted to the stars' adaptive (Gaussian-weighted) sizes and used
-by PSF photometry, which weights the pixels by their variance; the two agree only when the
+star's flux), each to the nearest pixels or to a Gaussian reach of 2, 4 or 8 pixels (a halo;
+`bfpsf.model.empirical_patterns.REACHES`). The term is fitted to the stars' adaptive
+(Gaussian-weighted) sizes and used by PSF photometry, which weights the pixels by their variance; the two agree only when the
 pattern has the shape of the effect, and the sizes cannot tell the kinds apart: ``bfpsf
-diagnose`` learns both and keeps the one whose held-out star residual is the lower. On the
+diagnose`` learns every kind and keeps the one whose held-out stars the P(F) it gives fits
+the best (`bfpsf.diagnosis.pattern_choice`). The P0 fit gives the term the amplitude the
+stars' pixels ask for (``amplitude``; `bfpsf.model.psf_fit_empirical`). On the
 bench's transfer the square's held-out photometry drift is 0.14 mmag (0.37 without a term,
 1.1 with the charge's); on a new user's smear growing over the night, P0 took what the
 square left in the bright stars and the faint ones came out +0.63 mmag bright against the
@@ -99,6 +102,9 @@ class EmpiricalTerm:
         ``bfpsf diagnose``).
     kind : str
         Its patterns' kind, one of `PATTERN_KINDS` (default the squared charge's).
+    amplitude : float
+        What the coefficients learned from the stars' sizes were multiplied by to fit the
+        stars' pixels (`bfpsf.model.psf_fit.fit_psf`; `scaled`): 1 in a refined calibration.
     covariance : dict
         The fit's covariance of its coefficients: ``names`` ([pattern, term] pairs) and
         ``matrix`` (pixel^4 per the terms' units); empty when not known. What a prediction
@@ -118,6 +124,7 @@ class EmpiricalTerm:
     exposure_range: tuple = None
     kind: str = PATTERN_KIND
     covariance: dict = field(default_factory=dict)
+    amplitude: float = 1.0
 
     def __post_init__(self):
         if self.kind not in PATTERN_KINDS:
@@ -208,6 +215,16 @@ class EmpiricalTerm:
         reference = self.exposure_reference if exposure is None else float(exposure)
         return self._replaced(coefficients, exposure_reference=reference)
 
+    def scaled(self, factor):
+        """The term with every coefficient (and error) times ``factor``, and ``amplitude``
+        with it."""
+        def times(table):
+            return {pattern: {name: factor * value for name, value in terms.items()}
+                    for pattern, terms in table.items()}
+
+        return self._replaced(times(self.coefficients), errors=times(self.errors),
+                              amplitude=float(self.amplitude * factor))
+
     def _replaced(self, coefficients, **references):
         """A copy with other coefficients (and references); the covariance, which is the
         original coefficients', is not carried."""
@@ -216,7 +233,7 @@ class EmpiricalTerm:
                    "exposure_reference": self.exposure_reference,
                    "validation": self.validation, "x_range": self.x_range,
                    "y_range": self.y_range, "exposure_range": self.exposure_range,
-                   "kind": self.kind}
+                   "kind": self.kind, "amplitude": self.amplitude}
         options.update(references)
         return EmpiricalTerm(coefficients, **options)
 
@@ -259,6 +276,8 @@ class EmpiricalTerm:
             record["y_reference"] = float(self.y_reference)
         if self.exposure_range is not None:
             record["exposure_range"] = [float(value) for value in self.exposure_range]
+        if self.amplitude != 1.0:
+            record["amplitude"] = float(self.amplitude)
         if self.covariance:
             record["covariance"] = {"names": [list(name) for name in self.covariance["names"]],
                                     "matrix": np.asarray(self.covariance["matrix"],
@@ -294,7 +313,8 @@ class EmpiricalTerm:
                        float(value) for value in record["y_range"]),
                    exposure_range=None if record.get("exposure_range") is None else tuple(
                        float(value) for value in record["exposure_range"]),
-                   kind=record["pattern"], covariance=record.get("covariance", {}))
+                   kind=record["pattern"], covariance=record.get("covariance", {}),
+                   amplitude=float(record.get("amplitude", 1.0)))
 
     @classmethod
     def from_calibration(cls, calibration):

@@ -1,19 +1,23 @@
 """The EMPIRICAL term's pixel-space patterns B_k (`bfpsf.model.empirical`): what each adds
-to a star, in two kinds, with their series along the BF term for P(F)'s table mode.
+to a star, in several kinds, with their series along the BF term for P(F)'s table mode.
 
 Each pattern is charge-conserving and centroid-preserving, and adds F pixel^2 to the second
 moment along its axis (B_xx, B_yy; half the difference of the two diagonals, B_xy, to Mxy
 alone) of any star of flux F. The kinds: the half second difference D of the squared charge
-(a transfer of a fraction of each pixel's charge proportional to that charge), and of the
-charge itself (a smear whose variance grows with the star's flux).
+(a transfer of a fraction of each pixel's charge proportional to that charge), of the
+charge itself (a smear whose variance grows with the star's flux) and of the cubed charge
+(a transfer the brightest pixels make more than in proportion). Each moves charge to the
+nearest pixels; the squared and the cubed charge also to a Gaussian reach of pixels
+(`REACHES`: a halo of the brightest pixels).
 """
 
 import numpy as np
 
 from ..errors import BFPSFValueError
 
-__all__ = ["PATTERNS", "FLUX_REFERENCE", "PATTERN_KIND", "CHARGE_KIND", "PATTERN_KINDS",
-           "apply_pattern", "pattern_series", "pattern_tables"]
+__all__ = ["PATTERNS", "FLUX_REFERENCE", "PATTERN_KIND", "CHARGE_KIND", "CUBE_KIND",
+           "PATTERN_KINDS", "REACHES", "broad_kind", "apply_pattern", "pattern_series",
+           "pattern_tables"]
 
 #: The pixel-space patterns, in the order of `EmpiricalTerm.variance_change`.
 PATTERNS = ("xx", "yy", "xy")
@@ -28,9 +32,32 @@ PATTERN_KIND = "half second difference of the squared charge"
 #: (three new users' undeclared effects; with the square, their PSF photometry drifted by
 #: +0.6 to +1.2 mmag faint to bright, P0 taking what the square's shape missed).
 CHARGE_KIND = "half second difference of the charge"
-#: Every pattern kind a term may have; `bfpsf diagnose` keeps the one whose held-out star
-#: residual is the lower (`bfpsf.cli.diagnose`).
-PATTERN_KINDS = (PATTERN_KIND, CHARGE_KIND)
+#: Reaches (pixels, the Gaussian's sigma) of the broad kinds, of the squared and the cubed
+#: charge: every pixel passes its share to the pixels along the pattern's axis with Gaussian
+#: weights, and B_xx + B_yy is an isotropic Gaussian blur (a halo) less the charge it takes.
+#: Spaced by factors of two, so that a halo of any width from 1.4 to 11 px is within a
+#: factor 1.4 of one of them. (A broad transfer of the charge itself, a halo whose share
+#: grows with the star's flux alone, was never kept on the bench nor on a new user's halo,
+#: and each kind costs `bfpsf diagnose` a PSF fit per held-out exposure.)
+REACHES = (2.0, 4.0, 8.0)
+
+
+def broad_kind(kind, reach):
+    """The name of the broad kind of ``reach`` of ``kind``'s function (`PATTERN_KIND`'s
+    squared charge, `CHARGE_KIND`'s charge)."""
+    return f"Gaussian transfer of the {kind.split(' of the ')[-1]}, reach {reach:g} px"
+
+
+#: The cubed charge's transfer to the nearest pixels: a transfer that the brightest pixels
+#: of a star make more than in proportion to their charge (a threshold).
+CUBE_KIND = "half second difference of the cubed charge"
+#: Every kind: (the power of the charge it moves; the reach, None for the nearest pixels).
+_KINDS = {PATTERN_KIND: (2, None), CHARGE_KIND: (1, None), CUBE_KIND: (3, None),
+          **{broad_kind(kind, reach): (power, reach)
+             for kind, power in ((PATTERN_KIND, 2), (CUBE_KIND, 3)) for reach in REACHES}}
+#: Every pattern kind a term may have; `bfpsf diagnose` keeps the one whose P(F) fits the
+#: held-out stars best (`bfpsf.diagnosis.pattern_choice`).
+PATTERN_KINDS = tuple(_KINDS)
 
 
 #: The transfers of each pattern: (step (dy, dx), weight). Along X, along Y, and half the
@@ -46,19 +73,35 @@ def _ranges(shift, n):
     return slice(-shift, n), slice(0, n + shift)
 
 
-def _half_second_difference(image, step):
-    """1/2 sum over s = +-1 of (I[p + s step] - I[p]), over the neighbours inside the image:
-    each pixel passes half of its value to each neighbour along ``step`` (dy, dx) and none
-    across the stamp's edge, so the sum is conserved exactly. Along X this is
-    1/2 (I[i+1] - 2 I[i] + I[i-1]) with the image extended by its edge pixels."""
+def _transfer(image, step, weights=((1, 0.5),)):
+    """sum over k, s = +-1 of w_k (I[p + s k step] - I[p]), ``weights`` the (k, w_k) pairs,
+    over the pairs of pixels both inside the image: each pixel passes w_k of its value to
+    each pixel k steps away along ``step`` (dy, dx) and none across the stamp's edge, so the
+    sum is conserved exactly. The default, the half second difference, is along X
+    1/2 (I[i+1] - 2 I[i] + I[i-1]) with the image extended by its edge pixels; with
+    sum 2 k^2 w_k = 1 every transfer adds the image's sum to sum (x - x0)^2 I along it."""
     out = np.zeros_like(image)
     ny, nx = image.shape[-2:]
-    for sign in (1, -1):
-        (rows, neighbour_rows), (columns, neighbour_columns) = (
-            _ranges(sign * step[0], ny), _ranges(sign * step[1], nx))
-        out[..., rows, columns] += 0.5 * (image[..., neighbour_rows, neighbour_columns]
-                                          - image[..., rows, columns])
+    for distance, weight in weights:
+        if distance * max(abs(step[0]) * ny ** -1, abs(step[1]) * nx ** -1) >= 1:
+            break  # no pair of pixels this far apart in the image (weights rise in distance)
+        for sign in (distance, -distance):
+            (rows, neighbour_rows), (columns, neighbour_columns) = (
+                _ranges(sign * step[0], ny), _ranges(sign * step[1], nx))
+            out[..., rows, columns] += weight * (image[..., neighbour_rows, neighbour_columns]
+                                                 - image[..., rows, columns])
     return out
+
+
+def _gaussian_weights(reach):
+    """(k, w_k) of a discrete Gaussian of sigma ``reach`` out to 3 sigma, less the charge it
+    keeps, per unit variance (`_transfer` adds the image's sum to the variance along its
+    step), and that variance, v: I + v T is the Gaussian's blur."""
+    distances = np.arange(1, int(np.ceil(3.0 * reach)) + 1)
+    kernel = np.exp(-0.5 * (distances / reach) ** 2)
+    total = 1.0 + 2.0 * kernel.sum()
+    variance = 2.0 * (kernel * distances ** 2).sum() / total
+    return tuple(zip(distances.tolist(), (kernel / total / variance).tolist())), variance
 
 
 def _steps(pattern):
@@ -70,10 +113,21 @@ def _steps(pattern):
     return steps
 
 
-def _difference(image, pattern):
-    """The pattern's transfer operator on ``image`` (`_STEPS`)."""
-    return sum(weight * _half_second_difference(image, step)
-               for step, weight in _steps(pattern))
+def _difference(image, pattern, reach=None):
+    """The pattern's transfer operator on ``image`` (`_STEPS`): to the nearest pixels, or
+    (``reach``) with Gaussian weights, where B_xx = T_x + v/2 T_x T_y (and B_yy the same
+    along y), so that B_xx + B_yy = (G_x G_y - 1) / v, a round Gaussian blur less the charge
+    it takes, and B_xx adds to sum x^2 I alone; along the diagonals B_xy has the weights of
+    the Gaussian along them."""
+    if reach is None:
+        return sum(weight * _transfer(image, step) for step, weight in _steps(pattern))
+    weights, variance = _gaussian_weights(reach)
+    if pattern == "xy":
+        return sum(sign * _transfer(image, step, weights) for step, sign in _steps(pattern))
+    (step, _), = _steps(pattern)
+    along = _transfer(image, step, weights)
+    return along + 0.5 * variance * _transfer(_transfer(image, (0, 1), weights), (1, 0),
+                                              weights)
 
 
 def _star_total(image, total):
@@ -107,12 +161,12 @@ def pattern_series(image, change, pattern, total=None, total_change=0.0, order=2
     ``total_change``, default the change's sum when ``total`` is None, else 0); the terms
     up to ``order`` only (0, 1 or 2).
 
-    With (I + e dI)^2 = q0 + 2 e q1 + e^2 q2 (q0 = I^2, q1 = I dI, q2 = dI^2, where I > 0)
-    and D the half second difference, the pattern is D[(I + e dI)^2] s(e), s = (F + e dF) /
-    sum((I + e dI)^2), so each B_n collects the D[q_m] with the coefficients of s's series.
-    The table mode of P(F) tabulates them for dI = R, the BF term (`pattern_tables`); the
-    PSF fit's flux derivative is B1 along d model / d F. With ``kind`` `CHARGE_KIND`, the
-    same of D[I + e dI] (F + e dF) / sum(I + e dI)."""
+    With (I + e dI)^n = a0 + e a1 + e^2 a2 (a0 = I^n, a1 = n I^(n-1) dI, a2 = n (n - 1) / 2
+    I^(n-2) dI^2, where I > 0; n the kind's power of the charge: 2 for `PATTERN_KIND`, 1 for
+    `CHARGE_KIND`) and D the kind's transfer, the pattern is D[(I + e dI)^n] s(e),
+    s = (F + e dF) / sum((I + e dI)^n), so each B_n collects the D[a_m] with the
+    coefficients of s's series. The table mode of P(F) tabulates them for dI = R, the BF
+    term (`pattern_tables`); the PSF fit's flux derivative is B1 along d model / d F."""
     image = np.asarray(image, float)
     _steps(pattern)
     if kind not in PATTERN_KINDS:
@@ -124,38 +178,25 @@ def pattern_series(image, change, pattern, total=None, total_change=0.0, order=2
         s1, d1 = _star_total(image, None), _star_total(change, None)
     else:
         s1, d1 = _star_total(image, total), _star_total(image, total_change)
-    if kind == CHARGE_KIND:
-        return _charge_series(positive, change, pattern, s1, d1, order)
-    s2, d12, d22 = (value.sum(axis=(-2, -1), keepdims=True)
-                    for value in (positive ** 2, positive * change, change ** 2))
-    s2 = np.where(s2 > 0, s2, np.inf)  # an image with no positive pixel: no pattern
-    # s(e) = (s1 + e d1) / (s2 + 2 e d12 + e^2 d22), to second order in e
-    scale = (s1 / s2, d1 / s2 - 2 * s1 * d12 / s2 ** 2,
-             (4 * s1 * d12 ** 2 / s2 - s1 * d22 - 2 * d1 * d12) / s2 ** 2)
-    d0 = _difference(positive ** 2, pattern)
-    series = [d0 * scale[0]]
+    power, reach = _KINDS[kind]
+    # (I + e dI)^n = a0 + e a1 + e^2 a2 + O(e^3), where I > 0 (dI is 0 elsewhere)
+    safe = np.where(positive > 0, positive, 1.0)
+    parts = (positive ** power, power * safe ** (power - 1) * change,
+             power * (power - 1) / 2 * safe ** (power - 2) * change ** 2)
+    s0, s_1, s_2 = (part.sum(axis=(-2, -1), keepdims=True) for part in parts)
+    s0 = np.where(s0 > 0, s0, np.inf)  # an image with no positive pixel: no pattern
+    # s(e) = (s1 + e d1) / (s0 + e s_1 + e^2 s_2), to second order in e
+    scale = (s1 / s0, d1 / s0 - s1 * s_1 / s0 ** 2,
+             (s1 * s_1 ** 2 / s0 - s1 * s_2 - d1 * s_1) / s0 ** 2)
+    terms = [_difference(parts[0], pattern, reach)]
+    series = [terms[0] * scale[0]]
     if order >= 1:
-        d_mixed = _difference(positive * change, pattern)
-        series.append(2 * d_mixed * scale[0] + d0 * scale[1])
+        terms.append(_difference(parts[1], pattern, reach))
+        series.append(terms[1] * scale[0] + terms[0] * scale[1])
     if order >= 2:
-        d2 = _difference(change ** 2, pattern)
-        series.append(d2 * scale[0] + 2 * d_mixed * scale[1] + d0 * scale[2])
-    return tuple(series)
-
-
-def _charge_series(positive, change, pattern, s1, d1, order):
-    """`pattern_series` of `CHARGE_KIND`: D[I + e dI] s(e), s = (s1 + e d1) / sum(I + e dI),
-    to second order in e."""
-    s2, d2 = (value.sum(axis=(-2, -1), keepdims=True) for value in (positive, change))
-    s2 = np.where(s2 > 0, s2, np.inf)  # an image with no positive pixel: no pattern
-    scale = (s1 / s2, d1 / s2 - s1 * d2 / s2 ** 2, (s1 * d2 ** 2 / s2 - d1 * d2) / s2 ** 2)
-    d0 = _difference(positive, pattern)
-    series = [d0 * scale[0]]
-    if order >= 1:
-        d_change = _difference(change, pattern)
-        series.append(d_change * scale[0] + d0 * scale[1])
-    if order >= 2:
-        series.append(d_change * scale[1] + d0 * scale[2])
+        terms.append(_difference(parts[2], pattern, reach) if power > 1
+                     else np.zeros_like(terms[0]))
+        series.append(terms[2] * scale[0] + terms[1] * scale[1] + terms[0] * scale[2])
     return tuple(series)
 
 

@@ -43,9 +43,9 @@ from tqdm import tqdm
 
 from ..errors import BFPSFConvergenceError, BFPSFInputError, BFPSFValueError, integer_at_least
 from ..resources import check_psf_fit
-from .empirical import PATTERNS, pattern_series
 from .gridded import GriddedFluxDependentPSF, bilinear_weights
 from .psf import FluxDependentPSF
+from .psf_fit_empirical import amplitude_step, with_empirical
 from .psf_fit_grid import (Grid, Sampling, cardinal_splines, dense_weights_of, grid_nodes,
                            mean_shifts, node_solution, normalise_nodes, project, recentred,
                            shift_sets_of, without_translation)
@@ -63,6 +63,10 @@ DEFAULT_SIZE = 25
 #: stops there (a slow drift away from the optimum, 1.3x on a sparse grid, is left to run).
 DIVERGED = 10.0
 MIN_DAMPING = 1.0 / 8
+#: The fit has converged only when the EMPIRICAL term's amplitude changes by less than this
+#: too (`bfpsf.model.psf_fit_empirical`): P0 settled while the amplitude still crept up by
+#: 0.005 an iteration, 10 % short of its end.
+AMPLITUDE_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -118,7 +122,8 @@ def _exact_bf_terms(grid, weights, stars):
 
 
 def _star_models(grid, weights, stars, free_positions):
-    """Model of every star, residual weights and the Jacobian of (F, x_0, y_0)."""
+    """Model of every star, the Jacobian of (F, x_0, y_0), the samplings and the EMPIRICAL
+    term's part of the model per unit of its amplitude (None without one)."""
     size = stars.data.shape[1]
     over = grid.oversampling
     origin = grid.nodes[0].origin
@@ -139,36 +144,15 @@ def _star_models(grid, weights, stars, free_positions):
         bf = _exact_bf_terms(grid, weights, stars)
         d_flux = base + 2 * bf / flux
         charge = flux * p0  # the BF term's own position derivative is neglected here
-    model = flux * base + bf
+    model, unit = flux * base + bf, None
     if tables is not None and grid.empirical is not None:
-        model, d_flux = _with_empirical(grid.empirical, model, d_flux, stars)
+        model, d_flux, unit = with_empirical(grid.empirical, model, d_flux, stars,
+                                              grid.amplitude)
     jacobian = [d_flux]
     if free_positions:
         jacobian.append(-project(ys.matrix, charge, xs.derivative))
         jacobian.append(-project(ys.derivative, charge, xs.matrix))
-    return model, np.stack(jacobian, axis=1), xs, ys
-
-
-def _with_empirical(term, model, d_flux, stars):
-    """Every star's table-mode model and flux derivative with the EMPIRICAL term of a
-    refined calibration (`bfpsf.model.empirical`) at its flux, column and row: sum_k v_k(F, x, y)
-    B_k[model], as `FluxDependentPSF` applies it (its position derivative neglected)."""
-    flux = np.abs(stars.flux)
-    step = 1e-3 * np.maximum(flux, 1.0)
-    changes = term.variance_change(flux, x=stars.x_0, y=stars.y_0)
-    slopes = [(after - before) / step for after, before in
-              zip(term.variance_change(flux + step, x=stars.x_0, y=stars.y_0), changes)]
-    signs = np.sign(stars.flux)[:, None, None]
-    out, derivative = model.copy(), d_flux.copy()
-    for pattern, change, slope in zip(PATTERNS, changes, slopes):
-        change = np.broadcast_to(change, flux.shape)[:, None, None]
-        slope = np.broadcast_to(slope, flux.shape)[:, None, None]
-        # the star's flux normalises the pattern (its cutout may cut the wings)
-        pattern_model, along_flux = pattern_series(model, d_flux, pattern, total=stars.flux,
-                                                   total_change=1.0, order=1, kind=term.kind)
-        out += change * pattern_model
-        derivative += change * along_flux + signs * slope * pattern_model
-    return out, derivative
+    return model, np.stack(jacobian, axis=1), xs, ys, unit
 
 
 def _gauss_newton(stars, data, model, jacobian, variance, usable):
@@ -381,10 +365,14 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         # star's centre) along which alternating updates creep; with the positions fixed the
         # remaining problem is linear in P0 and the fluxes and converges in a few steps.
         free_positions = iteration - start > hold_positions and not positions_settled
-        model, residual, variance, xs, ys, chi2 = _fit_step(fitted, dense_weights, stars,
-                                                            free_positions, shapes)
+        model, residual, variance, xs, ys, chi2, unit = _fit_step(
+            fitted, dense_weights, stars, free_positions, shapes)
         if best is None or chi2 < best[0]:
             best = (chi2, fitted, stars.flux.copy(), stars.x_0.copy(), stars.y_0.copy())
+        amplitude, residual = amplitude_step(fitted.amplitude, unit, residual, variance,
+                                             ((stars.flags & MOVED) == 0) & stars.used,
+                                             model, stars.flux, damping)
+        settled = abs(amplitude - fitted.amplitude) < AMPLITUDE_TOLERANCE
         # Nodes and samples follow the stars' new positions.
         xs = Sampling(stars.column, stars.x_0, 2 * half + 1, over, origin[0], cardinal)
         ys = Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)
@@ -421,7 +409,8 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
             # grown 3 times running with the positions fixed: the step overshoots (0.0016 -> 0.014)
             damping /= 2
         bar.set_postfix(change=f"{change:.2e}")
-        fitted = Grid(new_data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs)
+        fitted = Grid(new_data, x_nodes, y_nodes, shift_sets, star_set, over, psf_kwargs,
+                      amplitude)
         fitted.cardinal = cardinal
         if free_positions:
             free_iterations += 1
@@ -438,12 +427,12 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                 stars.restart()
                 fitted = Grid(normalise_nodes(stack(), (over, over), x_nodes, y_nodes,
                                               dense_weights), x_nodes, y_nodes, shift_sets,
-                              star_set, over, psf_kwargs)
+                              star_set, over, psf_kwargs, fitted.amplitude)
                 fitted.cardinal = cardinal
                 positions_settled, free_iterations, damping = False, 0, first_damping
                 best, start = None, iteration
                 bar.reset(total=max_iterations)
-        elif change < tolerance and iteration - start > hold_positions:
+        elif change < tolerance and settled and iteration - start > hold_positions:
             converged = True
             break
     bar.close()
@@ -457,7 +446,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         # 148e3 at iteration 12, 189e3 at 40, node e1 off by up to 0.03)
         _, fitted, stars.flux[:], stars.x_0[:], stars.y_0[:] = best
     fitted = Grid(np.array([recentred(node, over) for node in fitted.data]), x_nodes,
-                   y_nodes, shift_sets, star_set, over, psf_kwargs)
+                   y_nodes, shift_sets, star_set, over, psf_kwargs, fitted.amplitude)
     fitted.cardinal = cardinal
     for _ in range(3):  # final positions and fluxes with the final P0
         variance = _fit_step(fitted, dense_weights, stars, True, shapes)[2]
@@ -465,7 +454,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         fitted = Grid(fitted.data, x_nodes, y_nodes,
                        [mean_shifts(shift_sets,
                                      star_set[((stars.flags & MOVED) == 0) & stars.used])],
-                       np.zeros_like(star_set), over, psf_kwargs)
+                       np.zeros_like(star_set), over, psf_kwargs, fitted.amplitude)
     psf = (fitted.nodes[0] if grid is None
            else GriddedFluxDependentPSF(fitted.nodes, x_nodes, y_nodes))
     table = star_table(flags, image_index, positions, stars, variance)
@@ -482,9 +471,9 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
 def _fit_step(fitted, dense_weights, stars, free_positions, shapes):
     """Every star's model and one Gauss-Newton step on its cutout minus its neighbours'
     models: (model, residual predicted after the step, pixel variance, xs, ys, chi-square of
-    the P0 stars before the step)."""
+    the P0 stars before the step, the EMPIRICAL term's part per unit amplitude or None)."""
     stars.flags[:] = 0
-    model, jacobian, xs, ys = _star_models(fitted, dense_weights, stars, free_positions)
+    model, jacobian, xs, ys, unit = _star_models(fitted, dense_weights, stars, free_positions)
     others = stars.others(model, shapes)
     # the neighbours' light is noise in every cutout; pixels beyond the image weigh nothing
     variance = np.where(stars.valid & ~stars.masked, np.clip(model + others, 0.0, None)
@@ -492,6 +481,6 @@ def _fit_step(fitted, dense_weights, stars, free_positions, shapes):
     chi2 = float(np.nansum(((stars.data - others - model)**2 / variance)[stars.used]))
     residual = _gauss_newton(stars, stars.data - others, model, jacobian, variance,
                              np.ones(len(model), dtype=bool))
-    return model, residual, variance, xs, ys, chi2
+    return model, residual, variance, xs, ys, chi2, unit
 
 

@@ -118,18 +118,21 @@ class Grid:
     """The node P0s being fitted, their node models for each set of shifts (one per
     amplifier), and each star's interpolation weights and set of shifts."""
 
-    def __init__(self, data, x_nodes, y_nodes, shift_sets, star_set, oversampling, psf_kwargs):
+    def __init__(self, data, x_nodes, y_nodes, shift_sets, star_set, oversampling, psf_kwargs,
+                 amplitude=1.0):
         self.data = data                    # (K, M, M)
         self.x_nodes, self.y_nodes = x_nodes, y_nodes
         self.oversampling, self.psf_kwargs = oversampling, psf_kwargs
         self.star_set = star_set            # (N,) index into shift_sets
         psf_kwargs = dict(psf_kwargs)
-        self.empirical = psf_kwargs.pop("empirical", None)
+        # the EMPIRICAL term as given, and the amplitude the stars' pixels give it
+        self.empirical, self.amplitude = psf_kwargs.pop("empirical", None), float(amplitude)
         self.set_nodes = [[FluxDependentPSF(node, shifts, oversampling=oversampling,
                                             **psf_kwargs) for node in data]
                           for shifts in shift_sets]
+        scaled = None if self.empirical is None else self.empirical.scaled(self.amplitude)
         for node in (node for nodes in self.set_nodes for node in nodes):
-            node.empirical = self.empirical  # the exact mode's evaluate applies it
+            node.empirical = scaled  # the exact mode's evaluate applies it
         self.nodes = self.set_nodes[0]
         self.table = self.nodes[0].mode == "table"
 
