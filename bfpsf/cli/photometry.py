@@ -67,9 +67,11 @@ def _amplifier_model(psf, gain, one, amplifier, gain_option, static):
     """Gain (e-/ADU), the model fitted and the flux-dependent model of one amplifier: with
     its calibration ``one``, its gain (unless --gain), P0 with that amplifier's boundary
     shifts and the calibration's linearity correction (a calibration refined by 'bfpsf
-    diagnose --output-calib'); else the PSF product's, with the amplifier's own shifts where
-    the product has them (`BFPSFModel.for_amplifier`). With --static the model fitted is the
-    static P0."""
+    diagnose --output-calib'), and its EMPIRICAL term where the product holds none (the
+    product's was fitted with its P0, at the amplitude its stars' pixels gave:
+    `bfpsf.model.psf_fit_empirical`); else the PSF product's, with the amplifier's own
+    shifts where the product has them (`BFPSFModel.for_amplifier`). With --static the model
+    fitted is the static P0."""
     from ..interop.photutils import static_image_psf
     from ..measure.prepare import linearity_of
     from ..model.empirical import empirical_of
@@ -81,8 +83,8 @@ def _amplifier_model(psf, gain, one, amplifier, gain_option, static):
             model = psf.with_shifts(one.shifts)
         model = model.copy()  # the calibration's linearity correction, undone on input
         model.linearity_c_per_1e5 = linearity_of(one)
-        term = empirical_of(one)  # and its EMPIRICAL term, where it has one
-        if term is not None and getattr(psf, "empirical", None) is None:
+        term = empirical_of(one)
+        if term is not None and psf.empirical is None:
             model = model.with_empirical_term(term)
     return float(gain), (static_image_psf(model) if static else model), model
 

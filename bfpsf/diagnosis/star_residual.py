@@ -72,7 +72,7 @@ def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, m
             flux *= float(np.sum(data * model) / np.sum(model * model))
             model = psf.star_image(flux, x, y, x_phase=x - cx, y_phase=y - cy, half_size=half)
             total = total + (data - model) / flux
-            own += _own_chi2(psf, data, flux, x, y, cx, cy, half, noise_e)
+            own += _own_chi2(psf, data, model, flux, x, y, cx, cy, half, noise_e)
             variance = variance + (np.clip(model, 0, None) + noise_e ** 2) / flux ** 2
             model_sum = model_sum + model / flux
             count += 1
@@ -89,16 +89,16 @@ def stacked_star_residual(images, tables, psf, *, half_size=None, noise_e=0.0, m
             "radius": radius, "profile": profile}
 
 
-def _own_chi2(psf, data, flux, x, y, cx, cy, half, noise_e, step=0.05):
+def _own_chi2(psf, data, image, flux, x, y, cx, cy, half, noise_e, step=0.05):
     """A star's chi2 per pixel against P(F) with its flux and position refitted (two
-    weighted Gauss-Newton steps): a position left as detection measured it put a dipole in
-    every bright star that a blurring pattern kind partly hid (the bench's transfer to the
-    neighbours lost, 1.00 against 0.95, to a broad kind)."""
+    weighted Gauss-Newton steps from ``image``, the model at ``flux``, ``x``, ``y``): a
+    position left as detection measured it put a dipole in every bright star that a blurring
+    pattern kind partly hid (the bench's transfer to the neighbours lost, 1.00 against 0.95,
+    to a broad kind)."""
     def model(flux, x, y):
         return psf.star_image(flux, x, y, x_phase=x - cx, y_phase=y - cy, half_size=half)
 
     for _ in range(2):
-        image = model(flux, x, y)
         weight = 1.0 / (np.clip(image, 0, None) + noise_e ** 2)
         design = np.stack([image / flux, (model(flux, x + step, y) - image) / step,
                            (model(flux, x, y + step) - image) / step]).reshape(3, -1)
@@ -108,7 +108,7 @@ def _own_chi2(psf, data, flux, x, y, cx, cy, half, noise_e, step=0.05):
         if not np.all(np.isfinite(change)) or np.any(np.abs(change[1:]) > 1.0):
             break  # a failed step: the chi2 at the last position
         flux, x, y = flux + change[0], x + change[1], y + change[2]
-    image = model(flux, x, y)
+        image = model(flux, x, y)
     return float(np.mean((data - image) ** 2 / (np.clip(image, 0, None) + noise_e ** 2)))
 
 

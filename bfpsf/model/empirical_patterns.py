@@ -83,8 +83,8 @@ def _transfer(image, step, weights=((1, 0.5),)):
     out = np.zeros_like(image)
     ny, nx = image.shape[-2:]
     for distance, weight in weights:
-        if distance * max(abs(step[0]) * ny ** -1, abs(step[1]) * nx ** -1) >= 1:
-            break  # no pair of pixels this far apart in the image (weights rise in distance)
+        if distance * abs(step[0]) >= ny or distance * abs(step[1]) >= nx:
+            break  # no pair of pixels this far apart in the image (distances rise)
         for sign in (distance, -distance):
             (rows, neighbour_rows), (columns, neighbour_columns) = (
                 _ranges(sign * step[0], ny), _ranges(sign * step[1], nx))
@@ -194,8 +194,7 @@ def pattern_series(image, change, pattern, total=None, total_change=0.0, order=2
         terms.append(_difference(parts[1], pattern, reach))
         series.append(terms[1] * scale[0] + terms[0] * scale[1])
     if order >= 2:
-        terms.append(_difference(parts[2], pattern, reach) if power > 1
-                     else np.zeros_like(terms[0]))
+        terms.append(_difference(parts[2], pattern, reach))
         series.append(terms[2] * scale[0] + terms[1] * scale[1] + terms[0] * scale[2])
     return tuple(series)
 

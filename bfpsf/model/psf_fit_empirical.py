@@ -66,9 +66,9 @@ def amplitude_step(amplitude, unit, residual, variance, used, model, flux, dampi
                       where=total > 0)
     regressor = unit - flux * share
     # and what each star's own flux takes (its model's direction)
-    along = np.divide((weight * model * regressor).sum(axis=(1, 2)),
-                      (weight * model**2).sum(axis=(1, 2)),
-                      out=np.zeros(len(model)), where=(weight * model**2).sum(axis=(1, 2)) > 0)
+    own = (weight * model**2).sum(axis=(1, 2))
+    along = np.divide((weight * model * regressor).sum(axis=(1, 2)), own,
+                      out=np.zeros_like(own), where=own > 0)
     regressor = regressor - along[:, None, None] * model
     normal = float(np.sum(weight * regressor**2))
     if not normal > 0:
