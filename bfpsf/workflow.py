@@ -93,7 +93,7 @@ class PSFFromImages:
 def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=None,
                     threshold=None, saturation_e=None, include_bf=True, max_iterations=None,
                     exclude=None, calibration_name="", shift_samples=None, exposure=None,
-                    amplifiers=None, frames=None):
+                    amplifiers=None, frames=None, refit_sky=True):
     """Fit the flux-dependent PSF from prepared images (what ``bfpsf psf`` does).
 
     Parameters
@@ -132,6 +132,11 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         image's sky-and-wings fit sees the glow of the stars on the others (a new user's
         four 128^2 amplifiers, each seeing its own stars' wings alone, gave a flux correction
         of 1.0000 +- 0.0046 against 1.0083; the same pixels as one image 1.0050 +- 0.0015).
+    refit_sky : bool, optional
+        Fit the sky jointly with the stars' wings and refit P0 on it (default). False: one P0
+        fit on the images' skies as given (`PSFFromImages.prepared` of a fit of the same
+        images: its sky and the wings' glow), to compare calibrations on one sky; the wings
+        are measured after it.
 
     Returns
     -------
@@ -232,6 +237,8 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                       for prepared, line, ray in zip(images, lines, rays)]
         skies, wings = fit_sky_and_wings(sky_fitted, stars, half_size=size // 2,
                                          degree=degree, oversampling=oversampling)
+        if not refit_sky:
+            break  # the wings measured, P0 kept on the skies given
         # P0 refitted with the wings' glow subtracted, a known sky's too (fitted with the
         # glow left in, a crowded field's P0 took its neighbours' glow in its outskirts: a
         # new user's bright stars -9.3 mmag with its true sky given, +0.7 with the sky fitted)

@@ -113,7 +113,7 @@ def _own_chi2(psf, data, image, flux, x, y, cx, cy, half, noise_e, step=0.05):
 
 
 def star_residual_with(calibration, paths, exposures, *, amp=None, background=None,
-                       saturation=None, cache=None):
+                       saturation=None, cache=None, same_sky=False):
     """The stacked star residual of some exposures against the P(F) a calibration gives them
     through the user's path: each image prepared (`prepare_image`, with a refined
     calibration's linearity correction) and its own P0 fitted with the calibration
@@ -136,7 +136,12 @@ def star_residual_with(calibration, paths, exposures, *, amp=None, background=No
         As ``bfpsf diagnose``: the amplifier, a known sky (ADU) and a saturation level (ADU).
     cache : dict, optional
         Kept between calls on the same images: each image as read, prepared and detected
-        for a gain and linearity correction (calibrations that share them share these).
+        for a gain and linearity correction (calibrations that share them share these), and
+        the sky that its last fit with ``same_sky`` False found.
+    same_sky : bool, optional
+        Each image with the sky (and the wings' glow) of the last fit of it in ``cache``, if
+        any, and one P0 fit (`psf_from_images`' ``refit_sky``): a third of the fits, for comparing
+        calibrations on one sky. Default False, the user's path.
 
     Returns
     -------
@@ -154,10 +159,16 @@ def star_residual_with(calibration, paths, exposures, *, amp=None, background=No
             prepared = prepare_image(amplifier.data, gain=gain, linearity_c_per_1e5=linearity,
                                      background_e=None if background is None
                                      else background * gain)
-            cache[key] = (amplifier, prepared, {})
-        amplifier, prepared, sources = cache[key]
+            cache[key] = (amplifier, prepared, {}, {})
+        amplifier, prepared, sources, fitted_sky = cache[key]
         level = saturation_e(amplifier, gain, saturation, calibration)
-        fit = psf_from_images([prepared], calibration, saturation_e=level, exposure=index)
+        # (a calibration of another gain or linearity has no fit of its own yet: the path)
+        sky = fitted_sky.get(level) if same_sky else None
+        prepared = prepared if sky is None else sky
+        fit = psf_from_images([prepared], calibration, saturation_e=level, exposure=index,
+                              refit_sky=sky is None)
+        if sky is None:
+            fitted_sky[level] = fit.prepared[0]
         pixels.append(prepared.sky_subtracted)
         if level not in sources:
             sources[level] = measure_sources(prepared.image_e, saturation=level)

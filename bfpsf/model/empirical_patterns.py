@@ -11,7 +11,10 @@ nearest pixels; the squared and the cubed charge also to a Gaussian reach of pix
 (`REACHES`: a halo of the brightest pixels).
 """
 
+import functools
+
 import numpy as np
+from scipy import ndimage
 
 from ..errors import BFPSFValueError
 
@@ -66,24 +69,24 @@ _STEPS = {"xx": (((0, 1), 1.0),), "yy": (((1, 0), 1.0),),
           "xy": (((1, 1), 0.5), ((1, -1), -0.5))}
 
 
-def _ranges(shift, n):
-    """Slices of the pixels p and of their neighbours p + shift that are both inside."""
-    if shift >= 0:
-        return slice(0, n - shift), slice(shift, n)
-    return slice(-shift, n), slice(0, n + shift)
-
-
 def _transfer(image, step, weights=((1, 0.5),)):
     """sum over k, s = +-1 of w_k (I[p + s k step] - I[p]), ``weights`` the (k, w_k) pairs,
     over the pairs of pixels both inside the image: each pixel passes w_k of its value to
     each pixel k steps away along ``step`` (dy, dx) and none across the stamp's edge, so the
     sum is conserved exactly. The default, the half second difference, is along X
     1/2 (I[i+1] - 2 I[i] + I[i-1]) with the image extended by its edge pixels; with
-    sum 2 k^2 w_k = 1 every transfer adds the image's sum to sum (x - x0)^2 I along it."""
-    out = np.zeros_like(image)
+    sum 2 k^2 w_k = 1 every transfer adds the image's sum to sum (x - x0)^2 I along it.
+    Along a row or a column it is one correlation with the weights (zero beyond the edge)
+    less each pixel times the weight of its neighbours inside; along a diagonal, the sum of
+    the shifted differences."""
     ny, nx = image.shape[-2:]
+    if not (step[0] and step[1]):
+        kernel, inside = _line_kernel(weights, ny if step[0] else nx)
+        return (ndimage.correlate1d(image, kernel, axis=-2 if step[0] else -1, mode="constant")
+                - image * (inside[:, None] if step[0] else inside))
+    out = np.zeros_like(image)
     for distance, weight in weights:
-        if distance * abs(step[0]) >= ny or distance * abs(step[1]) >= nx:
+        if distance >= min(ny, nx):
             break  # no pair of pixels this far apart in the image (distances rise)
         for sign in (distance, -distance):
             (rows, neighbour_rows), (columns, neighbour_columns) = (
@@ -91,6 +94,25 @@ def _transfer(image, step, weights=((1, 0.5),)):
             out[..., rows, columns] += weight * (image[..., neighbour_rows, neighbour_columns]
                                                  - image[..., rows, columns])
     return out
+
+
+def _ranges(shift, n):
+    """Slices of the pixels p and of their neighbours p + shift that are both inside."""
+    if shift >= 0:
+        return slice(0, n - shift), slice(shift, n)
+    return slice(-shift, n), slice(0, n + shift)
+
+
+@functools.lru_cache(maxsize=64)
+def _line_kernel(weights, n):
+    """The symmetric kernel of ``weights`` (`_transfer`) along a line of ``n`` pixels, and
+    the weight of each pixel's neighbours inside the line."""
+    half = min(max(distance for distance, _ in weights), n - 1)
+    kernel = np.zeros(2 * half + 1)
+    for distance, weight in weights:
+        if distance <= half:
+            kernel[half + distance] = kernel[half - distance] = weight
+    return kernel, ndimage.correlate1d(np.ones(n), kernel, mode="constant")
 
 
 def _gaussian_weights(reach):

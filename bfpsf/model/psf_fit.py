@@ -64,9 +64,11 @@ DEFAULT_SIZE = 25
 DIVERGED = 10.0
 MIN_DAMPING = 1.0 / 8
 #: The fit has converged only when the EMPIRICAL term's amplitude changes by less than this
-#: too (`bfpsf.model.psf_fit_empirical`): P0 settled while the amplitude still crept up by
-#: 0.005 an iteration, 10 % short of its end.
+#: too (`bfpsf.model.psf_fit_empirical`), or by less than `AMPLITUDE_ERROR_FRACTION` of its
+#: statistical error (a step lost in the noise): P0 settled while the amplitude still crept
+#: up by 0.005 an iteration, 10 % short of its end.
 AMPLITUDE_TOLERANCE = 1e-3
+AMPLITUDE_ERROR_FRACTION = 0.1
 
 
 @dataclass(frozen=True)
@@ -354,6 +356,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                desc="P0 fit", unit="it", leave=False)
     iteration = start = 0  # a restart without the misfits counts from ``start``
     first_damping = damping
+    amplitude_damping, amplitude_steps = 1.0, [0.0]
     while iteration < start + max_iterations:
         iteration += 1
         bar.update()
@@ -369,10 +372,17 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
             fitted, dense_weights, stars, free_positions, shapes)
         if best is None or chi2 < best[0]:
             best = (chi2, fitted, stars.flux.copy(), stars.x_0.copy(), stars.y_0.copy())
-        amplitude, residual = amplitude_step(fitted.amplitude, unit, residual, variance,
-                                             ((stars.flags & MOVED) == 0) & stars.used,
-                                             model, stars.flux, damping)
-        settled = abs(amplitude - fitted.amplitude) < AMPLITUDE_TOLERANCE
+        amplitude, residual, error = amplitude_step(
+            fitted.amplitude, unit, residual, variance, ((stars.flags & MOVED) == 0) & stars.used,
+            model, stars.flux, damping * amplitude_damping)
+        amplitude_steps.append(amplitude - fitted.amplitude)
+        settled = abs(amplitude_steps[-1]) < max(AMPLITUDE_TOLERANCE,
+                                                 AMPLITUDE_ERROR_FRACTION * error)
+        if amplitude_steps[-1] * amplitude_steps[-2] < -0.5 * amplitude_steps[-2] ** 2:
+            # back by more than half its last step: the amplitude's step overshoots (P0 takes
+            # its share of the same residual); undamped, one swung by +-0.1 (its error 0.024)
+            # for all 40 iterations of a new user's fit
+            amplitude_damping = max(amplitude_damping / 2, MIN_DAMPING)
         # Nodes and samples follow the stars' new positions.
         xs = Sampling(stars.column, stars.x_0, 2 * half + 1, over, origin[0], cardinal)
         ys = Sampling(stars.row, stars.y_0, 2 * half + 1, over, origin[1], cardinal)

@@ -47,9 +47,9 @@ def with_empirical(term, model, d_flux, stars, amplitude=1.0):
 def amplitude_step(amplitude, unit, residual, variance, used, model, flux, damping):
     """The EMPIRICAL term's amplitude after one weighted least-squares step on the stars'
     residuals after their own step, jointly with P0's: (amplitude, the residuals less the
-    change of the term's part, for P0's step). ``unit`` is the term's part of every star's
-    model per unit amplitude (None without a term: nothing changes); ``model`` and ``flux``
-    every star's.
+    change of the term's part, for P0's step, the amplitude's statistical error). ``unit``
+    is the term's part of every star's model per unit amplitude (None without a term:
+    nothing changes, error 0); ``model`` and ``flux`` every star's.
 
     P0's step takes the mean per unit flux of what is left in every pixel, and each star's
     flux its share along its model, so the amplitude is fitted to the part of the term
@@ -57,7 +57,7 @@ def amplitude_step(amplitude, unit, residual, variance, used, model, flux, dampi
     two traded the term back and forth (0.02, 0.84, 0.20, 0.77, ...) and P0 settled with the
     amplitude still 0.2 short (the bench's smear: 0.67 for 0.85). Held at >= 0."""
     if unit is None:
-        return amplitude, residual
+        return amplitude, residual, 0.0
     weight = np.where(used[:, None, None], 1.0 / variance, 0.0)
     flux = np.reshape(flux, (-1, 1, 1))
     of_p0 = weight * flux**2
@@ -72,6 +72,6 @@ def amplitude_step(amplitude, unit, residual, variance, used, model, flux, dampi
     regressor = regressor - along[:, None, None] * model
     normal = float(np.sum(weight * regressor**2))
     if not normal > 0:
-        return amplitude, residual
+        return amplitude, residual, 0.0
     new = max(amplitude + damping * float(np.sum(weight * regressor * residual)) / normal, 0.0)
-    return new, residual - (new - amplitude) * unit
+    return new, residual - (new - amplitude) * unit, normal ** -0.5
