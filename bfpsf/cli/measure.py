@@ -4,6 +4,7 @@ Parse, read the images (ADU, converted to electrons with the gain), call
 `bfpsf.measure.sources.measure_sources`, write the star table (ECSV) and the JSON summary.
 """
 
+import sys
 
 import numpy as np
 
@@ -151,6 +152,8 @@ def run(args):
                "n_on_line": int(np.sum((stars["flags"] & SourceFlag.ON_LINE) != 0)),
                # a cosmic ray within 4 sigma, its pixels filled from their neighbours
                "n_cosmic_ray": int(np.sum((stars["flags"] & SourceFlag.COSMIC_RAY) != 0)),
+               # no adaptive-moment solution: the weight collapsed onto one pixel
+               "n_undersampled": int(np.sum((stars["flags"] & MomentsFlag.UNDERSAMPLED) != 0)),
                "images": summary_images}
     if args.json:
         write_json(args.json, summary, overwrite=args.overwrite)
@@ -164,4 +167,20 @@ def run(args):
              f"{sum(max(entry['cosmic_ray_pixels'], 0) for entry in summary_images)} pixels "
              "were filled from their neighbours" if summary["n_cosmic_ray"] else "")
           + f") in {len(args.images)} image(s); wrote {args.output}")
+    if summary["n_undersampled"]:
+        _warn_undersampled(stars, summary["n_undersampled"])
     return 0
+
+
+def _warn_undersampled(stars, count):
+    """One line on the sources whose adaptive moments collapsed onto one pixel (flag
+    'undersampled'), with the size of the others: such stars are undersampled, and the
+    sizes measured of them depend on their sub-pixel phase (`bfpsf.moments.adaptive`)."""
+    sigma = np.asarray(stars["iq"], dtype=float)[np.asarray(stars["flags"]) == 0]
+    size = (f"median sigma {np.median(sigma):.2f} px of the clean ones" if sigma.size
+            else "no clean source")
+    print(f"WARNING: {count} of {len(stars)} sources have no adaptive-moment solution (flag "
+          f"'undersampled': the weight collapsed onto the central pixel; {size}): stars this "
+          "narrow are undersampled, and the sizes measured of the others change with their "
+          "sub-pixel phase by more than brighter-fatter changes them (docs/limitations.md)",
+          file=sys.stderr)

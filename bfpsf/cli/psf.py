@@ -25,7 +25,8 @@ from ..measure.model_slopes import model_size_increments
 from ..model.psf_fit import DEFAULT_SIZE
 from ..model.psf_fit_stars import UNLIKE
 from ..measure.read_noise import READ_NOISE_MISMATCH
-from ..moments.shapes import MAG_PER_SIZE_ERROR
+from ..moments.result import MomentsFlag
+from ..moments.shapes import MAG_PER_SIZE_ERROR, psf_shape
 from ._files import read_image
 
 #: Size offset of an image's stars from P0 above which (and above 3 sigma) `psf` warns that
@@ -217,13 +218,14 @@ def run(args):
                                               for x, y, fwhm, dip in outliers]}
     # P0, the PSF of faint sources, and the calibration's error of the BF amplitude: the stars
     # weigh in near their weighted flux, and P0 carries the error of the BF change below it
-    p0_error = psf.shape_error(1.0) if args.include_bf else None
+    where = _summary_position(psf) if args.include_bf else {}
+    p0_error = psf.shape_error(1.0, **where) if args.include_bf else None
     reference = psf.star_flux_e
     summary["p0_calibration_error"] = (None if p0_error is None
                                        else dict(p0_error, reference_flux_e=reference))
     beyond = _beyond_flats(psf, result.stars[used], per_image, calibrations)
     summary["n_beyond_flats"] = beyond[0]
-    change = _bf_size_change(psf) if args.include_bf else None
+    change = _bf_size_change(psf, bool(where)) if args.include_bf else None
     if change is not None:
         summary["bf_size_change_px"] = change
     # the stars' own BF against the calibration's (a new user's small flats gave 6 times it)
@@ -325,7 +327,8 @@ def run(args):
         print(f"P0 (the PSF of sources far fainter than the stars) carries the calibration's "
               f"error of the BF amplitude: sigma +- {p0_error['sigma_percent']:.2f} %, e1 +- "
               f"{p0_error['e1']:.4f}, e2 +- {p0_error['e2']:.4f} (the stars weigh in at "
-              f"{reference:.3g} e-; `shape(flux)` nearer that flux carries less)")
+              f"{reference:.3g} e-; `shape(flux)` nearer that flux carries less)"
+              + (" at sub-pixel phase (0.5, 0.5)" if where else ""))
     n_detected = sum(entry["n_detected"] for entry in per_image)
     others = ("; the others blended, near an edge or with bad pixels"
               if n_detected > summary["n_stars"] else "")
@@ -385,7 +388,22 @@ def _skies(per_image):
             f"centre{'s' if len(per_image) > 1 else ''}")
 
 
-def _bf_size_change(psf):
+def _summary_position(psf):
+    """Where P0's shape is summarised (its calibration error, its BF size change): ``{}``,
+    the reference position, or ``{x, y}`` half a pixel from it along both axes, with a
+    warning, when P0 has no adaptive moments there (undersampled: on a pixel centre the weight
+    collapses onto one pixel; a double Gaussian of FWHM 1.7 px printed 'sigma +- nan %')."""
+    if not psf_shape(psf, 1.0).flags & MomentsFlag.UNDERSAMPLED:
+        return {}
+    x_ref, y_ref = psf.reference_position
+    print("WARNING: P0 has no adaptive moments on a pixel centre (flag 'undersampled': the "
+          "weight collapses onto the central pixel of a PSF this narrow): its shape depends on "
+          "the sub-pixel phase, and its summaries below are taken at phase (0.5, 0.5), a pixel "
+          "corner", file=sys.stderr)
+    return {"x": x_ref + 0.5, "y": y_ref + 0.5}
+
+
+def _bf_size_change(psf, corner=False):
     """The change of sigma_x and sigma_y (pixels) from P0 to a star of the stars' flux that
     P(F) predicts, with that flux (e-), or None without it. Negative: a BF of the unphysical
     sign (a new user's four 128^2 flat pairs gave shifts whose charged pixels grow, and P(F)
@@ -394,8 +412,10 @@ def _bf_size_change(psf):
     if not np.isfinite(flux) or flux <= 0:
         return None
     model = psf if psf.flux_unit == "electron" else psf.with_flux_unit("electron")
-    change = model_size_increments(model, [flux], n_grid=4)
-    return {"x": float(change["x"][0]), "y": float(change["y"][0]), "flux_e": flux}
+    phase = 0.5 if corner else None  # a pixel corner for an undersampled P0
+    change = model_size_increments(model, [flux], n_grid=4, x_phase=phase, y_phase=phase)
+    return {"x": float(change["x"][0]), "y": float(change["y"][0]), "flux_e": flux,
+            **({"phase": [phase, phase]} if corner else {})}
 
 
 def _beyond_flats(psf, stars, per_image, calibrations):

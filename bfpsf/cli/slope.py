@@ -22,6 +22,8 @@ And ``empirical``: the EMPIRICAL term of a refined calibration the PSF product a
 record, label ``'empirical'``; in the prediction and the residual), or None.
 """
 
+import sys
+
 import numpy as np
 
 from ..errors import BFPSFInputError
@@ -84,6 +86,14 @@ def _model_residual(stars, args, colour_fit, psf, slopes):
         if column in residual.colnames:
             residual[column] = residual[column] - model[key]
     rows = {key: fit.rows for key, fit in slopes.items() if key != "n_stars"}
+    # stars measured whose model has no size (an undersampled P(F) collapses onto the central
+    # pixel at their phase, where the star itself did not): left out of both fits, and said
+    lost = int(np.sum(slopes["iq"].rows & ~np.isfinite(model["iq"])))
+    if lost:
+        print(f"WARNING: {lost} of the {slopes['iq'].n_points} stars fitted have no model size "
+              "at their flux and sub-pixel phase (P(F) is undersampled there: its adaptive "
+              "moments collapse onto the central pixel): the prediction and the residual "
+              "leave them out", file=sys.stderr)
     options = {"min_peak_e": args.min_peak, "max_peak_e": args.max_peak,
                "use_errors": not args.unweighted}
     return (bf_slopes(residual, colour_fit=colour_fit, rows=rows, **options),

@@ -14,7 +14,8 @@ from .sources import model_flux
 __all__ = ["model_size_increments", "model_star_sizes", "predicted_slopes", "star_positions"]
 
 
-def model_size_increments(psf, flux_e, *, x=None, y=None, n_grid=24):
+def model_size_increments(psf, flux_e, *, x=None, y=None, n_grid=24, x_phase=None,
+                          y_phase=None):
     """Growth of sigma_x, sigma_y, IQ (and change of e1, e2) that a flux-dependent PSF predicts at each flux, pixels.
 
     The PSF's star image at flux F (``psf.star_image``, phase 0) is measured with
@@ -36,6 +37,9 @@ def model_size_increments(psf, flux_e, *, x=None, y=None, n_grid=24):
         Image positions of the stars, pixels; default the model's reference position.
     n_grid : int, optional
         Fluxes on which the model is measured. Default 24.
+    x_phase, y_phase : float, optional
+        Sub-pixel phase of the star image measured (``psf.star_image``); default 0, where
+        an undersampled model has no adaptive moments (NaN).
 
     Returns
     -------
@@ -53,7 +57,8 @@ def model_size_increments(psf, flux_e, *, x=None, y=None, n_grid=24):
         for x_node in x_nodes:
             model = psf.at(x_node, y_node)
             # F = 0 renders nothing: the shape at unit flux (BF term ~1e-6 of it), scaled
-            stamps = np.array([model.star_image(max(flux, 1.0)) / max(flux, 1.0)
+            stamps = np.array([model.star_image(max(flux, 1.0), x_phase=x_phase,
+                                                y_phase=y_phase) / max(flux, 1.0)
                                for flux in grid])
             moments = adaptive_moments_batch(stamps)
             sizes = {"x": np.sqrt(moments.mxx), "y": np.sqrt(moments.myy), "iq": moments.sigma}
@@ -128,7 +133,7 @@ def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors
     0.0145, predicted 0.0170 and a residual of +0.0055, the increments at phase 0 and the
     residual's own clipping not adding up). The error is the spread of the same fit over
     the shift samples the model carries (``psf.shift_samples``, the calibration's
-    uncertainty), on the model's size increments (`model_size_increments`).
+    uncertainty), on each sample's sizes of the stars (`model_star_sizes`).
 
     Parameters
     ----------
@@ -159,7 +164,9 @@ def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors
     if sizes is None:
         sizes = model_star_sizes(psf, flux, x=x, y=y)
     best = slopes_of(sizes)
-    draws = np.array([slopes_of(model_size_increments(psf.with_shifts(sample), flux, x=x, y=y))
+    # each sample's sizes at every star's own phase, as ``best``: increments at phase 0 are
+    # NaN for every star of an undersampled model (no adaptive moments on a pixel centre)
+    draws = np.array([slopes_of(model_star_sizes(psf.with_shifts(sample), flux, x=x, y=y))
                       for sample in psf.shift_samples])
     errors = (draws.std(axis=0, ddof=1) if len(draws) >= 2
               else np.full(best.shape, np.nan))

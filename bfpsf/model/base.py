@@ -41,14 +41,18 @@ evaluation applies (``evaluate`` in both modes, ``star_image``, ``shape``, ``to_
 """
 
 import copy
+import logging
 
 import numpy as np
 from astropy.modeling import Fittable2DModel, Parameter
 
 from ..errors import BFPSFValueError
+from ..moments.result import MomentsFlag
 from ..moments.shapes import calibration_shape_error, psf_shape
 from .galsim_profile import to_galsim
 from .product import read_psf, register_kind, write_psf
+
+log = logging.getLogger(__name__)
 
 __all__ = ["BFPSFModel"]
 
@@ -215,8 +219,18 @@ class BFPSFModel(Fittable2DModel):
         Returns
         -------
         bfpsf.moments.shapes.PSFShape
+            NaN with the flag ``UNDERSAMPLED`` (and a warning) where the pixelised model has
+            no adaptive moments at that phase: narrower than ~0.7 px, on a pixel centre.
         """
-        return psf_shape(self, flux, x=x, y=y)
+        shape = psf_shape(self, flux, x=x, y=y)
+        if shape.flags & MomentsFlag.UNDERSAMPLED:
+            x_0, y_0 = self.position_or_reference(x, y)
+            log.warning("the model at flux %.3g has no adaptive moments at sub-pixel phase "
+                        "(%.2f, %.2f) (flag 'undersampled': the weight collapses onto the "
+                        "central pixel of a model this narrow): its shape depends on the "
+                        "phase; ask at another position, e.g. x + 0.5, y + 0.5", flux,
+                        x_0 - np.floor(x_0 + 0.5), y_0 - np.floor(y_0 + 0.5))
+        return shape
 
     def shape_error(self, flux, x=None, y=None):
         """The error of `shape` at ``flux`` that the calibration's boundary shifts carry

@@ -18,8 +18,11 @@ class MomentsFlag:
     or above ``saturation``. ``TOO_FEW_PIXELS`` : fewer than 6 usable pixels (6 parameters:
     amplitude, centroid, three moments). ``BAD_PIXELS`` : the stamp holds non-finite pixels
     (they are masked, the measurement uses the others). ``NOT_POSITIVE_DEFINITE`` : the moment
-    matrix became non-positive-definite, grew beyond the stamp, or collapsed below the pixel
-    scale (an undersampled object without adaptive-moment solution; measurement failed).
+    matrix became non-positive-definite or grew beyond the stamp (measurement failed).
+    ``UNDERSAMPLED`` : the weight collapsed onto one pixel (minor semi-axis^2 below 0.01
+    pixel^2): an object narrower than ~0.7 pixel centred near a pixel centre has no
+    adaptive-moment solution (HSM fails there too; `bfpsf.moments.adaptive`, "Undersampled
+    objects"); measurement failed. Bit 32768: 128-16384 are `SourceFlag`'s.
     """
 
     NO_CONVERGENCE = 1
@@ -29,9 +32,10 @@ class MomentsFlag:
     TOO_FEW_PIXELS = 16
     BAD_PIXELS = 32
     NOT_POSITIVE_DEFINITE = 64
+    UNDERSAMPLED = 32768
 
     #: flags after which the moments are NaN (no measurement at all)
-    FATAL = NONPOSITIVE_FLUX | TOO_FEW_PIXELS | NOT_POSITIVE_DEFINITE
+    FATAL = NONPOSITIVE_FLUX | TOO_FEW_PIXELS | NOT_POSITIVE_DEFINITE | UNDERSAMPLED
 
     NAMES = {
         1: "no_convergence",
@@ -41,6 +45,7 @@ class MomentsFlag:
         16: "too_few_pixels",
         32: "bad_pixels",
         64: "not_positive_definite",
+        32768: "undersampled",
     }
 
 

@@ -211,15 +211,19 @@ def calibration_shape_error(psf, reference_flux, flux=1.0, *, x=None, y=None):
     samples = list(getattr(psf, "shift_samples", ()) or ())
     if len(samples) < 2:
         return None
-    single = psf.at(*psf.position_or_reference(x, y))
+    position = psf.position_or_reference(x, y)
+    single = psf.at(*position)
+    # at the sub-pixel phase of (x, y) when given: an undersampled model has no adaptive
+    # moments at phase 0, on a pixel centre (`bfpsf.moments.adaptive`)
+    at = {} if x is None and y is None else dict(x=position[0], y=position[1])
 
     def change(model):
-        low, high = psf_shape(model, flux), psf_shape(model, reference_flux)
+        low, high = psf_shape(model, flux, **at), psf_shape(model, reference_flux, **at)
         return low.sigma - high.sigma, low.e1 - high.e1, low.e2 - high.e2
 
     changes = np.array([change(single.with_shifts(shifts)) for shifts in samples])
     spread = np.std(changes, axis=0, ddof=1)
-    return {"sigma_percent": float(100 * spread[0] / psf_shape(single, flux).sigma),
+    return {"sigma_percent": float(100 * spread[0] / psf_shape(single, flux, **at).sigma),
             "e1": float(spread[1]), "e2": float(spread[2]), "n_samples": len(samples)}
 
 

@@ -1,0 +1,132 @@
+"""Undersampled stars (FWHM ~1.7 px, a double Gaussian as trial46's): adaptive moments without
+solution on a pixel centre are named 'undersampled', the slope against peak warns of its
+dependence on the sub-pixel phase, and the model's summaries and ``slope --psf`` are taken
+where the model has moments (at each star's phase, or a pixel corner)."""
+
+import json
+import logging
+
+import numpy as np
+import pytest
+from astropy.table import Table
+
+from bfpsf.cli import main
+from bfpsf.measure.model_slopes import predicted_slopes
+from bfpsf.measure.slopes import bf_slopes
+from bfpsf.model.psf import FluxDependentPSF
+from bfpsf.moments.adaptive import adaptive_moments, adaptive_moments_batch
+from bfpsf.moments.result import MomentsFlag
+from bfpsf.moments.shapes import calibration_shape_error
+from bfpsf.shifts import BoundaryShifts
+from bfpsf.validation.simulate_spots import write_image_adu
+
+galsim = pytest.importorskip("galsim")
+
+#: trial46's undersampled PSF in pixels: FWHM ~1.7 px with the pixel
+PROFILE = galsim.Add(galsim.Gaussian(sigma=0.5, flux=0.85), galsim.Gaussian(sigma=1.5, flux=0.15))
+SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
+SKY = 100.0
+
+
+def _stamps(profile, fluxes, phases, rng, size=21):
+    """Noisy stamps (Poisson star + sky, sky subtracted) at (x, y) phases about the centre."""
+    stamps = []
+    for flux, (x_phase, y_phase) in zip(fluxes, phases):
+        image = profile.withFlux(flux).drawImage(nx=size, ny=size, scale=1.0,
+                                                 offset=(x_phase, y_phase)).array
+        stamps.append(rng.poisson(np.clip(image, 0, None) + SKY) - SKY)
+    return np.array(stamps, dtype=float)
+
+
+def test_collapse_on_a_pixel_centre_is_named_undersampled():
+    rng = np.random.default_rng(60)
+    centred, corner = _stamps(PROFILE, [2e4, 2e4], [(0.0, 0.0), (0.5, 0.5)], rng)
+    result = adaptive_moments(centred)
+    # no solution (HSM fails too): named for its cause, not 'not_positive_definite'
+    assert result.flags == MomentsFlag.UNDERSAMPLED
+    assert result.flag_string == "undersampled" and np.isnan(result.sigma)
+    assert adaptive_moments(corner).flags == 0
+
+
+def test_measure_warns_of_undersampled_stars(tmp_path, capsys):
+    rng = np.random.default_rng(61)
+    image = rng.poisson(SKY, (280, 280)).astype(float)
+    for x in range(40, 250, 40):
+        for y in range(40, 250, 40):
+            phase = rng.uniform(-0.5, 0.5, 2)
+            star = PROFILE.withFlux(np.exp(rng.uniform(np.log(3e3), np.log(1e5)))).drawImage(
+                nx=21, ny=21, scale=1.0, offset=tuple(phase))
+            image[y - 10:y + 11, x - 10:x + 11] += rng.poisson(np.clip(star.array, 0, None))
+    path, output, summary = tmp_path / "u.fits", tmp_path / "u.ecsv", tmp_path / "u.json"
+    write_image_adu(path, image, gain=1.0)
+    assert main(["measure", str(path), "-o", str(output), "--json", str(summary)]) == 0
+    err = capsys.readouterr().err
+    assert "'undersampled'" in err and "sub-pixel phase" in err
+    counted = json.loads(summary.read_text())["n_undersampled"]
+    flags = Table.read(output)["flag_string"]
+    # every failure is named for its cause and counted; none is 'not_positive_definite'
+    assert counted >= 10 and np.sum(flags == "undersampled") == counted
+    assert not any("not_positive_definite" in str(flag) for flag in flags)
+
+
+def _star_table(profile, n, rng):
+    fluxes = np.exp(rng.uniform(np.log(2e3), np.log(2e5), n))
+    phases = rng.uniform(-0.5, 0.5, (n, 2))
+    stamps = _stamps(profile, fluxes, phases, rng)
+    moments = adaptive_moments_batch(stamps)
+    table = Table({"peak_e": stamps.max(axis=(1, 2)), "flux_e": fluxes,
+                   "sigma_x": np.sqrt(moments.mxx), "sigma_y": np.sqrt(moments.myy),
+                   "iq": moments.sigma, "flags": moments.flags,
+                   # image positions of that phase (the stamp centre is pixel 10)
+                   "x": 100.0 + 50 * np.arange(n) % 700 + phases[:, 0],
+                   "y": 100.0 + 7 * np.arange(n) + phases[:, 1]})
+    return table
+
+
+def test_slope_warns_that_undersampled_sizes_follow_the_phase(caplog):
+    rng = np.random.default_rng(62)
+    with caplog.at_level(logging.WARNING, logger="bfpsf"):
+        bf_slopes(_star_table(PROFILE, 150, rng))
+    assert "sub-pixel phase" in caplog.text and "undersampled" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="bfpsf"):       # well sampled: not a word
+        bf_slopes(_star_table(galsim.Gaussian(sigma=2.0), 150, rng))
+    assert "sub-pixel phase" not in caplog.text
+
+
+@pytest.fixture(scope="module")
+def psf():
+    model = FluxDependentPSF.from_galsim(PROFILE, SHIFTS, oversampling=2, size=15)
+    model.shift_samples = tuple(SHIFTS.scaled(factor) for factor in (0.8, 0.9, 1.1, 1.2))
+    model.star_flux_e = 1e5
+    return model
+
+
+def test_model_shape_on_a_pixel_centre_is_flagged_and_said(psf, caplog):
+    with caplog.at_level(logging.WARNING, logger="bfpsf"):
+        shape = psf.shape(1e3)
+    assert np.isnan(shape.sigma) and shape.flags & MomentsFlag.UNDERSAMPLED
+    assert "undersampled" in caplog.text
+    assert np.isfinite(psf.shape(1e3, x=0.5, y=0.5).sigma)
+    # the calibration error at a given phase is taken at that phase (NaN on the centre)
+    assert np.isfinite(calibration_shape_error(psf, 1e5, 1.0, x=0.5, y=0.5)["sigma_percent"])
+
+
+def test_psf_summaries_move_to_a_pixel_corner(psf, capsys):
+    from bfpsf.cli.psf import _bf_size_change, _summary_position
+
+    where = _summary_position(psf)
+    assert where == {"x": 0.5, "y": 0.5} and "undersampled" in capsys.readouterr().err
+    assert np.isfinite(psf.shape_error(1.0, **where)["sigma_percent"])
+    change = _bf_size_change(psf, bool(where))
+    assert change["x"] > 0 and change["y"] > 0 and change["phase"] == [0.5, 0.5]
+
+
+def test_slope_psf_predicts_for_undersampled_stars(psf):
+    rng = np.random.default_rng(63)
+    table = _star_table(PROFILE, 60, rng)
+    # before: the samples' increments at phase 0 were NaN for every star, and the fit raised
+    # "a brighter-fatter slope needs at least 3 usable objects, got 0"
+    prediction = predicted_slopes(psf, table)
+    for key in ("x", "y", "iq"):
+        assert np.isfinite(prediction[key]["slope"]) and prediction[key]["slope_err"] > 0
