@@ -330,6 +330,32 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
     return result
 
 
+def _fits_beside(table, clean, result, use_errors, columns_of):
+    """Each axis's fit of `bf_slopes` repeated on the stars it kept, with the image intercepts
+    and two more columns beside the slope (``columns_of(x, y)`` of those stars): yields
+    (key, size column, rows, parameters, covariance, mean intercept), the two columns' last.
+    Without errors the covariance is the scatter's (unit errors), as `fit_bf_slope`'s."""
+    x, y = (np.asarray(table[name], dtype=float) for name in ("x", "y"))
+    images = (np.unique(np.asarray(table["image"]), return_inverse=True)[1]
+              if "image" in table.colnames else np.zeros(len(table), dtype=int))
+    for key, column, error_column in SIZE_AXES[:2]:
+        rows = result[key].rows & clean & np.isfinite(x) & np.isfinite(y)
+        if rows.sum() < 10:
+            continue
+        size = np.asarray(table[column], dtype=float)[rows]
+        weighted = use_errors and error_column in table.colnames
+        errors = (np.asarray(table[error_column], dtype=float)[rows] if weighted
+                  else np.full(size.size, 1.0))
+        groups = np.unique(images[rows], return_inverse=True)[1]
+        design = np.column_stack([np.eye(groups.max() + 1)[groups],
+                                  np.asarray(table["peak_e"], float)[rows] / PEAK_UNIT_E,
+                                  *columns_of(x[rows], y[rows])])
+        params, covariance, chi2, _ = weighted_least_squares(size, errors, design)
+        reduced = chi2 / max(size.size - design.shape[1], 1)
+        covariance = covariance * (max(reduced, 1.0) if weighted else reduced)
+        yield key, column, rows, params, covariance, float(np.mean(params[:-3]))
+
+
 #: `bf_slopes` warns when the stars' size changes with their sub-pixel phase, beside its slope
 #: against peak, by more than this fraction (and 5 of its errors) from centre to corner
 PHASE_SIZE_CHANGE = 0.01
@@ -341,31 +367,14 @@ def _warn_phase(table, clean, result, use_errors):
     a corner, and a peak that is high on a centre and low on a corner, so the slope against
     peak measures the pixelisation (a double Gaussian of FWHM 1.7 px: sigma_y -0.114 +- 0.013
     px per 100 ke- where BF made +0.012). The fit of each axis is repeated with terms in the
-    squared phases (x - round(x))^2, (y - round(y))^2 beside the slope, on its stars."""
-    x, y = (np.asarray(table[name], dtype=float) for name in ("x", "y"))
-    images = (np.unique(np.asarray(table["image"]), return_inverse=True)[1]
-              if "image" in table.colnames else np.zeros(len(table), dtype=int))
-    for key, column, error_column in SIZE_AXES[:2]:
-        rows = result[key].rows & clean & np.isfinite(x) & np.isfinite(y)
-        if rows.sum() < 10:
-            continue
-        size = np.asarray(table[column], dtype=float)[rows]
-        errors = (np.asarray(table[error_column], dtype=float)[rows]
-                  if use_errors and error_column in table.colnames
-                  else np.full(size.size, 1.0))
-        groups = np.unique(images[rows], return_inverse=True)[1]
-        # 0 on a pixel centre, 1 on its edge (phase 0.5)
-        phase_x, phase_y = ((4.0 * (v[rows] - np.round(v[rows]))**2) for v in (x, y))
-        design = np.column_stack([np.eye(groups.max() + 1)[groups],
-                                  np.asarray(table["peak_e"], float)[rows] / PEAK_UNIT_E,
-                                  phase_x, phase_y])
-        params, covariance, chi2, _ = weighted_least_squares(size, errors, design)
-        # without errors, from the scatter (unit errors): as fit_bf_slope does
-        reduced = chi2 / max(size.size - design.shape[1], 1)
-        weighted = use_errors and error_column in table.colnames
-        covariance = covariance * (max(reduced, 1.0) if weighted else reduced)
+    squared phases 4 (x - round(x))^2, 4 (y - round(y))^2 (0 on a pixel centre, 1 on its
+    edge) beside the slope."""
+    def phases(x, y):
+        return [4.0 * (v - np.round(v)) ** 2 for v in (x, y)]
+
+    for key, column, _, params, covariance, intercept in _fits_beside(
+            table, clean, result, use_errors, phases):
         terms, terms_err = params[-2:], np.sqrt(np.diag(covariance)[-2:])
-        intercept = float(np.mean(params[:-3]))
         if not np.any((np.abs(terms) / intercept > PHASE_SIZE_CHANGE)
                       & (np.abs(terms) > 5 * terms_err)):
             continue
@@ -392,29 +401,15 @@ def _warn_field(table, clean, result, use_errors):
     new user's FWHM 3.2 -> 3.9 px across 400 px gave sigma_x -0.33 +- 0.10 px per 100 ke-
     where BF made +0.013). The fit of each axis is repeated with a plane in (x, y) beside
     the slope and the image intercepts, on the stars it kept."""
-    x, y = (np.asarray(table[name], dtype=float) for name in ("x", "y"))
-    images = (np.unique(np.asarray(table["image"]), return_inverse=True)[1]
-              if "image" in table.colnames else np.zeros(len(table), dtype=int))
-    for key, column, error_column in SIZE_AXES[:2]:
-        rows = result[key].rows & clean & np.isfinite(x) & np.isfinite(y)
-        if rows.sum() < 10:
-            continue
-        size = np.asarray(table[column], dtype=float)[rows]
-        errors = (np.asarray(table[error_column], dtype=float)[rows]
-                  if use_errors and error_column in table.colnames
-                  else np.full(size.size, 1.0))
-        groups = np.unique(images[rows], return_inverse=True)[1]
-        span_x, span_y = np.ptp(x[rows]) or 1.0, np.ptp(y[rows]) or 1.0
-        design = np.column_stack([np.eye(groups.max() + 1)[groups],
-                                  np.asarray(table["peak_e"], float)[rows] / PEAK_UNIT_E,
-                                  (x[rows] - x[rows].mean()) / span_x,
-                                  (y[rows] - y[rows].mean()) / span_y])
-        params, covariance, chi2, _ = weighted_least_squares(size, errors, design)
-        covariance = covariance * max(chi2 / max(size.size - design.shape[1], 1), 1.0)
-        plane, plane_err = params[-2:], np.sqrt(np.diag(covariance)[-2:])
-        intercept = float(np.mean(params[:-3]))
-        change = np.abs(plane) / intercept
-        if not np.any((change > FIELD_SIZE_CHANGE) & (np.abs(plane) > 5 * plane_err)):
+    def plane(x, y):
+        return [(v - v.mean()) / (np.ptp(v) or 1.0) for v in (x, y)]
+
+    for key, column, rows, params, covariance, intercept in _fits_beside(
+            table, clean, result, use_errors, plane):
+        x, y = (np.asarray(table[name], dtype=float)[rows] for name in ("x", "y"))
+        change, change_err = params[-2:], np.sqrt(np.diag(covariance)[-2:])
+        if not np.any((np.abs(change) / intercept > FIELD_SIZE_CHANGE)
+                      & (np.abs(change) > 5 * change_err)):
             continue
         log.warning("the stars' %s changes across the field beside its brighter-fatter: "
                     "%+.2f +- %.2f %% from x %.0f to %.0f, %+.2f +- %.2f %% from y %.0f to "
@@ -422,9 +417,9 @@ def _warn_field(table, clean, result, use_errors):
                     "the slope against peak (%+.4f +- %.4f px per 100 ke-) is confounded "
                     "with it; with a plane over the field beside it, %+.4f +- %.4f. Fit a "
                     "gridded P(F) (bfpsf psf --grid) and read the residual of `slope --psf`",
-                    column, 100 * plane[0] / intercept, 100 * plane_err[0] / intercept,
-                    x[rows].min(), x[rows].max(), 100 * plane[1] / intercept,
-                    100 * plane_err[1] / intercept, y[rows].min(), y[rows].max(),
+                    column, 100 * change[0] / intercept, 100 * change_err[0] / intercept,
+                    x.min(), x.max(), 100 * change[1] / intercept,
+                    100 * change_err[1] / intercept, y.min(), y.max(),
                     result[key].slope, result[key].slope_err, params[-3],
                     np.sqrt(covariance[-3, -3]))
 
