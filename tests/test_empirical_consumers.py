@@ -61,9 +61,9 @@ def test_every_evaluation_applies_the_term(truth, kind):
     table mode interpolates the same term to 2e-5 of the peak at 1.2e6 e- (1e-4 for the
     cubed charge's, whose series in the BF term has a larger third order), and the term-less
     model is unchanged. Each pattern kind."""
-    from bfpsf.model.empirical_patterns import _KINDS
+    from bfpsf.model.empirical_patterns import power_and_reach
 
-    power, reach = _KINDS[kind]
+    power, reach = power_and_reach(kind)
     flux = 1.2e6
     term = EmpiricalTerm({"xx": {"constant": 0.1, "position": 0.05},
                           "yy": {"flux2": 0.04}}, x_reference=500.0, x_range=(0.0, 1000.0),

@@ -19,7 +19,8 @@ from scipy import ndimage
 from ..errors import BFPSFValueError
 
 __all__ = ["PATTERNS", "FLUX_REFERENCE", "PATTERN_KIND", "CHARGE_KIND", "CUBE_KIND",
-           "PATTERN_KINDS", "REACHES", "broad_kind", "apply_pattern", "pattern_series",
+           "PATTERN_KINDS", "REACHES", "broad_kind", "power_and_reach", "apply_pattern",
+           "pattern_series",
            "pattern_tables"]
 
 #: The pixel-space patterns, in the order of `EmpiricalTerm.variance_change`.
@@ -61,6 +62,15 @@ _KINDS = {PATTERN_KIND: (2, None), CHARGE_KIND: (1, None), CUBE_KIND: (3, None),
 #: Every pattern kind a term may have; `bfpsf diagnose` keeps the one whose P(F) fits the
 #: held-out stars best (`bfpsf.diagnosis.pattern_choice`).
 PATTERN_KINDS = tuple(_KINDS)
+
+
+def power_and_reach(kind):
+    """(the power of the charge a pattern kind moves, its Gaussian reach in pixels or None
+    for the nearest pixels); an unknown kind is refused."""
+    if kind not in _KINDS:
+        msg = f"pattern kind must be one of {PATTERN_KINDS}, got {kind!r}"
+        raise BFPSFValueError(msg, kind)
+    return _KINDS[kind]
 
 
 #: The transfers of each pattern: (step (dy, dx), weight). Along X, along Y, and half the
@@ -191,16 +201,13 @@ def pattern_series(image, change, pattern, total=None, total_change=0.0, order=2
     term (`pattern_tables`); the PSF fit's flux derivative is B1 along d model / d F."""
     image = np.asarray(image, float)
     _steps(pattern)
-    if kind not in PATTERN_KINDS:
-        msg = f"pattern kind must be one of {PATTERN_KINDS}, got {kind!r}"
-        raise BFPSFValueError(msg, kind)
+    power, reach = power_and_reach(kind)
     positive = np.clip(image, 0.0, None)
     change = np.where(image > 0, np.asarray(change, float), 0.0)
     if total is None:
         s1, d1 = _star_total(image, None), _star_total(change, None)
     else:
         s1, d1 = _star_total(image, total), _star_total(image, total_change)
-    power, reach = _KINDS[kind]
     # (I + e dI)^n = a0 + e a1 + e^2 a2 + O(e^3), where I > 0 (dI is 0 elsewhere)
     safe = np.where(positive > 0, positive, 1.0)
     parts = (positive ** power, power * safe ** (power - 1) * change,
