@@ -13,6 +13,7 @@ from ..files import about, check_outputs, input_files
 from ..outputs import write_json, write_table
 from ..measure.photometry import RESIDUAL_PASSES
 from ..measure.sources import SourceFlag
+from ..moments.result import MomentsFlag
 from . import (image_arguments, non_negative_float, non_negative_int, output_options,
                positive_float, positive_int, star_image_options)
 from ._files import one_fit_per_star, place_stars, read_image, warn_unconverged
@@ -257,6 +258,8 @@ def run(args):
                "n_unlike_psf": _unlike(result),
                "n_on_line": _flagged(result, SourceFlag.ON_LINE),
                "n_cosmic_ray": _flagged(result, SourceFlag.COSMIC_RAY),
+               # detection's adaptive moments collapsed onto one pixel (`measure`'s warning)
+               "n_undersampled": _flagged(result, MomentsFlag.UNDERSAMPLED),
                "empirical": result.meta["empirical"],
                "flux_correction_slope": result.meta["flux_correction_slope"]}
     summary["residual_passes"] = args.residual_passes
@@ -289,6 +292,9 @@ def run(args):
              if any(entry["line_pixels"] for entry in per_image) else "")
           + (f"{summary['n_cosmic_ray']} stars hit by a cosmic ray, its pixels left out of "
              "their fit (flagged cosmic_ray); " if summary["n_cosmic_ray"] else "")
+          + (f"{summary['n_undersampled']} undersampled, without adaptive moments (flagged "
+             "undersampled: sharp cores are taken for cosmic rays, docs/limitations.md); "
+             if summary["n_undersampled"] else "")
           + "detection's flags and unlike_psf in source_flags, bits in "
           f"bfpsf.measure.sources.SourceFlag.NAMES); wrote {args.output}")
     # the product's total-flux correction, a scale common to every flux: said where poorly
@@ -314,7 +320,8 @@ def run(args):
 
 
 def _flagged(table, flag):
-    """How many fitted stars have the `SourceFlag` ``flag`` in ``source_flags``."""
+    """How many fitted stars have the `SourceFlag` (or detection's `MomentsFlag`) ``flag`` in
+    ``source_flags``."""
     return int(np.sum((np.asarray(table["source_flags"]) & flag) > 0))
 
 

@@ -87,6 +87,10 @@ def _quiet():
                                 category=AstropyUserWarning)
         warnings.filterwarnings("ignore", message="flux .* is beyond the first-order BF model",
                                 category=BFPSFWarning)
+        # photutils' reduced chi2 of a fit with no degree of freedom (chi2 / 0, inf in the
+        # table), which a new user read on stderr beside bfpsf's summary
+        warnings.filterwarnings("ignore", message="divide by zero", category=RuntimeWarning,
+                                module=r"photutils\.")
         yield
 
 
