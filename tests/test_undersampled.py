@@ -87,15 +87,27 @@ def _star_table(profile, n, rng):
     return table
 
 
-def test_slope_warns_that_undersampled_sizes_follow_the_phase(caplog):
+def test_slope_warns_that_undersampled_sizes_follow_the_phase(tmp_path, caplog):
     rng = np.random.default_rng(62)
+    table = _star_table(PROFILE, 150, rng)
     with caplog.at_level(logging.WARNING, logger="bfpsf"):
-        bf_slopes(_star_table(PROFILE, 150, rng))
+        slopes = bf_slopes(table)
     assert "sub-pixel phase" in caplog.text and "undersampled" in caplog.text
+    # and kept for a script (`slope --json` writes it: a new user's JSON held the raw slopes
+    # alone): the size's change from centre to edge, and the slope beside it
+    phase = slopes["beside"]["phase"]
+    assert max(abs(change) for entry in phase.values()
+               for change in entry["change_percent"]) > 5
+    assert all(np.isfinite(entry["slope_beside"]) for entry in phase.values())
+    table.write(tmp_path / "stars.ecsv")
+    assert main(["slope", str(tmp_path / "stars.ecsv"), "--json", str(tmp_path / "s.json")]) == 0
+    written = json.loads((tmp_path / "s.json").read_text())["beside"]["phase"]
+    assert {axis: entry["slope_beside"] for axis, entry in written.items()} == pytest.approx(
+        {axis: entry["slope_beside"] for axis, entry in phase.items()})
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="bfpsf"):       # well sampled: not a word
-        bf_slopes(_star_table(galsim.Gaussian(sigma=2.0), 150, rng))
-    assert "sub-pixel phase" not in caplog.text
+        slopes = bf_slopes(_star_table(galsim.Gaussian(sigma=2.0), 150, rng))
+    assert "sub-pixel phase" not in caplog.text and slopes["beside"] == {}
 
 
 @pytest.fixture(scope="module")

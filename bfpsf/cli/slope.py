@@ -85,7 +85,7 @@ def _model_residual(stars, args, colour_fit, psf, slopes):
                         ("e2", "e2")):
         if column in residual.colnames:
             residual[column] = residual[column] - model[key]
-    rows = {key: fit.rows for key, fit in slopes.items() if key != "n_stars"}
+    rows = {key: fit.rows for key, fit in slopes.items() if hasattr(fit, "rows")}
     # stars measured whose model has no size (an undersampled P(F) collapses onto the central
     # pixel at their phase, where the star itself did not): left out of both fits, and said
     lost = int(np.sum(slopes["iq"].rows & ~np.isfinite(model["iq"])))
@@ -148,6 +148,8 @@ def run(args):
                            use_errors=not args.unweighted, colour_fit=colour_fit)
     summary = _summary(slopes)
     summary["n_stars"] = int(slopes["n_stars"])
+    # what the fits beside the slope warned of (over the field, over the sub-pixel phase)
+    summary["beside"] = slopes.get("beside", {})
     residual = prediction = psf = None
     if args.psf is not None:
         from ..model.psf import FluxDependentPSF

@@ -282,7 +282,11 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
     dict
         ``{'x': SlopeFit, 'y': SlopeFit, 'iq': SlopeFit, 'n_stars': int}``, plus ``'e1'``
         and ``'e2'`` (the same straight line fitted to the distortion against peak: slope per
-        100 ke- of peak, intercept dimensionless) when the table has those columns.
+        100 ke- of peak, intercept dimensionless) when the table has those columns, and
+        ``'beside'`` with the table's x and y: what was warned of, ``{'field' or 'phase':
+        {axis: {'change_percent': [along x, along y], 'change_percent_err',
+        'slope_beside', 'slope_beside_err'}}}`` (the size's change over the field or the
+        sub-pixel phase, and the slope fitted beside it), empty where nothing was.
     """
     missing = [name for name in ("peak_e", "sigma_x", "sigma_y", "iq") if name not in
                table.colnames]
@@ -325,8 +329,9 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
                     result["x"].peak_min_e, result["x"].peak_max_e, span, result["x"].slope,
                     result["x"].slope_err)
     if warn_span and rows is None and {"x", "y"} <= set(table.colnames):
-        _warn_field(table, clean, result, use_errors)
-        _warn_phase(table, clean, result, use_errors)
+        beside = {"field": _warn_field(table, clean, result, use_errors),
+                  "phase": _warn_phase(table, clean, result, use_errors)}
+        result["beside"] = {name: found for name, found in beside.items() if found}
     return result
 
 
@@ -372,12 +377,14 @@ def _warn_phase(table, clean, result, use_errors):
     def phases(x, y):
         return [4.0 * (v - np.round(v)) ** 2 for v in (x, y)]
 
+    found = {}
     for key, column, _, params, covariance, intercept in _fits_beside(
             table, clean, result, use_errors, phases):
         terms, terms_err = params[-2:], np.sqrt(np.diag(covariance)[-2:])
         if not np.any((np.abs(terms) / intercept > PHASE_SIZE_CHANGE)
                       & (np.abs(terms) > 5 * terms_err)):
             continue
+        found[key] = _beside(terms, terms_err, intercept, params, covariance)
         log.warning("the stars' %s (%.2f px) changes with their sub-pixel phase: %+.1f +- %.1f "
                     "%% from a pixel centre to its edge along x, %+.1f +- %.1f %% along y: the "
                     "stars are undersampled, their moments and peaks depend on the phase, and "
@@ -388,6 +395,7 @@ def _warn_phase(table, clean, result, use_errors):
                     100 * terms_err[0] / intercept, 100 * terms[1] / intercept,
                     100 * terms_err[1] / intercept, result[key].slope, result[key].slope_err,
                     params[-3], np.sqrt(covariance[-3, -3]))
+    return found
 
 
 #: `bf_slopes` warns when the stars' size changes across the field, beside its slope
@@ -404,6 +412,7 @@ def _warn_field(table, clean, result, use_errors):
     def plane(x, y):
         return [(v - v.mean()) / (np.ptp(v) or 1.0) for v in (x, y)]
 
+    found = {}
     for key, column, rows, params, covariance, intercept in _fits_beside(
             table, clean, result, use_errors, plane):
         x, y = (np.asarray(table[name], dtype=float)[rows] for name in ("x", "y"))
@@ -411,6 +420,7 @@ def _warn_field(table, clean, result, use_errors):
         if not np.any((np.abs(change) / intercept > FIELD_SIZE_CHANGE)
                       & (np.abs(change) > 5 * change_err)):
             continue
+        found[key] = _beside(change, change_err, intercept, params, covariance)
         log.warning("the stars' %s changes across the field beside its brighter-fatter: "
                     "%+.2f +- %.2f %% from x %.0f to %.0f, %+.2f +- %.2f %% from y %.0f to "
                     "%.0f: the PSF varies over the field, and a wide star has a low peak, so "
@@ -422,6 +432,15 @@ def _warn_field(table, clean, result, use_errors):
                     100 * change_err[1] / intercept, y.min(), y.max(),
                     result[key].slope, result[key].slope_err, params[-3],
                     np.sqrt(covariance[-3, -3]))
+    return found
+
+
+def _beside(change, change_err, intercept, params, covariance):
+    """What `_warn_field` and `_warn_phase` warn of, for `bf_slopes`' ``'beside'``."""
+    return {"change_percent": [float(100 * value / intercept) for value in change],
+            "change_percent_err": [float(100 * value / intercept) for value in change_err],
+            "slope_beside": float(params[-3]),
+            "slope_beside_err": float(np.sqrt(covariance[-3, -3]))}
 
 
 def _add_colour_errors(result, table, clean, colour_fit, min_peak_e, max_peak_e, use_errors):
