@@ -9,11 +9,11 @@ transfer of each pixel's charge to its neighbours, a smear growing with the star
 also to a Gaussian reach of pixels); the pixels can, and `keep_the_pattern_the_pixels_prefer`
 keeps the kind whose refined calibration leaves the stars' own chi2 per pixel the lowest
 (each star against its P(F), averaged over the stars), every kind on the sky the flats'
-P(F) found (one P0 fit each, where the user's path makes three with its sky). The stack's chi2 had chosen before:
-the mean residual over the stars, of which P0 takes the flux-independent part, and on a new
-user's halo of the brightest pixels it kept the neighbours' transfer (1.03 against 1.06 for
-the reach of 4 px, whose held-out photometry drift is the smaller; see
-docs/undeclared_effects.md).
+P(F) found (one P0 fit each, where the user's path makes three with its sky). The stack's
+chi2 had chosen before: the mean residual over the stars, of which P0 takes the
+flux-independent part, and on a new user's halo of the brightest pixels it kept the
+neighbours' transfer (1.03 against 1.06 for the reach of 4 px, whose held-out photometry
+drift is the smaller; see docs/undeclared_effects.md).
 """
 
 import dataclasses
@@ -73,15 +73,15 @@ def keep_the_pattern_the_pixels_prefer(result, observables, **options):
     options = dict(options, cache={} if options.get("cache") is None else options["cache"])
     # the flats' P(F) through the user's path first: every kind is then compared on the sky
     # its fit found (one P0 fit per image and kind, where the path makes three)
-    flats = refined_star_residual(observables, None, heldout, **options)["flats"]
+    path = refined_star_residual(observables, None, heldout, **options)
+    flats, exposures = path["flats"], path["exposures"]
     tried = {}
     for record in (result.empirical, *result.empirical_alternatives.values()):
         candidate = dataclasses.replace(result, empirical=record)
         refined = refine_calibration(observables.meta["calibration"], candidate)
         if "empirical" not in refined.refinement["applied"]:
             continue  # not validated out of sample: not applied whatever its pixels say
-        star = star_residual_with(refined, paths, list(heldout or range(len(paths))),
-                                  same_sky=True, **options)
+        star = star_residual_with(refined, paths, exposures, same_sky=True, **options)
         if star is not None:
             tried[record["pattern"]] = (star["stars_chi2_per_pixel"], candidate, refined)
     if len(tried) < 2:

@@ -34,8 +34,8 @@ Pattern kinds (`bfpsf.model.empirical_patterns`; ``kind``): the squared charge's
 B_k[I] = 1/2 d^2 I / dx^2 F / sum(I) (`CHARGE_KIND`, a smear whose variance grows with the
 star's flux), each to the nearest pixels or to a Gaussian reach of 2, 4 or 8 pixels (a halo;
 `bfpsf.model.empirical_patterns.REACHES`). The term is fitted to the stars' adaptive
-(Gaussian-weighted) sizes and used by PSF photometry, which weights the pixels by their variance; the two agree only when the
-pattern has the shape of the effect, and the sizes cannot tell the kinds apart: ``bfpsf
+(Gaussian-weighted) sizes and used by PSF photometry, which weights the pixels by their
+variance; the two agree only when the pattern has the shape of the effect, and the sizes cannot tell the kinds apart: ``bfpsf
 diagnose`` learns every kind and keeps the one whose held-out stars the P(F) it gives fits
 the best (`bfpsf.diagnosis.pattern_choice`). The P0 fit gives the term the amplitude the
 stars' pixels ask for (``amplitude``; `bfpsf.model.psf_fit_empirical`). On the

@@ -20,8 +20,7 @@ from ..errors import BFPSFValueError
 
 __all__ = ["PATTERNS", "FLUX_REFERENCE", "PATTERN_KIND", "CHARGE_KIND", "CUBE_KIND",
            "PATTERN_KINDS", "REACHES", "broad_kind", "power_and_reach", "apply_pattern",
-           "pattern_series",
-           "pattern_tables"]
+           "pattern_series", "pattern_tables"]
 
 #: The pixel-space patterns, in the order of `EmpiricalTerm.variance_change`.
 PATTERNS = ("xx", "yy", "xy")
@@ -125,6 +124,7 @@ def _line_kernel(weights, n):
     return kernel, ndimage.correlate1d(np.ones(n), kernel, mode="constant")
 
 
+@functools.lru_cache(maxsize=None)
 def _gaussian_weights(reach):
     """(k, w_k) of a discrete Gaussian of sigma ``reach`` out to 3 sigma, less the charge it
     keeps, per unit variance (`_transfer` adds the image's sum to the variance along its

@@ -356,7 +356,7 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
                desc="P0 fit", unit="it", leave=False)
     iteration = start = 0  # a restart without the misfits counts from ``start``
     first_damping = damping
-    amplitude_damping, amplitude_steps = 1.0, [0.0]
+    amplitude_damping, last_step = 1.0, 0.0
     while iteration < start + max_iterations:
         iteration += 1
         bar.update()
@@ -375,10 +375,12 @@ def fit_psf(images_e, positions, shifts, *, oversampling=2, size=DEFAULT_SIZE, r
         amplitude, residual, error = amplitude_step(
             fitted.amplitude, unit, residual, variance, ((stars.flags & MOVED) == 0) & stars.used,
             model, stars.flux, damping * amplitude_damping)
-        amplitude_steps.append(amplitude - fitted.amplitude)
-        settled = abs(amplitude_steps[-1]) < max(AMPLITUDE_TOLERANCE,
-                                                 AMPLITUDE_ERROR_FRACTION * error)
-        if amplitude_steps[-1] * amplitude_steps[-2] < -0.5 * amplitude_steps[-2] ** 2:
+        amplitude_change = amplitude - fitted.amplitude
+        settled = abs(amplitude_change) < max(AMPLITUDE_TOLERANCE,
+                                              AMPLITUDE_ERROR_FRACTION * error)
+        swung_back = amplitude_change * last_step < -0.5 * last_step ** 2
+        last_step = amplitude_change
+        if swung_back:
             # back by more than half its last step: the amplitude's step overshoots (P0 takes
             # its share of the same residual); undamped, one swung by +-0.1 (its error 0.024)
             # for all 40 iterations of a new user's fit
