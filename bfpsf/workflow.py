@@ -26,7 +26,6 @@ import numpy as np
 
 from .errors import BFPSFInputError, BFPSFValueError
 from .measure.bf_agreement import bf_agreement
-from .measure.cosmic_rays import fill_from_neighbours
 from .measure.line_features import line_mask
 from .measure.neighbours import isolated_stars
 from .measure.read_noise import sky_scatter
@@ -36,6 +35,7 @@ from .measure.total_flux import fit_sky_and_wings, wing_gradient
 from .moments.shapes import (MAG_PER_SIZE_ERROR, size_across, size_offset, size_ratios,
                              stars_beside_psf)
 from .model.empirical import empirical_of
+from .model.nanfill import harmonic_fill
 from .model.psf_fit import DEFAULT_SIZE, fit_psf
 from .model.psf_fit_stars import UNLIKE
 from .model.wings import wing_image
@@ -73,6 +73,8 @@ class PSFFromImages:
         Per image, its used stars measured beside the model
         (`bfpsf.moments.shapes.stars_beside_psf`), shared by the checks above and
         `bf_agreement`.
+    detections : list of dict, optional
+        Per image, the stars found for the fit (`psf_from_images`' ``detections``).
     """
 
     psf: object
@@ -80,6 +82,7 @@ class PSFFromImages:
     images: list
     prepared: list
     beside: list = None
+    detections: list = None
 
     def bf_agreement(self):
         """The used stars' brighter-fatter over the one P(F) predicts, along x and y
@@ -93,7 +96,7 @@ class PSFFromImages:
 def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=None,
                     threshold=None, saturation_e=None, include_bf=True, max_iterations=None,
                     exclude=None, calibration_name="", shift_samples=None, exposure=None,
-                    amplifiers=None, frames=None, refit_sky=True):
+                    amplifiers=None, frames=None, refit_sky=True, detections=None):
     """Fit the flux-dependent PSF from prepared images (what ``bfpsf psf`` does).
 
     Parameters
@@ -135,8 +138,11 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     refit_sky : bool, optional
         Fit the sky jointly with the stars' wings and refit P0 on it (default). False: one P0
         fit on the images' skies as given (`PSFFromImages.prepared` of a fit of the same
-        images: its sky and the wings' glow), to compare calibrations on one sky; the wings
-        are measured after it.
+        images: its sky and the wings' glow), to compare calibrations on one sky; P0 alone,
+        no wings (``flux_correction`` 1) and no size offsets: not a product to use.
+    detections : list, optional
+        `PSFFromImages.detections` of a fit of the same prepared images (the same sky,
+        saturation and exclusions): their stars, without detecting them again.
 
     Returns
     -------
@@ -150,36 +156,13 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         calibrations = [calibrations] * len(images)
     saturation = np.broadcast_to(np.asarray(saturation_e if saturation_e is not None
                                             else np.nan, dtype=float), (len(images),))
-    positions, others, per_image, lines, rays = [], [], [], [], []
-    for index, prepared in enumerate(images):
-        data = prepared.sky_subtracted
-        # the level in the sky-subtracted image: below it wherever the sky is highest (a
-        # clipped pixel minus a sloped sky falls under the level minus the sky's mean)
-        level = None if not np.isfinite(saturation[index]) else float(
-            saturation[index] - prepared.sky.image().max())
-        # trails and hot columns: no star beside them is used, and the sky-and-wings fit
-        # leaves their pixels out
-        lines.append(line_mask(data, threshold))
-        # cosmic rays: filled from their neighbours in P0's fit, left out of the sky's, and
-        # no star beside one is used (`bfpsf.measure.cosmic_rays`)
-        xy, n_detected, neighbours, found = isolated_stars(
-            data, size, threshold=threshold, saturation_e=level, lines=lines[-1],
-            return_rays=True)
-        rays.append(found)
-        excluded = np.zeros(len(xy), dtype=bool)
-        if exclude is not None and exclude[index] is not None and len(xy):
-            excluded = np.asarray(exclude[index](xy, data.shape), dtype=bool)
-        positions.append(xy[~excluded])
-        # every other source (and an excluded star) is modelled in the P0 fit, not used
-        others.append(np.concatenate([neighbours, xy[excluded]]))
-        per_image.append({"n_detected": int(n_detected), "n_isolated": int(np.sum(~excluded)),
-                          "n_excluded": int(np.sum(excluded)),
-                          "background_e": prepared.sky.level,
-                          "sky_slope": list(prepared.sky.slope),
-                          "sky_method": prepared.sky.method,
-                          "sky_degree": prepared.sky.kind,
-                          "line_pixels": int(lines[-1].sum()),
-                          "cosmic_ray_pixels": int(found.sum())})
+    if detections is None:
+        detections = [_detect(prepared, size, threshold, saturation[index],
+                              None if exclude is None else exclude[index])
+                      for index, prepared in enumerate(images)]
+    positions, others, lines, rays = ([found[key] for found in detections]
+                                      for key in ("positions", "others", "lines", "rays"))
+    per_image = [dict(found["entry"]) for found in detections]
     buildups = {calibration.refinement.get("buildup_steps")
                 for calibration in calibrations if getattr(calibration, "refinement", None)}
     buildups.discard(None)
@@ -206,7 +189,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                   for calibration in calibrations]
 
     def fit():
-        return fit_psf([fill_from_neighbours(prepared.sky_subtracted, ray)
+        return fit_psf([harmonic_fill(prepared.sky_subtracted, ray, isolated="nan")
                         for prepared, ray in zip(images, rays)], positions, shift_sets,
                        oversampling=oversampling, size=size, read_noise=noise,
                        sky_e=[max(prepared.sky.level, 0.0) for prepared in images],
@@ -220,6 +203,9 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
         raise BFPSFInputError(msg, n_stars)
     check_psf_fit(n_stars, size, oversampling, grid, max_iterations)
     result = fit()
+    if not refit_sky:  # P0 alone, on the skies given
+        _sky_entries(per_image, images)
+        return PSFFromImages(result.psf, result, per_image, images, detections=detections)
 
     known = all(prepared.sky.method == "known" for prepared in images)
     # the highest sky degree the wings fit may take (it may keep a lower one, which the
@@ -237,8 +223,6 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                       for prepared, line, ray in zip(images, lines, rays)]
         skies, wings = fit_sky_and_wings(sky_fitted, stars, half_size=size // 2,
                                          degree=degree, oversampling=oversampling)
-        if not refit_sky:
-            break  # the wings measured, P0 kept on the skies given
         # P0 refitted with the wings' glow subtracted, a known sky's too (fitted with the
         # glow left in, a crowded field's P0 took its neighbours' glow in its outskirts: a
         # new user's bright stars -9.3 mmag with its true sky given, +0.7 with the sky fitted)
@@ -246,10 +230,7 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
                                     _glow(wings, mine, prepared.image_e.shape))
                   for prepared, sky, mine in zip(images, skies, stars)]
         result = fit()
-    for entry, prepared in zip(per_image, images):
-        entry.update(background_e=prepared.sky.level, sky_slope=list(prepared.sky.slope),
-                     sky_method=prepared.sky.method, sky_degree=prepared.sky.kind,
-                     sky_scatter=sky_scatter(prepared))
+    _sky_entries(per_image, images)
     psf = result.psf  # with its EMPIRICAL term at the amplitude the stars' pixels gave
     psf.calibration = str(calibration_name)
     psf.shift_samples = tuple(calibration_samples(calibrations, counts) if shift_samples is None
@@ -282,7 +263,42 @@ def psf_from_images(images, calibrations, *, size=None, oversampling=2, grid=Non
     psf.star_flux_e = _star_flux(result) * psf.electrons_per_unit
     psf.p0_converged = bool(result.converged)
     beside = _size_offsets(per_image, images, result, psf)
-    return PSFFromImages(psf, result, per_image, images, beside)
+    return PSFFromImages(psf, result, per_image, images, beside, detections)
+
+
+def _sky_entries(per_image, images):
+    """Each image's sky in its entry of `PSFFromImages.images`."""
+    for entry, prepared in zip(per_image, images):
+        entry.update(background_e=prepared.sky.level, sky_slope=list(prepared.sky.slope),
+                     sky_method=prepared.sky.method, sky_degree=prepared.sky.kind,
+                     sky_scatter=sky_scatter(prepared))
+
+
+def _detect(prepared, size, threshold, saturation, exclude):
+    """The stars of one prepared image for the P0 fit (`PSFFromImages.detections`):
+    ``positions`` of the isolated ones, ``others`` (every other source, and a star
+    ``exclude`` leaves out, modelled in the fit, not used), the ``lines`` and ``rays``
+    masks and the image's counts (``entry``)."""
+    data = prepared.sky_subtracted
+    # the level in the sky-subtracted image: below it wherever the sky is highest (a
+    # clipped pixel minus a sloped sky falls under the level minus the sky's mean)
+    level = None if not np.isfinite(saturation) else float(
+        saturation - prepared.sky.image().max())
+    # trails and hot columns: no star beside them is used, and the sky-and-wings fit
+    # leaves their pixels out
+    lines = line_mask(data, threshold)
+    # cosmic rays: filled from their neighbours in P0's fit, left out of the sky's, and
+    # no star beside one is used (`bfpsf.measure.cosmic_rays`)
+    xy, n_detected, neighbours, rays = isolated_stars(
+        data, size, threshold=threshold, saturation_e=level, lines=lines, return_rays=True)
+    excluded = np.zeros(len(xy), dtype=bool)
+    if exclude is not None and len(xy):
+        excluded = np.asarray(exclude(xy, data.shape), dtype=bool)
+    return {"positions": xy[~excluded], "others": np.concatenate([neighbours, xy[excluded]]),
+            "lines": lines, "rays": rays,
+            "entry": {"n_detected": int(n_detected), "n_isolated": int(np.sum(~excluded)),
+                      "n_excluded": int(np.sum(excluded)), "line_pixels": int(lines.sum()),
+                      "cosmic_ray_pixels": int(rays.sum())}}
 
 
 def default_iterations(grid):

@@ -272,6 +272,38 @@ def test_all_nan_image_cannot_be_interpolated():
         redistribute(np.full((4, 4), np.nan), e2v_like_shifts(), nan_policy="interpolate")
 
 
+def test_harmonic_fill_is_exact_on_a_harmonic_image_and_leaves_other_nans():
+    """The one fill of the package (NaN pixels before redistribution, cosmic rays before a
+    measurement): inside the image a plane and x^2 - y^2 are harmonic, so filled exactly; a
+    NaN outside the mask is neither filled nor a boundary value; a masked group without a
+    finite neighbour raises, or is NaN with ``isolated='nan'``."""
+    from bfpsf.model.nanfill import harmonic_fill
+
+    y, x = np.mgrid[:12, :14].astype(float)
+    mask = np.zeros(x.shape, dtype=bool)
+    mask[4:7, 5:9] = mask[9, 2] = True
+    for image in (3.0 + 0.5 * x - 2.0 * y, (x - 6.0) ** 2 - (y - 5.0) ** 2):
+        np.testing.assert_allclose(harmonic_fill(image, mask)[mask], image[mask], atol=1e-9)
+    holed = 3.0 + 0.5 * x - 2.0 * y
+    holed[7, 5:9] = np.nan  # beside the mask's bottom row: not used, left NaN
+    filled = harmonic_fill(holed, mask)
+    assert np.isnan(filled[7, 5:9]).all() and np.all(np.isfinite(filled[mask]))
+    # (a maximum principle: within the finite values around the mask, the missing row's
+    # plane values beyond them)
+    around = holed[3:8, 4:10]
+    hole = filled[4:7, 5:9]
+    assert np.nanmin(around) <= hole.min() and hole.max() <= np.nanmax(around)
+    assert hole.min() > (3.0 + 0.5 * x - 2.0 * y)[6, 5:9].min()
+    alone = np.full(x.shape, np.nan)
+    alone[:, :3] = 1.0
+    lonely = np.zeros(x.shape, dtype=bool)
+    lonely[5, 8] = lonely[2, 1] = True
+    with pytest.raises(BFPSFInputError, match="no finite neighbour"):
+        harmonic_fill(alone, lonely)
+    filled = harmonic_fill(alone, lonely, isolated="nan")
+    assert np.isnan(filled[5, 8]) and filled[2, 1] == pytest.approx(1.0)
+
+
 def test_bad_arguments_are_named():
     shifts = e2v_like_shifts()
     with pytest.raises(BFPSFInputError, match="image must be 2-D"):

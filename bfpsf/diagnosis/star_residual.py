@@ -136,8 +136,8 @@ def star_residual_with(calibration, paths, exposures, *, amp=None, background=No
         As ``bfpsf diagnose``: the amplifier, a known sky (ADU) and a saturation level (ADU).
     cache : dict, optional
         Kept between calls on the same images: each image as read, prepared and detected
-        for a gain and linearity correction (calibrations that share them share these), and
-        the sky that its last fit with ``same_sky`` False found.
+        for a gain and linearity correction (calibrations that share them share these), the
+        sky that its last fit with ``same_sky`` False found, and the stars found on it.
     same_sky : bool, optional
         Each image with the sky (and the wings' glow) of the last fit of it in ``cache``, if
         any, and one P0 fit (`psf_from_images`' ``refit_sky``): a third of the fits, for comparing
@@ -159,17 +159,21 @@ def star_residual_with(calibration, paths, exposures, *, amp=None, background=No
             prepared = prepare_image(amplifier.data, gain=gain, linearity_c_per_1e5=linearity,
                                      background_e=None if background is None
                                      else background * gain)
-            cache[key] = (amplifier, prepared, {}, {})
-        amplifier, prepared, sources, fitted_sky = cache[key]
+            cache[key] = (amplifier, prepared, {}, {}, {})
+        amplifier, prepared, sources, fitted_sky, found = cache[key]
         level = saturation_e(amplifier, gain, saturation, calibration)
         # (a calibration of another gain or linearity has no fit of its own yet: the path)
         sky = fitted_sky.get(level) if same_sky else None
         prepared = prepared if sky is None else sky
         fit = psf_from_images([prepared], calibration, saturation_e=level, exposure=index,
-                              refit_sky=sky is None)
+                              refit_sky=sky is None,
+                              detections=None if sky is None else found.get(level))
         if sky is None:
             fitted_sky[level] = fit.prepared[0]
-        pixels.append(prepared.sky_subtracted)
+        else:  # the stars on that sky, for the next calibration compared on it
+            found[level] = fit.detections
+        # the stars on the sky (and less the glow) P0 was fitted on
+        pixels.append(fit.prepared[0].sky_subtracted)
         if level not in sources:
             sources[level] = measure_sources(prepared.image_e, saturation=level)
         tables.append(sources[level])

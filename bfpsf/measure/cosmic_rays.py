@@ -34,8 +34,8 @@ fine structure, which had hidden every ray near a bright core, each pixel judged
 `SHARPER` than a star within `CENTRE_REACH` of a centre and `WING_SHARPER` elsewhere (a
 star's light is in the 3 x 3 sum, so a deposit on a bright wing that moves the star's
 moments little is not sharp there). The pixels found are filled from their neighbours
-(`fill_from_neighbours`), and the stars with one within a few of their sigmas are flagged
-``cosmic_ray``, left out of the slopes and of P0. Not found: tracks on undersampled stars,
+(`bfpsf.model.nanfill.harmonic_fill`), and the stars with one within a few of their sigmas
+are flagged ``cosmic_ray``, left out of the slopes and of P0. Not found: tracks on undersampled stars,
 as sharp as their cores (docs/limitations.md).
 """
 
@@ -46,7 +46,7 @@ from scipy import ndimage
 
 from .smoothing import detection_kernel, smoothed_image
 
-__all__ = ["cosmic_ray_mask", "image_cosmic_rays", "fill_from_neighbours", "psf_sharpness",
+__all__ = ["cosmic_ray_mask", "image_cosmic_rays", "psf_sharpness",
            "star_sharpness", "excess_share", "SIGMA_CLIP", "OBJECT_LIMIT", "MODEL_SHARE",
            "SHARPER", "SHARP_SIGMA", "STAR_PEAK", "SHARPEST"]
 
@@ -276,21 +276,3 @@ def image_cosmic_rays(data_e, rms_e, x, y, peak_e, usable, sigma, *, excluded=No
     labels, count = ndimage.label(rays, structure=np.ones((3, 3)))
     touching = np.unique(labels[ndimage.binary_dilation(excluded, iterations=LINE_GAP) & rays])
     return rays & ~np.isin(labels, touching[touching > 0])
-
-
-def fill_from_neighbours(image, mask, *, half=2):
-    """``image`` with the pixels of ``mask`` replaced by the mean of the other finite pixels
-    of the (2 half + 1)^2 box about them (a wider box where none is left)."""
-    image = np.asarray(image, dtype=float)
-    mask = np.asarray(mask, dtype=bool)
-    filled = image.copy()
-    good = ~mask & np.isfinite(image)
-    while mask.any() and good.any():
-        size = 2 * half + 1
-        total = ndimage.uniform_filter(np.where(good, image, 0.0), size=size, mode="constant")
-        count = ndimage.uniform_filter(good.astype(float), size=size, mode="constant")
-        known = mask & (count > 0.5 / size**2)
-        filled[known] = total[known] / count[known]
-        mask = mask & ~known
-        half *= 2
-    return filled

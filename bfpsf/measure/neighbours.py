@@ -13,7 +13,7 @@ from astropy.table import Table
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from .cosmic_rays import fill_from_neighbours
+from ..model.nanfill import harmonic_fill
 from .line_features import near_lines, resolve_lines
 from .smoothing import smoothed_image
 from .sources import DETECTION_THRESHOLD, LINE_REACH, SourceFlag, measure_sources, ray_mask
@@ -108,7 +108,7 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=Tru
                               **kwargs)
     rays = ray_mask(sources, image.shape)
     if rays.any():  # no companion on a cosmic ray
-        image = fill_from_neighbours(image, rays)
+        image = harmonic_fill(image, rays, isolated="nan")
     x = np.asarray(sources["x"], dtype=float)
     y = np.asarray(sources["y"], dtype=float)
     flux = np.asarray(sources["flux_e"], dtype=float)

@@ -284,9 +284,9 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
         and ``'e2'`` (the same straight line fitted to the distortion against peak: slope per
         100 ke- of peak, intercept dimensionless) when the table has those columns, and
         ``'beside'`` with the table's x and y: what was warned of, ``{'field' or 'phase':
-        {axis: {'change_percent': [along x, along y], 'change_percent_err',
-        'slope_beside', 'slope_beside_err'}}}`` (the size's change over the field or the
-        sub-pixel phase, and the slope fitted beside it), empty where nothing was.
+        {axis: {'size', 'change_percent': [along x, along y], 'change_percent_err',
+        'slope_beside', 'slope_beside_err'}}}`` (the size, px, its change over the field or
+        the sub-pixel phase, and the slope fitted beside it), empty where nothing was.
     """
     missing = [name for name in ("peak_e", "sigma_x", "sigma_y", "iq") if name not in
                table.colnames]
@@ -335,11 +335,13 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
     return result
 
 
-def _fits_beside(table, clean, result, use_errors, columns_of):
+def _changes_beside(table, clean, result, use_errors, columns_of, fraction):
     """Each axis's fit of `bf_slopes` repeated on the stars it kept, with the image intercepts
-    and two more columns beside the slope (``columns_of(x, y)`` of those stars): yields
-    (key, size column, rows, parameters, covariance, mean intercept), the two columns' last.
-    Without errors the covariance is the scatter's (unit errors), as `fit_bf_slope`'s."""
+    and two more columns beside the slope (``columns_of(x, y)`` of those stars); yields
+    (key, size column, rows, what changed) where a column changes the size by more than
+    ``fraction`` of it and 5 errors: {``size``, ``change_percent``, ``change_percent_err``
+    (the two columns'), ``slope_beside``, ``slope_beside_err``}. Without errors the
+    covariance is the scatter's (unit errors), as `fit_bf_slope`'s."""
     x, y = (np.asarray(table[name], dtype=float) for name in ("x", "y"))
     images = (np.unique(np.asarray(table["image"]), return_inverse=True)[1]
               if "image" in table.colnames else np.zeros(len(table), dtype=int))
@@ -358,7 +360,15 @@ def _fits_beside(table, clean, result, use_errors, columns_of):
         params, covariance, chi2, _ = weighted_least_squares(size, errors, design)
         reduced = chi2 / max(size.size - design.shape[1], 1)
         covariance = covariance * (max(reduced, 1.0) if weighted else reduced)
-        yield key, column, rows, params, covariance, float(np.mean(params[:-3]))
+        intercept = float(np.mean(params[:-3]))
+        change, change_err = params[-2:], np.sqrt(np.diag(covariance)[-2:])
+        if np.any((np.abs(change) / intercept > fraction) & (np.abs(change) > 5 * change_err)):
+            yield key, column, rows, {
+                "size": intercept,
+                "change_percent": [float(100 * value / intercept) for value in change],
+                "change_percent_err": [float(100 * value / intercept) for value in change_err],
+                "slope_beside": float(params[-3]),
+                "slope_beside_err": float(np.sqrt(covariance[-3, -3]))}
 
 
 #: `bf_slopes` warns when the stars' size changes with their sub-pixel phase, beside its slope
@@ -378,23 +388,19 @@ def _warn_phase(table, clean, result, use_errors):
         return [4.0 * (v - np.round(v)) ** 2 for v in (x, y)]
 
     found = {}
-    for key, column, _, params, covariance, intercept in _fits_beside(
-            table, clean, result, use_errors, phases):
-        terms, terms_err = params[-2:], np.sqrt(np.diag(covariance)[-2:])
-        if not np.any((np.abs(terms) / intercept > PHASE_SIZE_CHANGE)
-                      & (np.abs(terms) > 5 * terms_err)):
-            continue
-        found[key] = _beside(terms, terms_err, intercept, params, covariance)
+    for key, column, _, change in _changes_beside(table, clean, result, use_errors, phases,
+                                                  PHASE_SIZE_CHANGE):
+        found[key] = change
         log.warning("the stars' %s (%.2f px) changes with their sub-pixel phase: %+.1f +- %.1f "
                     "%% from a pixel centre to its edge along x, %+.1f +- %.1f %% along y: the "
                     "stars are undersampled, their moments and peaks depend on the phase, and "
                     "the slope against peak (%+.4f +- %.4f px per 100 ke-) measures it, not "
                     "brighter-fatter; with the phase terms beside it, %+.4f +- %.4f. Fit P(F) "
                     "(bfpsf psf) and read the residual of `slope --psf`, measured at each "
-                    "star's phase", column, intercept, 100 * terms[0] / intercept,
-                    100 * terms_err[0] / intercept, 100 * terms[1] / intercept,
-                    100 * terms_err[1] / intercept, result[key].slope, result[key].slope_err,
-                    params[-3], np.sqrt(covariance[-3, -3]))
+                    "star's phase", column, change["size"], change["change_percent"][0],
+                    change["change_percent_err"][0], change["change_percent"][1],
+                    change["change_percent_err"][1], result[key].slope, result[key].slope_err,
+                    change["slope_beside"], change["slope_beside_err"])
     return found
 
 
@@ -413,34 +419,22 @@ def _warn_field(table, clean, result, use_errors):
         return [(v - v.mean()) / (np.ptp(v) or 1.0) for v in (x, y)]
 
     found = {}
-    for key, column, rows, params, covariance, intercept in _fits_beside(
-            table, clean, result, use_errors, plane):
+    for key, column, rows, change in _changes_beside(table, clean, result, use_errors, plane,
+                                                     FIELD_SIZE_CHANGE):
         x, y = (np.asarray(table[name], dtype=float)[rows] for name in ("x", "y"))
-        change, change_err = params[-2:], np.sqrt(np.diag(covariance)[-2:])
-        if not np.any((np.abs(change) / intercept > FIELD_SIZE_CHANGE)
-                      & (np.abs(change) > 5 * change_err)):
-            continue
-        found[key] = _beside(change, change_err, intercept, params, covariance)
+        found[key] = change
         log.warning("the stars' %s changes across the field beside its brighter-fatter: "
                     "%+.2f +- %.2f %% from x %.0f to %.0f, %+.2f +- %.2f %% from y %.0f to "
                     "%.0f: the PSF varies over the field, and a wide star has a low peak, so "
                     "the slope against peak (%+.4f +- %.4f px per 100 ke-) is confounded "
                     "with it; with a plane over the field beside it, %+.4f +- %.4f. Fit a "
                     "gridded P(F) (bfpsf psf --grid) and read the residual of `slope --psf`",
-                    column, 100 * change[0] / intercept, 100 * change_err[0] / intercept,
-                    x.min(), x.max(), 100 * change[1] / intercept,
-                    100 * change_err[1] / intercept, y.min(), y.max(),
-                    result[key].slope, result[key].slope_err, params[-3],
-                    np.sqrt(covariance[-3, -3]))
+                    column, change["change_percent"][0], change["change_percent_err"][0],
+                    x.min(), x.max(), change["change_percent"][1],
+                    change["change_percent_err"][1], y.min(), y.max(),
+                    result[key].slope, result[key].slope_err, change["slope_beside"],
+                    change["slope_beside_err"])
     return found
-
-
-def _beside(change, change_err, intercept, params, covariance):
-    """What `_warn_field` and `_warn_phase` warn of, for `bf_slopes`' ``'beside'``."""
-    return {"change_percent": [float(100 * value / intercept) for value in change],
-            "change_percent_err": [float(100 * value / intercept) for value in change_err],
-            "slope_beside": float(params[-3]),
-            "slope_beside_err": float(np.sqrt(covariance[-3, -3]))}
 
 
 def _add_colour_errors(result, table, clean, colour_fit, min_peak_e, max_peak_e, use_errors):

@@ -18,12 +18,13 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ..errors import BFPSFInputError, BFPSFValueError, integer_at_least
+from ..model.nanfill import harmonic_fill
 from ..moments.adaptive import adaptive_moments_batch
 from ..moments.moment_errors import moment_errors
 from ..moments.result import MomentsFlag
 from ..moments.shapes import distortion
 from ..resources import check_pixels
-from .cosmic_rays import fill_from_neighbours, image_cosmic_rays
+from .cosmic_rays import image_cosmic_rays
 from .line_features import near_lines, resolve_lines
 from .neighbour_light import neighbour_light
 from .source_flags import SourceFlag, source_flag_string
@@ -285,7 +286,7 @@ def measure_sources(image_e, *, threshold=DETECTION_THRESHOLD, n_pixels=5, stamp
         msg = "the image has no finite pixel"
         raise BFPSFInputError(msg, image.shape)
     if isinstance(cosmic_rays, np.ndarray) and cosmic_rays.any():
-        image = fill_from_neighbours(image, cosmic_rays)
+        image = harmonic_fill(image, cosmic_rays, isolated="nan")
     if colour is not None:
         for name in ("x", "y"):
             if name not in colour.colnames:

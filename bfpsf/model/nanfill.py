@@ -1,7 +1,9 @@
-"""Harmonic (Laplace) filling of non-finite pixels, so that charge can be moved through them.
+"""Harmonic (Laplace) filling of pixels from their neighbours.
 
-`bfpsf.model.redistribution.redistribute` with ``nan_policy='interpolate'`` fills the pixels with
-this, redistributes the filled image and sets them back to NaN.
+`bfpsf.model.redistribution.redistribute` with ``nan_policy='interpolate'`` fills the
+non-finite pixels with this (so that charge can be moved through them), redistributes the
+filled image and sets them back to NaN; the measurements fill cosmic rays with it
+(`bfpsf.measure.cosmic_rays`).
 """
 
 import numpy as np
@@ -14,9 +16,29 @@ from ..errors import BFPSFInputError
 __all__ = ["harmonic_fill"]
 
 
-def harmonic_fill(image, bad):
+def harmonic_fill(image, bad, *, isolated="raise"):
     """Replace ``image[bad]`` by the solution of Laplace's equation with the finite pixels as
-    boundary values (each filled pixel is the mean of its in-image neighbours)."""
+    boundary values: each filled pixel is the mean of its neighbours in the image that are
+    finite or filled (a non-finite pixel outside ``bad`` is left as it is and is no
+    boundary).
+
+    Parameters
+    ----------
+    image : ndarray [y, x]
+    bad : ndarray of bool [y, x]
+        The pixels to fill.
+    isolated : {'raise', 'nan'}, optional
+        A group of ``bad`` pixels without a finite neighbour: `BFPSFInputError`, or NaN.
+
+    Returns
+    -------
+    ndarray [y, x]
+        A copy of ``image``, filled.
+    """
+    image = np.asarray(image, dtype=float)
+    bad = np.asarray(bad, dtype=bool)
+    if not bad.any():
+        return image.copy()
     ny, nx = image.shape
     ys, xs = np.nonzero(bad)
     index = -np.ones(image.shape, dtype=np.int64)
@@ -27,6 +49,8 @@ def harmonic_fill(image, bad):
     for dy, dx in ((1, 0), (-1, 0), (0, 1), (0, -1)):
         ny_, nx_ = ys + dy, xs + dx
         inside = (ny_ >= 0) & (ny_ < ny) & (nx_ >= 0) & (nx_ < nx)
+        inside[inside] = (bad[ny_[inside], nx_[inside]]
+                          | np.isfinite(image[ny_[inside], nx_[inside]]))
         degree += inside
         k = np.nonzero(inside)[0]
         neighbour_bad = bad[ny_[k], nx_[k]]
@@ -49,11 +73,17 @@ def harmonic_fill(image, bad):
     labels, count = scipy.ndimage.label(bad)
     per_group = scipy.ndimage.sum_labels(good_neighbours, labels[ys, xs],
                                          index=np.arange(1, count + 1))
-    isolated = int(np.count_nonzero(per_group == 0))
-    if isolated:
-        msg = (f"cannot interpolate: {isolated} group(s) of non-finite pixels have no finite "
-               f"neighbour ({ys.size} non-finite pixels of {image.size})")
-        raise BFPSFInputError(msg, isolated)
+    alone = per_group == 0
+    if alone.any() and isolated == "raise":
+        msg = (f"cannot interpolate: {int(alone.sum())} group(s) of non-finite pixels have no "
+               f"finite neighbour ({ys.size} non-finite pixels of {image.size})")
+        raise BFPSFInputError(msg, int(alone.sum()))
+    # a group alone is NaN (its system is singular: solved as x = 0 apart from the others)
+    lost = alone[labels[ys, xs] - 1]
+    if lost.any():
+        keep = scipy.sparse.diags((~lost).astype(float))
+        matrix = keep @ matrix + scipy.sparse.diags(lost.astype(float))
+        rhs[lost] = 0.0
     filled = image.copy()
-    filled[ys, xs] = scipy.sparse.linalg.spsolve(matrix.tocsc(), rhs)
+    filled[ys, xs] = np.where(lost, np.nan, scipy.sparse.linalg.spsolve(matrix.tocsc(), rhs))
     return filled
