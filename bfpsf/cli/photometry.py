@@ -293,7 +293,7 @@ def run(args):
           + (f"{summary['n_cosmic_ray']} stars hit by a cosmic ray, its pixels left out of "
              "their fit (flagged cosmic_ray); " if summary["n_cosmic_ray"] else "")
           + (f"{summary['n_undersampled']} undersampled, without adaptive moments (flagged "
-             "undersampled: sharp cores are taken for cosmic rays, docs/limitations.md); "
+             "undersampled, docs/limitations.md); "
              if summary["n_undersampled"] else "")
           + "detection's flags and unlike_psf in source_flags, bits in "
           f"bfpsf.measure.sources.SourceFlag.NAMES); wrote {args.output}")

@@ -137,6 +137,10 @@ def sources_with_companions(image_e, *, threshold=DETECTION_THRESHOLD, lines=Tru
     return table
 
 
+#: the flags of a source that the P0 fit takes all the same (`isolated_stars`)
+P0_TAKES = SourceFlag.NEIGHBOUR_LIGHT | SourceFlag.UNDERSAMPLED
+
+
 def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e=None,
                    lines=True, cosmic_rays=True, return_rays=False):
     """Clean, unsaturated detections isolated within ``size`` pixels: the stars a P0 fit
@@ -178,8 +182,10 @@ def isolated_stars(image_e, size, *, threshold=DETECTION_THRESHOLD, saturation_e
     xy = np.column_stack([np.asarray(sources["x"], dtype=float),
                           np.asarray(sources["y"], dtype=float)])
     # neighbours' light biases a star's moments, not the P0 fit, which models the wings of
-    # every source it knows and fits the sky with their glow; a line in a cutout is no model's
-    clean = (((np.asarray(sources["flags"]) & ~SourceFlag.NEIGHBOUR_LIGHT) == 0)
+    # every source it knows and fits the sky with their glow; a star too sharp for moments
+    # has its detection's centroid, and P0 needs no moments (a new user's stars of FWHM 1.6
+    # px: P0 from 27 of 200, not converged); a line in a cutout is no model's
+    clean = (((np.asarray(sources["flags"]) & ~P0_TAKES) == 0)
              & ~near_lines(lines, xy[:, 0], xy[:, 1], size / np.sqrt(2.0)))
     found = xy[clean], int(sources.meta["n_detected"]), xy[~clean]
     return (*found, ray_mask(sources, image_e.shape)) if return_rays else found
