@@ -22,7 +22,9 @@ is 1 - ratio of plain Piff's (plain Piff leaves all of the BF change).
 Rows: the flats limit; the simulator's landing shifts (`silicon_boundary_shifts`, single pixel
 and scaled to the landing under a star), diagnostics; with ``--calib``, the calibration from
 finite flats and its shift samples (spread of the ratio), and how far its a-matrix lies from
-the flats limit in its own errors.
+the flats limit in its own errors. ``--density exact``: the model's boundary density
+integrated along each boundary from the profile instead of G15's mean of the two pixels
+(what a P0 fitted from stars has); it matters for undersampled spots (docs/limitations.md).
 
     OMP_NUM_THREADS=1 python benchmarks/flats_limit.py [--calib calib.fits] \
         [--sensors lsst_itl_50_8 lsst_e2v_50_8] [--per-level 16] [--samples 30]
@@ -83,13 +85,14 @@ def truth(sensor, fwhm, beta, per_level, seed):
     return spots, [fit_bf_slope(spots.peaks, row) for row in measured]
 
 
-def model_ratios(profile, shifts, spots, slopes):
+def model_ratios(profile, shifts, spots, slopes, density="mean"):
     """Model / truth slope of each of `NAMES`: the model's P(F) - P(1) at each spot's flux and
-    sub-pixel position."""
+    sub-pixel position, with the boundary ``density`` of `FluxDependentPSF.from_galsim`."""
     from bfpsf.measure.slopes import fit_bf_slope
     from bfpsf.model.psf import FluxDependentPSF
 
-    psf = FluxDependentPSF.from_galsim(profile, shifts, oversampling=2, size=STAMP)
+    psf = FluxDependentPSF.from_galsim(profile, shifts, oversampling=2, size=STAMP,
+                                       density=density)
     rows, columns = np.mgrid[:STAMP, :STAMP]
     flux = spots.twin.sum(axis=(1, 2))
     bright = [psf.evaluate(columns, rows, f, x, y) for f, x, y in zip(flux, spots.x, spots.y)]
@@ -158,6 +161,9 @@ def main(argv=None):
     parser.add_argument("--fwhm", type=float, default=3.45)
     parser.add_argument("--beta", type=float, default=3.5)
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--density", choices=["mean", "exact"], default="mean",
+                        help="the model's boundary density (mean: G15's and a fitted P0's; "
+                             "exact: integrated along each boundary from the profile)")
     parser.add_argument("--write-calib", type=Path, metavar="DIR",
                         help="write --calib with its shifts replaced by the flats limit at each "
                              "maxlag (DIR/calib_limit<m>.fits, for bench_piff.py --calib), "
@@ -166,9 +172,10 @@ def main(argv=None):
     if args.write_calib is not None:
         write_limit_calibrations(args.calib, args.sensors[0], args.maxlags, args.write_calib)
         return 0
-    print(f"Moffat FWHM {args.fwhm} px, beta {args.beta}; peaks {PEAKS_E[0]:.0f}-"
-          f"{PEAKS_E[-1]:.0f} e-, {args.per_level} spots per level; model / SiliconSensor "
-          "slope of the BF change; 'left' = 1 - ratio, % of plain Piff's residual slope")
+    print(f"Moffat FWHM {args.fwhm} px, beta {args.beta}, {args.density} density; peaks "
+          f"{PEAKS_E[0]:.0f}-{PEAKS_E[-1]:.0f} e-, {args.per_level} spots per level; model / "
+          "SiliconSensor slope of the BF change; 'left' = 1 - ratio, % of plain Piff's "
+          "residual slope")
     header = "".join(f"{name:>9s}" for name in NAMES) + f"{'T left':>9s}{'e1 left':>9s}"
     print(f"{'sensor':14s} {'shifts':36s}{header}")
     for index, sensor in enumerate(args.sensors):
@@ -180,7 +187,8 @@ def main(argv=None):
                                                  for s in slopes) + ")", flush=True)
         sets, area = shift_sets(sensor, profile, args.maxlags, args.levels)
         for label, shifts in sets.items():
-            print_row(sensor, label, model_ratios(profile, shifts, spots, slopes))
+            print_row(sensor, label, model_ratios(profile, shifts, spots, slopes,
+                                                  args.density))
         if args.calib is not None and index == 0:
             calibration, pull, ratios, samples = calibration_check(
                 args.calib, area, profile, spots, slopes, args.samples, sensor)
