@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["weighted_least_squares", "polynomial_fit", "clipped_least_squares", "ClippedFit"]
+__all__ = ["weighted_least_squares", "least_squares_with_scatter", "polynomial_fit",
+           "clipped_least_squares", "ClippedFit"]
 
 
 def weighted_least_squares(values, sigma, design):
@@ -53,6 +54,33 @@ def weighted_least_squares(values, sigma, design):
     except np.linalg.LinAlgError:
         covariance = np.full((params.size, params.size), np.nan)
     return params, covariance, chi2, model
+
+
+def least_squares_with_scatter(values, sigma, design, *, max_iterations=40):
+    """`weighted_least_squares` with a scatter beyond the given errors: where the chi-square
+    exceeds its degrees of freedom, each point's error is ``sqrt(sigma^2 + s^2)`` with the one
+    ``s`` that makes chi2 / dof = 1 (errors that miss an intrinsic scatter, as the sizes of
+    undersampled stars, which follow their sub-pixel phase far beyond their noise, must not
+    weight the fit: the stars of smallest error were those of one phase, and a new user's
+    slopes of sizes against peak came out 37-45 % low, a BF-free twin's 4.4 sigma from zero).
+    Returns (params, covariance, chi2, model, s); chi2 with the given errors alone."""
+    values = np.asarray(values, dtype=float)
+    sigma = np.broadcast_to(np.asarray(sigma, dtype=float), values.shape)
+    dof = values.size - np.shape(design)[1]
+    params, covariance, chi2, model = weighted_least_squares(values, sigma, design)
+    if dof < 1 or not chi2 > dof:
+        return params, covariance, chi2, model, 0.0
+    low, high = 0.0, float(np.std(values - model)) * 2.0 + float(np.max(sigma))
+    for _ in range(max_iterations):  # chi2(s) falls as s grows: bisection on s
+        middle = 0.5 * (low + high)
+        total = np.sqrt(sigma ** 2 + middle ** 2)
+        fitted = weighted_least_squares(values, total, design)
+        low, high = (middle, high) if fitted[2] > dof else (low, middle)
+        if high - low < 1e-4 * high:
+            break
+    total = np.sqrt(sigma ** 2 + high ** 2)
+    params, covariance, _, model = weighted_least_squares(values, total, design)
+    return params, covariance, float(np.sum(((values - model) / sigma) ** 2)), model, high
 
 
 def polynomial_fit(x, values, sigma, degree):

@@ -83,6 +83,36 @@ def test_photometry_leaves_cosmic_rays_out_of_the_stars_they_hit(hit_field):
     assert masked.meta["cosmic_ray_pixels"] > 0 and kept.meta["cosmic_ray_pixels"] == 0
 
 
+def test_cosmic_rays_on_the_sky_are_no_stars(hit_field):
+    """Hits and tracks on the sky, 15 px or more from every star: detection finds them as
+    cosmic rays, and the search of the fit's residual takes them for no stars (a new user's
+    40 hits and 15 tracks on the sky came back as 35 stars "missed by detection", flagged
+    cosmic_ray, some of negative flux: 38 rows beyond the 100 stars; 10 after)."""
+    data, x, y, flux, hit, psf, _ = hit_field
+    data = data.copy()
+    rng = np.random.default_rng(15)
+    placed = 0
+    while placed < 20:
+        # a single hit of 800-5000 e-, or a track 8-30 px long at any angle, 300-2000 e- a
+        # pixel (the new user's)
+        length, angle = (1, 0.0) if placed % 2 else (rng.uniform(8, 30), rng.uniform(0, np.pi))
+        start = rng.uniform(10, data.shape[0] - 40, 2)
+        steps = np.linspace(0.0, length, int(3 * length) + 1)
+        rows, columns = (np.unique(np.round(start[:, None] + steps[None] * np.array(
+            [[np.sin(angle)], [np.cos(angle)]])).astype(int).T, axis=0).T)
+        if np.hypot(x[:, None] - columns[None], y[:, None] - rows[None]).min() < 15:
+            continue
+        data[rows, columns] += rng.uniform(800.0, 5000.0, rows.size) if length == 1 else \
+            rng.uniform(300.0, 2000.0) * rng.uniform(0.6, 1.4, rows.size)
+        placed += 1
+    table = psf_photometry(data, psf, read_noise_e=5.0)
+    distance = np.hypot(table["x_fit"][:, None] - x[None], table["y_fit"][:, None] - y[None])
+    spurious = distance.min(axis=1) > 1.5
+    print(len(table), np.sum(spurious))
+    assert np.all(distance.min(axis=0) < 1.0)  # every star found
+    assert np.sum(spurious) <= 2
+
+
 def test_cosmic_ray_mask_reads_the_residual_not_the_stars():
     """An undersampled star (a Gaussian of 0.6 px sigma, 2e5 e-) is sharp enough for
     L.A.Cosmic on the image; in the residual of its fit it is gone, and a cosmic ray beside

@@ -310,7 +310,8 @@ def run(args):
         if "slope_x_percent" in values:
             print(f"{label}: BF slope residual X {describe_slope(values, 'x')}, "
                   f"Y {describe_slope(values, 'y')}; photometry bias of sky-limited stars, "
-                  f"faint - bright, {values['photometry_bias_mmag']:+.2f} mmag; chi2 "
+                  f"faint - bright, {values['photometry_bias_mmag']:+.2f} +- "
+                  f"{values['photometry_bias_mmag_err']:.2f} mmag; chi2 "
                   f"{values['chi2']:.1f} / {values['n']}")
         else:
             print(f"{label}: chi2 {values['chi2']:.1f} / {values['n']}")

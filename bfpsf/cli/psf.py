@@ -317,11 +317,11 @@ def run(args):
     if psf.flux_correction_err > FLUX_CORRECTION_TOLERANCE:  # False for NaN (not measured)
         print(f"WARNING: the light beyond P0's support is poorly measured on these images: "
               f"total flux {psf.flux_correction:.4f} +- {psf.flux_correction_err:.4f} times the "
-              "flux in the support, a scale error of every flux (the sky's misfit or too "
-              "few pixels between the stars tell the sky from their wings: a sky no "
-              "low-order surface follows, such as scattered light or vignetting, a crowded "
-              "field, small amplifiers); subtract such a sky and give --background 0, fit "
-              "the PSF on sparser or larger images, or give P0 more of the light (--size)",
+              "flux in the support, a scale error of every flux (the sky's noise or misfit "
+              "against the wings of these stars: too few bright stars, too few pixels "
+              "between them (a crowded field, small amplifiers), or a sky no low-order "
+              "surface follows, such as scattered light or vignetting); fit the PSF on more "
+              "images or brighter stars, or subtract such a sky and give --background 0",
               file=sys.stderr)
     if p0_error is not None:
         print(f"P0 (the PSF of sources far fainter than the stars) carries the calibration's "

@@ -94,10 +94,12 @@ def _model_residual(stars, args, colour_fit, psf, slopes):
               "at their flux and sub-pixel phase (P(F) is undersampled there: its adaptive "
               "moments collapse onto the central pixel): the prediction and the residual "
               "leave them out", file=sys.stderr)
+    # the measured fit's stars and weights (its scatter beyond the errors, if any)
     options = {"min_peak_e": args.min_peak, "max_peak_e": args.max_peak,
-               "use_errors": not args.unweighted}
-    return (bf_slopes(residual, colour_fit=colour_fit, rows=rows, **options),
-            predicted_slopes(psf, stars, rows=rows, sizes=model, **options))
+               "use_errors": not args.unweighted, "rows": rows,
+               "scatter": {key: slopes[key].scatter for key in rows}}
+    return (bf_slopes(residual, colour_fit=colour_fit, **options),
+            predicted_slopes(psf, stars, sizes=model, **options))
 
 
 def _summary(slopes):

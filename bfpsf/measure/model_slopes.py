@@ -122,13 +122,14 @@ def model_star_sizes(psf, flux_e, *, x=None, y=None):
 
 
 def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors=True,
-                     rows=None, sizes=None):
+                     rows=None, sizes=None, scatter=None):
     """The BF slopes a flux-dependent PSF predicts for a star table, with the calibration error.
 
     The model's sizes of each star (`model_star_sizes`: its flux, position and sub-pixel
     phase, as the star was measured) are fitted exactly as the measured sizes are
     (`bf_slopes`: the same stars, peak range and weights; ``rows``, the measured fit's
-    ``SlopeFit.rows``, fixes the stars, so that the measured slope minus this one is the
+    ``SlopeFit.rows``, fixes the stars, and ``scatter``, its ``SlopeFit.scatter``, the
+    weights, so that the measured slope minus this one is the
     slope of the measured-minus-model sizes: a new user's ``slope --psf`` printed measured
     0.0145, predicted 0.0170 and a residual of +0.0055, the increments at phase 0 and the
     residual's own clipping not adding up). The error is the spread of the same fit over
@@ -158,7 +159,7 @@ def predicted_slopes(psf, table, *, min_peak_e=None, max_peak_e=None, use_errors
         for key, column, _ in axes:
             predicted[column] = values[key]
         fits = bf_slopes(predicted, min_peak_e=min_peak_e, max_peak_e=max_peak_e,
-                         use_errors=use_errors, rows=rows, warn_span=False)
+                         use_errors=use_errors, rows=rows, warn_span=False, scatter=scatter)
         return np.array([fits[key].slope for key, _, _ in axes])
 
     if sizes is None:

@@ -36,7 +36,7 @@ from .cosmic_rays import cosmic_ray_mask, psf_sharpness
 from .cross_terms import cross_term_image
 from .line_features import near_lines, resolve_lines
 from .residual_sources import residual_sources
-from .sources import DETECTION_THRESHOLD, SourceFlag
+from .sources import DETECTION_THRESHOLD, SourceFlag, ray_mask
 from ..model.wings import WingModel, wing_image
 
 __all__ = ["psf_photometry", "PHOTOMETRY_COLUMNS"]
@@ -64,14 +64,14 @@ def _initial_positions(image_e, detection_threshold, lines, cosmic_rays):
     filled where ``cosmic_rays``, no source of their own) as photutils' initial table. Fitted
     as one, a close pair gives one star with both fluxes (a dense field: -250 mmag). The
     detection's ``COSMIC_RAY`` is not carried: photometry's own says a ray's pixels were
-    left out of the fit."""
+    left out of the fit. Returns the table and the cosmic rays' pixels."""
     sources = sources_with_companions(image_e, threshold=detection_threshold, lines=lines,
                                       cosmic_rays=cosmic_rays)
     table = Table()
     table["x_init"], table["y_init"] = sources["x"], sources["y"]
     table["flux_init"] = sources["flux_e"]
     table["source_flags"] = np.asarray(sources["flags"]) & ~SourceFlag.COSMIC_RAY
-    return table
+    return table, ray_mask(sources, image_e.shape)
 
 
 @contextlib.contextmanager
@@ -294,9 +294,10 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     # trails and hot columns: left out of detection and of every fit
     lines = resolve_lines(positions is None and bool(mask_lines), data, detection_threshold)
     mask = ~finite | lines
+    rays = False  # the cosmic rays detection found (none where the positions are given)
     if positions is None:
-        init = _initial_positions(np.where(finite, data, 0.0), detection_threshold, lines,
-                                  bool(mask_cosmic_rays))
+        init, rays = _initial_positions(np.where(finite, data, 0.0), detection_threshold,
+                                        lines, bool(mask_cosmic_rays))
     elif isinstance(positions, Table):
         init = positions
     else:
@@ -339,7 +340,9 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
                 np.column_stack([result["x_fit"], result["y_fit"]]),
                 threshold=detection_threshold, model_e=stars, known_flux=result["flux_fit"],
                 reach=reach, support=getattr(psf, "half_size", None),
-                excluded=lines if clipped is None else clipped | lines)
+                # (the cosmic rays detection found are no sources: a new user's 40 hits
+                # and 15 tracks on the sky had come back as 35 stars "missed by detection")
+                excluded=lines | rays if clipped is None else clipped | lines | rays)
             if not len(found):
                 break
             source_flags = np.r_[np.zeros(len(init), np.int64) if source_flags is None

@@ -90,8 +90,8 @@ def residual_sources(residual_e, variance_e, known_xy, *, threshold, model_e=Non
         Half-width of the PSF model's square support, pixels: no source is taken within
         `SUPPORT_EDGE` of its edge about its host star (the model ends there).
     excluded : ndarray of bool [y, x], optional
-        Pixels where no source is sought (about a saturated star: its clipped core is no
-        model's).
+        Pixels where no source is sought and whose light is none (about a saturated star:
+        its clipped core is no model's; the cosmic rays detection found).
     detection_fwhm : float, optional
         FWHM of the Gaussian filter, pixels.
 
@@ -104,6 +104,8 @@ def residual_sources(residual_e, variance_e, known_xy, *, threshold, model_e=Non
         ``source_flags`` (``IN_RESIDUAL``), ``significance``; empty when none.
     """
     residual = np.where(np.isfinite(residual_e), residual_e, 0.0)
+    if excluded is not None:  # (zero before the filter, which spreads them beside)
+        residual = np.where(excluded, 0.0, residual)
     variance = np.where(np.isfinite(variance_e), np.clip(variance_e, 1.0, None), 1.0)
     if model_e is not None:
         variance = variance + (MODEL_ERROR * np.clip(model_e, 0.0, None)) ** 2

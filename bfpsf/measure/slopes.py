@@ -23,8 +23,9 @@ import numpy as np
 from scipy.stats import median_abs_deviation
 
 from ..errors import BFPSFInputError, BFPSFValueError
-from ..least_squares import weighted_least_squares
+from ..least_squares import least_squares_with_scatter, weighted_least_squares
 from ..moments.result import MomentsFlag
+from .slopes_beside import changes_beside
 
 __all__ = ["SlopeFit", "fit_bf_slope", "bf_slopes", "PEAK_UNIT_E", "SIZE_AXES", "SHAPE_AXES"]
 
@@ -58,7 +59,11 @@ class SlopeFit:
     chi2, dof : float, int
         Of the fit with the given errors (None errors: residual-scaled, chi2 = dof).
     error_scale : float
-        Factor applied to the errors, ``max(1, sqrt(chi2 / dof))`` (1 if not scaled).
+        Factor applied to the errors, ``max(1, sqrt(chi2 / dof))`` (1 if not scaled, or
+        with a scatter fitted).
+    scatter : float
+        The scatter added to the given errors in quadrature (``scatter`` of `fit_bf_slope`),
+        pixels; 0 for none.
     n_points : int
         Points fitted.
     peak_min_e, peak_max_e : float
@@ -90,6 +95,7 @@ class SlopeFit:
     peak_max_e: float
     slope_err_colour: float = 0.0
     n_clipped: int = 0
+    scatter: float = 0.0
     rows: np.ndarray = field(default=None, repr=False, compare=False)
 
     def as_dict(self, short=False):
@@ -109,7 +115,7 @@ class SlopeFit:
 
 
 def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=None,
-                 scale_errors=True, clip_nsigma=5.0, group=None, use=None):
+                 scale_errors=True, clip_nsigma=5.0, group=None, use=None, scatter=None):
     """Weighted linear fit ``size = intercept + slope * peak / 100 ke-``.
 
     The one slope fitter of bfpsf (``bfpsf slope``, ``bfpsf validate`` and the closed loop).
@@ -141,6 +147,13 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
         Fit exactly these points (those of another fit, its ``SlopeFit.rows``), without
         clipping: a model's slope and the measured-minus-model slope on the stars the
         measured slope was fitted on add up to it.
+    scatter : float or 'fit', optional
+        A scatter beyond ``size_err``, added to it in quadrature (another fit's
+        ``SlopeFit.scatter``, for the same weights); 'fit': the one that brings chi2 / dof to
+        1 where it exceeds it (`bfpsf.least_squares.least_squares_with_scatter`), for
+        errors that miss a scatter which follows them (the sizes of undersampled stars
+        follow their sub-pixel phase, and so do their errors: weighted by the errors alone,
+        the stars of one phase set the slope). Default None: neither.
 
     Returns
     -------
@@ -154,6 +167,8 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
     errors = None
     if size_err is not None:
         errors = np.broadcast_to(np.asarray(size_err, dtype=float), values.shape).ravel()
+        if scatter is not None and not isinstance(scatter, str):
+            errors = np.hypot(errors, float(scatter))
     keep = np.isfinite(peak) & np.isfinite(values)
     if errors is not None:
         keep &= np.isfinite(errors) & (errors > 0)
@@ -206,11 +221,18 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
         raise BFPSFValueError(msg, n_points)
     chi2 = float(np.sum(weights * residual**2))
     if errors is None:
-        error_scale = np.sqrt(chi2 / dof)
+        error_scale, scatter = np.sqrt(chi2 / dof), None
         chi2 = float(dof)
+    elif scatter == "fit" and chi2 > dof:
+        # added to the errors, not laid on them as a factor: the weights then stop
+        # following errors that miss it
+        error_scale = 1.0
+        params, covariance, chi2, _, scatter = least_squares_with_scatter(
+            values[keep], errors[keep], design)
     else:
         error_scale = max(1.0, np.sqrt(chi2 / dof)) if scale_errors else 1.0
     covariance = covariance * error_scale**2
+    scatter = 0.0 if scatter is None or isinstance(scatter, str) else float(scatter)
     # intercept: the mean of the group intercepts (vector v), with its covariance with the slope
     mean_vector = np.r_[0.0, np.full(n_groups, 1.0 / n_groups)]
     slope, intercept = float(params[0]), float(mean_vector @ params)
@@ -232,7 +254,7 @@ def fit_bf_slope(peak_e, size, *, size_err=None, min_peak_e=None, max_peak_e=Non
                     intercept_err=float(intercept_err), relative_percent=float(relative),
                     relative_percent_err=float(relative_err),
                     range_percent=float(relative * span), chi2=chi2, dof=int(dof),
-                    error_scale=float(error_scale), n_points=n_points,
+                    error_scale=float(error_scale), scatter=float(scatter), n_points=n_points,
                     peak_min_e=float(peak[keep].min()), peak_max_e=float(peak[keep].max()),
                     n_clipped=n_usable - n_points, rows=keep)
 
@@ -244,7 +266,7 @@ SHAPE_AXES = (("e1", "e1", "e1_err"), ("e2", "e2", "e2_err"))
 
 
 def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_mask=None,
-              colour_fit=None, rows=None, warn_span=True):
+              colour_fit=None, rows=None, warn_span=True, scatter=None):
     """Brighter-fatter slopes of sigma_x, sigma_y and IQ from a star table (G15 fig. mbf).
 
     Parameters
@@ -270,7 +292,14 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
     warn_span : bool, optional
         Warn when the fitted stars' peaks span less than a factor `MIN_PEAK_SPAN` (default
         True; not with ``rows``, whose fit has warned). The model's predicted slopes of the
-        same stars (`bfpsf.measure.model_slopes`) pass False.
+        same stars (`bfpsf.measure.model_slopes`) pass False. With it, where the sizes
+        follow the stars' sub-pixel phase (`bfpsf.measure.slopes_beside`), every axis is
+        fitted again with the scatter beyond the errors added to them (``scatter`` 'fit'
+        of `fit_bf_slope`: the errors follow the phase too; a new user's undersampled
+        stars' slopes came out 37-45 % low, and their BF-free twins' 4.4 sigma from zero).
+    scatter : dict, optional
+        Key -> ``scatter`` of `fit_bf_slope` (``SlopeFit.scatter`` of another `bf_slopes` of
+        the same stars, with ``rows``: the same weights).
 
     Stars of several images (an ``image`` column) get a free intercept per image and one
     common slope: the seeing changes between exposures, not within one (a new user's 12
@@ -306,17 +335,25 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
         group = np.unique(np.asarray(table["image"]), return_inverse=True)[1][clean]
     result = {}
     shape_axes = tuple(axis for axis in SHAPE_AXES if axis[1] in table.colnames)
-    for key, column, error_column in SIZE_AXES + shape_axes:
-        errors = None
-        if use_errors and error_column in table.colnames:
-            errors = np.asarray(table[error_column], dtype=float)[clean]
-        use = None if rows is None or key not in rows else np.asarray(rows[key])[clean]
-        fit = fit_bf_slope(peak[clean], np.asarray(table[column], dtype=float)[clean],
-                           size_err=errors, min_peak_e=min_peak_e, max_peak_e=max_peak_e,
-                           group=group, use=use)
-        fitted = np.zeros(len(table), dtype=bool)
-        fitted[np.flatnonzero(clean)[fit.rows]] = True
-        result[key] = replace(fit, rows=fitted)
+    beside = warn_span and rows is None and {"x", "y"} <= set(table.colnames)
+
+    def fit_axes(scatter):
+        for key, column, error_column in SIZE_AXES + shape_axes:
+            errors = None
+            if use_errors and error_column in table.colnames:
+                errors = np.asarray(table[error_column], dtype=float)[clean]
+            use = None if rows is None or key not in rows else np.asarray(rows[key])[clean]
+            fit = fit_bf_slope(peak[clean], np.asarray(table[column], dtype=float)[clean],
+                               size_err=errors, min_peak_e=min_peak_e, max_peak_e=max_peak_e,
+                               group=group, use=use, scatter=(scatter or {}).get(key))
+            fitted = np.zeros(len(table), dtype=bool)
+            fitted[np.flatnonzero(clean)[fit.rows]] = True
+            result[key] = replace(fit, rows=fitted)
+
+    fit_axes(scatter)
+    if beside and "phase" in changes_beside(table, clean, result, use_errors, SIZE_AXES[:2],
+                                            PEAK_UNIT_E, warn=False):
+        fit_axes({key: "fit" for key, _, _ in SIZE_AXES + shape_axes})
     if colour_fit is not None:
         _add_colour_errors(result, table, clean, colour_fit, min_peak_e, max_peak_e,
                            use_errors)
@@ -328,113 +365,10 @@ def bf_slopes(table, *, min_peak_e=None, max_peak_e=None, use_errors=True, flag_
                     "per 100 ke- rests on too short a lever arm to mean much",
                     result["x"].peak_min_e, result["x"].peak_max_e, span, result["x"].slope,
                     result["x"].slope_err)
-    if warn_span and rows is None and {"x", "y"} <= set(table.colnames):
-        beside = {"field": _warn_field(table, clean, result, use_errors),
-                  "phase": _warn_phase(table, clean, result, use_errors)}
-        result["beside"] = {name: found for name, found in beside.items() if found}
+    if beside:
+        result["beside"] = changes_beside(table, clean, result, use_errors, SIZE_AXES[:2],
+                                          PEAK_UNIT_E)
     return result
-
-
-def _changes_beside(table, clean, result, use_errors, columns_of, fraction):
-    """Each axis's fit of `bf_slopes` repeated on the stars it kept, with the image intercepts
-    and two more columns beside the slope (``columns_of(x, y)`` of those stars); yields
-    (key, size column, rows, what changed) where a column changes the size by more than
-    ``fraction`` of it and 5 errors: {``size``, ``change_percent``, ``change_percent_err``
-    (the two columns'), ``slope_beside``, ``slope_beside_err``}. Without errors the
-    covariance is the scatter's (unit errors), as `fit_bf_slope`'s."""
-    x, y = (np.asarray(table[name], dtype=float) for name in ("x", "y"))
-    images = (np.unique(np.asarray(table["image"]), return_inverse=True)[1]
-              if "image" in table.colnames else np.zeros(len(table), dtype=int))
-    for key, column, error_column in SIZE_AXES[:2]:
-        rows = result[key].rows & clean & np.isfinite(x) & np.isfinite(y)
-        if rows.sum() < 10:
-            continue
-        size = np.asarray(table[column], dtype=float)[rows]
-        weighted = use_errors and error_column in table.colnames
-        errors = (np.asarray(table[error_column], dtype=float)[rows] if weighted
-                  else np.full(size.size, 1.0))
-        groups = np.unique(images[rows], return_inverse=True)[1]
-        design = np.column_stack([np.eye(groups.max() + 1)[groups],
-                                  np.asarray(table["peak_e"], float)[rows] / PEAK_UNIT_E,
-                                  *columns_of(x[rows], y[rows])])
-        params, covariance, chi2, _ = weighted_least_squares(size, errors, design)
-        reduced = chi2 / max(size.size - design.shape[1], 1)
-        covariance = covariance * (max(reduced, 1.0) if weighted else reduced)
-        intercept = float(np.mean(params[:-3]))
-        change, change_err = params[-2:], np.sqrt(np.diag(covariance)[-2:])
-        if np.any((np.abs(change) / intercept > fraction) & (np.abs(change) > 5 * change_err)):
-            yield key, column, rows, {
-                "size": intercept,
-                "change_percent": [float(100 * value / intercept) for value in change],
-                "change_percent_err": [float(100 * value / intercept) for value in change_err],
-                "slope_beside": float(params[-3]),
-                "slope_beside_err": float(np.sqrt(covariance[-3, -3]))}
-
-
-#: `bf_slopes` warns when the stars' size changes with their sub-pixel phase, beside its slope
-#: against peak, by more than this fraction (and 5 of its errors) from centre to corner
-PHASE_SIZE_CHANGE = 0.01
-
-
-def _warn_phase(table, clean, result, use_errors):
-    """Warn where the stars' size depends on their sub-pixel phase: undersampled stars (sigma
-    below ~1 px) have adaptive moments biased by the pixels, small on a pixel centre, large on
-    a corner, and a peak that is high on a centre and low on a corner, so the slope against
-    peak measures the pixelisation (a double Gaussian of FWHM 1.7 px: sigma_y -0.114 +- 0.013
-    px per 100 ke- where BF made +0.012). The fit of each axis is repeated with terms in the
-    squared phases 4 (x - round(x))^2, 4 (y - round(y))^2 (0 on a pixel centre, 1 on its
-    edge) beside the slope."""
-    def phases(x, y):
-        return [4.0 * (v - np.round(v)) ** 2 for v in (x, y)]
-
-    found = {}
-    for key, column, _, change in _changes_beside(table, clean, result, use_errors, phases,
-                                                  PHASE_SIZE_CHANGE):
-        found[key] = change
-        log.warning("the stars' %s (%.2f px) changes with their sub-pixel phase: %+.1f +- %.1f "
-                    "%% from a pixel centre to its edge along x, %+.1f +- %.1f %% along y: the "
-                    "stars are undersampled, their moments and peaks depend on the phase, and "
-                    "the slope against peak (%+.4f +- %.4f px per 100 ke-) measures it, not "
-                    "brighter-fatter; with the phase terms beside it, %+.4f +- %.4f. Fit P(F) "
-                    "(bfpsf psf) and read the residual of `slope --psf`, measured at each "
-                    "star's phase", column, change["size"], change["change_percent"][0],
-                    change["change_percent_err"][0], change["change_percent"][1],
-                    change["change_percent_err"][1], result[key].slope, result[key].slope_err,
-                    change["slope_beside"], change["slope_beside_err"])
-    return found
-
-
-#: `bf_slopes` warns when the stars' size changes across the field, beside its slope
-#: against peak, by more than this fraction (and 5 of its errors)
-FIELD_SIZE_CHANGE = 0.01
-
-
-def _warn_field(table, clean, result, use_errors):
-    """Warn where the stars' size changes with their position, beside brighter-fatter: a PSF
-    varying over the field confounds the slope against peak (a wide star has a low peak; a
-    new user's FWHM 3.2 -> 3.9 px across 400 px gave sigma_x -0.33 +- 0.10 px per 100 ke-
-    where BF made +0.013). The fit of each axis is repeated with a plane in (x, y) beside
-    the slope and the image intercepts, on the stars it kept."""
-    def plane(x, y):
-        return [(v - v.mean()) / (np.ptp(v) or 1.0) for v in (x, y)]
-
-    found = {}
-    for key, column, rows, change in _changes_beside(table, clean, result, use_errors, plane,
-                                                     FIELD_SIZE_CHANGE):
-        x, y = (np.asarray(table[name], dtype=float)[rows] for name in ("x", "y"))
-        found[key] = change
-        log.warning("the stars' %s changes across the field beside its brighter-fatter: "
-                    "%+.2f +- %.2f %% from x %.0f to %.0f, %+.2f +- %.2f %% from y %.0f to "
-                    "%.0f: the PSF varies over the field, and a wide star has a low peak, so "
-                    "the slope against peak (%+.4f +- %.4f px per 100 ke-) is confounded "
-                    "with it; with a plane over the field beside it, %+.4f +- %.4f. Fit a "
-                    "gridded P(F) (bfpsf psf --grid) and read the residual of `slope --psf`",
-                    column, change["change_percent"][0], change["change_percent_err"][0],
-                    x.min(), x.max(), change["change_percent"][1],
-                    change["change_percent_err"][1], y.min(), y.max(),
-                    result[key].slope, result[key].slope_err, change["slope_beside"],
-                    change["slope_beside_err"])
-    return found
 
 
 def _add_colour_errors(result, table, clean, colour_fit, min_peak_e, max_peak_e, use_errors):

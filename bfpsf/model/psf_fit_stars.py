@@ -239,20 +239,27 @@ def misfits(stars, clean):
     star = adaptive_moments_batch(cutouts, weight=stars.valid)
     errors = moment_errors(cutouts, star, background_variance=stars.floor)
     size = star.mxx + star.myy
+    # the sub-pixel phase's terms (0 on a pixel centre): size and e1 are even in each
+    # phase, e2 odd in their product
+    dx, dy = (2.0 * (value - np.round(value)) for value in (stars.x_0, stars.y_0))
+    ax, ay = np.abs(dx), np.abs(dy)
+    even = (ax, ay, dx**2, dy**2, ax**3, ay**3, dx**4, dy**4, ax * ay, dx**2 * dy**2)
+    odd = (dx * dy, dx * dy * (dx**2 + dy**2))
     # twice: the second time against the stars the first left, so that a star among misfits
     # is compared with stars
     for _ in range(2):
         reference, out = used & ~out, np.zeros(len(clean), dtype=bool)
-        for values, error, floor, size_like in (
+        for values, error, floor, size_like, phase in (
                 (size, np.hypot(errors["mxx_err"], errors["myy_err"]) / size, MISFIT_SIZE,
-                 True),
-                ((star.mxx - star.myy) / size, errors["e1_err"], MISFIT_SHAPE, False),
-                (2 * star.mxy / size, errors["e2_err"], MISFIT_SHAPE, False)):
+                 True, even),
+                ((star.mxx - star.myy) / size, errors["e1_err"], MISFIT_SHAPE, False, even),
+                (2 * star.mxy / size, errors["e2_err"], MISFIT_SHAPE, False, odd)):
             local = _expected(values, stars, reference)
             relative = values / local - 1.0 if size_like else values - local
             good = reference & np.isfinite(relative)
             if np.sum(good) < 6 or np.ptp(stars.flux[good]) == 0:
                 continue
+            relative = _less_the_phase(relative, phase, good)
             slope, intercept = theilslopes(relative[good], stars.flux[good])[:2]
             relative = relative - intercept - slope * stars.flux
             # a blend or a galaxy is larger than a star, never smaller
@@ -260,6 +267,23 @@ def misfits(stars, clean):
             out |= np.isfinite(relative) & (beyond > np.maximum(
                 floor, MISFIT_SIGMA * np.nan_to_num(error, nan=np.inf)))
     return used & out
+
+
+def _less_the_phase(relative, basis, good):
+    """``relative`` less its robust fit (`clipped_least_squares`) on the sub-pixel phase's
+    ``basis`` (columns), where the terms together lie beyond 5 sigma of none: an undersampled
+    star's moments follow its phase (a new user's stars of FWHM 1.5 px: T some 25 % larger
+    on a pixel corner than on its centre, e1 with the phase along one axis), and 62 of 300
+    isolated stars away from pixel centres had been left out as blends."""
+    design = np.column_stack([np.ones(len(relative)), *basis])
+    if np.sum(good) < 3 * design.shape[1]:
+        return relative
+    fit = clipped_least_squares(relative[good], design[good])
+    terms, k = fit.params[1:], design.shape[1] - 1
+    # the terms together, against the chi2 of k terms of nothing (mean k, sigma sqrt(2 k))
+    if not terms @ np.linalg.pinv(fit.covariance[1:, 1:]) @ terms > k + 5 * np.sqrt(2 * k):
+        return relative
+    return relative - design[:, 1:] @ terms
 
 
 def unlike_others(stars, clean, model, variance):
