@@ -6,6 +6,7 @@ from ..io.amplifiers import read_amplifiers
 from ..io.saturation import saturation_e
 from ..measure.prepare import linearity_of, prepare_image
 from ..measure.sources import measure_sources, sky_level
+from ..model.bf_term import pixelised_stamp
 from ..plotting.diagnose import radial_profile
 from ..workflow import psf_from_images
 
@@ -98,10 +99,19 @@ def _own_chi2(psf, data, image, flux, x, y, cx, cy, half, noise_e, step=0.05):
     def model(flux, x, y):
         return psf.star_image(flux, x, y, x_phase=x - cx, y_phase=y - cy, half_size=half)
 
+    # the position's derivatives from P0 at the star (F p; the BF term and an EMPIRICAL
+    # term move it by a few %, the step's direction only, while the chi2 is the full
+    # model's): a third of the cost, where each P(F) recomputes the term's pattern
+    local = psf.at(x, y)
+
+    def unit(x, y):
+        return pixelised_stamp(local, x_phase=x - cx, y_phase=y - cy, half_size=half)
+
     for _ in range(2):
         weight = 1.0 / (np.clip(image, 0, None) + noise_e ** 2)
-        design = np.stack([image / flux, (model(flux, x + step, y) - image) / step,
-                           (model(flux, x, y + step) - image) / step]).reshape(3, -1)
+        centre = unit(x, y)
+        design = np.stack([image / flux, flux * (unit(x + step, y) - centre) / step,
+                           flux * (unit(x, y + step) - centre) / step]).reshape(3, -1)
         normal = (design * weight.ravel()) @ design.T
         change = np.linalg.lstsq(normal, (design * weight.ravel()) @ (data - image).ravel(),
                                  rcond=None)[0]
