@@ -113,6 +113,27 @@ def test_cosmic_rays_on_the_sky_are_no_stars(hit_field):
     assert np.sum(spurious) <= 2
 
 
+def test_psf_says_the_stars_a_cosmic_ray_hit(hit_field, tmp_path, capsys):
+    """``bfpsf psf`` leaves the hit stars out of P0 and says why, with the rays' pixels per
+    image in its JSON (a new user's 52 hit stars were "blended, near an edge or with bad
+    pixels" alone)."""
+    import json
+
+    from test_photometry import SHIFTS, make_calibration
+
+    from bfpsf.cli import main
+    from bfpsf.validation.simulate_spots import write_image_adu
+
+    data = hit_field[0]
+    write_image_adu(tmp_path / "hit.fits", data + 300.0, gain=1.0)
+    make_calibration(SHIFTS, 1.0, 5.0).write(tmp_path / "cal.fits")
+    assert main(["psf", str(tmp_path / "hit.fits"), "--calib", str(tmp_path / "cal.fits"),
+                 "-o", str(tmp_path / "p.fits"), "--no-bf", "--json",
+                 str(tmp_path / "p.json")]) == 0
+    assert "or hit by a cosmic ray" in capsys.readouterr().out
+    assert json.loads((tmp_path / "p.json").read_text())["images"][0]["cosmic_ray_pixels"] > 0
+
+
 def test_cosmic_ray_mask_reads_the_residual_not_the_stars():
     """An undersampled star (a Gaussian of 0.6 px sigma, 2e5 e-) is sharp enough for
     L.A.Cosmic on the image; in the residual of its fit it is gone, and a cosmic ray beside

@@ -247,3 +247,37 @@ def test_psf_takes_no_phase_for_a_blend(tmp_path):
     flags = np.asarray(fit.fit.stars["flags"])
     print(len(flags), np.sum((flags & UNLIKE) > 0))
     assert len(flags) == 100 and np.sum((flags & UNLIKE) > 0) <= 3
+
+
+def test_no_star_said_beyond_the_flats_for_a_peak_it_does_not_have(tmp_path):
+    """The peak a star of flux F reaches is F times P0's brightest pixel at its own
+    sub-pixel phase: an undersampled P0 peaks far higher on a pixel centre than on a corner,
+    and a new user's psf said "8 of 300 stars peak above the flats' highest level" where
+    none did. Flats to 6 % above the image's brightest pixel (the fitted P0 peaks some 3 %
+    above an undersampled star's brightest pixel): none beyond."""
+    import dataclasses
+
+    from astropy.io import fits
+
+    from test_photometry import make_calibration
+
+    from bfpsf.io.saturation import beyond_flats
+    from bfpsf.measure.prepare import prepare_image
+    from bfpsf.workflow import psf_from_images
+
+    airy = galsim.Convolve(galsim.Airy(lam_over_diam=1.0), galsim.Gaussian(fwhm=0.9),
+                           galsim.Gaussian(sigma=0.44))
+    _undersampled_image(tmp_path / "u.fits", np.random.default_rng(66), side=440,
+                        profile=airy, fluxes=(5e3, 5e5))
+    image = fits.getdata(tmp_path / "u.fits")
+    calibration = make_calibration(SHIFTS, 1.0, 5.0)
+    fit = psf_from_images([prepare_image(image, gain=1.0)], calibration, size=15)
+    ptc = calibration.ptc.copy()
+    ptc["mean_e"] = ptc["mean_e"] * 1.06 * image.max() / np.max(ptc["mean_e"][ptc["used"]])
+    flats = dataclasses.replace(calibration, ptc=ptc)
+    stars = fit.fit.stars
+    flux, x, y = (np.asarray(stars[name], float) for name in ("flux_fit", "x_fit", "y_fit"))
+    assert beyond_flats(fit.psf, flux, SKY, flats, x=x, y=y)[0] == 0
+    # on a pixel centre, as before: some
+    assert beyond_flats(fit.psf, flux, SKY, flats)[0] > 0
+

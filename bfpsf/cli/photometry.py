@@ -202,7 +202,8 @@ def run(args):
             beyond, top = beyond_flats(
                 bf_model, np.asarray(table["flux_fit"], float)
                 / bf_model.flux_correction_at(table["x_fit"], table["y_fit"]),
-                table["sky_e"], one)
+                table["sky_e"], one, x=np.asarray(table["x_fit"], float),
+                y=np.asarray(table["y_fit"], float))
             beyond_tops += [] if top is None else [top]
             margin = (args.fit_shape or 2 * psf.half_size + 1) / 2
             place_stars(table, amplifier, sides, margin, x="x_fit", y="y_fit")

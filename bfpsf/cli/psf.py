@@ -161,6 +161,7 @@ def run(args):
                      n_amp_boundary=found["n_excluded"], background_e=found["background_e"],
                      sky_slope=found["sky_slope"], sky_method=found["sky_method"],
                      sky_degree=found["sky_degree"], line_pixels=found["line_pixels"],
+                     cosmic_ray_pixels=found["cosmic_ray_pixels"],
                      sky_scatter=found["sky_scatter"],
                      **{key: found[key] for key in ("size_offset", "size_offset_err",
                                                     "n_sized", "seeing_bias_mmag",
@@ -330,7 +331,11 @@ def run(args):
               f"{reference:.3g} e-; `shape(flux)` nearer that flux carries less)"
               + (" at sub-pixel phase (0.5, 0.5)" if where else ""))
     n_detected = sum(entry["n_detected"] for entry in per_image)
-    others = ("; the others blended, near an edge or with bad pixels"
+    # (a new user's 52 stars hit by cosmic rays were "blended, near an edge or with bad
+    # pixels" alone)
+    rays = any(entry.get("cosmic_ray_pixels") for entry in per_image)
+    others = ("; the others blended, near an edge, with bad pixels"
+              f"{' or hit by a cosmic ray' if rays else ''}"
               if n_detected > summary["n_stars"] else "")
     unlike = (f"; {summary['n_unlike']} left out as unlike the other stars (unresolved "
               "blends; bit 16 of the P0 fit's star flags)" if summary["n_unlike"] else "")
@@ -427,7 +432,9 @@ def _beyond_flats(psf, stars, per_image, calibrations):
     for index, (entry, calibration) in enumerate(zip(per_image, calibrations)):
         mine = np.asarray(stars["image"]) == index
         count, top = beyond_flats(psf, np.asarray(stars["flux_fit"], float)[mine],
-                                  entry["background_e"], calibration)
+                                  entry["background_e"], calibration,
+                                  x=np.asarray(stars["x_fit"], float)[mine],
+                                  y=np.asarray(stars["y_fit"], float)[mine])
         counts += count
         tops += [] if top is None else [top]
     return counts, len(stars), min(tops) if tops else None
