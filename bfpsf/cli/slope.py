@@ -208,10 +208,15 @@ def run(args):
             entry = summary["model_residual"][key]
             error = prediction[key]["slope_err"]
             # a gridded model's prediction holds the field's variation too (a new user read
-            # -0.386 as the calibration's BF)
-            print(f"{label:8s} predicted by "
-                  + ("P(F, x, y) (its BF and the field's variation) "
-                     if len(psf.field_nodes[0]) * len(psf.field_nodes[1]) > 1 else "P(F) ")
+            # -0.386 as the calibration's BF), and at undersampled stars' phases the phase's
+            # pull on the slope against peak, as the measured slope does (a new user read
+            # +0.0165 as the model's BF, 0.030 by its twins)
+            gridded = len(psf.field_nodes[0]) * len(psf.field_nodes[1]) > 1
+            print(f"{label:8s} predicted by " + ("P(F, x, y) " if gridded else "P(F) ")
+                  + ("(its BF and the field's variation) " if gridded else "")
+                  + ("(at each star's phase: its BF and the phase's pull on the slope, as "
+                     "the measured one's; read the residual) "
+                     if slopes.get("beside", {}).get("phase") else "")
                   + f"{prediction[key]['slope']:+.5f} "
                   + (f"+- {error:.5f} (calibration)" if np.isfinite(error) else
                      "(the PSF carries no calibration samples: no calibration error)")
