@@ -27,6 +27,10 @@ galsim = pytest.importorskip("galsim")
 PROFILE = galsim.Add(galsim.Gaussian(sigma=0.5, flux=0.85), galsim.Gaussian(sigma=1.5, flux=0.15))
 SHIFTS = BoundaryShifts.from_radial_profile(lambda r: 2.5e-7 / r**1.2, 4)
 SKY = 100.0
+#: a new user's sharper profile: Airy x Gaussian, FWHM ~1.5 px with the pixel, with
+#: SiliconSensor's diffusion
+AIRY = galsim.Convolve(galsim.Airy(lam_over_diam=1.0), galsim.Gaussian(fwhm=0.9),
+                       galsim.Gaussian(sigma=0.44))
 
 
 def _stamps(profile, fluxes, phases, rng, size=21):
@@ -75,8 +79,13 @@ def test_measure_warns_of_undersampled_stars(tmp_path, capsys):
     assert not any("not_positive_definite" in str(flag) for flag in flags)
 
 
-def _star_table(profile, n, rng):
-    fluxes = np.exp(rng.uniform(np.log(2e3), np.log(2e5), n))
+def _star_table(profile, n, rng, fluxes=(2e3, 2e5), errors=False):
+    """n stars of ``profile`` without BF (``fluxes`` log-uniform, random phases) measured as
+    `measure` does: adaptive moments (``errors``: and their errors), the image positions of
+    their phases."""
+    from bfpsf.moments.moment_errors import moment_errors
+
+    fluxes = np.exp(rng.uniform(*np.log(fluxes), n))
     phases = rng.uniform(-0.5, 0.5, (n, 2))
     stamps = _stamps(profile, fluxes, phases, rng)
     moments = adaptive_moments_batch(stamps)
@@ -86,6 +95,11 @@ def _star_table(profile, n, rng):
                    # image positions of that phase (the stamp centre is pixel 10)
                    "x": 100.0 + 50 * np.arange(n) % 700 + phases[:, 0],
                    "y": 100.0 + 7 * np.arange(n) + phases[:, 1]})
+    if errors:
+        found = moment_errors(stamps, moments, background_variance=SKY)
+        for column, name in (("sigma_x_err", "sigma_x_err"), ("sigma_y_err", "sigma_y_err"),
+                             ("iq_err", "sigma_err")):
+            table[column] = found[name]
     return table
 
 
@@ -96,33 +110,16 @@ def test_errors_that_miss_the_phase_do_not_weight_the_slope():
     low); with the scatter beyond the errors added to them it is within 3 of its errors of
     zero (`bfpsf.least_squares.least_squares_with_scatter`)."""
     rng = np.random.default_rng(64)
-    slopes = bf_slopes(_sized_table(PROFILE, 400, rng))
+    slopes = bf_slopes(_star_table(PROFILE, 400, rng, fluxes=(5e3, 5e5), errors=True))
     assert "phase" in slopes["beside"]
     for key in ("x", "y", "iq"):
         fit = slopes[key]
         assert fit.scatter > 0 and abs(fit.slope) < 3 * fit.slope_err, (key, fit)
     # well sampled, the errors hold the scatter: none added
-    plain = bf_slopes(_sized_table(galsim.Gaussian(sigma=2.0), 400, rng))
+    plain = bf_slopes(_star_table(galsim.Gaussian(sigma=2.0), 400, rng, fluxes=(5e3, 5e5),
+                                    errors=True))
     assert "phase" not in plain["beside"]
     assert all(plain[key].scatter == 0 for key in ("x", "y", "iq"))
-
-
-def _sized_table(profile, n, rng):
-    """n stars of ``profile`` without BF (5e3-5e5 e-, random phases) measured as `measure`
-    does: adaptive moments, their errors, the image positions of their phases."""
-    from bfpsf.moments.moment_errors import moment_errors
-
-    fluxes = np.exp(rng.uniform(np.log(5e3), np.log(5e5), n))
-    phases = rng.uniform(-0.5, 0.5, (n, 2))
-    stamps = _stamps(profile, fluxes, phases, rng)
-    moments = adaptive_moments_batch(stamps)
-    errors = moment_errors(stamps, moments, background_variance=SKY)
-    return Table({"peak_e": stamps.max(axis=(1, 2)), "sigma_x": np.sqrt(moments.mxx),
-                  "sigma_y": np.sqrt(moments.myy), "iq": moments.sigma,
-                  "flags": moments.flags, "sigma_x_err": errors["sigma_x_err"],
-                  "sigma_y_err": errors["sigma_y_err"], "iq_err": errors["sigma_err"],
-                  "x": 100.0 + 50 * np.arange(n) % 700 + phases[:, 0],
-                  "y": 100.0 + 7 * np.arange(n) + phases[:, 1]})
 
 
 def test_slope_warns_that_undersampled_sizes_follow_the_phase(tmp_path, caplog):
@@ -190,9 +187,8 @@ def test_slope_psf_says_its_prediction_carries_the_phase(psf, tmp_path, capsys):
     """``slope --psf`` on undersampled stars: the prediction is fitted as the measured slope
     is, at each star's phase, and carries the phase's pull on the slope against peak too;
     it says so beside it (a new user read +0.0165 as the model's BF, 0.030 by its twins)."""
-    table = _sized_table(PROFILE, 200, np.random.default_rng(67))
-    table["flux_e"] = table["peak_e"] / np.max(PROFILE.drawImage(nx=21, ny=21,
-                                                                  scale=1.0).array)
+    table = _star_table(PROFILE, 200, np.random.default_rng(67), fluxes=(5e3, 5e5),
+                        errors=True)
     table.write(tmp_path / "stars.ecsv")
     psf.write(tmp_path / "psf.fits")
     assert main(["slope", str(tmp_path / "stars.ecsv"), "--psf",
@@ -250,12 +246,8 @@ def test_psf_takes_no_phase_for_a_blend(tmp_path):
     from bfpsf.model.psf_fit_stars import UNLIKE
     from bfpsf.workflow import psf_from_images
 
-    # the new user's profile, an Airy x Gaussian of FWHM ~1.5 px with the pixel, with
-    # SiliconSensor's diffusion
-    airy = galsim.Convolve(galsim.Airy(lam_over_diam=1.0), galsim.Gaussian(fwhm=0.9),
-                           galsim.Gaussian(sigma=0.44))
     _undersampled_image(tmp_path / "u.fits", np.random.default_rng(65), side=440,
-                        profile=airy, fluxes=(5e3, 5e5))
+                        profile=AIRY, fluxes=(5e3, 5e5))
     prepared = prepare_image(fits.getdata(tmp_path / "u.fits"), gain=1.0)
     fit = psf_from_images([prepared], make_calibration(SHIFTS, 1.0, 5.0), size=15)
     flags = np.asarray(fit.fit.stars["flags"])
@@ -279,10 +271,8 @@ def test_no_star_said_beyond_the_flats_for_a_peak_it_does_not_have(tmp_path):
     from bfpsf.measure.prepare import prepare_image
     from bfpsf.workflow import psf_from_images
 
-    airy = galsim.Convolve(galsim.Airy(lam_over_diam=1.0), galsim.Gaussian(fwhm=0.9),
-                           galsim.Gaussian(sigma=0.44))
     _undersampled_image(tmp_path / "u.fits", np.random.default_rng(66), side=440,
-                        profile=airy, fluxes=(5e3, 5e5))
+                        profile=AIRY, fluxes=(5e3, 5e5))
     image = fits.getdata(tmp_path / "u.fits")
     calibration = make_calibration(SHIFTS, 1.0, 5.0)
     fit = psf_from_images([prepare_image(image, gain=1.0)], calibration, size=15)

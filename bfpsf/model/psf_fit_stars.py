@@ -249,7 +249,7 @@ def misfits(stars, clean):
     # is compared with stars
     for _ in range(2):
         reference, out = used & ~out, np.zeros(len(clean), dtype=bool)
-        for values, error, floor, size_like, phase in (
+        for values, error, floor, size_like, basis in (
                 (size, np.hypot(errors["mxx_err"], errors["myy_err"]) / size, MISFIT_SIZE,
                  True, even),
                 ((star.mxx - star.myy) / size, errors["e1_err"], MISFIT_SHAPE, False, even),
@@ -259,7 +259,7 @@ def misfits(stars, clean):
             good = reference & np.isfinite(relative)
             if np.sum(good) < 6 or np.ptp(stars.flux[good]) == 0:
                 continue
-            relative = _less_the_phase(relative, phase, good)
+            relative = _less_the_phase(relative, basis, good)
             slope, intercept = theilslopes(relative[good], stars.flux[good])[:2]
             relative = relative - intercept - slope * stars.flux
             # a blend or a galaxy is larger than a star, never smaller
