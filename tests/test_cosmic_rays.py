@@ -83,6 +83,36 @@ def test_photometry_leaves_cosmic_rays_out_of_the_stars_they_hit(hit_field):
     assert masked.meta["cosmic_ray_pixels"] > 0 and kept.meta["cosmic_ray_pixels"] == 0
 
 
+def test_a_hit_brighter_than_the_star_s_peak_leaves_one_row_at_the_star():
+    """Faint stars (peaks 500-3000 e-) hit 2-2.5 px from their centres by two pixels of
+    1.5-3 times their peak each: each star comes out as one row at the star, flagged
+    ``cosmic_ray``, at its flux (a new user's stars of 8e3-4e4 e- so hit came out as two rows
+    each, a row beside the star of a tenth of its flux and one found in the residual, or
+    the star split in two halves with errors of 1.4e6 e-: the fit, pulled by the hit, had
+    left the star in its residual before the cosmic rays were looked for)."""
+    field = _field(256, 300.0, seed=9)
+    x, y, flux = (np.asarray(field.truth[0][name], float) for name in ("x", "y", "flux_e"))
+    peak = np.asarray(field.truth[0]["peak_e"], float)
+    data = field.images[0].copy()
+    rng = np.random.default_rng(16)
+    hit = (peak > 500) & (peak < 3000)
+    for index in np.flatnonzero(hit):
+        angle = rng.uniform(0.0, 2 * np.pi)
+        row = int(round(y[index] + 2.2 * np.sin(angle)))
+        column = int(round(x[index] + 2.2 * np.cos(angle)))
+        data[row, column:column + 2] += peak[index] * rng.uniform(1.5, 3.0, 2)
+    psf = bfpsf.FluxDependentPSF.from_galsim(
+        KOLMOGOROV_AIRY, BoundaryShifts.from_radial_profile(lambda r: 0 * r, 2))
+    table = psf_photometry(data, psf, read_noise_e=5.0)
+    distance = np.hypot(table["x_fit"][:, None] - x[None], table["y_fit"][:, None] - y[None])
+    print(f"{hit.sum()} hit; {len(table)} rows for {len(x)} stars; rows beyond 1 px of a "
+          f"star {np.sum(distance.min(axis=1) > 1.0)}")
+    assert len(table) == len(x) and distance.min(axis=1).max() < 1.0
+    offset, error, flags = _offsets(table, x, y, flux)
+    assert hit.sum() >= 6 and np.all(flags[hit] & SourceFlag.COSMIC_RAY)
+    assert np.sum(np.abs(offset[hit]) > 3 * error[hit]) <= 1, (offset[hit], error[hit])
+
+
 def test_cosmic_rays_on_the_sky_are_no_stars(hit_field):
     """Hits and tracks on the sky, 15 px or more from every star: detection finds them as
     cosmic rays, and the search of the fit's residual takes them for no stars (a new user's
