@@ -720,3 +720,39 @@ def test_signature_plot_of_candidates_rejected_by_their_range_alone(tmp_path):
     texts = [text.get_text() for ax in figure.axes for text in ax.texts]
     assert any("xy_anisotropy" in text for text in texts)
     figure.savefig(tmp_path / "signatures.png")
+
+
+def test_an_odd_residual_that_leaves_the_sizes_alone_is_reported(shifts):
+    """A trail that leaves the sizes alone (a new user's serial charge-transfer trail: every
+    size candidate was contradicted by parity and the report named nothing): the stars'
+    skewness along X changes with flux, more so far from the amplifier, while their sizes
+    are explained. The report says "skewness, along x, odd parity" with its dependence on
+    the column, nothing on Y, and the verdict is no success."""
+    import dataclasses
+
+    from bfpsf.diagnosis.problem import build_problem
+    from bfpsf.diagnosis.signature import describe_entry
+    from bfpsf.diagnosis.unexplained import describe_unexplained, verdict
+
+    observed = observables(shifts)
+    table = observed.sizes
+    rng = np.random.default_rng(14)
+    columns = np.repeat([100.0, 700.0, 1300.0, 1900.0], len(table))
+    tiled = {name: np.tile(getattr(table, name), 4) for name in
+             ("peak_e", "sigma_x", "sigma_y", "sigma_x_err", "sigma_y_err")}
+    error = np.full(columns.size, 2e-4)
+    trail = -2e-3 * tiled["peak_e"] / 1e5 * columns / 1000.0  # grows from the amplifier
+    sizes = SizeTable(**tiled, x_detector=columns, skew_x=trail + error * rng.standard_normal(
+        columns.size), skew_y=error * rng.standard_normal(columns.size), skew_x_err=error,
+        skew_y_err=error)
+    observed = dataclasses.replace(observed, sizes=sizes)
+    problem = build_problem(observed)
+    entries = describe_unexplained(problem, observed, problem.residual.copy())
+    assert [(entry["observable"], entry["axis"], entry["parity"]) for entry in entries] == [
+        ("skewness", "x", "odd")], entries
+    entry = entries[0]
+    assert entry["sign"] == "falling" and entry["significance"] > 10
+    assert entry["position_dependence"]["kind"] == "falling with distance from the amplifier"
+    assert entry["flats"] == "stars only"
+    assert describe_entry(entry).startswith("skewness, along x, ")
+    assert not verdict(entries, {})["success"]

@@ -408,7 +408,7 @@ def _empirical_lines(result):
                 f"{before['photometry_bias_mmag']:+.2f} -> {after['photometry_bias_mmag']:+.2f} "
                 f"mmag{cross}")
     odd = [entry["axis"].upper() for entry in result.unexplained
-           if entry.get("observable") == "sizes" and entry.get("parity") == "odd"]
+           if entry.get("observable") in ("sizes", "skewness") and entry.get("parity") == "odd"]
     if result.empirical and odd:
         # a new user's diagonal trail: sizes and e2 corrected, its centroid shift (0.025 px
         # at the bright end) neither removed nor said to be

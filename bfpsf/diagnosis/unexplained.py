@@ -247,20 +247,58 @@ def _odd_parity(sizes, axis):
     return "odd", {"slope_per_1e5": slope, "error": error}
 
 
+def _skewness_entries(sizes, entries):
+    """The stars' skewness changing with flux on an axis whose size residual is not
+    significant (an odd effect that leaves the sizes alone, a centroid shift or a trail: a
+    new user's serial charge-transfer trail contradicted every size candidate by parity and
+    the report named nothing), with its dependence on the column, the row and the exposure."""
+    out = []
+    if sizes is None:
+        return out
+    for axis in "xy":
+        if any(entry["observable"] == "sizes" and entry["axis"] == axis for entry in entries):
+            continue
+        parity, skew = _odd_parity(sizes, axis)
+        if parity != "odd":
+            continue
+        values = np.asarray(getattr(sizes, f"skew_{axis}"), float)
+        errors = np.asarray(getattr(sizes, f"skew_{axis}_err"), float)
+        entry = {"observable": "skewness", "axis": axis, "parity": "odd", "skew": skew,
+                 "sign": "rising" if skew["slope_per_1e5"] > 0 else "falling",
+                 "flux_dependence": None,
+                 "significance": float(abs(skew["slope_per_1e5"]) / skew["error"]),
+                 "position_dependence": None, "row_dependence": None,
+                 "exposure_dependence": None}
+        for key, along, what in (("position_dependence", sizes.x_detector,
+                                  "with distance from the amplifier"),
+                                 ("row_dependence", sizes.y_detector,
+                                  "with the row (parallel transfers)")):
+            if along is not None and np.ptp(along) > 0:
+                entry[key] = _dependence(sizes, values, errors, along, 1000.0,
+                                         (f"rising {what}", f"falling {what}"))
+        if sizes.exposure is not None and np.unique(sizes.exposure).size > 2:
+            order = np.unique(sizes.exposure, return_inverse=True)[1]
+            entry["exposure_dependence"] = _dependence(
+                sizes, values, errors, order, 1.0,
+                ("rising over the night", "falling over the night"))
+        out.append(entry)
+    return out
+
+
 def _odd_direction(entries):
     """The odd size residuals of X and Y together: when both skewness slopes have one sign
     and are within a factor `DIAGONAL_RATIO` of each other, the odd part lies along the
     x = y diagonal (opposite signs: x = -y), said on both entries (``odd_direction``): a new
     user's trail toward (+1, +1) was read as two odd axes."""
     skews = {entry["axis"]: entry["skew"] for entry in entries
-             if entry["observable"] == "sizes" and entry.get("skew")}
+             if entry["observable"] in ("sizes", "skewness") and entry.get("skew")}
     if set(skews) != {"x", "y"}:
         return
     x, y = skews["x"]["slope_per_1e5"], skews["y"]["slope_per_1e5"]
     if 1 / DIAGONAL_RATIO <= abs(x / y) <= DIAGONAL_RATIO:
         direction = "along the x = y diagonal" if x * y > 0 else "along the x = -y diagonal"
         for entry in entries:
-            if entry["observable"] == "sizes" and entry.get("skew"):
+            if entry["observable"] in ("sizes", "skewness") and entry.get("skew"):
                 entry["odd_direction"] = direction
 
 
@@ -381,6 +419,7 @@ def describe_unexplained(problem, observables, model, prediction=None):
                                               inverse=False)
             out.append({"observable": key, "axis": None, "parity": None,
                         "flux_dependence": dependence, "significance": float(significance)})
+    out += _skewness_entries(observables.sizes, out)
     cross = cross_test(observables.sizes, alpha=SIGNATURE_ALPHA)
     if cross is not None:
         # the stars' e2 against flux: no catalogue effect changes it (`cross_test`)
@@ -391,10 +430,10 @@ def describe_unexplained(problem, observables, model, prediction=None):
                         "parity": "even", "sign": "rising" if slope > 0 else "falling",
                         "flux_dependence": None, "significance": float(significance),
                         "slope_per_1e5": float(slope), "slope_err": float(error)})
-    flats = [entry["observable"] for entry in out
-             if entry["observable"] not in ("sizes", "cross moment e2")]
+    stars = ("sizes", "skewness", "cross moment e2")
+    flats = [entry["observable"] for entry in out if entry["observable"] not in stars]
     for entry in out:
-        if entry["observable"] in ("sizes", "cross moment e2"):
+        if entry["observable"] in stars:
             # what the flats leave too, by name: the same effect or another (a new user's
             # flats with an edge artefact in their means read "flats and stars" beside a
             # trail the flats did not have)
