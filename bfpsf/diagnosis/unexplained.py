@@ -263,25 +263,35 @@ def _skewness_entries(sizes, entries):
             continue
         values = np.asarray(getattr(sizes, f"skew_{axis}"), float)
         errors = np.asarray(getattr(sizes, f"skew_{axis}_err"), float)
-        entry = {"observable": "skewness", "axis": axis, "parity": "odd", "skew": skew,
-                 "sign": "rising" if skew["slope_per_1e5"] > 0 else "falling",
-                 "flux_dependence": None,
-                 "significance": float(abs(skew["slope_per_1e5"]) / skew["error"]),
-                 "position_dependence": None, "row_dependence": None,
-                 "exposure_dependence": None}
-        for key, along, what in (("position_dependence", sizes.x_detector,
-                                  "with distance from the amplifier"),
-                                 ("row_dependence", sizes.y_detector,
-                                  "with the row (parallel transfers)")):
-            if along is not None and np.ptp(along) > 0:
-                entry[key] = _dependence(sizes, values, errors, along, 1000.0,
-                                         (f"rising {what}", f"falling {what}"))
-        if sizes.exposure is not None and np.unique(sizes.exposure).size > 2:
-            order = np.unique(sizes.exposure, return_inverse=True)[1]
-            entry["exposure_dependence"] = _dependence(
-                sizes, values, errors, order, 1.0,
-                ("rising over the night", "falling over the night"))
-        out.append(entry)
+        out.append({"observable": "skewness", "axis": axis, "parity": "odd", "skew": skew,
+                    "sign": "rising" if skew["slope_per_1e5"] > 0 else "falling",
+                    "flux_dependence": None,
+                    "significance": float(abs(skew["slope_per_1e5"]) / skew["error"]),
+                    **_dependences(sizes, values, errors)})
+    return out
+
+
+#: The detector directions of `_dependences`: key, `SizeTable` column, words, split's name.
+_ALONG = (("position_dependence", "x_detector", "with distance from the amplifier", "column"),
+          ("row_dependence", "y_detector", "with the row (parallel transfers)", "row"))
+
+
+def _dependences(sizes, values, errors):
+    """A residual's ``position_dependence``, ``row_dependence`` and
+    ``exposure_dependence`` (`_dependence`; None where the stars do not span the
+    direction)."""
+    out = {}
+    for key, column, what, _ in _ALONG:
+        along = getattr(sizes, column)
+        out[key] = (_dependence(sizes, values, errors, along, 1000.0,
+                                (f"rising {what}", f"falling {what}"))
+                    if along is not None and np.ptp(along) > 0 else None)
+    out["exposure_dependence"] = None
+    if sizes.exposure is not None and np.unique(sizes.exposure).size > 2:
+        order = np.unique(sizes.exposure, return_inverse=True)[1]
+        out["exposure_dependence"] = _dependence(
+            sizes, values, errors, order, 1.0,
+            ("rising over the night", "falling over the night"))
     return out
 
 
@@ -388,23 +398,10 @@ def describe_unexplained(problem, observables, model, prediction=None):
                                                                  sizes.intercepts),
                              "significance": float(significance),
                              "slope": float(fit.slope), "slope_err": float(slope_err),
-                             "position_dependence": None, "row_dependence": None,
-                             "exposure_dependence": None}
-                    for key, along, what, name in (
-                            ("position_dependence", sizes.x_detector,
-                             "with distance from the amplifier", "column"),
-                            ("row_dependence", sizes.y_detector,
-                             "with the row (parallel transfers)", "row")):
-                        labels = (f"rising {what}", f"falling {what}")
-                        if along is not None and np.ptp(along) > 0:
-                            entry[key] = _dependence(sizes, values, errors, along, 1000.0,
-                                                     labels)
-                        entry[key] = _each_star(entry[key], observables, name, axis, labels)
-                    if sizes.exposure is not None and np.unique(sizes.exposure).size > 2:
-                        order = np.unique(sizes.exposure, return_inverse=True)[1]
-                        entry["exposure_dependence"] = _dependence(
-                            sizes, values, errors, order, 1.0,
-                            ("rising over the night", "falling over the night"))
+                             **_dependences(sizes, values, errors)}
+                    for key, _, what, name in _ALONG:
+                        entry[key] = _each_star(entry[key], observables, name, axis,
+                                                (f"rising {what}", f"falling {what}"))
                     out.append(entry)
             continue
         n_points = part.size
