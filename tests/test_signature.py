@@ -234,3 +234,18 @@ def test_odd_residuals_of_both_axes_are_said_to_lie_along_a_diagonal():
     for case in (entries(0.004, None), entries(0.005, 0.001)):
         _odd_direction(case)
         assert not any("odd_direction" in entry for entry in case)
+
+
+def test_a_rejection_says_what_the_parts_read():
+    """A rejected candidate's line gives the parts of the dimension that contradicts it (a
+    new user's serial trail: "contradicted by parity (p = 5.6e-04)" and nothing of what
+    parity saw)."""
+    from bfpsf.diagnosis.signature import describe_rejection
+
+    entry = {"delta_bic": -11.2, "contradicted_by": "parity", "p_value": 5.6e-4,
+             "signature": {"parity": {"parts": ["skew x", "skew y"],
+                                      "amplitudes": [[-0.00215], [-0.00315]],
+                                      "errors": [[0.00105], [0.00096]]}}}
+    assert describe_rejection("calibration_scale", entry) == (
+        "calibration_scale (Delta BIC -11): its signature is contradicted by parity "
+        "(p = 5.6e-04; skew x -0.00215 +- 0.0011; skew y -0.00315 +- 0.00096)")

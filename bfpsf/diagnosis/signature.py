@@ -246,10 +246,7 @@ def _support(amplitudes, covariance, measurable, fitted, tau):
     """The parts that measure a candidate (``measurable``) against the amplitude its whole
     template was fitted at (``fitted``, one per parameter): their common amplitude m +- s
     (generalised least squares) and min over eta of ((m - fitted e^eta) / s)^2 +
-    eta^2 / tau^2 summed over the parameters, chi-square with k degrees of freedom. A row
-    smear in 81 stars per exposure had fitted a gain non-linearity of -0.0105 that the star
-    sizes (-0.17 +- 0.005, 2.0 errors from its prediction: no measure of it) pulled away
-    from the flats' -0.0009 +- 0.0013, and the flats alone measured it: named."""
+    eta^2 / tau^2 summed over the parameters, chi-square with k degrees of freedom."""
     k = len(fitted)
     values, errors, statistic = [], [], 0.0
     for j in range(k):
@@ -456,8 +453,13 @@ def describe_rejection(name, entry):
         values = ", ".join(f"{value:.3g}" for value in entry["values"])
         ranges = ", ".join(str(tuple(bound)) for bound in entry["bounds"])
         return f"{head}: its fit {values} is outside its physical range {ranges}"
+    # what the parts read (the first parameter), for a person to judge
+    test = (entry.get("signature") or {}).get(entry["contradicted_by"]) or {}
+    parts = "".join(f"; {label} {values[0]:+.3g} +- {errors[0]:.2g}" for label, values, errors
+                    in zip(test.get("parts", ()), test.get("amplitudes", ()),
+                           test.get("errors", ())))
     return (f"{head}: its signature is contradicted by {entry['contradicted_by']} "
-            f"(p = {entry['p_value']:.1e})")
+            f"(p = {entry['p_value']:.1e}{parts})")
 
 
 def describe_entry(entry):
