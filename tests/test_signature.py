@@ -245,7 +245,7 @@ def test_a_rejection_says_what_the_parts_read():
     entry = {"delta_bic": -11.2, "contradicted_by": "parity", "p_value": 5.6e-4,
              "signature": {"parity": {"parts": ["skew x", "skew y"],
                                       "amplitudes": [[-0.00215], [-0.00315]],
-                                      "errors": [[0.00105], [0.00096]]}}}
+                                      "errors": [[0.00106], [0.00096]]}}}
     assert describe_rejection("calibration_scale", entry) == (
         "calibration_scale (Delta BIC -11): its signature is contradicted by parity "
         "(p = 5.6e-04; skew x -0.00215 +- 0.0011; skew y -0.00315 +- 0.00096)")
