@@ -8,11 +8,15 @@ on 8 exposures of 55 stars went unreported although the stars' Y slope in the up
 the rows was 0.0322 +- 0.0006 against 0.0222 +- 0.0006 in the lower.
 
 `star_slope_split` fits, per axis and for the columns and the rows in turn, every star of
-every exposure: sigma = a_exposure + b p + c p^2 + d p u, with p the peak in 100 ke- and u
-the star's column (row) from the median over the span of the stars. d is the change of the
-BF slope across the span; the quadratic keeps the slope's run with flux out of it, so that a
-layout whose rows follow the peak (spots laid out in rows of one level) makes d degenerate
-(a large error), not spurious. BF itself (one calibration, one P0) predicts d = 0.
+every exposure: sigma = a_exposure + e1 u + e2 u^2 + b p + c p^2 + d p u, with p the peak
+in 100 ke- and u the star's column (row) from the median over the span of the stars. d is
+the change of the BF slope across the span; the quadratic keeps the slope's run with flux
+out of it, so that a layout whose rows follow the peak (spots laid out in rows of one level)
+makes d degenerate (a large error), not spurious; the terms in u keep out a size that
+changes over the field at every flux (a PSF varying over the field; the faint stars' trail
+of a serial charge transfer: without them a new user's trail read "the X BF slope rises
+with the column, +0.048 +- 0.008" where the stars' own slope fell by 0.0025). BF itself
+(one calibration, one P0) predicts d = 0.
 """
 
 import numpy as np
@@ -49,7 +53,7 @@ def star_slope_split(peak_e, sigma_x, sigma_y, exposure, x, y):
         if span == 0 or where.size < intercepts.shape[1] + 8:
             continue
         u = (where - np.median(where)) / span
-        design = np.column_stack([intercepts, p, p ** 2, p * u])
+        design = np.column_stack([intercepts, u, u ** 2, p, p ** 2, p * u])
         entry = {}
         for axis, sigma in (("x", sigma_x), ("y", sigma_y)):
             fit = _robust_fit(np.asarray(sigma, float), design)
