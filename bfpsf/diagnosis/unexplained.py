@@ -71,6 +71,11 @@ def verdict(unexplained, nuisance, star=None, null_expectation=1.0, position_spl
         against = (nuisance.get(entry.name) or {}).get("contradicted_by")
         if against:
             reasons.append(f"the {entry.what} is contradicted by {against}")
+    parity = ((nuisance.get(SCALE.name) or {}).get("signature") or {}).get("parity")
+    if parity and not parity["matches"]:
+        reasons.append(f"the stars' odd moments change with flux (parity p = "
+                       f"{parity['p_value']:.1e}): an odd effect, a trail or a centroid shift, "
+                       "that no term holds")
     validation = (empirical or {}).get("validation") or {}
     for along, term in (("column", "position_term"), ("row", "row_term")):
         worst = max(((values["significance"], axis) for axis, values
