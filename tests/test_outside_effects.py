@@ -795,6 +795,13 @@ def test_an_odd_residual_leaves_the_flats_scale_alone(bench):
     odd = [(entry["observable"], entry["axis"]) for entry in result.unexplained
            if entry.get("parity") == "odd"]
     assert odd == [("skewness", "x")], result.unexplained
+    # with nothing left beyond 3 errors held out, the report still says why it failed (a new
+    # user's "Nothing significant left unexplained" beside NOT EXPLAINED)
+    from bfpsf.validation.report import diagnosis_markdown
+
+    text = diagnosis_markdown(dataclasses.replace(result, unexplained=[]))
+    assert "on the held-out exposures alone; the verdict's reasons: " in text
+    assert "odd moments change with flux" in text.split("## Unexplained")[1]
 
 
 def test_the_scale_is_fitted_on_the_axis_an_effect_leaves_alone(bench):

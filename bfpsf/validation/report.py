@@ -142,7 +142,12 @@ def diagnosis_markdown(result, *, title="bfpsf diagnose", figures=(), context=()
                   + (f"; contradicted by {against}, not applied." if against else ".")]
     lines += ["", "## Unexplained", ""]
     if not data.get("unexplained"):
-        lines.append("Nothing significant left unexplained.")
+        # nothing beyond 3 errors on the held-out exposures; the verdict may still name what
+        # the fitted ones showed (a new user's "Nothing significant" beside NOT EXPLAINED)
+        reasons = (data.get("verdict") or {}).get("reasons") or []
+        lines.append("Nothing significant left unexplained" + (
+            f" on the held-out exposures alone; the verdict's reasons: {'; '.join(reasons)}."
+            if reasons else "."))
     # the line the command prints: axis, parity, flux, column, row and exposure dependence
     lines += [f"- {describe_entry(entry)}" for entry in data.get("unexplained", [])]
     if data.get("residual_physical"):
