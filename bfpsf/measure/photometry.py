@@ -27,7 +27,8 @@ from ..errors import BFPSFInputError, BFPSFValueError, BFPSFWarning
 from ..interop.photutils import (default_fit_shape, describe_outlying_nodes,
                                 make_psf_photometry, outlying_nodes)
 from ..model.base import BFPSFModel
-from .neighbour_fits import fit_without_neighbours, merged, model_image, with_found, without_lost
+from .neighbour_fits import (fit_without_neighbours, merged, model_image, refit_pulled, with_found,
+                            without_lost)
 from .neighbours import COMPANION_SEPARATION, sources_with_companions
 from .prepare import PreparedImage, prepare_image
 from .psf_likeness import misfit_outliers, unlike_psf
@@ -351,13 +352,12 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
             # stars they hit refitted without them (a hit brighter than a star's peak pulls
             # its fit aside, and the residual then holds the star: a new user's stars of
             # 8e3-4e4 e- hit 2-3 px from their centres came out as two rows each)
-            cosmic = cosmic | cosmic_rays_in(stars)
-            hit = near_lines(cosmic, result["x_fit"], result["y_fit"], box)
-            if hit.any():
-                mask = cosmic if mask is None else mask | cosmic
-                with _quiet():
-                    result = merged(result, fit_without_neighbours(
-                        photometry, psf, data, mask, error, init, result, hit), hit)
+            early = cosmic_rays_in(stars)
+            cosmic = cosmic | early
+            with _quiet():
+                result, mask, pulled = refit_pulled(photometry, psf, data, mask, error, init,
+                                                    result, early, box)
+            if pulled:
                 stars = model_image(photometry, result, data.shape)
             # (nor are the cosmic rays detection found sources: a new user's 40 hits and 15
             # tracks on the sky had come back as 35 stars "missed by detection")
