@@ -756,3 +756,22 @@ def test_an_odd_residual_that_leaves_the_sizes_alone_is_reported(shifts):
     assert entry["flats"] == "stars only"
     assert describe_entry(entry).startswith("skewness, along x, ")
     assert not verdict(entries, {})["success"]
+
+
+def test_an_effect_no_product_applies_is_no_success():
+    """A named effect that no refined calibration applies (P(F) has no flux-dependent blur)
+    leaves what it explains in every product: the verdict says so and is no success (a new
+    user's star-only non-linearity, 4 times the size, was named flux_diffusion and read
+    "explained" while held-out P(F) left +45 % of the raw X slope); the readout pedestal,
+    which the calibration subtracts, and a gain non-linearity, which it applies, are not."""
+    from bfpsf.diagnosis.refine import unapplied
+    from bfpsf.diagnosis.unexplained import verdict
+
+    named = unapplied(["flux_diffusion", "readout_pedestal", "gain_nonlinearity",
+                       "boundary_density@physical"])
+    assert list(named) == ["flux_diffusion", "boundary_density@physical"]
+    judged = verdict([], {}, unapplied=named)
+    assert not judged["success"] and len(judged["reasons"]) == 2
+    assert judged["reasons"][0].startswith("flux_diffusion is named, but no refined "
+                                           "calibration applies it (P(F) has no flux-dependent")
+    assert verdict([], {}, unapplied=unapplied(["readout_pedestal"]))["success"]

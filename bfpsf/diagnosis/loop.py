@@ -55,6 +55,7 @@ from .nuisances import (GLOBAL_NUISANCES, PRIOR_NSIGMA, SCALE, SPLIT, beyond_the
 from .problem import (build_problem, effect_columns, effect_design, effect_values,
                       global_priors, slope_residuals, summarise)
 from .quiet_axis import scale_beside_the_effect
+from .refine import unapplied
 from .result import DiagnosisResult
 from .signature import (SIGNATURE_ALPHA, contradiction, cross_test, flux_competitors,
                         flux_shape_test, TEMPLATE_TOLERANCE, parity_test, signature_parts,
@@ -372,9 +373,8 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                                   "draws": list(observables.meta.get("draws", {}).get(name, []))}
         if not signature_alpha:
             continue
-        # the flats' scale and split are nuisances within the flats' errors, each with a
-        # signature of its own (the same everywhere, in every exposure): tested like a
-        # candidate, and the pull against the flats' prior must stay within 3 sigma
+        # the flats' scale and split: nuisances within the flats' errors, with a signature
+        # (the same everywhere, every exposure) and a pull on the prior within 3 sigma
         test = signature(problem.nuisance[:, [column]],
                          nuisance=np.delete(problem.nuisance, column, axis=1),
                          flux=get_effect(_SCALE).flux_signature if name == _SCALE else None)
@@ -388,8 +388,7 @@ def _run_loop(observables, catalogue, threshold, max_rounds, prefer_physical,
                                [entry["error"]]], "chi2": pull ** 2, "dof": 1,
                                "p_value": float(_chi2.sf(pull ** 2, 1)),
                                "matches": bool(abs(pull) <= PRIOR_NSIGMA)}
-        # an odd residual is another effect, not an error of the flats' BF amplitude: in the
-        # verdict, not a contradiction (`bfpsf.diagnosis.unexplained.verdict`)
+        # an odd residual is another effect, not an error of the flats' BF amplitude (verdict)
         entry.update(signature=test, contradicted_by=contradiction(
             {key: value for key, value in test.items() if key != "parity"}))
         # and the scale within its physical range (the prior passed its test above)
@@ -496,4 +495,5 @@ def _with_verdict(result, observables):
     unexplained = with_scale_parts(result.unexplained, result.nuisance)
     return dataclasses.replace(result, unexplained=unexplained, verdict=verdict(
         unexplained, result.nuisance, meta.get("star_residual"),
-        meta.get("star_chi2_null", 1.0), meta.get("position_split"), result.empirical))
+        meta.get("star_chi2_null", 1.0), meta.get("position_split"), result.empirical,
+        unapplied(result.selected)))

@@ -39,12 +39,13 @@ from ..calibration.linearity import linearise
 from .catalogue import add_shifts, quadrupole_shifts, split_shifts
 from .nuisances import GLOBAL_NUISANCES, HELDOUT_LABEL, SCALE, SPLIT, beyond_the_flats
 
-__all__ = ["refine_calibration", "linearise", "undo_refined_linearity", "BUILDUP_STEPS"]
+__all__ = ["refine_calibration", "linearise", "undo_refined_linearity", "BUILDUP_STEPS",
+           "NOT_APPLIED", "unapplied"]
 
 #: Build-up steps the PSF integrates when the loop found a second-order term.
 BUILDUP_STEPS = 16
 
-_NOT_APPLIED = {
+NOT_APPLIED = {
     "flux_diffusion": "P(F) has no flux-dependent blur term; P0 fitted from the stars holds "
                       "the flux-independent diffusion",
     "boundary_density": "needs the optical profile (density_profile) of the PSF model",
@@ -54,6 +55,14 @@ _NOT_APPLIED = {
     "second_order": "a negative second order is not the build-up's (which strengthens BF); "
                     "the scale and anisotropy were refitted without it",
 }
+
+
+def unapplied(selected):
+    """{named effect: why} of the effects ``selected`` that no refined calibration applies
+    (`NOT_APPLIED`), but for the readout pedestal, which the calibration subtracts already:
+    what they explain stays in every product's residual."""
+    return {name: NOT_APPLIED[name.split("@")[0]] for name in selected
+            if name.split("@")[0] in NOT_APPLIED and not name.startswith("readout_pedestal")}
 
 
 def undo_refined_linearity(image_e, calibration):
@@ -132,7 +141,7 @@ def refine_calibration(calibration, result, *, provenance=None):
             not_applied[name] = "not confirmed on the held-out data"
             continue
         if name not in folded["names"]:
-            not_applied[name] = _NOT_APPLIED.get(family, "no place in the calibration")
+            not_applied[name] = NOT_APPLIED.get(family, "no place in the calibration")
             continue
         # the values of the joint fit of what the calibration holds
         value = folded["effects"][name]

@@ -34,7 +34,7 @@ STAR_CHI2_FACTOR = 10.0
 
 
 def verdict(unexplained, nuisance, star=None, null_expectation=1.0, position_split=None,
-            empirical=None):
+            empirical=None, unapplied=None):
     """Whether a run explains its data: never a success while something is left.
 
     Parameters
@@ -56,6 +56,11 @@ def verdict(unexplained, nuisance, star=None, null_expectation=1.0, position_spl
         column at 13.2 sigma, and the run said "explained").
     empirical : dict, optional
         The EMPIRICAL term (`DiagnosisResult.empirical`).
+    unapplied : dict, optional
+        Named effects no refined calibration applies, and why
+        (`bfpsf.diagnosis.refine.unapplied`): the loop's model explains what the products
+        leave (a new user's star-only non-linearity, 4 times the size, named
+        flux_diffusion, "explained", and held-out P(F) left +45 % of the raw X slope).
 
     Returns
     -------
@@ -71,6 +76,9 @@ def verdict(unexplained, nuisance, star=None, null_expectation=1.0, position_spl
         against = (nuisance.get(entry.name) or {}).get("contradicted_by")
         if against:
             reasons.append(f"the {entry.what} is contradicted by {against}")
+    for name, why in (unapplied or {}).items():
+        reasons.append(f"{name} is named, but no refined calibration applies it ({why}): "
+                       "bfpsf psf, photometry and slope --psf leave what it explains")
     parity = ((nuisance.get(SCALE.name) or {}).get("signature") or {}).get("parity")
     if parity and not parity["matches"]:
         reasons.append(f"the stars' odd moments change with flux (parity p = "
