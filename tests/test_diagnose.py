@@ -687,18 +687,22 @@ def test_the_verdict_says_how_much_the_flats_errors_could_hide():
     axis, said in the verdict; a contradicted nuisance hides nothing (it is not applied)."""
     from bfpsf.diagnosis.unexplained import hiding_room, verdict
 
-    def nuisance(scale, split, against=None):
+    def nuisance(scale, split, against=None, value=0.62):
         return {"calibration_scale": {"prior": scale, "contradicted_by": against,
-                                      "value": 0.62, "error": 0.02},
+                                      "value": value, "error": 0.02},
                 "calibration_split": {"prior": split, "contradicted_by": None,
-                                      "value": -0.14, "error": 0.09}}
+                                      "value": -0.04, "error": 0.09}}
 
-    assert hiding_room(nuisance(0.05, 0.1)) == []
+    assert hiding_room(nuisance(0.05, 0.1, value=0.04)) == []
     assert hiding_room({}) == []
+    # precise flats, but the stars took the scale beyond 1 of its prior: said (a new user's
+    # star-only non-linearity took +0.13 +- 0.05 of a prior of 0.085 without a word)
+    (line,) = hiding_room(nuisance(0.085, 0.065, value=0.13))
+    assert "isotropic up to 26 %" in line and "the scale +0.13 +- 0.02, 1.5 of its prior" in line
     (line,) = verdict([], nuisance(0.64, 1.31))["caveats"]
     assert "isotropic up to 192 %, on one axis up to 196 %" in line
     # and how much of it this set's stars took
-    assert "the scale +0.62 +- 0.02, 1.0 of its prior and the X / Y split -0.14" in line
+    assert "the scale +0.62 +- 0.02, 1.0 of its prior and the X / Y split -0.04" in line
     (line,) = hiding_room(nuisance(0.64, 0.3, against="axis"))
     assert "isotropic" not in line and "on one axis up to 45 %" in line
 
