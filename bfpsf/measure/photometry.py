@@ -333,6 +333,8 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
     clipped = None if saturation_e is None else ndimage.binary_dilation(
         np.where(finite, image, 0.0) >= saturation_e, structure=np.ones((3, 3), dtype=bool),
         iterations=int(half_width) + 1)
+    sharpness = (psf_sharpness(photometry.psf_model, *((np.array(data.shape[::-1]) - 1) // 2))
+                 if mask_cosmic_rays else None)  # the PSF's own, once
     def cosmic_rays_in(stars):
         """The cosmic rays in the residual of the stars' models (none unless masked)."""
         if not mask_cosmic_rays:
@@ -340,8 +342,7 @@ def psf_photometry(image_e, psf, *, positions=None, read_noise_e=None, backgroun
         return cosmic_ray_mask(
             data - stars, _model_variance(sky, stars, read_noise_e), stars,
             read_noise_e=read_noise_e, excluded=lines if clipped is None else clipped | lines,
-            sharpness=psf_sharpness(photometry.psf_model,
-                                    *((np.array(data.shape[::-1]) - 1) // 2)))
+            sharpness=sharpness)
 
     box = float(np.max(np.atleast_1d(photometry.fit_shape))) / np.sqrt(2.0)  # half diagonal
     cosmic = np.zeros(data.shape, dtype=bool)
